@@ -1,0 +1,3 @@
+"""humantele: remote ultrasound by human teleoperation."""
+
+__version__ = "0.1.0"

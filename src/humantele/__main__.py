@@ -1,0 +1,3 @@
+from humantele.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,55 @@
+"""Writing benchmark results into ``docs/benchmarks.md``, one section per benchmark.
+
+Each benchmark owns the text between ``<!-- bench:NAME -->`` and ``<!-- /bench:NAME -->``;
+rerunning one benchmark replaces only its own section, so the file keeps every other figure.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import re
+import time
+from pathlib import Path
+
+DOCS_DIR = Path(__file__).resolve().parents[3] / "docs"
+BENCHMARKS_MD = DOCS_DIR / "benchmarks.md"
+
+_HEADER = """# Benchmarks
+
+Written by `humantele bench ...`; each section is replaced when its benchmark is rerun.
+Figures are medians and ratios measured in one run on the machine named in the section.
+"""
+
+
+def machine_line() -> str:
+    """A short description of where and when the figures were measured."""
+    return (
+        f"Measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} on "
+        f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}."
+    )
+
+
+def write_section(name: str, markdown: str, path: Path | None = None) -> Path:
+    """Replace (or append) benchmark ``name``'s section in docs/benchmarks.md; returns the path."""
+    path = Path(path) if path is not None else BENCHMARKS_MD
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = path.read_text(encoding="utf-8") if path.exists() else _HEADER
+    begin, end = f"<!-- bench:{name} -->", f"<!-- /bench:{name} -->"
+    block = f"{begin}\n{markdown.strip()}\n{end}"
+    pattern = re.compile(re.escape(begin) + r".*?" + re.escape(end), re.DOTALL)
+    if pattern.search(text):
+        text = pattern.sub(lambda _m: block, text)
+    else:
+        text = text.rstrip() + "\n\n" + block + "\n"
+    tmp = path.with_suffix(".md.tmp")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
+    return path
+
+
+def markdown_table(header: list[str], rows: list[list[object]]) -> str:
+    """A GitHub markdown table; floats are printed as given (format them before)."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)

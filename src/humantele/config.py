@@ -1,0 +1,79 @@
+"""Configuration: pydantic models loaded from TOML or JSON files in ``configs/``.
+
+Every model derives from :class:`ConfigModel`: unknown fields are refused, and every field has a
+default that runs the demo. A bad value fails at start with :class:`ConfigError`, whose message
+names the file, the field and the reason.
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from pathlib import Path
+from typing import Any, TypeVar
+
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
+
+
+class ConfigError(ValueError):
+    """A configuration file or value that cannot be used; the message says which and why."""
+
+
+class ConfigModel(BaseModel):
+    """Base of every configuration model: strict about unknown keys, validated on assignment."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=False)
+
+
+M = TypeVar("M", bound=BaseModel)
+
+
+def describe_validation_error(err: ValidationError, source: str = "") -> str:
+    """One line per bad field: ``source: field.path: reason``."""
+    lines = []
+    for e in err.errors():
+        loc = ".".join(str(part) for part in e["loc"]) or "(top level)"
+        prefix = f"{source}: " if source else ""
+        lines.append(f"{prefix}{loc}: {e['msg']}")
+    return "\n".join(lines)
+
+
+def read_config_file(path: str | Path) -> dict[str, Any]:
+    """The raw mapping in a .toml or .json file; ConfigError if unreadable or malformed."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read configuration: {exc.strerror or exc}") from exc
+    try:
+        if path.suffix == ".json":
+            data = json.loads(text)
+        else:
+            data = tomllib.loads(text)
+    except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise ConfigError(f"{path}: not valid {path.suffix.lstrip('.') or 'TOML'}: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: the top level must be a table/object")
+    return data
+
+
+def validate_config(model: type[M], data: dict[str, Any], source: str = "") -> M:
+    """Validate a mapping into ``model``; ConfigError naming each bad field."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(describe_validation_error(exc, source)) from exc
+
+
+def load_config(model: type[M], path: str | Path | None = None, section: str | None = None) -> M:
+    """Load ``model`` from ``path`` (optionally one ``[section]`` of it); defaults when no path."""
+    if path is None:
+        return model()
+    data = read_config_file(path)
+    if section is not None:
+        data = data.get(section, {})
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: [{section}] must be a table")
+    return validate_config(model, data, str(path) + (f" [{section}]" if section else ""))

@@ -1,0 +1,1 @@
+"""The expert side: daemon, servo process wiring, console page."""

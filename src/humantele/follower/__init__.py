@@ -1,0 +1,1 @@
+"""The follower side: daemon, calibration, sensing, headset page."""

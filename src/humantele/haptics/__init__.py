@@ -1,0 +1,1 @@
+"""Haptics: ellipsoid patient model, force law, servo loop, haptic device backends."""

@@ -1,0 +1,1 @@
+"""Tracking: IR marker probe tracking, frame sources, tool definitions."""
