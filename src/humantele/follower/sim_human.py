@@ -1,0 +1,289 @@
+"""The simulated follower: a patient to press on and a human hand that tracks the virtual probe.
+
+Used by the follower daemon when no person is there (demo, tests, benchmarks). It models what
+the anchors measured of novices and no more:
+
+- lag: the hand reacts after ``reaction_delay_s`` and closes the gap with a first-order
+  response of time constant ``tracking_time_constant_s`` (together ~0.35 s, ANCHORS);
+- a constant offset (how this person holds the probe), position in world (m) and rotation;
+- hand tremor: a 8-12 Hz band-limited random motion (physiological tremor) of given RMS.
+
+Poses here are of the transducer's **tip frame** in the world frame (headset, y up): origin at
+the centre of the transducer face, +z along the beam (out of the face, into the patient).
+
+The simulated patient is an ellipsoidal abdomen lying on a bed: soft tissue of stiffness
+``tissue_stiffness_n_per_m`` and a stiff bed. Its four true landmarks drive the scripted
+calibration presses (:class:`CalibrationScript`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from pydantic import Field
+
+from humantele.config import ConfigModel
+from humantele.geometry import (
+    Pose,
+    matrix_to_quat,
+    quat_conjugate,
+    quat_from_axis_angle,
+    quat_multiply,
+    quat_normalize,
+)
+
+UP = np.array([0.0, 1.0, 0.0])
+
+
+class SimPatientConfig(ConfigModel):
+    """The simulated patient on the bed (world frame, m, N/m)."""
+
+    bed_height_m: float = Field(0.80, description="bed surface height (world y)")
+    center_xz_m: tuple[float, float] = Field(
+        (0.35, -0.15), description="abdomen centre, world x and z"
+    )
+    yaw_deg: float = Field(20.0, ge=-180, le=180, description="body axis about world y")
+    half_width_m: float = Field(0.16, gt=0.03, le=0.4, description="lateral semi-axis a")
+    half_height_m: float = Field(0.11, gt=0.02, le=0.3, description="vertical semi-axis b")
+    half_length_m: float = Field(0.35, gt=0.05, le=1.0, description="longitudinal semi-axis")
+    tissue_stiffness_n_per_m: float = Field(600.0, gt=0, le=1e5)
+    bed_stiffness_n_per_m: float = Field(5000.0, gt=0, le=1e6)
+
+
+class SimPatient:
+    """An ellipsoidal abdomen on a bed; forces on the probe tip (world frame, N)."""
+
+    def __init__(self, config: SimPatientConfig | None = None) -> None:
+        self.config = c = config or SimPatientConfig()
+        self.semi_axes = np.array([c.half_length_m, c.half_height_m, c.half_width_m])
+        yaw = math.radians(c.yaw_deg)
+        center = np.array([c.center_xz_m[0], c.bed_height_m + c.half_height_m, c.center_xz_m[1]])
+        # Ellipsoid frame: x head to feet, y up, z to the patient's right (the paper's axes).
+        self.T_world_body = Pose(center, quat_from_axis_angle(UP, yaw))
+
+    def landmarks(self) -> dict[str, NDArray[np.float64]]:
+        """The true xiphoid, extreme left, extreme right and a bed point (world, m)."""
+        a, b = self.config.half_width_m, self.config.half_height_m
+        pts = {
+            "xiphoid": [0.0, b, 0.0],
+            "left": [0.0, 0.0, -a],
+            "right": [0.0, 0.0, a],
+            "bed": [0.0, -b, a + 0.12],
+        }
+        return {k: self.T_world_body.apply(np.array(v, dtype=float)) for k, v in pts.items()}
+
+    def outward_normal(self, point_world: ArrayLike) -> NDArray[np.float64]:
+        """Unit outward normal of the abdomen (or the bed, for the bed landmark) near a point."""
+        p = np.asarray(point_world, dtype=float)
+        if p[1] <= self.config.bed_height_m + 1e-3:
+            return UP.copy()
+        q = self.T_world_body.inverse().apply(p)
+        n = q / self.semi_axes**2
+        norm = float(np.linalg.norm(n))
+        return UP.copy() if norm < 1e-9 else self.T_world_body.rotate(n / norm)
+
+    def force(self, tip_world: ArrayLike) -> NDArray[np.float64]:
+        """Force (world, N) the patient and bed put on a probe tip at ``tip_world`` (m)."""
+        c = self.config
+        p = np.asarray(tip_world, dtype=float)
+        f = np.zeros(3)
+        q = self.T_world_body.inverse().apply(p)
+        r = float(np.sqrt(np.sum((q / self.semi_axes) ** 2)))
+        if 1e-9 < r < 1.0:
+            depth = float(np.linalg.norm(q)) * (1.0 / r - 1.0)  # along the ray from the centre
+            n = q / self.semi_axes**2
+            f += (
+                c.tissue_stiffness_n_per_m * depth * self.T_world_body.rotate(n / np.linalg.norm(n))
+            )
+        if p[1] < c.bed_height_m:
+            f += c.bed_stiffness_n_per_m * (c.bed_height_m - p[1]) * UP
+        return f
+
+
+def quat_slerp(q0: ArrayLike, q1: ArrayLike, s: float) -> NDArray[np.float64]:
+    """Spherical interpolation from q0 (s=0) to q1 (s=1), shortest way; (x, y, z, w)."""
+    q0 = np.asarray(q0, dtype=float)
+    q1 = np.asarray(q1, dtype=float)
+    rel = quat_multiply(quat_conjugate(q0), q1)
+    if rel[3] < 0:
+        rel = -rel
+    angle = 2.0 * math.atan2(float(np.linalg.norm(rel[:3])), float(rel[3]))
+    if angle < 1e-9:
+        return quat_normalize(q1)
+    return quat_normalize(quat_multiply(q0, quat_from_axis_angle(rel[:3], angle * s)))
+
+
+def probe_down_quat(normal_world: ArrayLike) -> NDArray[np.float64]:
+    """Tip frame orientation with +z (the beam) along ``-normal``: pressing into the surface."""
+    z = -np.asarray(normal_world, dtype=float)
+    z = z / np.linalg.norm(z)
+    ref = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 0.0, 1.0])
+    x = np.cross(ref, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return matrix_to_quat(np.column_stack([x, y, z]))
+
+
+class SimHumanConfig(ConfigModel):
+    """The simulated novice (ANCHORS: lag 0.35 s, error 6.24 mm / 5.93 deg RMS)."""
+
+    reaction_delay_s: float = Field(0.20, ge=0, le=2.0)
+    tracking_time_constant_s: float = Field(0.15, gt=0, le=2.0)
+    offset_mm: tuple[float, float, float] = Field((3.0, -2.0, 3.5), description="world frame")
+    offset_rotation_deg: tuple[float, float, float] = Field(
+        (3.0, -2.0, 3.0), description="rotation vector (deg) applied in the tip frame"
+    )
+    tremor_mm_rms: float = Field(0.8, ge=0, le=20, description="per axis")
+    tremor_deg_rms: float = Field(0.6, ge=0, le=20, description="per axis")
+    tremor_hz: float = Field(9.0, gt=1, le=30)
+    rate_hz: float = Field(100.0, gt=10, le=1000, description="nominal step rate of the model")
+    max_push_n: float = Field(30.0, gt=0, le=100, description="a person pushes no harder")
+    seed: int = 0
+
+
+class _Tremor:
+    """Band-limited noise around ``hz``: an AR(2) resonator with a stationary RMS of ``rms``."""
+
+    def __init__(self, rms: float, hz: float, rate_hz: float, rng: np.random.Generator) -> None:
+        self.rng = rng
+        r = 0.97
+        theta = 2.0 * math.pi * hz / rate_hz
+        self.phi1, self.phi2 = 2.0 * r * math.cos(theta), -r * r
+        # Stationary variance of an AR(2) process per unit innovation variance.
+        g0 = (1 - self.phi2) / ((1 + self.phi2) * ((1 - self.phi2) ** 2 - self.phi1**2))
+        self.sigma = rms / math.sqrt(g0)
+        self.x1 = np.zeros(3)
+        self.x2 = np.zeros(3)
+
+    def step(self) -> NDArray[np.float64]:
+        x = self.phi1 * self.x1 + self.phi2 * self.x2 + self.rng.normal(0.0, self.sigma, 3)
+        self.x2, self.x1 = self.x1, x
+        return x
+
+
+class SimHuman:
+    """A person holding the real probe on the virtual one; ``step`` returns the true tip pose."""
+
+    def __init__(
+        self, config: SimHumanConfig | None = None, patient: SimPatient | None = None
+    ) -> None:
+        self.config = c = config or SimHumanConfig()
+        self.patient = patient
+        rng = np.random.default_rng(c.seed)
+        self._pos_tremor = _Tremor(c.tremor_mm_rms / 1000.0, c.tremor_hz, c.rate_hz, rng)
+        self._rot_tremor = _Tremor(math.radians(c.tremor_deg_rms), c.tremor_hz, c.rate_hz, rng)
+        self.offset = np.asarray(c.offset_mm, dtype=float) / 1000.0
+        rv = np.radians(np.asarray(c.offset_rotation_deg, dtype=float))
+        angle = float(np.linalg.norm(rv))
+        self.offset_q = quat_from_axis_angle(rv, angle) if angle > 0 else np.array([0, 0, 0, 1.0])
+        self._targets: deque[tuple[float, Pose]] = deque()
+        self.hand: Pose | None = None  # the smoothed hand pose, before offset and tremor
+        self._t: float | None = None
+
+    def step(self, t: float, target: Pose | None) -> Pose | None:
+        """Advance to time ``t`` (s) with the latest target tip pose (world) or None if none;
+        returns the true tip pose (world), or None before the first target."""
+        c = self.config
+        if target is not None:
+            self._targets.append((t, target))
+        # The target the person is reacting to now: the newest one older than the delay.
+        cut = t - c.reaction_delay_s
+        while len(self._targets) > 1 and self._targets[1][0] <= cut:
+            self._targets.popleft()
+        delayed = self._targets[0][1] if self._targets and self._targets[0][0] <= cut else None
+        if self.hand is None:
+            if delayed is None:
+                return None
+            self.hand = delayed
+        elif delayed is not None:
+            dt = 0.0 if self._t is None else max(0.0, t - self._t)
+            alpha = 1.0 - math.exp(-dt / c.tracking_time_constant_s)
+            pos = self.hand.position + alpha * (delayed.position - self.hand.position)
+            self.hand = Pose(pos, quat_slerp(self.hand.quaternion, delayed.quaternion, alpha))
+        self._t = t
+        pos = self.hand.position + self.offset + self._pos_tremor.step()
+        rv = self._rot_tremor.step()
+        ang = float(np.linalg.norm(rv))
+        q = quat_multiply(self.hand.quaternion, self.offset_q)
+        if ang > 1e-12:
+            q = quat_multiply(q, quat_from_axis_angle(rv, ang))
+        if self.patient is not None:
+            pos = self._limit_push(pos)
+        return Pose(pos, q)
+
+    def _limit_push(self, tip: NDArray[np.float64]) -> NDArray[np.float64]:
+        """A person stops pushing at ``max_push_n``: back off along the force until below it."""
+        f = self.patient.force(tip)
+        fn = float(np.linalg.norm(f))
+        for _ in range(20):
+            if fn <= self.config.max_push_n:
+                break
+            tip = tip + f / fn * 0.002
+            f = self.patient.force(tip)
+            fn = float(np.linalg.norm(f))
+        return tip
+
+
+class CalibrationScript:
+    """The scripted technician: over each landmark, press, hold, lift; targets in time.
+
+    ``target(t)`` gives the tip pose the person aims at ``t`` seconds after the script started,
+    or None once it is over. The press depth is chosen to reach ``press_force_n`` on the tissue.
+    """
+
+    LANDMARK_ORDER = ("xiphoid", "left", "right", "bed")
+
+    def __init__(
+        self,
+        patient: SimPatient,
+        press_force_n: float = 12.0,
+        hover_m: float = 0.04,
+        move_s: float = 0.35,
+        press_s: float = 0.25,
+        hold_s: float = 0.45,
+        lift_s: float = 0.2,
+        lift_m: float = 0.12,
+    ) -> None:
+        self.patient = patient
+        lm = patient.landmarks()
+        k = patient.config.tissue_stiffness_n_per_m
+        self.waypoints: list[tuple[float, Pose]] = []
+        t = 0.0
+        for name in self.LANDMARK_ORDER:
+            p = lm[name]
+            n = patient.outward_normal(p)
+            stiff = patient.config.bed_stiffness_n_per_m if name == "bed" else k
+            depth = press_force_n / stiff
+            q = probe_down_quat(n)
+            above, pressed = Pose(p + hover_m * n, q), Pose(p - depth * n, q)
+            high = Pose(above.position + lift_m * UP, q)  # travel high, clear of the body
+            if self.waypoints:
+                t += move_s
+            self.waypoints.append((t, high))
+            t += move_s
+            self.waypoints.append((t, above))
+            t += press_s
+            self.waypoints.append((t, pressed))
+            t += hold_s
+            self.waypoints.append((t, pressed))
+            t += lift_s
+            self.waypoints.append((t, above))
+            t += lift_s
+            self.waypoints.append((t, high))
+        self.duration_s = t
+
+    def target(self, t: float) -> Pose | None:
+        if t < 0 or t > self.duration_s:
+            return None
+        wp = self.waypoints
+        for (t0, p0), (t1, p1) in zip(wp, wp[1:], strict=False):
+            if t <= t1:
+                s = 0.0 if t1 <= t0 else (t - t0) / (t1 - t0)
+                return Pose(
+                    p0.position + s * (p1.position - p0.position),
+                    quat_slerp(p0.quaternion, p1.quaternion, s),
+                )
+        return wp[-1][1]
