@@ -1,0 +1,143 @@
+"""Signaling client: join a room, send offers/answers, receive what the server relays.
+
+async with SignalingClient(url, room, role, token) as sig:
+    joined = await sig.join()          # Joined(peer_present=...) or SignalingRefused
+    await sig.send(Offer(sdp=..., id=1))
+    msg = await sig.receive()          # PeerJoined | PeerLeft | Offer | Answer
+"""
+
+from __future__ import annotations
+
+import aiohttp
+from pydantic import BaseModel
+
+from humantele.signaling.messages import (
+    FATAL_CLOSE_CODES,
+    SERVER_MESSAGE,
+    SIGNALING_PROTOCOL,
+    Answer,
+    Error,
+    Join,
+    Joined,
+    Offer,
+    PeerJoined,
+    PeerLeft,
+    parse,
+)
+
+
+class SignalingError(ConnectionError):
+    """The signaling connection failed or closed."""
+
+
+class SignalingRefused(SignalingError):
+    """The server refused us; ``reason`` says why, ``code`` is the close code, ``fatal`` is True
+    when retrying cannot help (bad token, unsupported protocol)."""
+
+    def __init__(self, reason: str, code: int | None) -> None:
+        super().__init__(f"signaling refused: {reason}")
+        self.reason = reason
+        self.code = code
+
+    @property
+    def fatal(self) -> bool:
+        return self.code in FATAL_CLOSE_CODES
+
+
+class SignalingClient:
+    """One WebSocket to the signaling server, for one peer in one room."""
+
+    def __init__(
+        self,
+        url: str,
+        room: str,
+        role: str,
+        token: str,
+        *,
+        heartbeat_s: float = 2.0,
+        timeout_s: float = 10.0,
+        max_message_bytes: int = 1 << 20,
+    ) -> None:
+        self.url = url
+        self.room = room
+        self.role = role
+        self._token = token
+        self._heartbeat_s = heartbeat_s
+        self._timeout_s = timeout_s
+        self._max = max_message_bytes
+        self._session: aiohttp.ClientSession | None = None
+        self._ws: aiohttp.ClientWebSocketResponse | None = None
+
+    def __repr__(self) -> str:
+        return f"SignalingClient({self.url!r}, room={self.room!r}, role={self.role!r})"
+
+    async def __aenter__(self) -> SignalingClient:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    async def join(self) -> Joined:
+        """Connect and join; SignalingRefused if the server says no, SignalingError if it cannot
+        be reached."""
+        self._session = aiohttp.ClientSession(timeout=aiohttp.ClientTimeout(total=None))
+        try:
+            self._ws = await self._session.ws_connect(
+                self.url,
+                heartbeat=self._heartbeat_s,
+                max_msg_size=self._max,
+                timeout=aiohttp.ClientWSTimeout(ws_close=2.0),
+            )
+        except (aiohttp.ClientError, OSError) as exc:
+            await self.close()
+            raise SignalingError(f"cannot reach signaling server {self.url}: {exc}") from None
+        join = Join(room=self.room, role=self.role, token=self._token, protocol=SIGNALING_PROTOCOL)
+        await self._ws.send_str(join.model_dump_json())
+        reply = await self.receive()
+        if not isinstance(reply, Joined):
+            await self.close()
+            raise SignalingError(f"expected joined, got {reply.type}")
+        return reply
+
+    async def send(self, msg: Offer | Answer) -> None:
+        if self._ws is None or self._ws.closed:
+            raise SignalingError("signaling connection is closed")
+        try:
+            await self._ws.send_str(msg.model_dump_json())
+        except (ConnectionError, RuntimeError) as exc:
+            raise SignalingError(f"signaling send failed: {exc}") from None
+
+    async def receive(self) -> Joined | PeerJoined | PeerLeft | Offer | Answer:
+        """The next server message; SignalingRefused on an error message, SignalingError when
+        the connection closes or the server sends garbage."""
+        if self._ws is None:
+            raise SignalingError("not connected")
+        m = await self._ws.receive()
+        if m.type != aiohttp.WSMsgType.TEXT:
+            code = self._ws.close_code
+            await self.close()
+            raise SignalingError(f"signaling connection closed (code {code})")
+        try:
+            msg: BaseModel = parse(SERVER_MESSAGE, m.data)
+        except ValueError as exc:
+            await self.close()
+            raise SignalingError(f"bad message from the signaling server: {exc}") from None
+        if isinstance(msg, Error):
+            # the close frame carries the code; read it
+            close = await self._ws.receive()
+            code = close.data if close.type == aiohttp.WSMsgType.CLOSE else self._ws.close_code
+            await self.close()
+            raise SignalingRefused(msg.reason, code)
+        return msg  # type: ignore[return-value]
+
+    async def close(self) -> None:
+        if self._ws is not None and not self._ws.closed:
+            await self._ws.close()
+        if self._session is not None:
+            await self._session.close()
+        self._ws = None
+        self._session = None
+
+    @property
+    def closed(self) -> bool:
+        return self._ws is None or self._ws.closed
