@@ -44,8 +44,9 @@ def test_sim_presses_give_four_landmarks_and_a_good_fit():
     res = cal.result
     assert res is not None
     c = patient.config
-    assert abs(res.model.a - c.half_width_m) < 0.015
-    assert abs(res.model.b - c.half_height_m) < 0.01
+    _, b, a = res.ellipsoid.semi_axes
+    assert abs(a - c.half_width_m) < 0.015
+    assert abs(b - c.half_height_m) < 0.01
     # Patient frame: y up, z from left to right; the sim patient is yawed about y.
     assert (
         abs(
@@ -55,8 +56,11 @@ def test_sim_presses_give_four_landmarks_and_a_good_fit():
         )
         < 3.0
     )
-    centre_world = res.T_world_patient.apply(res.model.center)
-    assert np.linalg.norm(centre_world - patient.T_world_body.position) < 0.015
+    assert np.linalg.norm(res.ellipsoid.center - patient.T_world_body.position) < 0.015
+    # The model the expert gets is the same ellipsoid in the patient frame.
+    top_world = res.T_world_patient.apply([0.0, b, 0.0])
+    assert res.model_patient().penetration([0.0, b - 0.01, 0.0])[0] == pytest.approx(0.01)
+    assert res.ellipsoid.penetration(top_world - [0, 0.01, 0])[0] == pytest.approx(0.01)
 
 
 def test_one_press_gives_one_landmark_despite_chatter():
@@ -99,9 +103,9 @@ def test_implausible_landmarks_refused_with_actionable_message():
     ev = press(cal, [0.0, 1.05, 0.3])  # "bed" above the xiphoid
     assert ev.kind == "refused" and ev.message.startswith("press again on the bed")
     ev = press(cal, [0.0, 0.78, 0.3])
-    assert ev.kind == "done" and cal.step is None
-    assert cal.result.model.a == pytest.approx(0.15)
-    assert cal.result.model.b == pytest.approx(0.11)
+    assert ev.kind == "done" and cal.step is None and cal.refusals == 3
+    assert cal.result.ellipsoid.semi_axes[2] == pytest.approx(0.15)
+    assert cal.result.ellipsoid.semi_axes[1] == pytest.approx(0.11)
 
 
 def test_side_landmark_above_xiphoid_refused():
@@ -122,12 +126,13 @@ def test_saved_and_reloaded(tmp_path):
     path = cal.save(tmp_path / "state" / "calibration.json")
     back = Calibration.load(path)
     assert back is not None
-    assert np.allclose(back.model.center, cal.model.center) and back.model.a == cal.model.a
+    assert back.ellipsoid == cal.ellipsoid
     assert back.T_world_patient.distance_to(cal.T_world_patient)[0] < 1e-12
     # Landmarks map into the patient frame with the ellipsoid's top at the xiphoid.
     lp = back.landmarks_patient()
-    assert lp["xiphoid"][1] == pytest.approx(back.model.center[1] + back.model.b)
-    assert lp["bed"][1] == pytest.approx(0.0)
+    b = back.ellipsoid.semi_axes[1]
+    assert lp["xiphoid"][1] == pytest.approx(b)
+    assert lp["bed"][1] == pytest.approx(-b)
     assert lp["left"][2] < 0 < lp["right"][2]
 
 
@@ -147,7 +152,7 @@ def test_corrupt_or_missing_calibration_is_none(tmp_path):
         },
         CalibrationConfig(),
     ).to_dict()
-    good["model"]["a"] = -1.0
+    good["ellipsoid_world"]["semi_axes"][2] = -1.0
     f.write_text(json.dumps(good))
     assert Calibration.load(f) is None
 
@@ -156,3 +161,17 @@ def test_config_needs_hysteresis():
     with pytest.raises(ConfigError, match="force_off_n must be below force_on_n"):
         validate_config(CalibrationConfig, {"force_on_n": 3.0, "force_off_n": 3.0})
     assert Pose.identity() is not None
+
+
+def test_fit_blames_a_landmark_and_asks_for_it_again():
+    # The left landmark is a little below the bed: plausible alone, but the fit refuses it.
+    cal = Calibrator()
+    assert press(cal, [0.0, 1.0, 0.0]).kind == "taken"
+    assert press(cal, [0.0, 0.8, -0.15]).kind == "taken"
+    assert press(cal, [0.0, 0.9, 0.15]).kind == "taken"
+    ev = press(cal, [0.0, 0.82, 0.3])
+    assert ev.kind == "refused" and ev.message.startswith("press again on the left side")
+    assert "above the bed" in ev.message
+    assert cal.step == "left" and cal.result is None and "bed" in cal.taken
+    ev = press(cal, [0.0, 0.9, -0.15])
+    assert ev.kind == "done" and cal.result is not None

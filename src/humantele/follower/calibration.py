@@ -7,11 +7,11 @@ one landmark). Each landmark is checked as it is taken; an implausible one is re
 message the technician can act on ("press again on the right side: ...") and the same landmark
 is asked again.
 
-Frames. The world frame is the headset's, y up. From the landmarks we build the patient frame
-of the paper: y up (world y), z lateral from the patient's left to right (the horizontal
-direction from the left landmark to the right one), x = y cross z (head to feet). Its origin
-is on the bed, under the xiphoid. The ellipsoid is fitted in this frame (eqs. 1-5 of the
-paper), so ``T_world_patient`` places it in the room and the expert works in patient frame.
+Frames. The world frame is the headset's, y up; landmarks are world points (m). The fit is
+:meth:`humantele.haptics.ellipsoid.Ellipsoid.from_landmarks` (eqs. 1-5 of the paper plus the
+heading of the body): its patient frame has y up, z from the patient's left to right, x head
+to feet, origin at the ellipsoid centre. ``T_world_patient`` places that frame in the room; the
+expert works in the patient frame only.
 
 The result is saved as a small JSON file so a restart or a reconnect reuses it.
 """
@@ -31,7 +31,8 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import Field, model_validator
 
 from humantele.config import ConfigModel
-from humantele.geometry import Pose, matrix_to_quat
+from humantele.geometry import Pose
+from humantele.haptics.ellipsoid import DEFAULT_LONGITUDINAL, Ellipsoid, LandmarkError
 
 LANDMARKS: tuple[str, ...] = ("xiphoid", "left", "right", "bed")
 
@@ -53,13 +54,13 @@ class CalibrationConfig(ConfigModel):
     force_off_n: float = Field(2.0, ge=0, description="re-armed below this force")
     min_half_width_m: float = Field(0.06, gt=0, description="least plausible half width")
     max_half_width_m: float = Field(0.35, gt=0, description="largest plausible half width")
-    min_height_m: float = Field(0.04, gt=0, description="least xiphoid height above the bed")
+    min_height_m: float = Field(0.10, gt=0, description="least xiphoid height above the bed")
     max_height_m: float = Field(0.50, gt=0, description="largest xiphoid height above the bed")
     side_height_tolerance_m: float = Field(
         0.05, ge=0, description="how far a side landmark may be above the xiphoid or below the bed"
     )
     long_semi_axis_m: float = Field(
-        2.0, gt=0, description="the paper's very large longitudinal semi-axis c"
+        DEFAULT_LONGITUDINAL, gt=0, description="the paper's very large longitudinal semi-axis c"
     )
 
     @model_validator(mode="after")
@@ -73,85 +74,36 @@ class CalibrationConfig(ConfigModel):
         return self
 
 
-@dataclass(frozen=True)
-class PatientModel:
-    """The fitted ellipsoid in the patient frame: centre (m) and semi-axes (a, b, c) (m).
-
-    ``a`` is lateral (z), ``b`` vertical (y), ``c`` longitudinal (x), as in the paper.
-    """
-
-    center: NDArray[np.float64]
-    a: float
-    b: float
-    c: float
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"center": [float(v) for v in self.center], "a": self.a, "b": self.b, "c": self.c}
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> PatientModel:
-        center = np.asarray(d["center"], dtype=float).reshape(3)
-        a, b, c = (float(d[k]) for k in ("a", "b", "c"))
-        if not (np.all(np.isfinite(center)) and min(a, b, c) > 0 and max(a, b, c) < 100):
-            raise ValueError("patient model needs a finite centre and positive semi-axes")
-        return cls(center, a, b, c)
-
-
-def patient_frame(landmarks_world: dict[str, ArrayLike]) -> Pose:
-    """``T_world_patient`` from the landmarks: y up, z from left to right, origin on the bed
-    under the xiphoid."""
-    left = np.asarray(landmarks_world["left"], dtype=float)
-    right = np.asarray(landmarks_world["right"], dtype=float)
-    xiphoid = np.asarray(landmarks_world["xiphoid"], dtype=float)
-    bed = np.asarray(landmarks_world["bed"], dtype=float)
-    z = right - left
-    z[1] = 0.0
-    n = float(np.linalg.norm(z))
-    if n < 1e-6:
-        raise ValueError("left and right landmarks are at the same place")
-    z /= n
-    y = np.array([0.0, 1.0, 0.0])
-    x = np.cross(y, z)
-    R = np.column_stack([x, y, z])
-    origin = np.array([xiphoid[0], bed[1], xiphoid[2]])
-    return Pose(origin, matrix_to_quat(R))
-
-
-def fit_patient_model(landmarks_patient: dict[str, ArrayLike], c: float) -> PatientModel:
-    """Eqs. 1-5 of the paper, landmarks in the patient frame (x, y, z)."""
-    x1, y1, _ = np.asarray(landmarks_patient["xiphoid"], dtype=float)
-    z2 = float(np.asarray(landmarks_patient["left"], dtype=float)[2])
-    z3 = float(np.asarray(landmarks_patient["right"], dtype=float)[2])
-    y4 = float(np.asarray(landmarks_patient["bed"], dtype=float)[1])
-    a = (z3 - z2) / 2.0
-    b = (y1 - y4) / 2.0
-    center = np.array([x1, (y1 + y4) / 2.0, (z3 + z2) / 2.0])
-    return PatientModel(center, float(a), float(b), float(c))
-
-
 @dataclass
 class Calibration:
-    """A finished calibration: landmarks (world, m), ``T_world_patient``, the model."""
+    """A finished calibration: the landmarks (world, m) and the ellipsoid fitted to them.
+
+    ``ellipsoid`` is in the world frame; ``T_world_patient`` is its patient frame (origin at the
+    centre); :meth:`model_patient` is the same ellipsoid expressed in the patient frame, which is
+    what the expert renders (the wire's poses are in that frame).
+    """
 
     landmarks_world: dict[str, NDArray[np.float64]]
-    T_world_patient: Pose
-    model: PatientModel
+    ellipsoid: Ellipsoid
     created_unix: float = field(default_factory=time.time)
 
+    @property
+    def T_world_patient(self) -> Pose:  # noqa: N802 (frame names keep their case)
+        return self.ellipsoid.T_world_patient
+
+    def model_patient(self) -> Ellipsoid:
+        """The ellipsoid in its own patient frame: centre at the origin, heading 0."""
+        return Ellipsoid((0.0, 0.0, 0.0), self.ellipsoid.semi_axes, 0.0)
+
     def landmarks_patient(self) -> dict[str, NDArray[np.float64]]:
-        T_patient_world = self.T_world_patient.inverse()
-        return {k: T_patient_world.apply(v) for k, v in self.landmarks_world.items()}
+        return {k: self.ellipsoid.to_patient(v) for k, v in self.landmarks_world.items()}
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "version": FORMAT_VERSION,
             "created_unix": self.created_unix,
             "landmarks_world": {k: [float(x) for x in v] for k, v in self.landmarks_world.items()},
-            "T_world_patient": {
-                "position": [float(x) for x in self.T_world_patient.position],
-                "quaternion": [float(x) for x in self.T_world_patient.quaternion],
-            },
-            "model": self.model.to_dict(),
+            "ellipsoid_world": self.ellipsoid.to_dict(),
         }
 
     @classmethod
@@ -163,11 +115,9 @@ class Calibration:
             lm = {k: np.asarray(d["landmarks_world"][k], dtype=float).reshape(3) for k in LANDMARKS}
             if not all(np.all(np.isfinite(v)) for v in lm.values()):
                 raise ValueError("landmarks must be finite")
-            T = d["T_world_patient"]
-            pose = Pose(np.asarray(T["position"], dtype=float), np.asarray(T["quaternion"]))
-            model = PatientModel.from_dict(d["model"])
-            return cls(lm, pose, model, float(d.get("created_unix", 0.0)))
-        except (KeyError, TypeError, IndexError) as exc:
+            ellipsoid = Ellipsoid.from_dict(d["ellipsoid_world"])
+            return cls(lm, ellipsoid, float(d.get("created_unix", 0.0)))
+        except (KeyError, TypeError, IndexError, AttributeError) as exc:
             raise ValueError(f"malformed calibration: {exc!r}") from exc
 
     def save(self, path: str | Path) -> Path:
@@ -189,16 +139,17 @@ class Calibration:
 
 
 def build_calibration(
-    landmarks_world: dict[str, ArrayLike], config: CalibrationConfig
+    landmarks_world: dict[str, ArrayLike], config: CalibrationConfig | None = None
 ) -> Calibration:
-    """Patient frame and fitted model from four landmarks (world frame, m)."""
+    """Fit the ellipsoid (paper eqs. 1-5 plus heading) to four landmarks (world frame, m).
+
+    Raises :class:`humantele.haptics.ellipsoid.LandmarkError` naming a landmark to retake."""
+    config = config or CalibrationConfig()
     lm = {k: np.asarray(landmarks_world[k], dtype=float).reshape(3) for k in LANDMARKS}
-    T_world_patient = patient_frame(lm)
-    T_patient_world = T_world_patient.inverse()
-    model = fit_patient_model(
-        {k: T_patient_world.apply(v) for k, v in lm.items()}, config.long_semi_axis_m
+    ellipsoid = Ellipsoid.from_landmarks(
+        lm["xiphoid"], lm["left"], lm["right"], lm["bed"], config.long_semi_axis_m
     )
-    return Calibration(lm, T_world_patient, model)
+    return Calibration(lm, ellipsoid)
 
 
 def _mm(v: float) -> str:
@@ -322,8 +273,11 @@ class Calibrator:
             return CalibrationEvent("taken", name, tip, f"{name} taken; now {self.prompt()}")
         try:
             self.result = build_calibration(self.taken, self.config)
-        except ValueError as exc:
-            del self.taken[name]
+        except LandmarkError as exc:  # retake the landmark the fit blames
+            bad = exc.landmark if exc.landmark in self.taken else name
+            del self.taken[bad]
             self.refusals += 1
-            return CalibrationEvent("refused", name, tip, f"press again on the {name}: {exc}")
+            place = {"left": "left side", "right": "right side"}.get(bad, bad)
+            msg = f"press again on the {place}: {exc.reason}"
+            return CalibrationEvent("refused", bad, self.taken.get(bad, tip), msg)
         return CalibrationEvent("done", name, tip, "calibration done")
