@@ -1,0 +1,60 @@
+"""Link configuration: where signaling is, which room, the token, ICE servers, rates, timeouts."""
+
+from __future__ import annotations
+
+from typing import Self
+
+from pydantic import Field, SecretStr, field_validator, model_validator
+
+from humantele.config import ConfigModel
+from humantele.signaling.messages import ROOM_PATTERN
+
+
+class IceServer(ConfigModel):
+    """One STUN or TURN server, as in the WebRTC ``RTCIceServer`` dictionary."""
+
+    urls: list[str] = Field(min_length=1)
+    username: str | None = None
+    credential: SecretStr | None = None
+
+    @field_validator("urls")
+    @classmethod
+    def _scheme(cls, urls: list[str]) -> list[str]:
+        for url in urls:
+            if not url.startswith(("stun:", "stuns:", "turn:", "turns:")):
+                raise ValueError(f"{url!r} is not a stun:, stuns:, turn: or turns: URL")
+        return urls
+
+
+class LinkConfig(ConfigModel):
+    """Settings of one peer link (one per daemon). Defaults run the loopback demo.
+
+    ``ice_servers`` defaults to an explicit empty list: aiortc would otherwise try a public
+    STUN server. ``relay_only`` sets iceTransportPolicy="relay" (needs a TURN server).
+    ``token`` falls back to $HUMANTELE_TOKEN, then to the loopback development token.
+    """
+
+    signaling_url: str = Field("ws://127.0.0.1:8765/ws", pattern=r"^wss?://\S+$")
+    room: str = Field("demo", pattern=ROOM_PATTERN)
+    token: SecretStr | None = None
+    ice_servers: list[IceServer] = Field(default_factory=list)
+    relay_only: bool = False
+    pose_rate_hz: float = Field(250.0, gt=0, le=1000)
+    state_rate_hz: float = Field(100.0, gt=0, le=1000)
+    heartbeat_interval_s: float = Field(0.5, gt=0, le=10)
+    heartbeat_timeout_s: float = Field(2.0, gt=0, le=60)
+    clock_sync_interval_s: float = Field(1.0, gt=0, le=60)
+    connect_timeout_s: float = Field(10.0, gt=0, le=120)
+    reconnect_delay_s: float = Field(0.5, gt=0, le=60)
+    reconnect_max_delay_s: float = Field(5.0, gt=0, le=600)
+    max_buffered_bytes: int = Field(65536, ge=1024)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Self:
+        if self.heartbeat_timeout_s <= self.heartbeat_interval_s:
+            raise ValueError("heartbeat_timeout_s must be longer than heartbeat_interval_s")
+        if self.relay_only and not any(
+            u.startswith(("turn:", "turns:")) for s in self.ice_servers for u in s.urls
+        ):
+            raise ValueError("relay_only needs at least one turn: server in ice_servers")
+        return self
