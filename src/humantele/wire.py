@@ -225,7 +225,7 @@ def _check_force(force: Vec3) -> None:
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Coordinate = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_POSITION_M, le=MAX_POSITION_M)]
-Time = Annotated[float, Field(allow_inf_nan=False, ge=0.0)]
+Time = Finite  # a monotonic clock reading (s); any finite value
 Text = Annotated[str, Field(max_length=200)]
 
 
@@ -243,10 +243,10 @@ class Hello(_Control):
 
 
 class EllipsoidParams(_Control):
-    """The patient model (as ``Ellipsoid.to_dict()`` gives it): centre (m, patient frame),
+    """The patient model, exactly as ``Ellipsoid.to_dict()`` gives it: center (m, world frame),
     semi-axes (m, all > 0; the paper makes the longitudinal one very large), heading (rad)."""
 
-    centre: tuple[Coordinate, Coordinate, Coordinate]
+    center: tuple[Coordinate, Coordinate, Coordinate]
     semi_axes: tuple[
         Annotated[float, Field(gt=0.0, le=1e6, allow_inf_nan=False)],
         Annotated[float, Field(gt=0.0, le=1e6, allow_inf_nan=False)],

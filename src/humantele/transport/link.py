@@ -591,7 +591,7 @@ class PeerLink:
                     continue
                 if now - self._last_heartbeat >= cfg.heartbeat_interval_s:
                     self._last_heartbeat = now
-                    self.send_control(Heartbeat(t=max(now, 0.0)))
+                    self.send_control(Heartbeat(t=now))
                 interval = _TICK_S if self._pings < FAST_SYNC_PINGS else cfg.clock_sync_interval_s
                 if now - self._last_ping >= interval:
                     self._last_ping = now
