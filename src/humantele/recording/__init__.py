@@ -1,0 +1,27 @@
+"""Session recordings in MCAP: schemas, a non-blocking recorder, a crash-tolerant reader.
+
+Daemons use :class:`Recorder`; analysis uses :func:`read_recording`. See docs/analysis.md.
+"""
+
+from humantele.recording.reader import Recording, RecordingReadError, read_recording
+from humantele.recording.schemas import CHANNELS, check_participant_id
+from humantele.recording.writer import (
+    McapLog,
+    Recorder,
+    RecorderConfig,
+    RecorderStats,
+    RecordingError,
+)
+
+__all__ = [
+    "CHANNELS",
+    "McapLog",
+    "Recorder",
+    "RecorderConfig",
+    "RecorderStats",
+    "Recording",
+    "RecordingError",
+    "RecordingReadError",
+    "check_participant_id",
+    "read_recording",
+]

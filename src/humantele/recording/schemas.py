@@ -1,0 +1,292 @@
+"""The recorded channels: topic names, their fields (SI units, frames) and JSON schemas.
+
+Every sample has ``t``: seconds on the clock of the daemon that records it (the expert daemon's
+clock for ``/expert/*`` topics, the follower daemon's for ``/follower/*``); the ``clock_sync``
+topics relate the two. Poses are ``T_patient_probe``: the probe's position (m) and orientation
+(unit quaternion, x, y, z, w scalar-last) in the patient frame of the paper (x head to feet, y up
+from the bed, z lateral), the frame shared by the expert's virtual probe and the tracked probe.
+
+High-rate topics (``batch=True``) pack several samples into one MCAP message
+``{"samples": [sample, ...]}``; the others hold one sample per message. Messages are JSON with a
+JSON schema, so Foxglove opens the files directly. Ids are pseudonyms (``F03``, ``S1``): no
+patient identity is ever recorded.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from dataclasses import dataclass, field
+from typing import Any
+
+SCHEMA_ENCODING = "jsonschema"
+MESSAGE_ENCODING = "json"
+SESSION_METADATA = "humantele.session"
+
+# A pseudonymous participant id: up to 4 letters, an optional '-' or '_', then 1-6 digits
+# ("F03", "S1", "P-12"). Refuses names and e-mail addresses, which never match.
+ID_PATTERN = re.compile(r"^[A-Za-z]{0,4}[-_]?[0-9]{1,6}$")
+
+_MAX_STRING = 200
+# Recorded precision: vectors 1e-7 (0.1 um, 0.1 uN), quaternions 1e-8, t 1 us. Short numbers
+# make the JSON half the size and twice as fast to read, far below any sensor's noise.
+VEC3_DECIMALS, QUAT_DECIMALS, T_DECIMALS = 7, 8, 6
+
+# kind -> JSON schema of the value
+_KINDS: dict[str, dict[str, Any]] = {
+    "number": {"type": "number"},
+    "integer": {"type": "integer"},
+    "string": {"type": "string", "maxLength": _MAX_STRING},
+    "boolean": {"type": "boolean"},
+    "vec3": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
+    "quat": {"type": "array", "items": {"type": "number"}, "minItems": 4, "maxItems": 4},
+}
+
+
+@dataclass(frozen=True)
+class ChannelSpec:
+    """One recorded stream: its topic, fields ``name -> (kind, description)``, which are
+    required, and whether samples are packed several per message (high-rate streams)."""
+
+    topic: str
+    description: str
+    fields: dict[str, tuple[str, str]]
+    required: tuple[str, ...] = ()
+    batch: bool = False
+    enums: dict[str, tuple[str, ...]] = field(default_factory=dict)
+
+    @property
+    def schema_name(self) -> str:
+        return "humantele" + self.topic.replace("/", ".")
+
+
+_POSE = {
+    "position": ("vec3", "probe position in the patient frame, m"),
+    "quaternion": ("quat", "probe orientation in the patient frame, unit (x, y, z, w)"),
+}
+_CLOCK_SYNC = {
+    "offset_s": ("number", "peer clock minus this daemon's clock, s (t_peer = t + offset_s)"),
+    "rtt_s": ("number", "round trip of the exchange that gave this estimate, s"),
+}
+_LATENCY = {
+    "name": ("string", "what was measured, e.g. 'pose_one_way', 'video_glass_to_glass'"),
+    "value_s": ("number", "the latency, s"),
+}
+_VIDEO = {
+    "stream": ("string", "'pov' (follower camera) or 'us' (ultrasound image)"),
+    "seq": ("integer", "frame number in its stream"),
+    "event": ("string", "'captured', 'sent' or 'received'"),
+}
+
+CHANNELS: dict[str, ChannelSpec] = {
+    spec.topic: spec
+    for spec in [
+        ChannelSpec(
+            "/expert/pose",
+            "the virtual probe commanded by the expert (T_patient_probe), servo rate",
+            {**_POSE, "velocity": ("vec3", "probe velocity in the patient frame, m/s")},
+            ("position", "quaternion"),
+            batch=True,
+        ),
+        ChannelSpec(
+            "/expert/force",
+            "force rendered to the haptic device from the ellipsoid model, patient frame",
+            {
+                "force": ("vec3", "force on the expert's hand, patient frame, N"),
+                "depth_m": ("number", "penetration into the ellipsoid, m"),
+            },
+            ("force",),
+            batch=True,
+        ),
+        ChannelSpec(
+            "/expert/servo_stats",
+            "servo loop statistics, about once a second",
+            {
+                "rate_hz": ("number", "mean loop rate, Hz"),
+                "period_p99_s": ("number", "99th percentile loop period, s"),
+                "late_ticks": ("integer", "ticks over their deadline since the last report"),
+                "state": ("string", "servo state, e.g. 'running', 'fault'"),
+            },
+            ("rate_hz",),
+        ),
+        ChannelSpec(
+            "/expert/scan",
+            "scan start and stop, from the expert; ids are pseudonyms",
+            {
+                "event": ("string", "'start' or 'stop'"),
+                "scan": ("integer", "scan number (>= 0)"),
+                "follower_id": ("string", "pseudonymous follower id, e.g. 'F03'"),
+                "sonographer_id": ("string", "pseudonymous sonographer id, e.g. 'S1'"),
+            },
+            ("event", "scan"),
+            enums={"event": ("start", "stop")},
+        ),
+        ChannelSpec(
+            "/expert/clock_sync",
+            "clock offset estimates to the follower",
+            _CLOCK_SYNC,
+            ("offset_s",),
+        ),
+        ChannelSpec(
+            "/follower/clock_sync",
+            "clock offset estimates to the expert",
+            _CLOCK_SYNC,
+            ("offset_s",),
+        ),
+        ChannelSpec(
+            "/expert/latency",
+            "latency figures measured by the expert",
+            _LATENCY,
+            ("name", "value_s"),
+        ),
+        ChannelSpec(
+            "/follower/latency",
+            "latency figures measured by the follower",
+            _LATENCY,
+            ("name", "value_s"),
+        ),
+        ChannelSpec(
+            "/expert/video_frame", "video frame timestamps at the expert", _VIDEO, ("stream", "seq")
+        ),
+        ChannelSpec(
+            "/follower/video_frame",
+            "video frame timestamps at the follower",
+            _VIDEO,
+            ("stream", "seq"),
+        ),
+        ChannelSpec(
+            "/follower/probe_pose",
+            "the real probe tracked by the headset (T_patient_probe), one per tracker frame",
+            {
+                **_POSE,
+                "tracked": ("boolean", "false when the tool was not found in this frame"),
+                "markers": ("integer", "markers matched in this frame"),
+            },
+            ("position", "quaternion", "tracked"),
+        ),
+        ChannelSpec(
+            "/follower/force",
+            "force measured by the probe's sensor, probe frame",
+            {"force": ("vec3", "force on the probe, probe frame, N")},
+            ("force",),
+            batch=True,
+        ),
+        ChannelSpec(
+            "/follower/ellipsoid",
+            "the fitted patient model (eqs. 1-5), sent to the expert after calibration",
+            {
+                "center": ("vec3", "ellipsoid centre in the patient frame, m"),
+                "semi_axes": ("vec3", "semi-axes along patient x, y, z (c, b, a), m"),
+            },
+            ("center", "semi_axes"),
+        ),
+        ChannelSpec(
+            "/follower/calibration",
+            "calibration events: a landmark collected, the fit done or refused",
+            {
+                "event": ("string", "'point', 'fit', 'reset' or 'error'"),
+                "landmark": ("string", "'xiphoid', 'left', 'right' or 'bed'"),
+                "position": ("vec3", "collected probe tip position, patient/world frame, m"),
+                "message": ("string", "why a fit was refused"),
+            },
+            ("event",),
+        ),
+    ]
+}
+
+
+def json_schema(spec: ChannelSpec) -> dict[str, Any]:
+    """The JSON schema of one message of ``spec`` (Foxglove reads it)."""
+    props: dict[str, Any] = {
+        "t": {"type": "number", "description": "time on this daemon's clock, s"}
+    }
+    for name, (kind, desc) in spec.fields.items():
+        props[name] = {**_KINDS[kind], "description": desc}
+        if name in spec.enums:
+            props[name]["enum"] = list(spec.enums[name])
+    sample = {
+        "type": "object",
+        "title": spec.schema_name,
+        "description": spec.description,
+        "properties": props,
+        "required": ["t", *spec.required],
+    }
+    if not spec.batch:
+        return sample
+    return {
+        "type": "object",
+        "title": spec.schema_name,
+        "description": spec.description + " (samples packed per message)",
+        "properties": {"samples": {"type": "array", "items": sample}},
+        "required": ["samples"],
+    }
+
+
+def schema_bytes(spec: ChannelSpec) -> bytes:
+    return json.dumps(json_schema(spec)).encode()
+
+
+def _finite(x: Any) -> float:
+    v = float(x)
+    if not math.isfinite(v):
+        raise ValueError("not finite")
+    return v
+
+
+def _value(kind: str, v: Any) -> Any:
+    if kind == "number":
+        if isinstance(v, bool):
+            raise ValueError("expected a number")
+        return _finite(v)
+    if kind == "integer":
+        if isinstance(v, bool) or int(v) != v:
+            raise ValueError("expected an integer")
+        return int(v)
+    if kind == "string":
+        if not isinstance(v, str) or len(v) > _MAX_STRING:
+            raise ValueError(f"expected a string of at most {_MAX_STRING} characters")
+        return v
+    if kind == "boolean":
+        if not isinstance(v, bool | int) or v not in (0, 1):
+            raise ValueError("expected a boolean")
+        return bool(v)
+    n, digits = (3, VEC3_DECIMALS) if kind == "vec3" else (4, QUAT_DECIMALS)
+    vals = [round(_finite(x), digits) for x in (v.tolist() if hasattr(v, "tolist") else v)]
+    if len(vals) != n:
+        raise ValueError(f"expected {n} numbers")
+    if kind == "quat" and not 0.5 < math.sqrt(sum(x * x for x in vals)) < 1.5:
+        raise ValueError("quaternion is not unit length")
+    return vals
+
+
+def make_sample(spec: ChannelSpec, t: float, payload: dict[str, Any]) -> dict[str, Any]:
+    """The sample ``{"t": t, **fields}`` of ``spec`` with plain JSON values (numpy arrays become
+    lists); ValueError naming the field if a value is missing, unknown, non-finite or mistyped."""
+    sample: dict[str, Any] = {"t": round(_value("number", t), T_DECIMALS)}
+    for name, v in payload.items():
+        if name == "t":
+            continue
+        if name not in spec.fields:
+            raise ValueError(f"{spec.topic}: unknown field {name!r}")
+        try:
+            sample[name] = _value(spec.fields[name][0], v)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{spec.topic}: field {name!r}: {exc}") from None
+        if name in spec.enums and sample[name] not in spec.enums[name]:
+            raise ValueError(f"{spec.topic}: field {name!r} must be one of {spec.enums[name]}")
+    missing = [name for name in spec.required if name not in sample]
+    if missing:
+        raise ValueError(f"{spec.topic}: missing field(s) {', '.join(missing)}")
+    return sample
+
+
+def check_participant_id(value: str, what: str = "id") -> str:
+    """``value`` if it is an opaque pseudonym like 'F03' or 'S1'; ValueError otherwise (so a
+    name or an e-mail address is never written into a recording)."""
+    if not isinstance(value, str) or not ID_PATTERN.match(value):
+        raise ValueError(
+            f"{what} {value!r} is not a pseudonymous id: use up to 4 letters and 1-6 digits, "
+            "e.g. 'F03' or 'S1' (no names or e-mail addresses)"
+        )
+    return value
