@@ -176,8 +176,9 @@ CHANNELS: dict[str, ChannelSpec] = {
             "/follower/ellipsoid",
             "the fitted patient model (eqs. 1-5), sent to the expert after calibration",
             {
-                "center": ("vec3", "ellipsoid centre in the patient frame, m"),
+                "center": ("vec3", "ellipsoid centre in the headset world frame, m"),
                 "semi_axes": ("vec3", "semi-axes along patient x, y, z (c, b, a), m"),
+                "heading": ("number", "T_world_patient: rotation about world +y, rad"),
             },
             ("center", "semi_axes"),
         ),

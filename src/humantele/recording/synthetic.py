@@ -109,7 +109,7 @@ def _band_noise(rng: np.random.Generator, t: NDArray[np.float64], rms: float) ->
 def write_synthetic(
     path: str | Path, cfg: SyntheticSession | None = None, follower_path: str | Path | None = None
 ) -> SyntheticTruth:
-    """Write the simulated session to ``path`` (one file, role 'demo'), or the expert's topics
+    """Write the simulated session to ``path`` (one file, role "synthetic"), or the expert's topics
     to ``path`` and the follower's to ``follower_path`` (two files, as two daemons would)."""
     cfg = cfg or SyntheticSession()
     rng = np.random.default_rng(cfg.seed)
@@ -191,7 +191,7 @@ def write_synthetic(
     logs = {}
     if follower_path is None:
         logs["expert"] = logs["follower"] = McapLog(
-            path, _session_metadata("demo", **md), batch_max_samples=cfg.batch_max_samples
+            path, _session_metadata("synthetic", **md), batch_max_samples=cfg.batch_max_samples
         )
     else:
         logs["expert"] = McapLog(

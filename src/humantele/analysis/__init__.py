@@ -1,0 +1,1 @@
+"""The study's analysis of recorded sessions (``humantele analyze``); see docs/analysis.md."""

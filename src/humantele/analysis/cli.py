@@ -1,0 +1,304 @@
+"""``humantele analyze RECORDING... [--json] [--scores FILE] [--tlx FILE] [--usability FILE]
+[--plots DIR]``: the paper's results (Table II, the trajectory figures, image quality against
+alignment error, NASA-TLX and usability) from recorded sessions."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from humantele.analysis.sessions import ScanResult, Session, analyze_scans, load_sessions
+from humantele.bench.report import markdown_table
+from humantele.config import ConfigError
+from humantele.recording.reader import RecordingReadError
+
+METRICS = (
+    ("position_rmse_mm", "Position RMSE (mm)"),
+    ("centered_position_rmse_mm", "Centered Position RMSE (mm)"),
+    ("orientation_rmse_deg", "Orientation RMSE (deg)"),
+    ("centered_orientation_rmse_deg", "Centered Orientation RMSE (deg)"),
+)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "recordings",
+        nargs="*",
+        type=Path,
+        metavar="RECORDING",
+        help="MCAP recordings (expert and follower files of a session, or demo)",
+    )
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument(
+        "--scores",
+        type=Path,
+        metavar="FILE",
+        help="image-quality scores CSV (scan,target,rater,score or wide)",
+    )
+    parser.add_argument("--tlx", type=Path, metavar="FILE", help="NASA-TLX responses CSV")
+    parser.add_argument("--usability", type=Path, metavar="FILE", help="usability CSV")
+    parser.add_argument("--plots", type=Path, metavar="DIR", help="write PNG figures here")
+    parser.add_argument(
+        "--exclude-scans",
+        default="",
+        metavar="N,N",
+        help="also summarise quality without these scans (the paper: 1,2)",
+    )
+    parser.add_argument(
+        "--max-gap-ms",
+        type=float,
+        default=50.0,
+        help="longest gap in the virtual pose to interpolate over (ms)",
+    )
+
+
+def _mean_sd(values: list[float | None]) -> dict[str, float | int | None]:
+    v = np.array([x for x in values if x is not None and math.isfinite(x)], dtype=float)
+    return {
+        "mean": float(v.mean()) if len(v) else None,
+        "sd": float(v.std(ddof=1)) if len(v) > 1 else None,
+        "n": int(len(v)),
+    }
+
+
+def analyze(
+    recordings: list[Path],
+    scores: Path | None = None,
+    tlx: Path | None = None,
+    usability: Path | None = None,
+    exclude_scans: tuple[int, ...] = (),
+    max_gap_s: float = 0.05,
+) -> tuple[dict[str, Any], list[tuple[Session, ScanResult]]]:
+    """The whole report as one JSON-able dict, and each scan with its session (for plots)."""
+    sessions = load_sessions(recordings) if recordings else []
+    pairs: list[tuple[Session, ScanResult]] = []
+    for s in sessions:
+        pairs += [(s, r) for r in analyze_scans(s, max_gap_s)]
+    scans = [r.as_dict() for _, r in pairs]
+    report: dict[str, Any] = {
+        "scans": scans,
+        "summary": {key: _mean_sd([s[key] for s in scans]) for key, _ in METRICS},
+        "sessions": [
+            {
+                "session": s.session_id,
+                "files": [str(f) for f in s.files],
+                "clock": {
+                    "source": s.clock.source,
+                    "offset_s": s.clock.offset_s,
+                    "drift_ppm": s.clock.drift * 1e6,
+                    "estimates": s.clock.n_estimates,
+                },
+            }
+            for s in sessions
+        ],
+        "warnings": [w for s in sessions for w in s.warnings],
+    }
+    if scores is not None:
+        from humantele.analysis.quality import read_scores, spearman, summarize_quality
+
+        rows = read_scores(scores)
+        quality = summarize_quality(rows)
+        if exclude_scans:
+            quality["without_excluded"] = summarize_quality(rows, exclude_scans)
+        by_scan: dict[int, list[dict]] = {}
+        for s in scans:
+            by_scan.setdefault(s["scan"], []).append(s)
+        dup = sorted(k for k, v in by_scan.items() if len(v) > 1)
+        if dup:
+            report["warnings"].append(
+                f"scan numbers {dup} occur in several sessions: not correlated"
+            )
+        common = [k for k in sorted(by_scan) if str(k) in quality["scan_quality"] and k not in dup]
+        missing = sorted(set(map(int, quality["scan_quality"])) - set(by_scan))
+        if missing:
+            report["warnings"].append(f"scores for scans {missing} have no recording")
+        quality["spearman"] = {
+            key: spearman(
+                [quality["scan_quality"][str(k)] for k in common if by_scan[k][0][key] is not None],
+                [by_scan[k][0][key] for k in common if by_scan[k][0][key] is not None],
+            )
+            for key, _ in METRICS
+        }
+        report["quality"] = quality
+    if tlx is not None:
+        from humantele.analysis.questionnaires import read_tlx, summarize_tlx
+
+        report["tlx"] = summarize_tlx(read_tlx(tlx))
+    if usability is not None:
+        from humantele.analysis.questionnaires import read_usability, summarize_usability
+
+        report["usability"] = summarize_usability(read_usability(usability))
+    return report, pairs
+
+
+def _f(v: float | None, digits: int) -> str:
+    return "-" if v is None else f"{v:.{digits}f}"
+
+
+def format_report(report: dict[str, Any]) -> str:
+    """The report as text: the paper's Table II layout, then the other results."""
+    out = []
+    if report["scans"]:
+        digits = {"position_rmse_mm": 1, "centered_position_rmse_mm": 1}
+        rows = [
+            [s["scan"]] + [_f(s[k], digits.get(k, 2)) for k, _ in METRICS] for s in report["scans"]
+        ]
+        summ = report["summary"]
+        rows.append(
+            ["Mean ± SD"]
+            + [
+                f"{_f(summ[k]['mean'], digits.get(k, 2))} ± {_f(summ[k]['sd'], digits.get(k, 2))}"
+                for k, _ in METRICS
+            ]
+        )
+        out += [
+            "Alignment error per scan",
+            "",
+            markdown_table(["Scan"] + [h for _, h in METRICS], rows),
+            "",
+        ]
+        for s in report["sessions"]:
+            c = s["clock"]
+            out.append(
+                f"session {s['session']}: follower clock -> expert clock: {c['source']} "
+                f"({c['estimates']} estimates), offset {c['offset_s']:.4f} s, "
+                f"drift {c['drift_ppm']:.1f} ppm"
+            )
+        out.append("")
+    q = report.get("quality")
+    if q:
+        out += ["Image quality (0-5)", ""]
+        for label, qq in (("all scans", q), ("without excluded scans", q.get("without_excluded"))):
+            if not qq:
+                continue
+            share3 = qq["share_ge3_all_raters"]
+            share5 = qq["share_5_all_raters"]
+            out.append(
+                f"{label}: {qq['images']} images, {qq['images_missing']} missing (0 from a "
+                f"rater); captured: mean {_f(qq['mean_captured'], 2)} "
+                f"± {_f(qq['sd_captured'], 2)}, "
+                f">= 3 by all raters {_f(None if share3 is None else 100 * share3, 1)} %, "
+                f"5 by all raters {_f(None if share5 is None else 100 * share5, 1)} %"
+            )
+        for key, head in METRICS:
+            sp = q["spearman"][key]
+            out.append(
+                f"Spearman quality vs {head}: rho {_f(sp['rho'], 2)} (p = {_f(sp['p'], 2)}, "
+                f"n = {sp['n']})"
+            )
+        out.append("")
+    t = report.get("tlx")
+    if t:
+        rows = [
+            [v["label"], _f(v["mean"], 1), _f(v["sd"], 1), _f(v["median"], 1)]
+            for v in t["subscales"].values()
+        ]
+        rows.append(
+            [
+                "Raw TLX",
+                _f(t["raw_tlx"]["mean"], 1),
+                _f(t["raw_tlx"]["sd"], 1),
+                _f(t["raw_tlx"]["median"], 1),
+            ]
+        )
+        out += [
+            f"NASA-TLX (n = {t['n']}, 0-100, lower is better)",
+            "",
+            markdown_table(["Subscale", "Mean", "SD", "Median"], rows),
+            "",
+        ]
+    u = report.get("usability")
+    if u:
+        rows = [
+            [
+                v["prompt"] + (" (lower is better)" if v["lower_is_better"] else ""),
+                f"{_f(v['mean'], 2)} ± {_f(v['sd'], 2)}",
+            ]
+            for v in u["items"].values()
+        ]
+        out += [
+            f"Usability (n = {u['n']}, 0 strongly disagree .. 4 strongly agree)",
+            "",
+            markdown_table(["Prompt", "Mean ± SD"], rows),
+            "",
+        ]
+    if report["warnings"]:
+        out += ["Warnings:"] + [f"- {w}" for w in report["warnings"]]
+    return "\n".join(out).rstrip() + "\n"
+
+
+def write_plots(report: dict[str, Any], pairs: list, out_dir: Path, args: Any) -> list[Path]:
+    from humantele.analysis import plots
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths: list[Path] = []
+    for session, result in pairs:
+        if result.rmse.n:
+            paths += plots.plot_trajectories(session, result, out_dir)
+    q = report.get("quality")
+    if q:
+        paths.append(plots.plot_quality_bars(q, out_dir / "quality_scores.png", "image quality"))
+        if q.get("without_excluded"):
+            excl = ",".join(map(str, q["without_excluded"]["excluded_scans"]))
+            paths.append(
+                plots.plot_quality_bars(
+                    q["without_excluded"],
+                    out_dir / "quality_scores_excluded.png",
+                    f"image quality without scans {excl}",
+                )
+            )
+    if getattr(args, "tlx", None):
+        from humantele.analysis.questionnaires import read_tlx
+
+        paths.append(plots.plot_tlx(read_tlx(args.tlx), out_dir / "nasa_tlx.png"))
+    if getattr(args, "usability", None):
+        from humantele.analysis.questionnaires import read_usability
+
+        paths.append(
+            plots.plot_usability(read_usability(args.usability), out_dir / "usability.png")
+        )
+    return paths
+
+
+def _parse_scans(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(x) for x in text.replace(" ", "").split(",") if x)
+    except ValueError:
+        raise ConfigError(f"--exclude-scans: {text!r} is not a list of scan numbers") from None
+
+
+def run(args: argparse.Namespace) -> int:
+    if not (args.recordings or args.scores or args.tlx or args.usability):
+        print(
+            "humantele analyze: give recordings and/or --scores/--tlx/--usability", file=sys.stderr
+        )
+        return 2
+    if not args.max_gap_ms > 0:
+        raise ConfigError(f"--max-gap-ms: must be > 0, got {args.max_gap_ms}")
+    try:
+        report, pairs = analyze(
+            list(args.recordings),
+            args.scores,
+            args.tlx,
+            args.usability,
+            _parse_scans(args.exclude_scans),
+            args.max_gap_ms / 1000.0,
+        )
+        if args.plots is not None:
+            report["plots"] = [str(p) for p in write_plots(report, pairs, args.plots, args)]
+    except RecordingReadError as exc:
+        print(f"humantele analyze: {exc}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(report, indent=2))
+    else:
+        sys.stdout.write(format_report(report))
+        if report.get("plots"):
+            print(f"{len(report['plots'])} figure(s) in {args.plots}")
+    return 0

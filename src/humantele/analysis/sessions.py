@@ -1,0 +1,219 @@
+"""From recording files to per-scan alignment results.
+
+Files with the same ``session_id`` (an expert file and a follower file, or one demo file) form
+one session. Scans come from the expert's ``/expert/scan`` start/stop events (expert clock); a
+scan without a stop ends at the last expert sample (a crash) and is marked incomplete. A
+session without scan events is analysed whole, as scan 0, with a warning.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from humantele.analysis.alignment import (
+    AlignmentErrors,
+    AlignmentRmse,
+    ClockMap,
+    PoseTrack,
+    alignment_errors,
+    alignment_rmse,
+    fit_clock_map,
+)
+from humantele.recording.reader import Recording, read_recording
+
+
+@dataclass
+class ScanInterval:
+    scan: int
+    start: float
+    stop: float
+    follower_id: str = ""
+    sonographer_id: str = ""
+    complete: bool = True
+
+
+@dataclass
+class Session:
+    """One session's streams, with the follower's probe times already on the expert clock."""
+
+    session_id: str
+    files: list[Path]
+    virtual: PoseTrack
+    real: PoseTrack  # tracked frames only, expert clock
+    frame_times: NDArray[np.float64]  # every tracker frame (tracked or not), expert clock
+    clock: ClockMap
+    scans: list[ScanInterval]
+    warnings: list[str] = field(default_factory=list)
+
+
+@dataclass
+class ScanResult:
+    """The alignment of one scan; ``errors`` holds the per-frame errors (for plots)."""
+
+    session_id: str
+    interval: ScanInterval
+    rmse: AlignmentRmse
+    errors: AlignmentErrors
+    frames_total: int
+    frames_tracked: int
+
+    def as_dict(self) -> dict[str, object]:
+        """The JSON object of this scan (mm and degrees, the paper's units)."""
+        r, iv = self.rmse, self.interval
+        return {
+            "scan": iv.scan,
+            "session": self.session_id,
+            "follower_id": iv.follower_id,
+            "sonographer_id": iv.sonographer_id,
+            "complete": iv.complete,
+            "duration_s": round(iv.stop - iv.start, 3),
+            "frames": self.frames_total,
+            "frames_tracked": self.frames_tracked,
+            "samples_used": r.n,
+            "position_rmse_mm": _num(r.position_rmse_m * 1e3),
+            "centered_position_rmse_mm": _num(r.centered_position_rmse_m * 1e3),
+            "orientation_rmse_deg": _num(np.degrees(r.orientation_rmse_rad)),
+            "centered_orientation_rmse_deg": _num(np.degrees(r.centered_orientation_rmse_rad)),
+            "mean_position_error_mm": [_num(v * 1e3) for v in r.mean_position_error_m],
+            "mean_rotation_error_deg": _num(np.degrees(r.mean_rotation_error_rad)),
+        }
+
+
+def _num(v: float) -> float | None:
+    return None if not np.isfinite(v) else round(float(v), 4)
+
+
+def _track(rec: Recording, topic: str) -> tuple[NDArray, NDArray, NDArray, list[dict]]:
+    rows = rec.samples.get(topic, [])
+    t = np.array([s["t"] for s in rows], dtype=float)
+    p = np.array([s["position"] for s in rows], dtype=float).reshape(-1, 3)
+    q = np.array([s["quaternion"] for s in rows], dtype=float).reshape(-1, 4)
+    return t, p, q, rows
+
+
+def build_session(session_id: str, recordings: list[Recording]) -> Session:
+    """Assemble one session from its recordings (see the module docstring)."""
+    warnings: list[str] = []
+    for rec in recordings:
+        if rec.problem:
+            warnings.append(f"{rec.path}: {rec.problem}; using what was recorded")
+        if rec.bad_messages:
+            warnings.append(f"{rec.path}: {rec.bad_messages} undecodable message(s) skipped")
+
+    def gather(topic: str) -> list[dict]:
+        out: list[dict] = []
+        for rec in recordings:
+            out.extend(rec.samples.get(topic, []))
+        return out
+
+    merged = Recording(path=recordings[0].path)
+    for topic in ("/expert/pose", "/follower/probe_pose"):
+        merged.samples[topic] = gather(topic)
+    t_v, p_v, q_v, _ = _track(merged, "/expert/pose")
+    t_f, p_f, q_f, rows = _track(merged, "/follower/probe_pose")
+    tracked = np.array([bool(s.get("tracked", False)) for s in rows], dtype=bool)
+    good = tracked & np.all(np.isfinite(p_f), axis=1) & np.all(np.isfinite(q_f), axis=1)
+    good &= np.linalg.norm(q_f, axis=1) > 0.5 if len(q_f) else good
+    if len(t_v) == 0:
+        warnings.append(f"session {session_id}: no /expert/pose samples")
+    if len(t_f) == 0:
+        warnings.append(f"session {session_id}: no /follower/probe_pose samples")
+
+    # Clock: follower estimates are (t_f, t_e - t_f); expert ones (t_e, t_f - t_e).
+    ts, offs, rtts = [], [], []
+    for s in gather("/follower/clock_sync"):
+        ts.append(s["t"])
+        offs.append(s["offset_s"])
+        rtts.append(s.get("rtt_s", np.nan))
+    for s in gather("/expert/clock_sync"):
+        ts.append(s["t"] + s["offset_s"])
+        offs.append(-s["offset_s"])
+        rtts.append(s.get("rtt_s", np.nan))
+    clock = fit_clock_map(ts, offs, rtts)
+    roles = {rec.session.get("role", "") for rec in recordings}
+    if clock.n_estimates == 0 and "demo" not in roles and len(t_f):
+        warnings.append(
+            f"session {session_id}: no clock-sync figures recorded; follower times used as "
+            "expert times (only right if both daemons share one clock)"
+        )
+
+    real = PoseTrack(clock.to_expert(t_f[good]), p_f[good], q_f[good])
+    virtual = PoseTrack(t_v, p_v, q_v)
+    scans = _scan_intervals(gather("/expert/scan"), virtual, real, session_id, warnings)
+    return Session(
+        session_id=session_id,
+        files=[rec.path for rec in recordings],
+        virtual=virtual,
+        real=real,
+        frame_times=clock.to_expert(t_f),
+        clock=clock,
+        scans=scans,
+        warnings=warnings,
+    )
+
+
+def _scan_intervals(
+    events: list[dict], virtual: PoseTrack, real: PoseTrack, session_id: str, warnings: list[str]
+) -> list[ScanInterval]:
+    end = float(virtual.t[-1]) if len(virtual) else (float(real.t[-1]) if len(real) else 0.0)
+    begin = float(virtual.t[0]) if len(virtual) else 0.0
+    open_: dict[int, ScanInterval] = {}
+    out: list[ScanInterval] = []
+    for ev in sorted(events, key=lambda e: e["t"]):
+        scan = int(ev.get("scan", -1))
+        if ev.get("event") == "start":
+            if scan in open_:
+                warnings.append(f"session {session_id}: scan {scan} started twice; restarted")
+            open_[scan] = ScanInterval(
+                scan, float(ev["t"]), end, ev.get("follower_id", ""), ev.get("sonographer_id", "")
+            )
+        elif ev.get("event") == "stop":
+            iv = open_.pop(scan, None)
+            if iv is None:
+                warnings.append(f"session {session_id}: stop of scan {scan} without a start")
+                continue
+            iv.stop = float(ev["t"])
+            out.append(iv)
+    for iv in open_.values():
+        iv.complete = False
+        warnings.append(f"session {session_id}: scan {iv.scan} has no stop (ends at the data)")
+        out.append(iv)
+    if not events:
+        warnings.append(f"session {session_id}: no scan start/stop events; whole session = scan 0")
+        out.append(ScanInterval(0, begin, end))
+    return sorted(out, key=lambda iv: (iv.start, iv.scan))
+
+
+def analyze_scans(session: Session, max_gap_s: float = 0.05) -> list[ScanResult]:
+    """Alignment RMSE of each scan of ``session``."""
+    results = []
+    for iv in session.scans:
+        in_scan = (session.real.t >= iv.start) & (session.real.t <= iv.stop)
+        errors = alignment_errors(session.virtual, session.real.select(in_scan), max_gap_s)
+        rmse = alignment_rmse(errors)
+        if rmse.n == 0:
+            session.warnings.append(
+                f"session {session.session_id}: scan {iv.scan} has no tracked frames with a "
+                "virtual pose"
+            )
+        ft = session.frame_times
+        frames_total = int(np.count_nonzero((ft >= iv.start) & (ft <= iv.stop)))
+        results.append(
+            ScanResult(session.session_id, iv, rmse, errors, frames_total, int(in_scan.sum()))
+        )
+    return results
+
+
+def load_sessions(paths: Iterable[str | Path]) -> list[Session]:
+    """Read the files and group them by session id (the file name when none is recorded)."""
+    groups: dict[str, list[Recording]] = {}
+    for p in paths:
+        rec = read_recording(p)
+        sid = rec.session.get("session_id") or Path(p).stem
+        groups.setdefault(sid, []).append(rec)
+    return [build_session(sid, recs) for sid, recs in groups.items()]
