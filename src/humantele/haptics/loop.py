@@ -567,6 +567,11 @@ def _servo_main(config_json: str, names: tuple[str, str, str], parent_pid: int, 
         except Exception:  # noqa: BLE001 - closing anyway
             pass
         device.close()
+        last = out.read()  # the daemon sees the zeroed force of the stopped loop
+        last[S_F : S_F + 3] = 0.0
+        last[S_FD : S_FD + 3] = 0.0
+        last[S_RAMP] = 0.0
+        out.write(last)
         for b in (cmd, out, st):
             b.close()
 

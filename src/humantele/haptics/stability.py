@@ -49,17 +49,20 @@ def check_passivity(
         k_quant = 2.0 * coulomb_friction_n / resolution_m
         margin = min(margin, k_quant / k_dev if k_dev > 0 else float("inf"))
     kp_max = min(k_colgate, k_quant) / scale
-    if margin > 1.0:
-        reason = f"passive: margin {margin:.2f} (kp <= {kp_max:.0f} N/m at kd = {kd:g} N s/m)"
-    elif k_dev > k_quant:
-        reason = (
-            f"kp = {kp:g} N/m exceeds the quantization bound 2 f_c / delta = {k_quant:.0f} N/m "
-            "(Abbott and Okamura)"
-        )
-    else:
-        reason = (
-            f"not passive: b = {device_damping:g} N s/m <= K T/2 + |B| = {need:.3g} N s/m "
-            f"(Colgate and Schenkel; kp <= {kp_max:.0f} N/m at kd = {kd:g} N s/m, "
+    problems = []
+    if device_damping <= need:
+        problems.append(
+            f"b = {device_damping:g} N s/m <= K T/2 + |B| = {need:.3g} N s/m (Colgate and "
+            f"Schenkel; kp <= {k_colgate / scale:.0f} N/m at kd = {kd:g} N s/m, "
             f"T = {period_s * 1e3:g} ms)"
         )
-    return PassivityCheck(margin > 1.0, margin, kp_max, reason)
+    if k_dev > k_quant:
+        problems.append(
+            f"K = {k_dev:g} N/m > 2 f_c / delta = {k_quant:.0f} N/m (quantization, Abbott and "
+            "Okamura)"
+        )
+    if problems:
+        reason = "not passive: " + "; ".join(problems)
+    else:
+        reason = f"passive: margin {margin:.2f} (kp <= {kp_max:.0f} N/m at kd = {kd:g} N s/m)"
+    return PassivityCheck(not problems, margin, kp_max, reason)

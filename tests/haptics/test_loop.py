@@ -1,0 +1,250 @@
+"""The servo loop: force pipeline (ramp, swap, faults, limits, registration) and the process."""
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from humantele.config import ConfigError, validate_config
+from humantele.geometry import Pose, quat_from_axis_angle
+from humantele.haptics.devices import DeviceState, SimDeviceConfig
+from humantele.haptics.devices.sim import SimFault, SimHandConfig
+from humantele.haptics.ellipsoid import Ellipsoid
+from humantele.haptics.loop import (
+    FAULT_BAD_DATA,
+    FAULT_DEVICE,
+    FAULT_STALE,
+    ForceRenderer,
+    ServoConfig,
+    ServoError,
+    ServoProcess,
+    auto_registration,
+    demo_model,
+)
+
+MODEL = demo_model()
+INSIDE = (0.0, -0.035, 0.0)  # device frame: 5 mm into the model with the auto registration
+
+
+def state(t, p=INSIDE, **kw) -> DeviceState:
+    return DeviceState(t, p, **kw)
+
+
+def ticks(r: ForceRenderer, t0: float, t1: float, p=INSIDE, dt=1e-3):
+    out = []
+    for k in range(int(round((t1 - t0) / dt))):
+        t = t0 + k * dt
+        out.append(r.tick(state(t, p), t))
+    return out
+
+
+def test_auto_registration_puts_the_device_above_the_xiphoid():
+    T = auto_registration(MODEL, 0.03)
+    top = MODEL.center + [0.0, MODEL.semi_axes[1], 0.0]
+    assert np.allclose(T.position, top + [0, 0.03, 0])
+    assert MODEL.penetration(T.apply([0.0, -0.035, 0.0]))[0] == pytest.approx(0.005, abs=1e-6)
+
+
+def test_force_ramps_in_without_a_kick_then_holds_kp_depth():
+    r = ForceRenderer(ServoConfig())
+    r.set_model(MODEL, 0.0)
+    f = np.array(ticks(r, 0.0, 0.4))
+    fy = f[:, 1]
+    assert fy[0] == pytest.approx(0.0, abs=1e-9)
+    assert fy[100] == pytest.approx(0.5 * 1.5, rel=0.02)  # halfway through the 0.2 s ramp
+    assert np.all(np.diff(fy[:200]) <= 1.5 / 200 * 1.01)  # no step larger than the ramp
+    assert fy[-1] == pytest.approx(300 * 0.005, rel=1e-3)  # kp * depth, up (+y)
+    assert r.sample[5] == pytest.approx(0.005, abs=1e-6)
+
+
+def test_model_swap_crossfades_and_none_is_free_space():
+    r = ForceRenderer(ServoConfig())
+    r.set_model(MODEL, 0.0)
+    ticks(r, 0.0, 0.3)
+    higher = Ellipsoid(MODEL.center + [0, 0.005, 0], MODEL.semi_axes, MODEL.heading)
+    r.set_model(higher, 0.3)  # auto registration moves with it: same depth, same force
+    f = np.array(ticks(r, 0.3, 0.6))
+    assert np.all(np.abs(np.diff(f[:, 1])) < 0.02)
+    r.set_model(None, 0.6)
+    f = np.array(ticks(r, 0.6, 1.0))
+    assert f[0, 1] > 1.4 and np.all(np.diff(f[:, 1]) <= 1e-12)  # fades out, never kicks
+    assert np.all(f[250:] == 0.0)
+
+
+def test_registration_rotates_force_back_into_the_device_frame():
+    cfg = ServoConfig()
+    r = ForceRenderer(cfg)
+    r.set_model(MODEL, 0.0)
+    top = MODEL.center + [0.0, MODEL.semi_axes[1], 0.0]
+    # Device rotated 90 deg about world z: device +x points world +y (up).
+    q = quat_from_axis_angle([0, 0, 1], math.pi / 2)
+    r.set_registration(Pose(top + [0, 0.005, 0], q), 1.0, 0.0)
+    f = ticks(r, 0.0, 0.5, p=(-0.01, 0.0, 0.0))  # 5 mm below the top in the world
+    assert f[-1] == pytest.approx((300 * 0.005, 0.0, 0.0), abs=1e-6)
+    pw = r.sample[0]
+    assert pw == pytest.approx(tuple(top - [0, 0.005, 0]), abs=1e-9)
+
+
+def test_motion_scaling_maps_device_motion_into_larger_world_motion():
+    with pytest.raises(ValueError, match="not passive"):
+        ServoConfig(motion_scale=2.0)  # the device feels 2 kp: the default gains no longer pass
+    r = ForceRenderer(ServoConfig(motion_scale=2.0, kp=150.0, kd=0.05))
+    r.set_model(MODEL, 0.0)
+    f = ticks(r, 0.0, 0.3, p=(0.0, -0.0175, 0.0))
+    assert r.sample[5] == pytest.approx(0.005, abs=1e-6)  # 2 x 17.5 mm - 30 mm clearance
+    assert f[-1][1] == pytest.approx(150 * 0.005, rel=1e-3)
+
+
+def test_stale_data_zeroes_force_and_recovers_with_a_ramp():
+    r = ForceRenderer(ServoConfig())
+    r.set_model(MODEL, 0.0)
+    ticks(r, 0.0, 0.3)
+    f = r.tick(state(0.29), 0.3)  # 10 ms old
+    assert f == (0.0, 0.0, 0.0) and r.sample[7] & FAULT_STALE
+    assert r.counts["stale"] == 1 and r.counts["episodes"] == 1
+    f = np.array(ticks(r, 0.301, 0.7))
+    assert np.all(f[:49] == 0.0)  # held off for fault_hold_s
+    assert 0.0 < f[60, 1] < 1.0  # ramping in again
+    assert f[-1, 1] == pytest.approx(1.5, rel=1e-3) and r.sample[7] == 0
+
+
+def test_bad_data_and_device_errors_give_zero_force():
+    r = ForceRenderer(ServoConfig())
+    r.set_model(MODEL, 0.0)
+    ticks(r, 0.0, 0.3)
+    assert r.tick(state(0.3, (math.nan, 0.0, 0.0)), 0.3) == (0.0, 0.0, 0.0)
+    assert r.sample[7] & FAULT_BAD_DATA
+    assert r.tick(None, 0.301) == (0.0, 0.0, 0.0)
+    assert r.sample[7] & FAULT_DEVICE
+
+
+finite = st.floats(allow_nan=True, allow_infinity=True, width=64)
+
+
+@settings(max_examples=300, deadline=None)
+@given(p=st.tuples(finite, finite, finite), v=st.tuples(finite, finite, finite), dt=st.floats(0, 1))
+def test_never_nan_never_over_limit(p, v, dt):
+    r = ForceRenderer(ServoConfig(force_limit_n=2.0))
+    r.set_model(MODEL, -1.0)
+    r.tick(state(0.0), 0.0)
+    f = r.tick(DeviceState(dt, p, velocity=v), dt)
+    assert all(math.isfinite(c) for c in f)
+    assert math.sqrt(sum(c * c for c in f)) <= 2.0 + 1e-9
+
+
+def test_config_errors_name_the_field():
+    with pytest.raises(ConfigError, match="force_limit_n"):
+        validate_config(ServoConfig, {"force_limit_n": 20})
+    with pytest.raises(ConfigError, match=r"device.*kind|tag 'nope'"):
+        validate_config(ServoConfig, {"device": {"kind": "nope"}})
+    cfg = validate_config(ServoConfig, {"device": {"kind": "hid"}, "kp": 4000})
+    assert cfg.device.kind == "hid"  # no force output: the gains cannot destabilise it
+
+
+# ------------------------------------------------------------------ the servo process
+def _wait(pred, timeout=10.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        v = pred()
+        if v:
+            return v
+        time.sleep(0.01)
+    raise AssertionError("condition not reached in time")
+
+
+def _pressing_config(**kw) -> ServoConfig:
+    hand = SimHandConfig(path="hold", hold_target_m=(0.0, -0.05, 0.0), tremor_n=0.0)
+    return ServoConfig(device=SimDeviceConfig(hand=hand, **kw), realtime_priority=0)
+
+
+def test_process_runs_swaps_model_and_stops_cleanly():
+    sp = ServoProcess(_pressing_config(), MODEL)
+    sp.start()
+    try:
+        s = _wait(lambda: (x := sp.latest()) and x.tick > 300 and x.ramp == 1.0 and x)
+        assert s.force[1] > 0.5 and s.depth > 0 and s.fault == ""
+        assert s.force[1] == pytest.approx(300 * s.depth, rel=0.1)
+        assert isinstance(s.pose, Pose) and s.t <= time.monotonic()
+        sp.set_model(None)
+        _wait(lambda: (x := sp.latest()) and x.force == (0.0, 0.0, 0.0))
+        st_ = _wait(lambda: (x := sp.stats()) and x.ticks > 0 and x)
+        assert st_.rate_hz > 0 and st_.period_p50_us > 0 and st_.period_max_us >= st_.period_p50_us
+        assert st_.nonfinite_forces == 0
+    finally:
+        sp.stop()
+    assert not sp.alive
+    assert sp.stats().ticks > 300
+
+
+def test_process_stale_fault_zeroes_force_then_recovers():
+    cfg = _pressing_config(faults=[SimFault(kind="stale", start_s=0.6, duration_s=0.4)])
+    with ServoProcess(cfg, MODEL) as sp:
+        _wait(lambda: (x := sp.latest()) and x.force[1] > 1.0)
+        s = _wait(lambda: (x := sp.latest()) and "stale" in x.fault and x)
+        assert s.force == (0.0, 0.0, 0.0) and s.force_device == (0.0, 0.0, 0.0)
+        _wait(lambda: (x := sp.latest()) and x.fault == "" and x.force[1] > 1.0)
+        assert sp.stats().fault_episodes >= 1
+        assert sp.stats().stale_ticks > 0
+
+
+def test_process_reports_device_errors_at_start():
+    cfg = ServoConfig(device={"kind": "touchx", "library": "/nonexistent/libHD.so"})
+    with pytest.raises(ServoError, match="libHD"):
+        ServoProcess(cfg).start()
+
+
+def test_sigterm_stops_the_servo_with_force_zeroed():
+    sp = ServoProcess(_pressing_config(), MODEL)
+    sp.start()
+    try:
+        _wait(lambda: (x := sp.latest()) and x.force[1] > 1.0)
+        os.kill(sp.pid, signal.SIGTERM)
+        _wait(lambda: not sp.alive, 5.0)
+        assert sp._proc.exitcode == 0
+        assert sp.latest().force == (0.0, 0.0, 0.0)
+    finally:
+        sp.stop()
+
+
+@pytest.mark.slow
+def test_parent_death_stops_the_servo(tmp_path):
+    script = textwrap.dedent(
+        """
+        import time
+        from humantele.haptics.loop import ServoConfig, ServoProcess, demo_model
+        if __name__ == "__main__":
+            sp = ServoProcess(ServoConfig(realtime_priority=0), demo_model())
+            sp.start()
+            print(sp.pid, flush=True)
+            time.sleep(60)
+        """
+    )
+    f = tmp_path / "parent.py"
+    f.write_text(script)
+    parent = subprocess.Popen([sys.executable, str(f)], stdout=subprocess.PIPE, text=True)
+    try:
+        child = int(parent.stdout.readline())
+        os.kill(child, 0)  # running
+        parent.kill()
+        parent.wait()
+
+        def gone():
+            try:
+                os.kill(child, 0)
+            except ProcessLookupError:
+                return True
+            # A zombie until reaped by init counts as gone.
+            with open(f"/proc/{child}/stat") as fh:
+                return fh.read().split()[2] == "Z"
+
+        _wait(gone, 5.0)
+    finally:
+        parent.kill()
