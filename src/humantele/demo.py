@@ -1,17 +1,41 @@
 """``humantele demo``: a whole session on simulated devices, over real WebRTC on loopback.
 
-(Placeholder while the demo is rebuilt; the helpers below are shared by the daemons.)
+One command, no external service. The demo process runs the signaling server itself and starts
+the expert (sim Touch X held by the scripted sonographer, 1 kHz servo process) and the follower
+(sim tracker, force sensor and person) as separate OS processes (``humantele expert`` and
+``humantele follower``) that talk WebRTC over loopback. The follower has a fresh state
+directory, so its simulated person performs the four-landmark calibration first; the expert
+then gets the patient model and the session runs.
+
+A status line shows the pose rate and age at the follower, the haptic force at the expert, the
+follower's alignment error and the link state. ``--duration S`` ends the run; ``--json`` prints
+one summary object, on one line, as the last line of output. Ctrl-C or SIGTERM: the daemons
+say bye, every process ends, exit code 0.
+
+The children report to the demo through JSON stats files (the helpers below are shared with
+the daemons). The signaling token is random per run and reaches the children through the
+environment; it is never printed.
 """
 
 from __future__ import annotations
 
+import argparse
+import asyncio
+import contextlib
 import json
 import os
+import secrets
+import shutil
 import signal
+import sys
+import tempfile
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
+
+PARENT_PID_ENV = "HUMANTELE_PARENT_PID"
+TOKEN_ENV = "HUMANTELE_TOKEN"
 
 
 def percentile_ms(values_s: Iterable[float], q: float) -> float | None:
@@ -58,3 +82,186 @@ def on_stop_signals(loop: Any, callback: Callable[[], None]) -> None:
     """Call ``callback`` on SIGINT or SIGTERM (asyncio loop)."""
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, callback)
+
+
+def parent_gone() -> bool:
+    """True when this process was started by a demo (``HUMANTELE_PARENT_PID``) that is gone."""
+    want = os.environ.get(PARENT_PID_ENV)
+    return bool(want) and str(os.getppid()) != want
+
+
+def process_cpu_seconds(pid: int | None) -> float | None:
+    """CPU time (s) used so far by process ``pid`` (Linux /proc), or None."""
+    if pid is None:
+        return None
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+# --- the demo ---------------------------------------------------------------------------------
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--duration", type=float, default=20.0, help="seconds (default 20)")
+    parser.add_argument("--json", action="store_true", help="print a JSON summary at the end")
+    parser.add_argument("--room", default="demo", help="session room name")
+    parser.add_argument("--keep", action="store_true", help="keep the run directory (logs)")
+    parser.add_argument("--log-level", default="WARNING", help="daemons' logging level")
+
+
+def _status_line(e: dict[str, Any], f: dict[str, Any], elapsed: float) -> str:
+    def num(v: Any, fmt: str) -> str:
+        return "-" if v is None else format(v, fmt)
+
+    if f.get("calibrated"):
+        cal = "calibrated"
+    else:
+        cal = f"calibrating ({f.get('calibration_step') or '...'})"
+    return (
+        f"[{elapsed:5.1f} s] link {f.get('link_state', '-')}, {cal} | "
+        f"poses {num(f.get('pose_rate_hz'), '.0f')} Hz, "
+        f"age {num(f.get('pose_age_last_ms'), '.1f')} ms | "
+        f"force {num(e.get('force_n'), '.2f')} N | "
+        f"alignment {num(f.get('alignment_mm_rms'), '.1f')} mm "
+        f"{num(f.get('alignment_deg_rms'), '.1f')} deg | "
+        f"servo {num(e.get('servo_rate_hz'), '.0f')} Hz"
+    )
+
+
+def summarize(
+    e: dict[str, Any], f: dict[str, Any], duration: float, codes: dict[str, int | None]
+) -> dict[str, Any]:
+    """The demo's summary from the two daemons' final stats."""
+    return {
+        "duration_s": round(duration, 2),
+        "poses_sent": e.get("poses_sent", 0),
+        "poses_received": f.get("poses_received", 0),
+        "pose_age_p50_ms": f.get("pose_age_p50_ms"),
+        "pose_age_p99_ms": f.get("pose_age_p99_ms"),
+        "states_sent": f.get("states_sent", 0),
+        "states_received": e.get("states_received", 0),
+        "state_age_p50_ms": e.get("state_age_p50_ms"),
+        "servo_rate_hz": e.get("servo_rate_hz"),
+        "servo_overruns": e.get("servo_overruns"),
+        "servo_period_p99_us": e.get("servo_period_p99_us"),
+        "calibrated": bool(f.get("calibrated", False)),
+        "model_installed": bool(e.get("has_model", False)),
+        "alignment_mm_rms": f.get("alignment_mm_rms"),
+        "alignment_deg_rms": f.get("alignment_deg_rms"),
+        "dropped_messages": int(e.get("dropped_total", 0)) + int(f.get("dropped_total", 0)),
+        "dropped": {"expert": e.get("dropped", {}), "follower": f.get("dropped", {})},
+        "link_connections": e.get("connections", 0),
+        "cpu_percent_expert": e.get("cpu_percent"),
+        "cpu_percent_servo": e.get("cpu_percent_servo"),
+        "cpu_percent_follower": f.get("cpu_percent"),
+        "exit_codes": codes,
+    }
+
+
+async def _stop_child(proc: asyncio.subprocess.Process, timeout_s: float = 10.0) -> int | None:
+    if proc.returncode is None:
+        with contextlib.suppress(ProcessLookupError):
+            proc.send_signal(signal.SIGTERM)
+        try:
+            await asyncio.wait_for(proc.wait(), timeout_s)
+        except TimeoutError:
+            with contextlib.suppress(ProcessLookupError):
+                proc.kill()
+            await proc.wait()
+    return proc.returncode
+
+
+async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
+    """Run the demo; returns the exit code."""
+    from humantele.signaling.server import SignalConfig, SignalingServer
+
+    run_dir = Path(tempfile.mkdtemp(prefix="humantele-demo-"))
+    token = secrets.token_urlsafe(24)
+    server = SignalingServer(SignalConfig(port=0), token=token)
+    await server.start()
+    env = dict(os.environ)
+    env[TOKEN_ENV] = token
+    env[PARENT_PID_ENV] = str(os.getpid())
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    on_stop_signals(loop, stop.set)
+    status_to = sys.stderr if args.json else out
+    tty = status_to.isatty()
+    common = ["--signaling-url", server.url, "--room", args.room, "--log-level", args.log_level]
+    stats = {"expert": run_dir / "expert.json", "follower": run_dir / "follower.json"}
+    cmds = {
+        "follower": [
+            "follower", "--state-dir", str(run_dir / "follower-state"), "--feed-port", "0",
+        ],
+        "expert": ["expert"],
+    }  # fmt: skip
+    procs: dict[str, asyncio.subprocess.Process] = {}
+    t0 = time.monotonic()
+    failed = ""
+    try:
+        for role, cmd in cmds.items():
+            log_file = open(run_dir / f"{role}.log", "wb")  # noqa: SIM115 - closed below
+            procs[role] = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "humantele", *cmd, *common,
+                "--stats-file", str(stats[role]),
+                stdin=asyncio.subprocess.DEVNULL, stdout=log_file, stderr=log_file, env=env,
+            )  # fmt: skip
+            log_file.close()
+        last_print = 0.0
+        while not stop.is_set():
+            now = time.monotonic()
+            if now - t0 >= args.duration:
+                break
+            dead = [r for r, p in procs.items() if p.returncode is not None]
+            if dead:
+                failed = f"{dead[0]} exited early with code {procs[dead[0]].returncode}"
+                break
+            e, f = read_stats(stats["expert"]) or {}, read_stats(stats["follower"]) or {}
+            if tty or now - last_print >= 2.0:
+                last_print = now
+                line = _status_line(e, f, now - t0)
+                print(("\r" + line + "\x1b[K") if tty else line, end="" if tty else "\n",
+                      file=status_to, flush=True)  # fmt: skip
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), 0.5)
+    finally:
+        codes = {}
+        for role in ("expert", "follower"):  # the expert first: it says bye to the follower
+            if role in procs:
+                codes[role] = await _stop_child(procs[role])
+        await server.stop()
+        if tty:
+            print(file=status_to)
+    elapsed = time.monotonic() - t0
+    e, f = read_stats(stats["expert"]) or {}, read_stats(stats["follower"]) or {}
+    summary = summarize(e, f, elapsed, codes)
+    ok = not failed and all(c == 0 for c in codes.values())
+    if failed:
+        print(f"humantele demo: {failed}; logs in {run_dir}", file=sys.stderr)
+    elif not ok:
+        print(f"humantele demo: a daemon failed {codes}; logs in {run_dir}", file=sys.stderr)
+    if not args.json:
+        print(_status_line(e, f, elapsed), file=out)
+        print(
+            f"poses sent {summary['poses_sent']}, received {summary['poses_received']}, "
+            f"age p50 {summary['pose_age_p50_ms']} ms p99 {summary['pose_age_p99_ms']} ms; "
+            f"servo {summary['servo_rate_hz'] or 0:.0f} Hz, {summary['servo_overruns']} overruns; "
+            f"calibrated {summary['calibrated']}; dropped {summary['dropped_messages']}; "
+            f"CPU expert {summary['cpu_percent_expert']} % (servo "
+            f"{summary['cpu_percent_servo']} %), follower {summary['cpu_percent_follower']} %",
+            file=out,
+        )
+    if ok and not args.keep:
+        shutil.rmtree(run_dir, ignore_errors=True)
+    elif args.keep:
+        print(f"run directory: {run_dir}", file=sys.stderr)
+    if args.json:
+        print(json.dumps(summary, separators=(",", ":")), file=out, flush=True)
+    return 0 if ok else 1
+
+
+def run(args: argparse.Namespace) -> int:
+    return asyncio.run(run_demo(args))

@@ -1,0 +1,506 @@
+"""``humantele follower``: the follower daemon (the clinic side).
+
+Every tick (``rate_hz``, asyncio) it:
+
+1. moves the probe: the simulated person (:mod:`humantele.follower.sim_human`) follows the
+   virtual probe, or performs the calibration presses when calibrating;
+2. measures it through the sensing pipeline (:mod:`humantele.follower.sensing` when present,
+   else the truth behind the same small interface), so what it streams is what a real
+   tracker and force sensor would give;
+3. feeds the calibration (:mod:`humantele.follower.calibration`) while calibrating;
+4. streams the probe pose and force to the expert (``state``, patient frame) and the virtual
+   probe to renderers (:mod:`humantele.follower.feed`, world frame; ``stale`` when no fresh
+   pose came or the link is down).
+
+Frames: the headset's world frame (y up) here; the patient frame of the calibration on the
+wire (``T_world_patient`` from the saved calibration). Poses are of the transducer's tip frame
+(origin at the centre of the face, +z along the beam); the tool definition says where the tip
+is on the tracked probe body.
+
+Message handling is one method per kind (``on_pose``, ``on_control``, ``on_link_state``) and
+one per outgoing stream, so recording can hook in at those places. The calibration is saved
+under ``state_dir`` and reused after a restart; every Hello from the expert gets the model.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import math
+import os
+import time
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import Field
+
+from humantele.config import ConfigModel, load_config, validate_config
+from humantele.demo import (
+    CpuMeter,
+    on_stop_signals,
+    parent_gone,
+    percentile_ms,
+    write_stats,
+)
+from humantele.follower.calibration import (
+    CALIBRATION_FILE,
+    LANDMARKS,
+    Calibration,
+    CalibrationConfig,
+    CalibrationEvent,
+    Calibrator,
+)
+from humantele.follower.feed import FeedConfig, RendererFeed
+from humantele.follower.sim_human import (
+    CalibrationScript,
+    SimHuman,
+    SimHumanConfig,
+    SimPatient,
+    SimPatientConfig,
+)
+from humantele.geometry import Pose, matrix_to_quat
+from humantele.transport import LinkConfig, PeerLink
+from humantele.wire import (
+    Calibration as CalibrationMsg,
+)
+from humantele.wire import (
+    ControlMessage,
+    EllipsoidModel,
+    EllipsoidParams,
+    Hello,
+    PoseMessage,
+    StateMessage,
+    TrackingStatus,
+)
+
+log = logging.getLogger(__name__)
+
+DEFAULT_STATE_DIR = "~/.local/state/humantele/follower"
+
+
+class FollowerConfig(ConfigModel):
+    """The follower daemon (``[follower]`` of configs/follower.toml)."""
+
+    rate_hz: float = Field(100.0, gt=1, le=1000, description="tick: probe, sensing, state")
+    stale_after_s: float = Field(0.3, gt=0, le=10, description="virtual probe stale after")
+    alignment_settle_s: float = Field(
+        1.0, ge=0, le=30, description="alignment error counted this long after following starts"
+    )
+    state_dir: str = Field(DEFAULT_STATE_DIR, description="where the calibration is saved")
+    auto_calibrate: bool = Field(True, description="sim person presses the landmarks")
+    sensing: Literal["pipeline", "truth"] = Field(
+        "pipeline", description="measure through the sim tracker and force sensor, or not"
+    )
+    tool: str = Field("probe_default", description="probe tool definition (configs/tools)")
+    link: LinkConfig = LinkConfig()
+    feed: FeedConfig = FeedConfig()
+    calibration: CalibrationConfig = CalibrationConfig()
+    sim_patient: SimPatientConfig = SimPatientConfig()
+    sim_human: SimHumanConfig = SimHumanConfig()
+
+
+@dataclass
+class Measurement:
+    """What the follower knows of its probe at one tick (world frame, SI)."""
+
+    status: TrackingStatus
+    T_world_tip: Pose | None
+    force_world: NDArray[np.float64]
+    contact: bool
+
+
+def _tip_transform(tool_name: str) -> Pose:
+    """``T_probe_tip``: the tip frame on the tracked probe body (from the tool definition)."""
+    try:
+        from humantele.tracking.tool import load_tool
+
+        tool = load_tool(tool_name)
+        tip, z = np.asarray(tool.tip, dtype=float), np.asarray(tool.face_direction, dtype=float)
+    except (ImportError, AttributeError):  # no tracking package: the default tool's figures
+        tip, z = np.array([0.0, 0.0, -0.15]), np.array([0.0, 0.0, -1.0])
+    z = z / np.linalg.norm(z)
+    x = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = x - z * float(x @ z)
+    x /= np.linalg.norm(x)
+    return Pose(tip, matrix_to_quat(np.column_stack([x, np.cross(z, x), z])))
+
+
+class Sensing:
+    """Measure the probe: the sensing pipeline when available, else the truth.
+
+    ``measure(t, T_world_tip_true, force_true_world)`` returns a :class:`Measurement`.
+    """
+
+    def __init__(self, config: FollowerConfig) -> None:
+        self.T_probe_tip = _tip_transform(config.tool)
+        self.T_tip_probe = self.T_probe_tip.inverse()
+        self.pipeline = None
+        self.contact_n = config.calibration.force_off_n
+        if config.sensing == "pipeline":
+            try:
+                from humantele.follower.sensing import ProbeSensing
+            except ImportError:
+                log.warning("follower: no sensing pipeline here; streaming the simulated truth")
+            else:
+                self.pipeline = ProbeSensing()
+
+    def measure(self, t: float, T_world_tip: Pose | None, force_world: NDArray) -> Measurement:
+        if self.pipeline is None:
+            if T_world_tip is None:
+                return Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
+            contact = float(np.linalg.norm(force_world)) > self.contact_n
+            return Measurement(TrackingStatus.TRACKED, T_world_tip, force_world, contact)
+        if T_world_tip is None:
+            return Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
+        m = self.pipeline.measure(t, T_world_tip @ self.T_tip_probe, force_world)
+        status = TrackingStatus(int(getattr(m, "status", TrackingStatus.TRACKED)))
+        T_world_probe = getattr(m, "T_world_probe", None)
+        tip = None if T_world_probe is None else T_world_probe @ self.T_probe_tip
+        force = np.asarray(getattr(m, "force", np.zeros(3)), dtype=float)
+        if tip is None or not np.all(np.isfinite(force)):
+            status = TrackingStatus.LOST if tip is None else status
+            force = np.zeros(3) if not np.all(np.isfinite(force)) else force
+        return Measurement(status, tip, force, bool(getattr(m, "contact", False)))
+
+
+class FollowerDaemon:
+    """The follower's state and its message handlers; :meth:`run` is the daemon."""
+
+    def __init__(self, config: FollowerConfig, stats_file: str | None = None) -> None:
+        self.config = config
+        self.stats_file = stats_file
+        self.state_dir = Path(config.state_dir).expanduser()
+        self.calibration_path = self.state_dir / CALIBRATION_FILE
+        self.calibration: Calibration | None = Calibration.load(self.calibration_path)
+        self.calibrator = Calibrator(config.calibration)
+        self.patient = SimPatient(config.sim_patient)
+        self.human = SimHuman(config.sim_human, self.patient)
+        self.sensing = Sensing(config)
+        self.feed = RendererFeed(config.feed)
+        self.link = PeerLink(
+            "follower",
+            config.link,
+            on_pose=self.on_pose,
+            on_control=self.on_control,
+            on_link_state=self.on_link_state,
+        )
+        self.calibrating = False
+        self.following_since: float | None = None
+        self.last_force_n = 0.0
+        self.script: CalibrationScript | None = None
+        self.script_t0 = 0.0
+        self.last_pose: PoseMessage | None = None
+        self.last_pose_rx = -math.inf
+        self.pose_ages: deque[float] = deque(maxlen=20000)
+        self.align_pos: deque[float] = deque(maxlen=20000)
+        self.align_ang: deque[float] = deque(maxlen=20000)
+        self.poses_received = 0
+        self.pose_times: deque[float] = deque(maxlen=2000)
+        self.state_seq = 0
+        self.ticks = 0
+        self.late_ticks = 0
+        self.last_event: CalibrationEvent | None = None
+        self.loaded_calibration = self.calibration is not None
+        self.cpu = CpuMeter()
+        self.t_start = time.monotonic()
+        self._stop = asyncio.Event()
+
+    # --- incoming messages, one handler per kind ------------------------------------------
+
+    def on_pose(self, msg: PoseMessage) -> None:
+        """A virtual probe pose from the expert (``T_patient_probe``)."""
+        self.last_pose = msg
+        self.last_pose_rx = time.monotonic()
+        self.poses_received += 1
+        self.pose_times.append(self.last_pose_rx)
+        age = self.link.age_of(msg.t_sent)
+        if age is not None and math.isfinite(age):
+            self.pose_ages.append(max(0.0, age))
+
+    def on_control(self, msg: ControlMessage) -> None:
+        if isinstance(msg, Hello):
+            self.send_model()  # the expert (re)joined: give it the model we have
+        elif isinstance(msg, CalibrationMsg) and msg.event == "start":
+            self.start_calibration()
+
+    def on_link_state(self, state: str) -> None:
+        self.feed.publish("link", {"state": state})
+
+    # --- outgoing -------------------------------------------------------------------------
+
+    def send_model(self) -> bool:
+        if self.calibration is None:
+            return False
+        params = EllipsoidParams(**self.calibration.model_patient().to_dict())
+        return self.link.send_control(EllipsoidModel(model=params))
+
+    def send_state(self, t: float, m: Measurement) -> None:
+        """The measured probe (patient frame) and force (probe tip frame) to the expert."""
+        if self.calibration is None or m.T_world_tip is None or not self.link.connected:
+            return
+        T_patient_tip = self.calibration.T_world_patient.inverse() @ m.T_world_tip
+        force_tip = m.T_world_tip.inverse().rotate(m.force_world)
+        self.state_seq += 1
+        self.link.send_state(
+            StateMessage(
+                self.state_seq,
+                t,
+                tuple(T_patient_tip.position),
+                tuple(T_patient_tip.quaternion),
+                m.status,
+                tuple(float(v) for v in force_tip),
+                m.contact,
+            )
+        )
+
+    def publish_feed(self, t: float, virtual: Pose | None, m: Measurement) -> None:
+        age = None if self.last_pose is None else self.link.age_of(self.last_pose.t_sent)
+        if virtual is not None:
+            self.feed.publish(
+                "virtual_probe",
+                {
+                    "position": virtual.position,
+                    "quaternion": virtual.quaternion,
+                    "age_ms": None if age is None else age * 1000.0,
+                    "stale": self.virtual_stale(t),
+                    "clutch": bool(self.last_pose.clutch) if self.last_pose else False,
+                },
+            )
+        if m.T_world_tip is not None:
+            self.feed.publish(
+                "probe",
+                {
+                    "position": m.T_world_tip.position,
+                    "quaternion": m.T_world_tip.quaternion,
+                    "force": m.force_world,
+                    "contact": m.contact,
+                    "tracking": m.status.name.lower(),
+                },
+            )
+
+    def publish_calibration(self, event: CalibrationEvent | None = None) -> None:
+        step = self.calibrator.step if self.calibrating else None
+        self.feed.publish(
+            "calibration",
+            {
+                "calibrated": self.calibration is not None,
+                "calibrating": self.calibrating,
+                "step": step,
+                "prompt": self.calibrator.prompt() if self.calibrating else "",
+                "event": None if event is None else event.kind,
+                "landmark": None if event is None else event.landmark,
+                "message": "" if event is None else event.message,
+            },
+        )
+
+    # --- calibration ----------------------------------------------------------------------
+
+    def start_calibration(self) -> None:
+        self.calibrating = True
+        self.calibrator.reset()
+        self.script = CalibrationScript(self.patient) if self.config.auto_calibrate else None
+        self.script_t0 = time.monotonic()
+        self.link.send_control(CalibrationMsg(event="start"))
+        self.publish_calibration()
+
+    def on_calibration_event(self, ev: CalibrationEvent) -> None:
+        self.last_event = ev
+        log.info("calibration: %s", ev.message)
+        index = LANDMARKS.index(ev.landmark)
+        point = tuple(float(v) for v in ev.point)
+        if ev.kind == "refused":
+            self.link.send_control(
+                CalibrationMsg(event="error", index=index, point=point, detail=ev.message[:200])
+            )
+        else:
+            self.link.send_control(CalibrationMsg(event="point", index=index, point=point))
+        if ev.kind == "done" and self.calibrator.result is not None:
+            self.calibration = self.calibrator.result
+            self.calibration.save(self.calibration_path)
+            self.calibrating = False
+            self.script = None
+            self.link.send_control(CalibrationMsg(event="done"))
+            self.send_model()
+        self.publish_calibration(ev)
+
+    # --- the tick -------------------------------------------------------------------------
+
+    def virtual_stale(self, t: float) -> bool:
+        return not self.link.connected or t - self.last_pose_rx > self.config.stale_after_s
+
+    def virtual_world(self) -> Pose | None:
+        """The virtual probe's tip pose in the world, or None without a pose or calibration."""
+        if self.last_pose is None or self.calibration is None:
+            return None
+        return self.calibration.T_world_patient @ self.last_pose.pose
+
+    def tick(self, t: float) -> None:
+        virtual = self.virtual_world()
+        if self.script is not None:
+            target = self.script.target(t - self.script_t0)
+            if target is None and self.calibrator.step is not None:  # refused: press again
+                self.script_t0 = t
+                target = self.script.target(0.0)
+        else:
+            fresh = virtual is not None and not self.virtual_stale(t)
+            target = virtual if fresh else None
+            if target is not None and self.last_pose.clutch:
+                target = None  # the expert is re-indexing: hold still
+        true_tip = self.human.step(t, target)
+        force = np.zeros(3) if true_tip is None else self.patient.force(true_tip.position)
+        m = self.sensing.measure(t, true_tip, force)
+        self.last_force_n = float(np.linalg.norm(m.force_world))
+        if self.calibrating:
+            self.following_since = None
+            if m.T_world_tip is not None:
+                force_n = float(np.linalg.norm(m.force_world))
+                ev = self.calibrator.update(m.T_world_tip.position, force_n)
+                if ev is not None:
+                    self.on_calibration_event(ev)
+        elif target is None:
+            self.following_since = None
+        else:
+            if self.following_since is None:
+                self.following_since = t
+            settled = t - self.following_since >= self.config.alignment_settle_s
+            if settled and m.T_world_tip is not None:
+                dp, da = m.T_world_tip.distance_to(virtual)
+                self.align_pos.append(dp)
+                self.align_ang.append(da)
+        self.send_state(t, m)
+        self.publish_feed(t, virtual, m)
+
+    def pose_rate_hz(self, window_s: float = 1.0) -> float:
+        """Poses received per second over the last ``window_s``."""
+        now = time.monotonic()
+        return round(sum(1 for t in self.pose_times if now - t <= window_s) / window_s, 1)
+
+    def stats(self) -> dict:
+        ap, aa = list(self.align_pos)[-3000:], list(self.align_ang)[-3000:]
+        wall = time.monotonic() - self.t_start
+        return {
+            "role": "follower",
+            "pid": os.getpid(),
+            "uptime_s": round(wall, 3),
+            "link_state": self.link.state,
+            "connections": self.link.counters.connections,
+            "poses_received": self.poses_received,
+            "pose_rate_hz": self.pose_rate_hz(),
+            "pose_age_p50_ms": percentile_ms(self.pose_ages, 50),
+            "pose_age_p99_ms": percentile_ms(self.pose_ages, 99),
+            "pose_age_last_ms": percentile_ms(list(self.pose_ages)[-1:], 50),
+            "states_sent": self.link.counters.sent.get("state", 0),
+            "calibrated": self.calibration is not None,
+            "calibration_reused": self.loaded_calibration,
+            "calibration_refusals": self.calibrator.refusals,
+            "calibration_step": self.calibrator.step if self.calibrating else None,
+            "force_n": round(self.last_force_n, 3),
+            "alignment_mm_rms": _rms_scaled(ap, 1000.0),
+            "alignment_deg_rms": _rms_scaled(aa, 180.0 / math.pi),
+            "dropped": dict(self.link.counters.dropped),
+            "dropped_total": sum(self.link.counters.dropped.values()),
+            "feed_clients": len(self.feed.clients),
+            "ticks": self.ticks,
+            "late_ticks": self.late_ticks,
+            "cpu_percent": self.cpu.overall(),
+        }
+
+    async def run(self, duration_s: float | None = None) -> int:
+        loop = asyncio.get_running_loop()
+        on_stop_signals(loop, self._stop.set)
+        if self.config.feed.enabled:
+            await self.feed.start()
+            log.info("follower: renderer feed at %s", self.feed.url)
+        link_task = asyncio.create_task(self.link.run())
+        if self.calibration is None:
+            self.start_calibration()
+        else:
+            log.info("follower: reusing the saved calibration %s", self.calibration_path)
+        self.publish_calibration()
+        period = 1.0 / self.config.rate_hz
+        t_end = None if duration_s is None else time.monotonic() + duration_s
+        next_t = time.monotonic()
+        last_stats = 0.0
+        try:
+            while not self._stop.is_set() and not link_task.done():
+                t = time.monotonic()
+                self.ticks += 1
+                self.tick(t)
+                if t - last_stats > 0.5:
+                    last_stats = t
+                    write_stats(self.stats_file, self.stats())
+                    if parent_gone():
+                        log.warning("the demo that started this daemon is gone; stopping")
+                        break
+                if t_end is not None and t >= t_end:
+                    break
+                next_t += period
+                delay = next_t - time.monotonic()
+                if delay < -period:  # late by more than a tick: do not try to catch up
+                    self.late_ticks += 1
+                    next_t = time.monotonic()
+                    delay = 0.0
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._stop.wait(), max(0.0, delay))
+        finally:
+            await self.link.close("follower stopping")
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await asyncio.wait_for(link_task, 5.0)
+            await self.feed.stop()
+            write_stats(self.stats_file, self.stats())
+        return 0
+
+
+def _rms_scaled(values: list[float], scale: float) -> float | None:
+    if not values:
+        return None
+    return round(math.sqrt(sum(v * v for v in values) / len(values)) * scale, 3)
+
+
+# --- command line ---------------------------------------------------------------------------
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", help="TOML file; the [follower] section is used")
+    parser.add_argument("--signaling-url", help="signaling server, e.g. ws://127.0.0.1:8765/ws")
+    parser.add_argument("--room", help="session room name")
+    parser.add_argument("--state-dir", help="where the calibration is saved")
+    parser.add_argument("--feed-port", type=int, help="renderer feed port (0 picks one)")
+    parser.add_argument("--recalibrate", action="store_true", help="ignore a saved calibration")
+    parser.add_argument("--duration", type=float, help="stop after this many seconds")
+    parser.add_argument("--stats-file", help="write running figures (JSON) to this file")
+    parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
+
+
+def config_from_args(args: argparse.Namespace) -> FollowerConfig:
+    config = load_config(FollowerConfig, args.config, "follower" if args.config else None)
+    data = config.model_dump()
+    if args.signaling_url:
+        data["link"]["signaling_url"] = args.signaling_url
+    if args.room:
+        data["link"]["room"] = args.room
+    if args.state_dir:
+        data["state_dir"] = args.state_dir
+    if args.feed_port is not None:
+        data["feed"]["port"] = args.feed_port
+    return validate_config(FollowerConfig, data, "command line")
+
+
+def run(args: argparse.Namespace) -> int:
+    logging.basicConfig(
+        level=getattr(logging, str(args.log_level).upper(), logging.WARNING),
+        format="%(asctime)s follower %(name)s: %(message)s",
+    )
+    logging.getLogger("aioice").setLevel(logging.WARNING)
+    config = config_from_args(args)
+    daemon = FollowerDaemon(config, args.stats_file)
+    if args.recalibrate:
+        daemon.calibration = None
+        daemon.loaded_calibration = False
+    return asyncio.run(daemon.run(args.duration))
