@@ -1,0 +1,118 @@
+"""The tracking pipeline: frame -> blobs -> 3D marker centres -> correspondence -> pose.
+
+Steps: threshold and contours (OpenCV), sub-pixel centroids, range from depth corrected from
+the sphere's surface to its centre (:mod:`humantele.tracking.blobs`); matching to the tool and
+an SVD fit with residual and ambiguity checks (:mod:`humantele.tracking.markers`); optionally
+a maximum-likelihood refinement that trusts bearings more than ToF range; optionally the
+alpha-beta filter. The status is explicit: ``tracked``, ``lost`` or ``ambiguous``; a pose is
+given only when tracked.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import Field
+
+from humantele.config import ConfigModel
+from humantele.geometry import Pose
+from humantele.tracking.blobs import BlobParams, CentroidMethod, DepthMethod, detect_blobs
+from humantele.tracking.filter import FilterConfig, PoseFilter
+from humantele.tracking.frames import TrackingFrame
+from humantele.tracking.markers import MatchParams, Status, match_markers, refine_pose
+from humantele.tracking.tool import ToolDefinition
+
+
+class PipelineConfig(ConfigModel):
+    """Detection, range and fit settings. IR in counts; sizes px; distances mm (config edge)."""
+
+    threshold: float = Field(1000.0, gt=0, description="IR counts a marker pixel exceeds")
+    centroid_floor: float = Field(400.0, ge=0, description="counts subtracted for weights")
+    min_area: int = Field(3, ge=1)
+    max_area: int = Field(600, ge=1)
+    min_roundness: float = Field(0.45, ge=0, le=1)
+    centroid: CentroidMethod = "weighted"
+    depth: DepthMethod = "sphere"
+    sphere_offset: float = Field(0.3, ge=-1, le=1, description="fraction of the radius")
+    unwrap: bool = True
+    depth_wrap_m: float = Field(1.0, gt=0.1)
+    refine: bool = True
+    lateral_sigma_px: float = Field(0.05, gt=0)
+    range_sigma_mm: float = Field(0.8, gt=0)
+    distance_tol_mm: float = Field(4.0, gt=0)
+    max_rms_mm: float = Field(1.5, gt=0)
+    max_marker_error_mm: float = Field(3.0, gt=0)
+
+
+@dataclass(frozen=True)
+class TrackingResult:
+    """One frame's outcome. ``T_camera_probe`` is set only when ``status == "tracked"``;
+    ``residual_m`` is the fit's RMS residual (NaN when not tracked); ``matched[i]`` the blob
+    index of tool marker i (-1 missing); ``n_blobs`` candidate points found."""
+
+    t: float
+    status: Status
+    T_camera_probe: Pose | None
+    residual_m: float
+    matched: tuple[int, ...]
+    n_blobs: int
+
+
+class Tracker:
+    """Runs the pipeline on frames of one tool."""
+
+    def __init__(
+        self,
+        tool: ToolDefinition,
+        config: PipelineConfig | None = None,
+        filter_config: FilterConfig | None = None,
+    ):
+        self.tool = tool
+        self.config = c = config or PipelineConfig()
+        self.blob_params = BlobParams(
+            threshold=c.threshold,
+            centroid_floor=c.centroid_floor,
+            min_area=c.min_area,
+            max_area=c.max_area,
+            min_roundness=c.min_roundness,
+            centroid=c.centroid,
+            depth=c.depth,
+            sphere_offset=c.sphere_offset,
+            unwrap=c.unwrap,
+            depth_wrap_m=c.depth_wrap_m,
+        )
+        self.match_params = MatchParams(
+            distance_tol=c.distance_tol_mm / 1000.0,
+            max_rms=c.max_rms_mm / 1000.0,
+            max_marker_error=c.max_marker_error_mm / 1000.0,
+        )
+        fc = filter_config or FilterConfig()
+        self.filter = PoseFilter(fc) if fc.enabled else None
+        self.counts = {"tracked": 0, "lost": 0, "ambiguous": 0}
+
+    def process(self, frame: TrackingFrame) -> TrackingResult:
+        """Track the tool in one frame."""
+        c = self.config
+        blobs = detect_blobs(
+            frame.ir, frame.depth_mm, frame.intrinsics, self.tool.sphere_radius, self.blob_params
+        )
+        res = match_markers(blobs.points, self.tool, self.match_params)
+        self.counts[res.status] += 1
+        n = len(blobs.points)
+        if res.estimate is None:
+            return TrackingResult(frame.t, res.status, None, float("nan"), (), n)
+        est = res.estimate
+        pose = est.T_camera_probe
+        if c.refine:
+            idx = np.array(est.matched)
+            ok = idx >= 0
+            pts = blobs.points[idx[ok]]
+            sl = c.lateral_sigma_px / frame.intrinsics.fx * np.linalg.norm(pts, axis=1)
+            refined = refine_pose(pose, self.tool.markers[ok], pts, sl, c.range_sigma_mm / 1e3)
+            dp, dr = refined.distance_to(pose)
+            if dp < 0.005 and dr < np.radians(5.0):  # never let a refinement run away
+                pose = refined
+        if self.filter is not None:
+            pose = self.filter.update(frame.t, pose)
+        return TrackingResult(frame.t, "tracked", pose, est.residual_m, est.matched, n)
