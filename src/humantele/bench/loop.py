@@ -1,0 +1,160 @@
+"""``humantele bench loop``: the servo loop's rate and jitter on the sim device.
+
+Runs :class:`humantele.haptics.loop.ServoProcess` (sim Touch X, scripted sonographer, the demo
+patient model) for ``--seconds``; ``--load`` starts another process that keeps one core fully
+busy meanwhile. Prints a summary and, as the last line, one JSON object; writes the "loop"
+section of docs/benchmarks.md (one row per load condition, the other row kept).
+Targets: mean rate 1000 +- 1 Hz, period p99 within 50 us of 1 ms, no period over 2 ms.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import os
+import re
+import time
+from typing import Any
+
+from humantele.bench.report import BENCHMARKS_MD, machine_line, markdown_table, write_section
+from humantele.haptics.devices import SimDeviceConfig
+from humantele.haptics.loop import ServoConfig, ServoProcess, demo_model
+
+HEADER = ["load", "s", "rate Hz", "p50 us", "p99 us", "max us", "overruns", "late", "CPU %",
+          "SCHED_FIFO", "targets"]  # fmt: skip
+LABELS = {False: "idle", True: "one core busy"}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--seconds", type=float, default=10.0, help="run time (s), default 10")
+    p.add_argument("--load", action="store_true", help="keep one core busy in another process")
+    p.add_argument("--seed", type=int, default=0, help="seed of the simulated hand")
+    p.add_argument("--json", action="store_true", help="print only the JSON summary line")
+    p.add_argument("--no-write", action="store_true", help="do not update docs/benchmarks.md")
+
+
+def _burn(parent: int, until: float) -> None:
+    """Keep one core busy until ``until`` (monotonic) or the parent's death."""
+    n = 0
+    while True:
+        n += 1
+        if n % 200000 == 0 and (os.getppid() != parent or time.monotonic() > until):
+            return
+
+
+def _cpu_seconds(pid: int) -> float | None:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def measure(seconds: float, load: bool, seed: int = 0) -> dict[str, Any]:
+    """Run the servo for ``seconds`` and return its figures (see module docstring)."""
+    cfg = ServoConfig(device=SimDeviceConfig(seed=seed))
+    burner = None
+    if load:
+        ctx = mp.get_context("spawn")
+        burner = ctx.Process(target=_burn, args=(os.getpid(), time.monotonic() + seconds + 60))
+        burner.daemon = True
+        burner.start()
+    sp = ServoProcess(cfg, demo_model())
+    try:
+        sp.start()
+        cpu0, t0 = _cpu_seconds(sp.pid), time.monotonic()
+        time.sleep(seconds)
+        cpu1, t1 = _cpu_seconds(sp.pid), time.monotonic()
+        sp.stop()
+        st = sp.stats()
+    finally:
+        sp.stop()
+        if burner is not None:
+            burner.terminate()
+            burner.join(5)
+    period_us = 1e6 / cfg.rate_hz
+    res = {
+        "seconds": round(st.elapsed_s, 3),
+        "load": load,
+        "ticks": st.ticks,
+        "rate_hz": round(st.rate_hz, 3),
+        "period_p50_us": round(st.period_p50_us, 1),
+        "period_p99_us": round(st.period_p99_us, 1),
+        "period_max_us": round(st.period_max_us, 1),
+        "overruns": st.overruns,
+        "late_ticks": st.late_ticks,
+        "fault_episodes": st.fault_episodes,
+        "realtime": st.realtime,
+        "servo_cpu_percent": (
+            round(100.0 * (cpu1 - cpu0) / (t1 - t0), 1) if cpu0 is not None and cpu1 else None
+        ),
+    }
+    res["target_rate"] = abs(st.rate_hz - cfg.rate_hz) <= 1.0
+    res["target_p99"] = abs(st.period_p99_us - period_us) <= 50.0
+    res["target_max"] = st.period_max_us <= 2.0 * period_us
+    return res
+
+
+def _row(r: dict[str, Any]) -> list[object]:
+    ok = [k for k in ("target_rate", "target_p99", "target_max") if r[k]]
+    return [LABELS[r["load"]], f"{r['seconds']:.0f}", f"{r['rate_hz']:.2f}",
+            f"{r['period_p50_us']:.0f}", f"{r['period_p99_us']:.0f}",
+            f"{r['period_max_us']:.0f}", r["overruns"], r["late_ticks"],
+            r["servo_cpu_percent"], "yes" if r["realtime"] else "no",
+            "all met" if len(ok) == 3 else f"{len(ok)}/3 met"]  # fmt: skip
+
+
+def _kept_rows(other: str) -> list[list[str]]:
+    """Rows of the other load condition already in docs/benchmarks.md."""
+    try:
+        text = BENCHMARKS_MD.read_text(encoding="utf-8")
+    except OSError:
+        return []
+    m = re.search(r"<!-- bench:loop -->(.*?)<!-- /bench:loop -->", text, re.DOTALL)
+    if not m:
+        return []
+    rows = []
+    for line in m.group(1).splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == len(HEADER) and cells[0] == other:
+            rows.append(cells)
+    return rows
+
+
+def section(r: dict[str, Any], kept: list[list[str]]) -> str:
+    rows = [_row(r), *kept]
+    rows.sort(key=lambda row: row[0] != LABELS[False])
+    return "\n".join(
+        [
+            "## Servo loop (`humantele bench loop --seconds N [--load]`)",
+            "",
+            "The 1 kHz servo process on the sim Touch X with the scripted sonographer and the demo "
+            'patient; periods between tick starts. "one core busy": another process spins '
+            "a core during the run. Targets: 1000 +- 1 Hz, p99 within 50 us of 1 ms, no period "
+            "over 2 ms. CPU %: the servo process (it spins the last 200 us of each period).",
+            "",
+            markdown_table(HEADER, rows),
+            "",
+            machine_line(),
+        ]
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.seconds <= 0:
+        print("humantele bench loop: --seconds must be > 0")
+        return 2
+    if not args.json:
+        what = "with one core busy" if args.load else "idle"
+        print(f"servo loop on the sim device for {args.seconds:g} s ({what}) ...", flush=True)
+    r = measure(args.seconds, args.load, args.seed)
+    if not args.json:
+        print(markdown_table(HEADER, [_row(r)]))
+    if not args.no_write:
+        path = write_section("loop", section(r, _kept_rows(LABELS[not args.load])), BENCHMARKS_MD)
+        if not args.json:
+            print(f"wrote {path}")
+    print(json.dumps(r))
+    return 0
