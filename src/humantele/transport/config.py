@@ -47,7 +47,9 @@ class LinkConfig(ConfigModel):
     connect_timeout_s: float = Field(10.0, gt=0, le=120)
     reconnect_delay_s: float = Field(0.5, gt=0, le=60)
     reconnect_max_delay_s: float = Field(5.0, gt=0, le=600)
-    max_buffered_bytes: int = Field(65536, ge=1024)
+    # pose/state bytes allowed to wait in the sender (~28 poses): newer ones are dropped beyond
+    # it, so a stall never turns into a backlog of stale poses
+    max_buffered_bytes: int = Field(2048, ge=100)
 
     @model_validator(mode="after")
     def _consistent(self) -> Self:
