@@ -92,6 +92,7 @@ async def _expert(args: argparse.Namespace) -> dict:
     result = {
         "role": "expert",
         "sent": link.counters.sent["pose"],
+        "attempted": pacer.ticks,  # sent + dropped at the sender (send buffer full)
         "wall_s": wall,
         "cpu_pct": 100.0 * cpu / wall,
         "pacer_skipped": pacer.skipped,
@@ -245,15 +246,17 @@ async def measure(args: argparse.Namespace) -> dict:
         r = json.loads(lines[-1])
         results[r["role"]] = r
     e, f = results["expert"], results["follower"]
-    sent = e["sent"]
+    sent, attempted = e["sent"], e["attempted"]
     summary = {
         "rate_hz": args.rate,
         "state_rate_hz": args.state_rate,
         "seconds": args.seconds,
+        "attempted": attempted,
         "sent": sent,
-        "send_rate_hz": sent / e["wall_s"],
+        "send_rate_hz": attempted / e["wall_s"],
         "received": f["received"],
-        "delivered_pct": 100.0 * f["received"] / sent if sent else 0.0,
+        # poses the expert meant to send that the follower got (sender drops count as lost)
+        "delivered_pct": 100.0 * f["received"] / attempted if attempted else 0.0,
         "pose_age_ms": f["age_ms"],
         "state_age_ms": e["state_age_ms"],
         "offset_us": None if f["offset_s"] is None else f["offset_s"] * 1e6,
