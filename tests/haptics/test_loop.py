@@ -124,6 +124,9 @@ def test_bad_data_and_device_errors_give_zero_force():
     assert r.sample[7] & FAULT_BAD_DATA
     assert r.tick(None, 0.301) == (0.0, 0.0, 0.0)
     assert r.sample[7] & FAULT_DEVICE
+    r.tick(state(0.302, quaternion=(0.0, 0.0, 0.0, 0.0)), 0.302)  # not a rotation
+    assert r.sample[7] & FAULT_BAD_DATA and r.counts["bad_data"] == 2
+    Pose(r.sample[0], r.sample[1])  # the published sample stays a valid pose
 
 
 finite = st.floats(allow_nan=True, allow_infinity=True, width=64)
@@ -248,3 +251,35 @@ def test_parent_death_stops_the_servo(tmp_path):
         _wait(gone, 5.0)
     finally:
         parent.kill()
+
+
+def test_seqlock_readers_never_see_a_torn_write():
+    import threading
+
+    from humantele.haptics.shm import SeqlockArray
+
+    w = SeqlockArray(64)
+    r = SeqlockArray(64, w.name)  # attached by name, as the other process does
+    stop = threading.Event()
+
+    def writer():
+        k = 0.0
+        while not stop.is_set():
+            k += 1.0
+            w.write(np.full(64, k))
+
+    th = threading.Thread(target=writer)
+    th.start()
+    try:
+        seen = set()
+        for _ in range(5000):
+            a = r.read(timeout_s=1.0)
+            assert np.all(a == a[0])
+            seen.add(a[0])
+        assert len(seen) > 3  # the writer really was writing meanwhile
+    finally:
+        stop.set()
+        th.join()
+        r.close()
+        w.close()
+        w.unlink()

@@ -48,7 +48,7 @@ log = logging.getLogger(__name__)
 FAULT_STALE = 1  # device data older than stale_after_s
 FAULT_LATE = 2  # a tick started more than late_after_s after its deadline
 FAULT_DEVICE = 4  # the device raised (disconnect, driver error)
-FAULT_BAD_DATA = 8  # non-finite position/orientation from the device
+FAULT_BAD_DATA = 8  # non-finite or implausible (beyond 1 m, 100 m/s) device data
 FAULT_NAMES = {FAULT_STALE: "stale", FAULT_LATE: "late", FAULT_DEVICE: "device",
                FAULT_BAD_DATA: "bad_data"}  # fmt: skip
 
@@ -237,6 +237,16 @@ class _Setup:
 
 
 _ZERO3 = (0.0, 0.0, 0.0)
+MAX_DEVICE_COORD_M = 1.0  # a device reading farther than this from its origin is garbage
+MAX_DEVICE_SPEED = 100.0  # m/s, likewise for a device's own velocity estimate
+
+
+def _plausible(state: DeviceState) -> bool:
+    if any(abs(c) > MAX_DEVICE_COORD_M for c in state.position):
+        return False
+    if not 0.5 < sum(c * c for c in state.quaternion) < 2.0:  # not a rotation
+        return False
+    return state.velocity is None or all(abs(c) <= MAX_DEVICE_SPEED for c in state.velocity)
 
 
 class ForceRenderer:
@@ -326,7 +336,7 @@ class ForceRenderer:
         flags = extra_flags
         if state is None:
             flags |= FAULT_DEVICE
-        elif not state.is_finite():
+        elif not state.is_finite() or not _plausible(state):
             flags |= FAULT_BAD_DATA
             self.counts["bad_data"] += 1
         elif now - state.t > self.config.stale_after_s:
@@ -410,7 +420,8 @@ class ForceRenderer:
         a = dt / (dt + 1.0 / (2.0 * math.pi * self.config.velocity_cutoff_hz))
         for i in range(3):
             raw = (state.position[i] - prev.position[i]) / dt
-            self._v[i] += a * (raw - self._v[i])
+            v = self._v[i] + a * (raw - self._v[i])
+            self._v[i] = v if math.isfinite(v) else 0.0  # never let one bad sample poison it
 
 
 def run_lockstep(
