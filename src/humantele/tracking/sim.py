@@ -221,8 +221,9 @@ class SimFrameSource:
         x0, y0, x1, y1 = box
         us = x0 + (np.arange((x1 - x0) * _SS) + 0.5) / _SS - 0.5
         vs = y0 + (np.arange((y1 - y0) * _SS) + 0.5) / _SS - 0.5
-        d = k.rays(us[None, :], vs[:, None])
-        proj = d @ centre
+        xs, ys = (us - k.cx) / k.fx, (vs - k.cy) / k.fy
+        inv_n = 1.0 / np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2 + 1.0)
+        proj = (xs[None, :] * centre[0] + ys[:, None] * centre[1] + centre[2]) * inv_n
         rho2 = dist * dist - proj * proj
         hit = rho2 <= rad * rad
         if rng.random() < c.partial_occlusion_prob:  # a finger edge across the sphere

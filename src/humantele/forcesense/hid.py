@@ -1,0 +1,199 @@
+"""The force sensor board over USB HID (hidapi): report parsing and the device backend.
+
+Report layout (64 bytes, little-endian; docs/force_sensor_hid.md is the reference):
+
+====== ==== ===================================================================
+offset size field
+====== ==== ===================================================================
+0      1    report id, 0x01
+1      1    layout version, 1
+2      2    sequence number (uint16, wraps)
+4      4    board time, microseconds (uint32, wraps)
+8      1    number of pairs P (3..6)
+9      1    flags: bit 0 over-range, bit 1 sensor fault
+10     2    board temperature (int16, 0.01 deg C)
+12     24   6 pairs x (a, b) int16, 0.005 mT per count (unused pairs 0)
+36     26   reserved, 0
+62     2    CRC-16/CCITT-FALSE of bytes 0..61 (uint16)
+====== ==== ===================================================================
+
+A report that is short, has a wrong id/version/pair count, a bad CRC or a fault flag is
+dropped and counted by reason; nothing raises into the caller's loop.
+"""
+
+from __future__ import annotations
+
+import struct
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from humantele.config import ConfigModel
+from humantele.forcesense.readings import ForceReading
+
+REPORT_ID = 0x01
+VERSION = 1
+REPORT_SIZE = 64
+MAX_PAIRS = 6
+MT_PER_COUNT = 0.005
+FLAG_OVER_RANGE = 0x01
+FLAG_FAULT = 0x02
+_HEAD = struct.Struct("<BBHIBBh")  # 12 bytes
+_PAIRS = struct.Struct(f"<{2 * MAX_PAIRS}h")  # 24 bytes
+
+
+class ForceSensorUnavailable(RuntimeError):
+    """No force sensor board could be opened; the message says what was looked for."""
+
+
+class ReportError(ValueError):
+    """A report that cannot be used; ``reason`` is a short key for counting."""
+
+    def __init__(self, reason: str, detail: str):
+        super().__init__(f"{reason}: {detail}")
+        self.reason = reason
+
+
+def crc16_ccitt(data: bytes, crc: int = 0xFFFF) -> int:
+    """CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, no reflection, no xor-out)."""
+    for byte in data:
+        crc ^= byte << 8
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x1021) if crc & 0x8000 else crc << 1
+            crc &= 0xFFFF
+    return crc
+
+
+def encode_report(
+    seq: int, t_us: int, a_mt, b_mt, temperature_c: float = 25.0, flags: int = 0
+) -> bytes:
+    """The 64-byte report the board sends (used by tests and the board's firmware docs)."""
+    a = np.asarray(a_mt, dtype=float)
+    b = np.asarray(b_mt, dtype=float)
+    p = len(a)
+    vals = np.zeros(2 * MAX_PAIRS)
+    vals[0 : 2 * p : 2] = a
+    vals[1 : 2 * p : 2] = b
+    counts = np.clip(np.rint(vals / MT_PER_COUNT), -32768, 32767).astype(int)
+    head = _HEAD.pack(
+        REPORT_ID,
+        VERSION,
+        seq & 0xFFFF,
+        t_us & 0xFFFFFFFF,
+        p,
+        flags,
+        int(round(temperature_c * 100)),
+    )
+    body = head + _PAIRS.pack(*counts.tolist()) + bytes(26)
+    return body + struct.pack("<H", crc16_ccitt(body))
+
+
+def parse_report(data: bytes | bytearray | list[int]) -> tuple[ForceReading, int]:
+    """(reading with t = board time in s, flags) from one report; ReportError if unusable."""
+    raw = bytes(data)
+    if len(raw) < REPORT_SIZE:
+        raise ReportError("short", f"{len(raw)} bytes, need {REPORT_SIZE}")
+    raw = raw[:REPORT_SIZE]
+    rid, ver, seq, t_us, p, flags, temp = _HEAD.unpack_from(raw, 0)
+    if rid != REPORT_ID:
+        raise ReportError("report_id", f"0x{rid:02x}")
+    if ver != VERSION:
+        raise ReportError("version", str(ver))
+    (crc,) = struct.unpack_from("<H", raw, 62)
+    if crc != crc16_ccitt(raw[:62]):
+        raise ReportError("crc", "checksum mismatch")
+    if not 3 <= p <= MAX_PAIRS:
+        raise ReportError("pairs", f"{p} pairs")
+    if flags & FLAG_FAULT:
+        raise ReportError("fault", "sensor fault flag set")
+    counts = np.array(_PAIRS.unpack_from(raw, 12), dtype=float) * MT_PER_COUNT
+    reading = ForceReading(
+        t_us * 1e-6, counts[0 : 2 * p : 2], counts[1 : 2 * p : 2], temp / 100.0, seq
+    )
+    return reading, flags
+
+
+class HidForceConfig(ConfigModel):
+    """The sensor board's USB ids (and serial, to pick one of several)."""
+
+    backend: Literal["hid"] = "hid"
+    vendor_id: int = Field(0x1209, ge=0, le=0xFFFF, description="pid.codes test VID")
+    product_id: int = Field(0x4854, ge=0, le=0xFFFF)
+    serial: str | None = None
+    read_timeout_ms: int = Field(20, ge=0, le=1000)
+
+
+class HidForceSensor:
+    """Reads reports from the board; ``read`` returns the newest good reading or None."""
+
+    def __init__(self, config: HidForceConfig | None = None, device=None):
+        self.config = c = config or HidForceConfig()
+        self.dropped: dict[str, int] = {}
+        self.received = 0
+        if device is None:
+            device = self._open(c)
+        self._dev = device
+        self._t0_host: float | None = None
+
+    @staticmethod
+    def _open(c: HidForceConfig):
+        want = f"{c.vendor_id:04x}:{c.product_id:04x}"
+        try:
+            import hid
+        except ImportError as exc:  # pragma: no cover - hidapi is a dependency
+            raise ForceSensorUnavailable(f"hidapi is not installed: {exc}") from exc
+        found = hid.enumerate(c.vendor_id, c.product_id)
+        if c.serial is not None:
+            found = [d for d in found if d.get("serial_number") == c.serial]
+        if not found:
+            raise ForceSensorUnavailable(
+                f"no force sensor board with USB id {want}"
+                + (f" and serial {c.serial!r}" if c.serial else "")
+                + " found; is it plugged in, and may this user open it (udev rule)? "
+                "Use the 'sim' force sensor backend to run without hardware."
+            )
+        dev = hid.device()
+        try:
+            dev.open_path(found[0]["path"])
+        except (OSError, ValueError) as exc:
+            raise ForceSensorUnavailable(f"cannot open force sensor {want}: {exc}") from exc
+        return dev
+
+    def feed(self, data) -> ForceReading | None:
+        """Parse one report; None (counted in ``dropped``) if unusable."""
+        try:
+            reading, _flags = parse_report(data)
+        except ReportError as exc:
+            self.dropped[exc.reason] = self.dropped.get(exc.reason, 0) + 1
+            return None
+        self.received += 1
+        return reading
+
+    def read(self, t: float | None = None) -> ForceReading | None:
+        """Drain waiting reports; the newest good one (time-stamped ``t`` if given)."""
+        newest = None
+        timeout = self.config.read_timeout_ms
+        while True:
+            try:
+                data = self._dev.read(REPORT_SIZE, timeout)
+            except (OSError, ValueError):
+                self.dropped["io"] = self.dropped.get("io", 0) + 1
+                break
+            if not data:
+                break
+            r = self.feed(data)
+            newest = r or newest
+            timeout = 0
+        if newest is not None and t is not None:
+            newest = ForceReading(t, newest.a, newest.b, newest.temperature_c, newest.seq)
+        return newest
+
+    def set_force(self, force_probe) -> None:
+        """Real hardware: the force is what it is (present so sim and hid share a shape)."""
+
+    def close(self) -> None:
+        try:
+            self._dev.close()
+        except Exception:  # noqa: BLE001 - closing a vanished device must not raise
+            pass

@@ -1,0 +1,53 @@
+import numpy as np
+import pytest
+
+from humantele.follower.sensing import ProbeSensing, SensingConfig
+from humantele.geometry import Pose, quat_from_axis_angle, quat_multiply
+from humantele.tracking.sim import SimFrameConfig
+
+
+@pytest.fixture(scope="module")
+def sensing():
+    return ProbeSensing()
+
+
+def _probe(i):
+    """Upright probe (handle, probe +z = world +y) on an abdomen, sliding and rocking."""
+    upright = quat_from_axis_angle([1.0, 0.0, 0.0], -np.pi / 2)
+    rock = quat_from_axis_angle([1.0, 0.0, 0.3], np.radians(10.0 * np.sin(i / 20.0)))
+    return Pose([0.1 + 0.001 * i, 0.95, 0.2], quat_multiply(rock, upright))
+
+
+def test_pose_and_force_come_from_the_pipeline_not_the_truth(sensing):
+    errs, forces = [], []
+    for i in range(60):
+        f_true = np.array([0.0, -6.0, 1.0]) if 20 <= i < 40 else np.zeros(3)
+        m = sensing.measure(i / 45.0, _probe(i), f_true)
+        assert m.status in ("tracked", "lost", "ambiguous")
+        assert np.all(np.isfinite(m.force_world))
+        if m.T_world_probe is not None:
+            errs.append(_probe(i).distance_to(m.T_world_probe))
+            np.testing.assert_allclose(m.tip_world, m.T_world_probe.apply([0, 0, -0.15]))
+            if 25 <= i < 40:
+                forces.append(m.force_world - f_true)
+    errs = np.array(errs)
+    assert len(errs) >= 55
+    assert 0 < np.sqrt(np.mean(errs[:, 0] ** 2)) < 1e-3  # measured: not exact, but close
+    f_err = np.abs(np.array(forces))
+    assert 0 < f_err.max() < 0.5
+    assert sensing.contact.presses == 1
+
+
+def test_hidden_markers_give_lost_and_no_pose():
+    cfg = SensingConfig(camera=SimFrameConfig(occluded_markers=[0, 1]))
+    s = ProbeSensing(cfg)
+    m = s.measure(0.0, _probe(0), np.zeros(3))
+    assert m.status == "lost" and m.T_world_probe is None and m.tip_world is None
+
+
+def test_fixed_camera_and_explicit_headset_pose():
+    s = ProbeSensing(SensingConfig(camera_anchor="fixed", camera_position_m=[0.1, 1.37, 0.2]))
+    m = s.measure(0.0, _probe(0), np.zeros(3))
+    assert m.status == "tracked"
+    far = Pose([0.1, 3.0, 0.2], s.T_world_camera.quaternion)
+    assert s.measure(0.1, _probe(0), np.zeros(3), T_world_camera=far).status == "lost"
