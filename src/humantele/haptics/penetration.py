@@ -13,21 +13,27 @@ Methods and where they fail
     normal is undefined: we return the smallest semi-axis along its axis (also the exact
     answer). Far outside a flat model the normal line can miss the model (negative
     discriminant): depth is then minus the distance to the radially scaled surface point.
-    ``exact``: the true closest surface point. Lagrange: x_i = s_i^2 p_i / (t + s_i^2) with t
-    the root of F(t) = sum (s_i p_i / (t + s_i^2))^2 - 1, convex and decreasing on
+    ``exact``: the true closest surface point. Lagrange: c_i = s_i^2 p_i / (t + s_i^2) with t
+    the root of S(t) = sum (s_i p_i / (t + s_i^2))^2 = 1, S convex and decreasing on
     t > -min s_i^2 (Eberly, "Distance from a point to an ellipse, an ellipsoid, or a
-    hyperellipsoid"). We work in the positive octant, in w = t + min s_i^2 (so roots near the
-    pole keep their precision), start with one Newton step from t = 0, clamp it to a proven
-    lower bound, then Newton from the left, which converges monotonically. When the point lies
-    in the plane of the smallest axis and deep enough, the closest point leaves that plane
-    (t = -min s_i^2, closed form). There the closest point jumps: points just either side of
-    the plane get normals pointing opposite ways (the medial surface), so the exact force
-    direction is discontinuous deep inside (the radial normal is continuous except at the
-    centre).
-    ``newton``: the radial estimate converted to t, then Newton steps on F (safeguarded by the
-    same lower bound), at most ``NEWTON_STEPS``. Near the surface it is exact to far below a
-    micrometre; deep inside flat models (near the medial surface) it inherits exact's
-    jumps but stops early, so it may be off there.
+    hyperellipsoid"). We work in the positive octant and in w = t + min s_i^2 (roots near the
+    pole keep their precision), and run Newton on S^(-1/2), which is linear in w when one
+    term dominates (plain Newton on S crawls there at 1.5x per step), inside a bracket that
+    always holds the root (proven bounds; bisection when a step leaves it): 2-5 steps near
+    the surface, at most ~20 in the hardest cases. When the point lies in the plane of the
+    smallest axis and deep enough, the closest point leaves that plane (t = -min s_i^2,
+    closed form; we choose the + side, "up" on the torso). There the closest point jumps:
+    points just either side of the plane get normals pointing opposite ways (the medial
+    surface), so the exact force direction is discontinuous deep inside (the radial normal
+    is continuous except at the centre).
+    ``newton`` (ours, between the two): exact's iteration stopped once a step changes w by
+    under 1 %, then the paper's quadratic along that (nearly exact) normal. The depth error is
+    second order in the normal error: below 1e-7 mm within 20 mm of the surface on every
+    benchmark scene, at 2-4 steps. Deep inside it shares exact's jump.
+
+Far points (q >= 1e24) skip the iteration: depth is minus the distance to the radially scaled
+surface point, normal the gradient there (relative error ~1e-12). Non-finite points raise
+ValueError (the force law turns that into zero force).
 """
 
 from __future__ import annotations
@@ -190,7 +196,11 @@ def _solve(
         hi = sm2
     else:
         lo, hi = sm2, math.sqrt(kx + ky + kz)
-    w = sm2  # t = 0
+    # First step from w = min s^2 (t = 0), where S = q and sum t_i / a_i = |p / s^2|^2.
+    fp = kx / (sx**6) + ky / (sy**6) + kz / (sz**6)
+    w = sm2 + q * (math.sqrt(q) - 1.0) / fp
+    if not lo <= w <= hi:
+        w = 0.5 * (lo + hi)
     for _ in range(max_iter):
         ax, ay, az = w + ex, w + ey, w + ez
         tx = kx / (ax * ax) if kx > 0.0 else 0.0
@@ -330,7 +340,9 @@ def _solve_batch(
         ).clip(min=0.0)
         lo = np.where(inside, lo_in, sm2)
         hi = np.where(inside, sm2, np.sqrt(kk.sum(axis=1)))
-        w = np.full(n_pts, sm2)
+        fp0 = np.sum(kk / s2**3, axis=1)
+        w = sm2 + q * (np.sqrt(q) - 1.0) / fp0  # first step from t = 0, as the scalar path
+        w = np.where((lo <= w) & (w <= hi), w, 0.5 * (lo + hi))
         idx = np.flatnonzero(ok & ~degenerate)
         for _ in range(EXACT_MAX_ITER):
             if idx.size == 0:
