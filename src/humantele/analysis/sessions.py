@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -25,6 +26,15 @@ from humantele.analysis.alignment import (
     fit_clock_map,
 )
 from humantele.recording.reader import Recording, read_recording
+
+# What the alignment reads; other topics (force at 1 kHz...) are not even decoded.
+TOPICS = (
+    "/expert/pose",
+    "/follower/probe_pose",
+    "/expert/scan",
+    "/expert/clock_sync",
+    "/follower/clock_sync",
+)
 
 
 @dataclass
@@ -88,12 +98,16 @@ def _num(v: float) -> float | None:
     return None if not np.isfinite(v) else round(float(v), 4)
 
 
-def _track(rec: Recording, topic: str) -> tuple[NDArray, NDArray, NDArray, list[dict]]:
-    rows = rec.samples.get(topic, [])
-    t = np.array([s["t"] for s in rows], dtype=float)
-    p = np.array([s["position"] for s in rows], dtype=float).reshape(-1, 3)
-    q = np.array([s["quaternion"] for s in rows], dtype=float).reshape(-1, 4)
-    return t, p, q, rows
+def _gather(recordings: list[Recording], topic: str, name: str, default: Any = np.nan) -> NDArray:
+    parts = [r.column(topic, name, default) for r in recordings if r.count(topic)]
+    return np.concatenate(parts) if parts else np.empty((0,))
+
+
+def _track(recordings: list[Recording], topic: str) -> tuple[NDArray, NDArray, NDArray]:
+    t = _gather(recordings, topic, "t").astype(float)
+    p = _gather(recordings, topic, "position").astype(float).reshape(-1, 3)
+    q = _gather(recordings, topic, "quaternion").astype(float).reshape(-1, 4)
+    return t, p, q
 
 
 def build_session(session_id: str, recordings: list[Recording]) -> Session:
@@ -108,17 +122,14 @@ def build_session(session_id: str, recordings: list[Recording]) -> Session:
     def gather(topic: str) -> list[dict]:
         out: list[dict] = []
         for rec in recordings:
-            out.extend(rec.samples.get(topic, []))
+            out.extend(rec.samples(topic))
         return out
 
-    merged = Recording(path=recordings[0].path)
-    for topic in ("/expert/pose", "/follower/probe_pose"):
-        merged.samples[topic] = gather(topic)
-    t_v, p_v, q_v, _ = _track(merged, "/expert/pose")
-    t_f, p_f, q_f, rows = _track(merged, "/follower/probe_pose")
-    tracked = np.array([bool(s.get("tracked", False)) for s in rows], dtype=bool)
+    t_v, p_v, q_v = _track(recordings, "/expert/pose")
+    t_f, p_f, q_f = _track(recordings, "/follower/probe_pose")
+    tracked = _gather(recordings, "/follower/probe_pose", "tracked", False).astype(bool)
     good = tracked & np.all(np.isfinite(p_f), axis=1) & np.all(np.isfinite(q_f), axis=1)
-    good &= np.linalg.norm(q_f, axis=1) > 0.5 if len(q_f) else good
+    good &= np.linalg.norm(q_f, axis=1) > 0.5
     if len(t_v) == 0:
         warnings.append(f"session {session_id}: no /expert/pose samples")
     if len(t_f) == 0:
@@ -213,7 +224,7 @@ def load_sessions(paths: Iterable[str | Path]) -> list[Session]:
     """Read the files and group them by session id (the file name when none is recorded)."""
     groups: dict[str, list[Recording]] = {}
     for p in paths:
-        rec = read_recording(p)
+        rec = read_recording(p, TOPICS)
         sid = rec.session.get("session_id") or Path(p).stem
         groups.setdefault(sid, []).append(rec)
     return [build_session(sid, recs) for sid, recs in groups.items()]

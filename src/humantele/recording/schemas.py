@@ -6,10 +6,11 @@ topics relate the two. Poses are ``T_patient_probe``: the probe's position (m) a
 (unit quaternion, x, y, z, w scalar-last) in the patient frame of the paper (x head to feet, y up
 from the bed, z lateral), the frame shared by the expert's virtual probe and the tracked probe.
 
-High-rate topics (``batch=True``) pack several samples into one MCAP message
-``{"samples": [sample, ...]}``; the others hold one sample per message. Messages are JSON with a
-JSON schema, so Foxglove opens the files directly. Ids are pseudonyms (``F03``, ``S1``): no
-patient identity is ever recorded.
+High-rate topics (``batch=True``) pack several samples into one MCAP message as columns,
+``{"t": [t0, t1, ...], "position": [[x, y, z], ...], ...}`` (reading 600k samples as JSON
+objects is too slow; see docs/analysis.md); the others hold one sample per message. Messages
+are JSON with a JSON schema, so Foxglove opens the files directly. Ids are pseudonyms
+(``F03``, ``S1``): no patient identity is ever recorded.
 """
 
 from __future__ import annotations
@@ -215,12 +216,14 @@ def json_schema(spec: ChannelSpec) -> dict[str, Any]:
     }
     if not spec.batch:
         return sample
+    columns = {k: {"type": "array", "items": v} for k, v in props.items()}
     return {
         "type": "object",
         "title": spec.schema_name,
-        "description": spec.description + " (samples packed per message)",
-        "properties": {"samples": {"type": "array", "items": sample}},
-        "required": ["samples"],
+        "description": spec.description
+        + " (columnar batch: each field is a list with one entry per sample)",
+        "properties": columns,
+        "required": ["t", *spec.required],
     }
 
 
@@ -265,11 +268,13 @@ def make_sample(spec: ChannelSpec, t: float, payload: dict[str, Any]) -> dict[st
     """The sample ``{"t": t, **fields}`` of ``spec`` with plain JSON values (numpy arrays become
     lists); ValueError naming the field if a value is missing, unknown, non-finite or mistyped."""
     sample: dict[str, Any] = {"t": round(_value("number", t), T_DECIMALS)}
-    for name, v in payload.items():
-        if name == "t":
-            continue
-        if name not in spec.fields:
+    for name in payload:
+        if name != "t" and name not in spec.fields:
             raise ValueError(f"{spec.topic}: unknown field {name!r}")
+    for name in spec.fields:  # the spec's order: every sample of a topic has one key order
+        if name not in payload:
+            continue
+        v = payload[name]
         try:
             sample[name] = _value(spec.fields[name][0], v)
         except (TypeError, ValueError) as exc:

@@ -98,9 +98,10 @@ class McapLog:
         self._writer.add_metadata(SESSION_METADATA, dict(metadata))
         self._channel_ids: dict[str, int] = {}
         self._sequence: dict[str, int] = collections.defaultdict(int)
-        self._pending: dict[str, tuple[int, list[dict[str, Any]]]] = {}
+        self._pending: dict[str, tuple[int, dict[str, list[Any]]]] = {}  # columnar batches
         self.messages = 0
-        self.samples = 0
+        self.samples = 0  # accepted by append
+        self.samples_flushed = 0  # on disk (as far as fsync says)
         self.closed = False
         self.flush()
 
@@ -134,26 +135,32 @@ class McapLog:
             self._emit(topic, log_time_ns, sample)
             return
         pending = self._pending.get(topic)
+        if pending is not None and pending[1].keys() != sample.keys():
+            self._emit(topic, *self._pending.pop(topic))  # another set of fields: new batch
+            pending = None
         if pending is None:
-            self._pending[topic] = (log_time_ns, [sample])
+            self._pending[topic] = (log_time_ns, {k: [v] for k, v in sample.items()})
             return
-        pending[1].append(sample)
-        if len(pending[1]) >= self._batch_max:
-            del self._pending[topic]
-            self._emit(topic, pending[0], {"samples": pending[1]})
+        columns = pending[1]
+        for k, v in sample.items():
+            columns[k].append(v)
+        if len(columns["t"]) >= self._batch_max:
+            self._emit(topic, *self._pending.pop(topic))
 
     def flush(self) -> None:
         """Write the packed samples, close the chunk, flush and fsync: all so far is on disk."""
-        for topic, (log_time_ns, samples) in list(self._pending.items()):
-            self._emit(topic, log_time_ns, {"samples": samples})
+        for topic, (log_time_ns, columns) in list(self._pending.items()):
+            self._emit(topic, log_time_ns, columns)
         self._pending.clear()
         self._writer.flush()
+        pending = self.samples
         if self._fsync:
             try:
                 os.fsync(self._stream.fileno())
             except (AttributeError, OSError, ValueError) as exc:
                 if isinstance(exc, OSError) and exc.errno not in (None, 22):  # EINVAL: a pipe
                     raise
+        self.samples_flushed = pending
 
     def close(self) -> None:
         """Flush and write the MCAP summary and footer."""
@@ -176,7 +183,7 @@ class RecorderStats:
     """Counters of a :class:`Recorder` (read any time, from any thread)."""
 
     queued: int = 0
-    written: int = 0
+    written: int = 0  # flushed to the file
     dropped_overflow: int = 0
     dropped_invalid: int = 0
     dropped_failed: int = 0
@@ -333,7 +340,10 @@ class Recorder:
     def _fail(self, exc: BaseException) -> None:
         self._failed = True
         self.stats.error = f"{type(exc).__name__}: {exc}"
-        self.stats.dropped_failed += len(self._queue)
+        self.stats.written = self._log.samples_flushed
+        self.stats.dropped_failed += (
+            len(self._queue) + self._log.samples - self._log.samples_flushed
+        )
         self._queue.clear()
         log.error("recording to %s failed, recording stopped: %s", self.path, self.stats.error)
 
@@ -343,7 +353,6 @@ class Recorder:
             topic, t, payload, log_time_ns = q.popleft()
             try:
                 logfile.append(topic, t, payload, log_time_ns)
-                stats.written += 1
             except (ValueError, TypeError, AttributeError) as exc:
                 stats.dropped_invalid += 1
                 stats.last_invalid = str(exc)
@@ -363,9 +372,11 @@ class Recorder:
                     last_flush = now
                     self._log.flush()
                     self.stats.flushes += 1
+                    self.stats.written = self._log.samples_flushed
                 self.stats.writer_cpu_s = time.thread_time()
             self._drain()
             self._log.close()
+            self.stats.written = self._log.samples_flushed
         except Exception as exc:  # noqa: BLE001 - a recording failure must not stop the session
             self._fail(exc)
             try:
