@@ -104,10 +104,39 @@ def process_cpu_seconds(pid: int | None) -> float | None:
 # --- the demo ---------------------------------------------------------------------------------
 
 
+def _demo_config_model():
+    from pydantic import Field
+
+    from humantele.config import ConfigModel
+
+    class DemoConfig(ConfigModel):
+        """``[demo]`` of configs/demo.toml; relative paths are from the file's directory's
+        parent (the repository root for configs/demo.toml) or the current directory."""
+
+        room: str = Field("demo", pattern=r"^[A-Za-z0-9_.-]{1,64}$")
+        expert_config: str | None = None
+        follower_config: str | None = None
+
+    return DemoConfig
+
+
+def _resolve(path: str | None, base: Path) -> str | None:
+    if not path:
+        return None
+    p = Path(path).expanduser()
+    for cand in (p, base / p):
+        if cand.exists():
+            return str(cand.resolve())
+    from humantele.config import ConfigError
+
+    raise ConfigError(f"{path}: no such configuration file (from the [demo] section)")
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, default=20.0, help="seconds (default 20)")
     parser.add_argument("--json", action="store_true", help="print a JSON summary at the end")
-    parser.add_argument("--room", default="demo", help="session room name")
+    parser.add_argument("--config", help="TOML file with a [demo] section (configs/demo.toml)")
+    parser.add_argument("--room", help="session room name (default demo)")
     parser.add_argument("--keep", action="store_true", help="keep the run directory (logs)")
     parser.add_argument("--log-level", default="WARNING", help="daemons' logging level")
 
@@ -176,8 +205,16 @@ async def _stop_child(proc: asyncio.subprocess.Process, timeout_s: float = 10.0)
 
 async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
     """Run the demo; returns the exit code."""
+    from humantele.config import load_config
     from humantele.signaling.server import SignalConfig, SignalingServer
 
+    cfg = load_config(_demo_config_model(), args.config, "demo" if args.config else None)
+    base = Path(args.config).resolve().parent.parent if args.config else Path.cwd()
+    child_configs = {
+        "expert": _resolve(cfg.expert_config, base),
+        "follower": _resolve(cfg.follower_config, base),
+    }
+    room = args.room or cfg.room
     run_dir = Path(tempfile.mkdtemp(prefix="humantele-demo-"))
     token = secrets.token_urlsafe(24)
     server = SignalingServer(SignalConfig(port=0), token=token)
@@ -190,7 +227,7 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
     on_stop_signals(loop, stop.set)
     status_to = sys.stderr if args.json else out
     tty = status_to.isatty()
-    common = ["--signaling-url", server.url, "--room", args.room, "--log-level", args.log_level]
+    common = ["--signaling-url", server.url, "--room", room, "--log-level", args.log_level]
     stats = {"expert": run_dir / "expert.json", "follower": run_dir / "follower.json"}
     cmds = {
         "follower": [
@@ -198,6 +235,9 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
         ],
         "expert": ["expert"],
     }  # fmt: skip
+    for role, path in child_configs.items():
+        if path:
+            cmds[role] += ["--config", path]
     procs: dict[str, asyncio.subprocess.Process] = {}
     t0 = time.monotonic()
     failed = ""

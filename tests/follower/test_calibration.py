@@ -21,9 +21,13 @@ def run_sim_calibration(seed=0, rate=100.0):
     script = CalibrationScript(patient)
     cal = Calibrator()
     events = []
-    t = 0.0
-    while t < script.duration_s + 1.0:
-        tip = human.step(t, script.target(t))
+    t, t0 = 0.0, 0.0
+    while t < script.duration_s + 1.0 and cal.step is not None:
+        target = script.target(cal.step, t - t0)
+        if target is None:  # this press is over: the next one (or the same again)
+            t0 = t
+            target = script.target(cal.step, 0.0)
+        tip = human.step(t, target)
         if tip is not None:
             ev = cal.update(tip.position, float(np.linalg.norm(patient.force(tip.position))))
             if ev is not None:

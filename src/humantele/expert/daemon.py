@@ -70,7 +70,8 @@ class ExpertConfig(ConfigModel):
     """The expert daemon (``[expert]`` of configs/expert.toml; the servo has ``[servo]``)."""
 
     servo_restart_s: float = Field(2.0, gt=0, le=60, description="retry a dead servo after")
-    link: LinkConfig = LinkConfig()
+    # Poses at 100 Hz, as the published system (ANCHORS); the follower's lag is ~0.35 s.
+    link: LinkConfig = LinkConfig(pose_rate_hz=100.0)
     mapping: MappingConfig = MappingConfig()
 
 
@@ -299,8 +300,7 @@ class ExpertDaemon:
                 if delay < -period:
                     next_t = time.monotonic()
                     delay = 0.0
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(self._stop.wait(), max(0.0, delay))
+                await asyncio.sleep(max(0.0, delay))
         finally:
             await self.link.close("expert stopping")
             with contextlib.suppress(asyncio.CancelledError, Exception):

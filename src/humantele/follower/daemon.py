@@ -59,6 +59,8 @@ from humantele.follower.calibration import (
 from humantele.follower.feed import FeedConfig, RendererFeed
 from humantele.follower.sim_human import (
     CalibrationScript,
+    SimHead,
+    SimHeadConfig,
     SimHuman,
     SimHumanConfig,
     SimPatient,
@@ -94,15 +96,17 @@ class FollowerConfig(ConfigModel):
     )
     state_dir: str = Field(DEFAULT_STATE_DIR, description="where the calibration is saved")
     auto_calibrate: bool = Field(True, description="sim person presses the landmarks")
-    sensing: Literal["pipeline", "truth"] = Field(
-        "pipeline", description="measure through the sim tracker and force sensor, or not"
+    probe_source: Literal["pipeline", "truth"] = Field(
+        "pipeline", description="measure through the sensing pipeline ([sensing]), or the truth"
     )
+    sensing_rate_hz: float = Field(45.0, gt=1, le=1000, description="tracker frames per second")
     tool: str = Field("probe_default", description="probe tool definition (configs/tools)")
     link: LinkConfig = LinkConfig()
     feed: FeedConfig = FeedConfig()
     calibration: CalibrationConfig = CalibrationConfig()
     sim_patient: SimPatientConfig = SimPatientConfig()
     sim_human: SimHumanConfig = SimHumanConfig()
+    sim_head: SimHeadConfig = SimHeadConfig()
 
 
 @dataclass
@@ -132,47 +136,70 @@ def _tip_transform(tool_name: str) -> Pose:
 
 
 class Sensing:
-    """Measure the probe: the sensing pipeline when available, else the truth.
-
-    ``measure(t, T_world_tip_true, force_true_world)`` returns a :class:`Measurement`.
+    """Measure the probe: the sensing pipeline (sim IR tracker and force sensor) by default,
+    else the truth. ``measure(t, T_world_tip_true, force_true_world)`` gives a
+    :class:`Measurement`; a pipeline error gives a LOST measurement (counted), never a crash.
     """
 
-    def __init__(self, config: FollowerConfig) -> None:
+    def __init__(self, config: FollowerConfig, sensing_config: object | None = None) -> None:
         self.T_probe_tip = _tip_transform(config.tool)
         self.T_tip_probe = self.T_probe_tip.inverse()
         self.pipeline = None
+        self.errors = 0
         self.contact_n = config.calibration.force_off_n
-        if config.sensing == "pipeline":
+        if config.probe_source == "pipeline":
             try:
                 from humantele.follower.sensing import ProbeSensing
             except ImportError:
                 log.warning("follower: no sensing pipeline here; streaming the simulated truth")
             else:
-                self.pipeline = ProbeSensing()
+                self.pipeline = ProbeSensing(sensing_config)
 
-    def measure(self, t: float, T_world_tip: Pose | None, force_world: NDArray) -> Measurement:
+    def measure(
+        self,
+        t: float,
+        T_world_tip: Pose | None,
+        force_world: NDArray,
+        T_world_camera: Pose | None = None,
+    ) -> Measurement:
+        lost = Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
+        if T_world_tip is None:
+            return lost
         if self.pipeline is None:
-            if T_world_tip is None:
-                return Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
             contact = float(np.linalg.norm(force_world)) > self.contact_n
             return Measurement(TrackingStatus.TRACKED, T_world_tip, force_world, contact)
-        if T_world_tip is None:
-            return Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
-        m = self.pipeline.measure(t, T_world_tip @ self.T_tip_probe, force_world)
-        status = TrackingStatus(int(getattr(m, "status", TrackingStatus.TRACKED)))
-        T_world_probe = getattr(m, "T_world_probe", None)
-        tip = None if T_world_probe is None else T_world_probe @ self.T_probe_tip
-        force = np.asarray(getattr(m, "force", np.zeros(3)), dtype=float)
-        if tip is None or not np.all(np.isfinite(force)):
-            status = TrackingStatus.LOST if tip is None else status
-            force = np.zeros(3) if not np.all(np.isfinite(force)) else force
-        return Measurement(status, tip, force, bool(getattr(m, "contact", False)))
+        try:
+            m = self.pipeline.measure(
+                t, T_world_tip @ self.T_tip_probe, force_world, T_world_camera
+            )
+        except Exception:  # a sensing fault must not stop the daemon
+            self.errors += 1
+            if self.errors == 1:
+                log.exception("follower: sensing failed (counted, reported as lost)")
+            return lost
+        force = np.asarray(m.force_world, dtype=float)
+        if not np.all(np.isfinite(force)):
+            force = np.zeros(3)
+        if m.status != "tracked" or m.T_world_probe is None:
+            return Measurement(TrackingStatus.LOST, None, force, bool(m.contact))
+        tip = m.T_world_probe @ self.T_probe_tip
+        return Measurement(TrackingStatus.TRACKED, tip, force, bool(m.contact))
+
+    def close(self) -> None:
+        if self.pipeline is not None:
+            with contextlib.suppress(Exception):
+                self.pipeline.close()
 
 
 class FollowerDaemon:
     """The follower's state and its message handlers; :meth:`run` is the daemon."""
 
-    def __init__(self, config: FollowerConfig, stats_file: str | None = None) -> None:
+    def __init__(
+        self,
+        config: FollowerConfig,
+        stats_file: str | None = None,
+        sensing_config: object | None = None,
+    ) -> None:
         self.config = config
         self.stats_file = stats_file
         self.state_dir = Path(config.state_dir).expanduser()
@@ -181,7 +208,11 @@ class FollowerDaemon:
         self.calibrator = Calibrator(config.calibration)
         self.patient = SimPatient(config.sim_patient)
         self.human = SimHuman(config.sim_human, self.patient)
-        self.sensing = Sensing(config)
+        self.head = SimHead(config.sim_head)
+        self.sensing = Sensing(config, sensing_config)
+        self.measurement = Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
+        self.last_measure_t = -math.inf
+        self.measurements = 0
         self.feed = RendererFeed(config.feed)
         self.link = PeerLink(
             "follower",
@@ -204,6 +235,8 @@ class FollowerDaemon:
         self.pose_times: deque[float] = deque(maxlen=2000)
         self.state_seq = 0
         self.ticks = 0
+        self.tick_errors = 0
+        self.tracking_lost = 0
         self.late_ticks = 0
         self.last_event: CalibrationEvent | None = None
         self.loaded_calibration = self.calibration is not None
@@ -342,11 +375,12 @@ class FollowerDaemon:
 
     def tick(self, t: float) -> None:
         virtual = self.virtual_world()
-        if self.script is not None:
-            target = self.script.target(t - self.script_t0)
-            if target is None and self.calibrator.step is not None:  # refused: press again
+        if self.script is not None and self.calibrator.step is not None:
+            # The scripted technician presses the landmark asked for (again if refused).
+            target = self.script.target(self.calibrator.step, t - self.script_t0)
+            if target is None:
                 self.script_t0 = t
-                target = self.script.target(0.0)
+                target = self.script.target(self.calibrator.step, 0.0)
         else:
             fresh = virtual is not None and not self.virtual_stale(t)
             target = virtual if fresh else None
@@ -354,13 +388,21 @@ class FollowerDaemon:
                 target = None  # the expert is re-indexing: hold still
         true_tip = self.human.step(t, target)
         force = np.zeros(3) if true_tip is None else self.patient.force(true_tip.position)
-        m = self.sensing.measure(t, true_tip, force)
+        new = t - self.last_measure_t >= 1.0 / self.config.sensing_rate_hz
+        if new:  # a tracker frame and a force reading
+            self.last_measure_t = t
+            self.measurements += 1
+            tip_pos = None if true_tip is None else true_tip.position
+            camera = self.head.step(t, tip_pos)
+            self.measurement = self.sensing.measure(t, true_tip, force, camera)
+            self.tracking_lost += self.measurement.T_world_tip is None
+        m = self.measurement
         self.last_force_n = float(np.linalg.norm(m.force_world))
         if self.calibrating:
             self.following_since = None
-            if m.T_world_tip is not None:
-                force_n = float(np.linalg.norm(m.force_world))
-                ev = self.calibrator.update(m.T_world_tip.position, force_n)
+            if new:  # an untracked press still counts for the hysteresis
+                tip = None if m.T_world_tip is None else m.T_world_tip.position
+                ev = self.calibrator.update(tip, float(np.linalg.norm(m.force_world)))
                 if ev is not None:
                     self.on_calibration_event(ev)
         elif target is None:
@@ -369,11 +411,12 @@ class FollowerDaemon:
             if self.following_since is None:
                 self.following_since = t
             settled = t - self.following_since >= self.config.alignment_settle_s
-            if settled and m.T_world_tip is not None:
+            if new and settled and m.T_world_tip is not None:
                 dp, da = m.T_world_tip.distance_to(virtual)
                 self.align_pos.append(dp)
                 self.align_ang.append(da)
-        self.send_state(t, m)
+        if new:
+            self.send_state(t, m)
         self.publish_feed(t, virtual, m)
 
     def pose_rate_hz(self, window_s: float = 1.0) -> float:
@@ -406,7 +449,12 @@ class FollowerDaemon:
             "dropped": dict(self.link.counters.dropped),
             "dropped_total": sum(self.link.counters.dropped.values()),
             "feed_clients": len(self.feed.clients),
+            "feed_url": self.feed.url if self.feed.port else None,
             "ticks": self.ticks,
+            "measurements": self.measurements,
+            "tracking_lost": self.tracking_lost,
+            "sensing_errors": self.sensing.errors,
+            "tick_errors": self.tick_errors,
             "late_ticks": self.late_ticks,
             "cpu_percent": self.cpu.overall(),
         }
@@ -431,7 +479,12 @@ class FollowerDaemon:
             while not self._stop.is_set() and not link_task.done():
                 t = time.monotonic()
                 self.ticks += 1
-                self.tick(t)
+                try:
+                    self.tick(t)
+                except Exception:  # never let one bad tick end the daemon
+                    self.tick_errors += 1
+                    if self.tick_errors in (1, 10, 100, 1000):
+                        log.exception("follower: tick failed (%d so far)", self.tick_errors)
                 if t - last_stats > 0.5:
                     last_stats = t
                     write_stats(self.stats_file, self.stats())
@@ -446,13 +499,13 @@ class FollowerDaemon:
                     self.late_ticks += 1
                     next_t = time.monotonic()
                     delay = 0.0
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(self._stop.wait(), max(0.0, delay))
+                await asyncio.sleep(max(0.0, delay))
         finally:
             await self.link.close("follower stopping")
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await asyncio.wait_for(link_task, 5.0)
             await self.feed.stop()
+            self.sensing.close()
             write_stats(self.stats_file, self.stats())
         return 0
 
@@ -492,6 +545,15 @@ def config_from_args(args: argparse.Namespace) -> FollowerConfig:
     return validate_config(FollowerConfig, data, "command line")
 
 
+def sensing_config_from_args(args: argparse.Namespace) -> object | None:
+    """The ``[sensing]`` section of the follower's file (the sensing pipeline's own)."""
+    try:
+        from humantele.follower.sensing import SensingConfig
+    except ImportError:
+        return None
+    return load_config(SensingConfig, args.config, "sensing" if args.config else None)
+
+
 def run(args: argparse.Namespace) -> int:
     logging.basicConfig(
         level=getattr(logging, str(args.log_level).upper(), logging.WARNING),
@@ -499,7 +561,7 @@ def run(args: argparse.Namespace) -> int:
     )
     logging.getLogger("aioice").setLevel(logging.WARNING)
     config = config_from_args(args)
-    daemon = FollowerDaemon(config, args.stats_file)
+    daemon = FollowerDaemon(config, args.stats_file, sensing_config_from_args(args))
     if args.recalibrate:
         daemon.calibration = None
         daemon.loaded_calibration = False

@@ -228,10 +228,12 @@ class SimHuman:
 
 
 class CalibrationScript:
-    """The scripted technician: over each landmark, press, hold, lift; targets in time.
+    """The scripted technician: for the landmark asked, go over it, press, hold, lift.
 
-    ``target(t)`` gives the tip pose the person aims at ``t`` seconds after the script started,
-    or None once it is over. The press depth is chosen to reach ``press_force_n`` on the tissue.
+    ``target(name, t)`` gives the tip pose the person aims at ``t`` seconds into the press of
+    landmark ``name``, or None once that press is over (the daemon then asks for the next
+    landmark, or the same one again if it was refused or missed). The press depth is chosen to
+    reach ``press_force_n``. Travel happens ``lift_m`` above the landmarks, clear of the body.
     """
 
     LANDMARK_ORDER = ("xiphoid", "left", "right", "bed")
@@ -249,36 +251,33 @@ class CalibrationScript:
     ) -> None:
         self.patient = patient
         lm = patient.landmarks()
-        k = patient.config.tissue_stiffness_n_per_m
-        self.waypoints: list[tuple[float, Pose]] = []
-        t = 0.0
+        self.segments: dict[str, list[tuple[float, Pose]]] = {}
         for name in self.LANDMARK_ORDER:
             p = lm[name]
             n = patient.outward_normal(p)
-            stiff = patient.config.bed_stiffness_n_per_m if name == "bed" else k
-            depth = press_force_n / stiff
+            stiff = (
+                patient.config.bed_stiffness_n_per_m
+                if name == "bed"
+                else patient.config.tissue_stiffness_n_per_m
+            )
             q = probe_down_quat(n)
-            above, pressed = Pose(p + hover_m * n, q), Pose(p - depth * n, q)
-            high = Pose(above.position + lift_m * UP, q)  # travel high, clear of the body
-            if self.waypoints:
-                t += move_s
-            self.waypoints.append((t, high))
-            t += move_s
-            self.waypoints.append((t, above))
-            t += press_s
-            self.waypoints.append((t, pressed))
-            t += hold_s
-            self.waypoints.append((t, pressed))
-            t += lift_s
-            self.waypoints.append((t, above))
-            t += lift_s
-            self.waypoints.append((t, high))
-        self.duration_s = t
+            above = Pose(p + hover_m * n, q)
+            pressed = Pose(p - press_force_n / stiff * n, q)
+            high = Pose(above.position + lift_m * UP, q)
+            steps = [(0.0, high), (move_s, high), (move_s, above), (press_s, pressed),
+                     (hold_s, pressed), (lift_s, above), (lift_s, high)]  # fmt: skip
+            t, seg = 0.0, []
+            for dt, pose in steps:
+                t += dt
+                seg.append((t, pose))
+            self.segments[name] = seg
+        self.segment_s = self.segments["xiphoid"][-1][0]
+        self.duration_s = self.segment_s * len(self.LANDMARK_ORDER)
 
-    def target(self, t: float) -> Pose | None:
-        if t < 0 or t > self.duration_s:
+    def target(self, name: str, t: float) -> Pose | None:
+        wp = self.segments[name]
+        if t < 0 or t > wp[-1][0]:
             return None
-        wp = self.waypoints
         for (t0, p0), (t1, p1) in zip(wp, wp[1:], strict=False):
             if t <= t1:
                 s = 0.0 if t1 <= t0 else (t - t0) / (t1 - t0)
@@ -287,3 +286,39 @@ class CalibrationScript:
                     quat_slerp(p0.quaternion, p1.quaternion, s),
                 )
         return wp[-1][1]
+
+
+class SimHeadConfig(ConfigModel):
+    """The follower's head (the headset camera): above the work, looking down, following the
+    probe loosely (people keep their hands in view)."""
+
+    height_m: float = Field(0.42, gt=0.1, le=1.0, description="camera above the probe tip")
+    follow_time_constant_s: float = Field(0.6, gt=0, le=10)
+
+
+# Camera looking straight down: camera x = world x, camera y (image down) = world z,
+# camera z (forward) = world -y (OpenCV camera axes).
+_Q_WORLD_CAMERA_DOWN = matrix_to_quat(np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]]))
+
+
+class SimHead:
+    """``T_world_camera`` of the headset: ``height_m`` above a lagged copy of the probe tip."""
+
+    def __init__(self, config: SimHeadConfig | None = None) -> None:
+        self.config = config or SimHeadConfig()
+        self.focus: NDArray[np.float64] | None = None
+        self._t: float | None = None
+
+    def step(self, t: float, tip_world: ArrayLike | None) -> Pose | None:
+        if tip_world is not None:
+            tip = np.asarray(tip_world, dtype=float)
+            if self.focus is None:
+                self.focus = tip.copy()
+            else:
+                dt = 0.0 if self._t is None else max(0.0, t - self._t)
+                alpha = 1.0 - math.exp(-dt / self.config.follow_time_constant_s)
+                self.focus = self.focus + alpha * (tip - self.focus)
+            self._t = t
+        if self.focus is None:
+            return None
+        return Pose(self.focus + self.config.height_m * UP, _Q_WORLD_CAMERA_DOWN)

@@ -1,0 +1,1 @@
+from session_helpers import session  # noqa: F401 - the fixture

@@ -1,0 +1,127 @@
+"""Helpers for tests that run the daemons as real OS processes over loopback WebRTC."""
+
+import asyncio
+import json
+import os
+import secrets
+import signal
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from humantele.signaling.server import SignalConfig, SignalingServer
+
+
+def read_json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def pid_alive(pid: int | None) -> bool:
+    """Running (not a zombie) process ``pid``."""
+    if not pid:
+        return False
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return False
+    return state not in ("Z", "X")
+
+
+class Session:
+    """A signaling server in the test process and daemons in their own processes."""
+
+    def __init__(self, tmp: Path, server: SignalingServer, token: str) -> None:
+        self.tmp = tmp
+        self.server = server
+        self.env = dict(os.environ, HUMANTELE_TOKEN=token, HUMANTELE_PARENT_PID=str(os.getpid()))
+        self.procs: dict[str, asyncio.subprocess.Process] = {}
+        self.state_dir = tmp / "follower-state"
+        self.runs = 0
+        self.stopped: set[str] = set()
+
+    def stats_path(self, role: str) -> Path:
+        return self.tmp / f"{role}.json"
+
+    def stats(self, role: str) -> dict:
+        return read_json(self.stats_path(role))
+
+    async def start(self, role: str, *extra: str) -> asyncio.subprocess.Process:
+        self.runs += 1
+        self.stats_path(role).unlink(missing_ok=True)
+        args = [
+            sys.executable,
+            "-m",
+            "humantele",
+            role,
+            "--signaling-url",
+            self.server.url,
+            "--room",
+            "t",
+            "--stats-file",
+            str(self.stats_path(role)),
+            "--log-level",
+            "INFO",
+        ]
+        if role == "follower":
+            args += ["--state-dir", str(self.state_dir), "--feed-port", "0"]
+        log = open(self.tmp / f"{role}-{self.runs}.log", "wb")  # noqa: SIM115
+        proc = await asyncio.create_subprocess_exec(
+            *args, *extra, stdin=asyncio.subprocess.DEVNULL, stdout=log, stderr=log, env=self.env
+        )
+        log.close()
+        self.procs[role] = proc
+        self.stopped.discard(role)
+        return proc
+
+    async def wait(self, what: str, pred, timeout: float = 30.0) -> None:
+        t_end = time.monotonic() + timeout
+        while time.monotonic() < t_end:
+            e, f = self.stats("expert"), self.stats("follower")
+            if pred(e, f):
+                return
+            died = [r for r, p in self.procs.items() if p.returncode is not None]
+            if died and not set(died) <= self.stopped:
+                break
+            await asyncio.sleep(0.2)
+        logs = {p.name: p.read_text()[-3000:] for p in sorted(self.tmp.glob("*.log"))}
+        raise AssertionError(
+            f"failed waiting for {what}\nexpert {self.stats('expert')}\n"
+            f"follower {self.stats('follower')}\nlogs {logs}"
+        )
+
+    async def kill(self, role: str) -> None:
+        proc = self.procs[role]
+        self.stopped.add(role)
+        proc.send_signal(signal.SIGKILL)
+        await proc.wait()
+
+    async def terminate(self, role: str, timeout: float = 15.0) -> int:
+        proc = self.procs[role]
+        self.stopped.add(role)
+        if proc.returncode is None:
+            proc.send_signal(signal.SIGTERM)
+        return await asyncio.wait_for(proc.wait(), timeout)
+
+    async def close(self) -> None:
+        for proc in self.procs.values():
+            if proc.returncode is None:
+                proc.kill()
+                await proc.wait()
+        await self.server.stop()
+
+
+@pytest.fixture
+async def session(tmp_path):
+    token = secrets.token_urlsafe(16)
+    server = SignalingServer(SignalConfig(port=0), token=token)
+    await server.start()
+    s = Session(tmp_path, server, token)
+    try:
+        yield s
+    finally:
+        await s.close()
