@@ -30,7 +30,9 @@ class BlobParams:
     min_roundness: float = 0.45
     centroid: CentroidMethod = "weighted"
     depth: DepthMethod = "sphere"
-    sphere_offset: float = 0.3  # fitted on the sim: median core range -> centre, x radius
+    sphere_offset: float = 0.47  # fitted on the sim: median bright-core range -> centre, x R
+    min_range: float = 0.15  # blobs whose apparent size puts them nearer or farther are dropped
+    max_range: float = 0.58  # (too small and dim beyond: depth mixes with the background)
     unwrap: bool = True
     depth_wrap_m: float = 1.0
     max_blobs: int = 24
@@ -143,7 +145,13 @@ def detect_blobs(
         r_px = np.sqrt(n_core / np.pi * np.sqrt(expected))
         size_range = k.fx * radius / max(r_px, 0.5) * np.sqrt(1.0 + off2)
         dep_w = None if depth_mm is None else depth_mm[y0:y1, x0:x1]
-        rng = _blob_range(ir_w, core, dep_w, size_range, radius, p)
+        if not p.min_range <= size_range <= p.max_range:
+            rejected += 1
+            continue
+        rng = _blob_range(ir_w, ir_w >= 0.8 * peak, dep_w, size_range, radius, p)
+        if not p.min_range <= rng <= p.max_range:  # measured range: too far to trust
+            rejected += 1
+            continue
         uvs.append((u, v))
         areas.append(area)
         sizes.append(size_range)

@@ -34,7 +34,9 @@ class PipelineConfig(ConfigModel):
     min_roundness: float = Field(0.45, ge=0, le=1)
     centroid: CentroidMethod = "weighted"
     depth: DepthMethod = "sphere"
-    sphere_offset: float = Field(0.3, ge=-1, le=1, description="fraction of the radius")
+    sphere_offset: float = Field(0.47, ge=-1, le=1, description="fraction of the radius")
+    min_range_m: float = Field(0.15, gt=0)
+    max_range_m: float = Field(0.58, gt=0, description="farther markers are too small")
     unwrap: bool = True
     depth_wrap_m: float = Field(1.0, gt=0.1)
     refine: bool = True
@@ -79,6 +81,8 @@ class Tracker:
             centroid=c.centroid,
             depth=c.depth,
             sphere_offset=c.sphere_offset,
+            min_range=c.min_range_m,
+            max_range=c.max_range_m,
             unwrap=c.unwrap,
             depth_wrap_m=c.depth_wrap_m,
         )
