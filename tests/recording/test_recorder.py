@@ -18,6 +18,7 @@ from humantele.recording import (
     RecordingReadError,
     check_participant_id,
     read_recording,
+    role_path,
 )
 from humantele.recording.schemas import json_schema
 
@@ -161,3 +162,8 @@ def test_reader_refuses_a_file_that_is_not_a_recording(tmp_path):
         read_recording(junk)
     with pytest.raises(RecordingReadError, match="cannot read"):
         read_recording(tmp_path / "none.mcap")
+
+
+def test_role_paths_split_one_session_name_per_daemon(tmp_path):
+    assert role_path(tmp_path / "demo.mcap", "expert") == tmp_path / "demo.expert.mcap"
+    assert role_path("runs/s1", "follower").name == "s1.follower.mcap"

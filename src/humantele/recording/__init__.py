@@ -11,6 +11,7 @@ from humantele.recording.writer import (
     RecorderConfig,
     RecorderStats,
     RecordingError,
+    role_path,
 )
 
 __all__ = [
@@ -24,4 +25,5 @@ __all__ = [
     "RecordingReadError",
     "check_participant_id",
     "read_recording",
+    "role_path",
 ]

@@ -178,6 +178,15 @@ class McapLog:
                 self._stream.close()
 
 
+def role_path(path: str | Path, role: str) -> Path:
+    """The file a daemon of ``role`` records to when a session is recorded as ``path`` by
+    several processes: ``runs/demo.mcap`` -> ``runs/demo.expert.mcap``. ``humantele analyze``
+    joins the files again by their session id."""
+    path = Path(path)
+    stem = path.name[: -len(".mcap")] if path.name.endswith(".mcap") else path.name
+    return path.with_name(f"{stem}.{role}.mcap")
+
+
 @dataclass
 class RecorderStats:
     """Counters of a :class:`Recorder` (read any time, from any thread)."""
