@@ -111,6 +111,7 @@ class ExpertDaemon:
         self.last_pose: Pose | None = None
         self.last_sample_t = -math.inf
         self.hold_until = -math.inf
+        self.clock = time.monotonic  # the loop's clock (s); tests may replace it
         self.servo_restarts = 0
         self.cpu = CpuMeter()
         self.t_start = time.monotonic()
@@ -158,7 +159,8 @@ class ExpertDaemon:
         reg: Registration = self.mapping.registration
         self.mapping.take_changed()
         self.servo.set_registration(reg.T_patient_device, reg.scale)
-        self.hold_until = time.monotonic() + REINDEX_SETTLE_S
+        # Hold the published pose until the servo has taken the new registration.
+        self.hold_until = self.clock() + REINDEX_SETTLE_S
 
     # --- outgoing -------------------------------------------------------------------------
 
@@ -284,7 +286,7 @@ class ExpertDaemon:
         last_stats = 0.0
         try:
             while not self._stop.is_set() and not link_task.done():
-                t = time.monotonic()
+                t = self.clock()
                 self.check_servo(t)
                 self.publish_pose(t)
                 if t - last_stats > 0.5:
