@@ -267,11 +267,15 @@ class FollowerDaemon:
 
     # --- outgoing -------------------------------------------------------------------------
 
+    def send_control(self, msg: ControlMessage) -> bool:
+        """Control messages only while connected (the expert learns the rest on Hello)."""
+        return self.link.connected and self.link.send_control(msg)
+
     def send_model(self) -> bool:
         if self.calibration is None:
             return False
         params = EllipsoidParams(**self.calibration.model_patient().to_dict())
-        return self.link.send_control(EllipsoidModel(model=params))
+        return self.send_control(EllipsoidModel(model=params))
 
     def send_state(self, t: float, m: Measurement) -> None:
         """The measured probe (patient frame) and force (probe tip frame) to the expert."""
@@ -339,7 +343,7 @@ class FollowerDaemon:
         self.calibrator.reset()
         self.script = CalibrationScript(self.patient) if self.config.auto_calibrate else None
         self.script_t0 = time.monotonic()
-        self.link.send_control(CalibrationMsg(event="start"))
+        self.send_control(CalibrationMsg(event="start"))
         self.publish_calibration()
 
     def on_calibration_event(self, ev: CalibrationEvent) -> None:
@@ -348,17 +352,17 @@ class FollowerDaemon:
         index = LANDMARKS.index(ev.landmark)
         point = tuple(float(v) for v in ev.point)
         if ev.kind == "refused":
-            self.link.send_control(
+            self.send_control(
                 CalibrationMsg(event="error", index=index, point=point, detail=ev.message[:200])
             )
         else:
-            self.link.send_control(CalibrationMsg(event="point", index=index, point=point))
+            self.send_control(CalibrationMsg(event="point", index=index, point=point))
         if ev.kind == "done" and self.calibrator.result is not None:
             self.calibration = self.calibrator.result
             self.calibration.save(self.calibration_path)
             self.calibrating = False
             self.script = None
-            self.link.send_control(CalibrationMsg(event="done"))
+            self.send_control(CalibrationMsg(event="done"))
             self.send_model()
         self.publish_calibration(ev)
 
