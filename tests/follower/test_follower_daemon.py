@@ -84,6 +84,7 @@ def test_stale_without_poses_and_model_resent_on_hello(tmp_path):
     assert not d.virtual_stale(100.1) and d.virtual_stale(100.5)
     d.link.connected = False
     assert d.virtual_stale(100.1)
+    d.link.connected = True
     n = len(d.link.controls)
     d.on_control(Hello(role="expert"))
     assert isinstance(d.link.controls[n], EllipsoidModel)
