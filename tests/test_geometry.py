@@ -92,3 +92,13 @@ def test_distance_to():
     d, ang = a.distance_to(b)
     assert d == pytest.approx(0.005)
     assert np.rad2deg(ang) == pytest.approx(10.0)
+
+
+@settings(max_examples=100, deadline=None)
+@given(quats, quats)
+def test_tuple_product_matches_array_product(q1, q2):
+    from humantele.geometry import quat_multiply_tuple
+
+    q1, q2 = quat_normalize(q1), quat_normalize(q2)
+    fast = quat_multiply_tuple(tuple(map(float, q1)), tuple(map(float, q2)))
+    np.testing.assert_allclose(fast, quat_multiply(q1, q2), atol=1e-12)

@@ -35,7 +35,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from humantele.config import ConfigModel
-from humantele.geometry import Pose
+from humantele.geometry import Pose, quat_multiply_tuple
 from humantele.haptics.devices import DeviceConfig, DeviceError, DeviceState, make_device
 from humantele.haptics.devices.sim import ManualClock, SimDeviceConfig, SimTouchX
 from humantele.haptics.ellipsoid import Ellipsoid
@@ -190,17 +190,6 @@ def _rot(q: tuple[float, float, float, float]) -> tuple:
         (1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)),
         (2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)),
         (2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)),
-    )
-
-
-def _qmul(a: tuple, b: tuple) -> tuple[float, float, float, float]:
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return (
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
     )
 
 
@@ -375,7 +364,7 @@ class ForceRenderer:
         if f_dev is _ZERO3:
             f_world = _ZERO3
         q = state.quaternion if good else (0.0, 0.0, 0.0, 1.0)
-        qw = _qmul(cur.q, q)
+        qw = quat_multiply_tuple(cur.q, q)
         buttons = state.buttons if state is not None else 0
         if flags:
             self._flags |= flags

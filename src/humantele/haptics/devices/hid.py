@@ -18,6 +18,7 @@ from typing import Literal
 from pydantic import Field
 
 from humantele.config import CONFIG_DIR, ConfigModel, load_config
+from humantele.geometry import quat_multiply_tuple
 from humantele.haptics.devices.base import DeviceError, DeviceSpec, DeviceState, HapticDevice, Vec3
 
 SLOTS = ("tx", "ty", "tz", "rx", "ry", "rz", "buttons")
@@ -94,17 +95,6 @@ class HidReportParser:
         return out
 
 
-def _quat_mul(a: tuple, b: tuple) -> tuple[float, float, float, float]:
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return (
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
-    )
-
-
 class VelocityIntegrator:
     """Integrates rates (m/s, rad/s in the device frame) into a pose kept in a workspace box."""
 
@@ -132,7 +122,7 @@ class VelocityIntegrator:
         if ang > 0.0:
             s = math.sin(ang / 2.0) / (ang / dt)
             dq = (w[0] * s, w[1] * s, w[2] * s, math.cos(ang / 2.0))
-            q = _quat_mul(dq, self.quaternion)  # rates about the fixed device axes
+            q = quat_multiply_tuple(dq, self.quaternion)  # rates about the fixed device axes
             n = math.sqrt(sum(c * c for c in q))
             self.quaternion = tuple(c / n for c in q)  # type: ignore[assignment]
 
