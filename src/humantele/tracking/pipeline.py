@@ -21,6 +21,7 @@ from humantele.tracking.blobs import BlobParams, CentroidMethod, DepthMethod, de
 from humantele.tracking.filter import FilterConfig, PoseFilter
 from humantele.tracking.frames import TrackingFrame
 from humantele.tracking.markers import MatchParams, Status, match_markers, refine_pose
+from humantele.tracking.sphere import SphereFitParams
 from humantele.tracking.tool import ToolDefinition
 
 
@@ -33,8 +34,19 @@ class PipelineConfig(ConfigModel):
     max_area: int = Field(600, ge=1)
     min_roundness: float = Field(0.45, ge=0, le=1)
     centroid: CentroidMethod = "weighted"
-    depth: DepthMethod = "sphere"
-    sphere_offset: float = Field(0.47, ge=-1, le=1, description="fraction of the radius")
+    depth: DepthMethod = "model"
+    sphere_offset: float = Field(
+        0.47, ge=-1, le=1, description='"sphere" depth: core range -> centre, x radius'
+    )
+    psf_sigma_px: float = Field(0.7, ge=0, le=5, description="camera blur; calibrate per device")
+    saturation: float = Field(4095.0, gt=0, description="IR counts where pixels clip")
+    min_coverage: float = Field(0.3, gt=0, le=1, description="model depth: pixels that vote")
+    shape_tolerance: float = Field(
+        0.35, gt=0, description="relative IR misfit of a pixel the sphere model calls bright"
+    )
+    max_misfit: float = Field(
+        0.2, ge=0, le=1, description="share of misfit pixels that marks a sphere partly hidden"
+    )
     min_range_m: float = Field(0.15, gt=0)
     max_range_m: float = Field(0.58, gt=0, description="farther markers are too small")
     unwrap: bool = True
@@ -85,6 +97,13 @@ class Tracker:
             max_range=c.max_range_m,
             unwrap=c.unwrap,
             depth_wrap_m=c.depth_wrap_m,
+            sphere=SphereFitParams(
+                psf_sigma_px=c.psf_sigma_px,
+                saturation=c.saturation,
+                min_coverage=c.min_coverage,
+                shape_tolerance=c.shape_tolerance,
+                max_misfit=c.max_misfit,
+            ),
         )
         self.match_params = MatchParams(
             distance_tol=c.distance_tol_mm / 1000.0,

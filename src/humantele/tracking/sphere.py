@@ -1,0 +1,216 @@
+"""The image of a marker sphere in a time-of-flight IR/depth camera, and its centre's range.
+
+A sphere of radius R whose centre lies at range s along the ray of its IR centroid images as
+a disc of radius ``r = f R / s`` px (an ellipse off-axis: ``r / cos(a)`` across and
+``r / cos(a)^2`` along the radial direction, ``a`` the off-axis angle). The optics and the
+pixel's own footprint blur it: a Gaussian of ``sigma^2 = psf^2 + 1/12`` px^2. For a pixel at
+``rho`` px from the centre (in disc-normalised distance times r) this gives
+
+- ``C(rho; r)``: the share of the pixel covered by the sphere (0..1);
+- ``G(rho; r)``: the coverage-weighted mean depth of the sphere's near surface in front of
+  its centre, in units of R (1 at the middle of a sharp disc, smaller off it and when blurred).
+
+Each pixel's ToF range ``m`` is the amplitude-weighted mean of what it sees: the sphere
+(brightness ``B C``, surface range ``s - R G``) and the background (brightness ``b (1 - C)``,
+range ``r_bg``), which holds while the two ranges differ by much less than the wrap length.
+So every pixel predicts the centre's range
+
+    s_i = (m_i (B C_i + b_i) - b_i r_bg) / (B C_i) + R G_i + s theta_i^2 / 2,    b_i = b (1 - C_i)
+
+(the last term turns range along the pixel's ray into range along the centroid's ray).
+:func:`fit_sphere_ranges` estimates ``b`` and ``r_bg`` from the ring around the blob and ``B``
+from unsaturated pixels, checks that the IR image looks like the model (a sphere half hidden
+by a finger or merged with a glint does not) and takes a robust weighted mean of the ``s_i``.
+Everything runs batched over all blobs of a frame. Units: m, px, IR counts.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.special import i0e
+
+
+@dataclass(frozen=True)
+class SphereTables:
+    """``C`` and ``G`` sampled on a grid of disc radii ``r`` (px) and pixel distances ``rho``."""
+
+    sigma_px: float
+    r_grid: NDArray[np.float64]  # (nr,) uniform
+    rho_step: float
+    c: NDArray[np.float64]  # (nr, nrho)
+    g: NDArray[np.float64]  # (nr, nrho)
+
+    def lookup(
+        self, r: NDArray[np.float64], rho: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """``C, G`` (N, ...) for disc radii ``r`` (N,) px at distances ``rho`` (N, ...) px."""
+        r0, dr = self.r_grid[0], self.r_grid[1] - self.r_grid[0]
+        fr = np.clip((r - r0) / dr, 0.0, len(self.r_grid) - 1.001)
+        jr = fr.astype(np.intp)
+        ar = (fr - jr)[:, None]
+        n = len(r)
+        fq = np.clip(rho.reshape(n, -1) / self.rho_step, 0.0, self.c.shape[1] - 1.001)
+        jq = fq.astype(np.intp)
+        aq = fq - jq
+        out = []
+        for t in (self.c, self.g):
+            row = t[jr] * (1.0 - ar) + t[jr + 1] * ar  # (N, nrho): this blob's radius
+            lo = np.take_along_axis(row, jq, axis=1)
+            hi = np.take_along_axis(row, jq + 1, axis=1)
+            out.append((lo + (hi - lo) * aq).reshape(rho.shape))
+        return out[0], out[1]
+
+
+@lru_cache(maxsize=8)
+def sphere_tables(psf_sigma_px: float, r_max: float = 16.0) -> SphereTables:
+    """Tables of ``C`` and ``G`` for a Gaussian PSF of ``psf_sigma_px`` (plus the pixel box).
+
+    Exact radial integrals of the blurred disc: with ``a = r sin t`` over the disc,
+    ``C = int (a / s^2) exp(-(a - rho)^2 / 2 s^2) i0e(a rho / s^2) da`` and the same with the
+    surface depth ``sqrt(1 - a^2 / r^2)`` inside for ``C G`` (Gauss-Legendre, 64 nodes).
+    """
+    s = math.hypot(psf_sigma_px, math.sqrt(1.0 / 12.0))
+    r_grid = np.arange(0.75, r_max + 1e-9, 0.25)
+    rho_step = 0.08
+    rho = np.arange(0.0, r_max + 6.0 * s + 1.0, rho_step)
+    x, wq = np.polynomial.legendre.leggauss(64)
+    t = (x + 1.0) * (math.pi / 4.0)  # t in (0, pi/2)
+    wt = wq * (math.pi / 4.0)
+    r = r_grid[:, None, None]
+    a = r * np.sin(t)[None, None, :]
+    da = r * np.cos(t)[None, None, :] * wt[None, None, :]
+    q = rho[None, :, None]
+    kern = (a / s**2) * np.exp(-((a - q) ** 2) / (2 * s**2)) * i0e(a * q / s**2) * da
+    c = kern.sum(axis=-1)
+    cg = (kern * np.cos(t)[None, None, :]).sum(axis=-1)
+    g = np.where(c > 1e-9, cg / np.maximum(c, 1e-12), 1.0)
+    return SphereTables(float(s), r_grid, rho_step, np.clip(c, 0.0, 1.0), g)
+
+
+@dataclass(frozen=True)
+class SphereFitParams:
+    """Settings of the range fit. ``psf_sigma_px``: the camera's blur (calibrate per device);
+    ``saturation``: IR counts where pixels clip; ``min_coverage``: pixels the sphere covers
+    less than this do not vote; ``shape_tolerance``: largest relative IR misfit of a pixel the
+    model calls bright; ``max_misfit``: share of such pixels beyond which the blob is refused."""
+
+    psf_sigma_px: float = 0.7
+    saturation: float = 4095.0
+    min_coverage: float = 0.3
+    shape_tolerance: float = 0.35
+    max_misfit: float = 0.2
+    saturated_weight: float = 0.25  # ToF range of clipped pixels is noisier (x2 sd)
+
+
+@dataclass(frozen=True)
+class SphereFit:
+    """Per blob: ``range_m`` of the centre along its centroid ray (NaN if no fit),
+    ``shape_ok`` (the IR image looks like a whole sphere), ``n_pixels`` that voted."""
+
+    range_m: NDArray[np.float64]
+    shape_ok: NDArray[np.bool_]
+    n_pixels: NDArray[np.int64]
+
+
+def _masked_median(x: NDArray, mask: NDArray, default: NDArray) -> NDArray[np.float64]:
+    """Median over the last two axes of ``x`` (N, H, W) where ``mask``; ``default`` where none."""
+    n = x.shape[0]
+    v = np.sort(np.where(mask, x, np.inf).reshape(n, -1), axis=1)
+    cnt = mask.reshape(n, -1).sum(axis=1)
+    i = np.arange(n)
+    lo = v[i, np.maximum(cnt - 1, 0) // 2]
+    hi = v[i, np.minimum(cnt // 2, v.shape[1] - 1)]
+    return np.where(cnt > 0, 0.5 * (lo + hi), default)
+
+
+def fit_sphere_ranges(
+    ir_w: NDArray,
+    range_w: NDArray,
+    dx: NDArray,
+    dy: NDArray,
+    bearing: NDArray,
+    s0: NDArray,
+    radius: float,
+    focal_px: float,
+    threshold: float,
+    params: SphereFitParams,
+) -> SphereFit:
+    """Range (m) of each blob's sphere centre along its centroid ray.
+
+    ``ir_w`` (N, H, W) IR counts of windows around the blobs (NaN outside the image);
+    ``range_w`` (N, H, W) measured ranges, m, unwrapped near ``s0`` (NaN = invalid);
+    ``dx`` (N, 1, W), ``dy`` (N, H, 1) pixel offsets from the centroid; ``bearing`` (N, 2)
+    the centroid's normalised image coordinates (x/z, y/z); ``s0`` (N,) a rough range (m)
+    that sets the disc size; ``threshold`` IR counts of blob pixels (kept out of the ring).
+    """
+    p = params
+    tab = sphere_tables(round(float(p.psf_sigma_px), 4))
+    n2 = np.sum(bearing**2, axis=1)
+    cosa = 1.0 / np.sqrt(1.0 + n2)
+    r_t = focal_px * radius / (s0 * cosa)  # across the radial direction, px
+    r_r = r_t / cosa  # along it
+    r = np.sqrt(r_t * r_r)
+    nrm = np.sqrt(n2)
+    safe = nrm > 1e-9
+    ex = np.where(safe, bearing[:, 0] / np.where(safe, nrm, 1.0), 1.0)[:, None, None]
+    ey = np.where(safe, bearing[:, 1] / np.where(safe, nrm, 1.0), 0.0)[:, None, None]
+    d_r = dx * ex + dy * ey
+    d_t = dy * ex - dx * ey
+    rho = r[:, None, None] * np.sqrt(
+        (d_r / r_r[:, None, None]) ** 2 + (d_t / r_t[:, None, None]) ** 2
+    )
+    c, g = tab.lookup(r, rho)
+
+    in_img = np.isfinite(ir_w)
+    valid = np.isfinite(range_w)
+    ring = in_img & (c < 0.003) & (ir_w < threshold)
+    bg = _masked_median(ir_w, ring, np.zeros(len(s0)))
+    bg_r = _masked_median(range_w, ring & valid, s0)
+    bgc = bg[:, None, None]
+
+    sat = in_img & (ir_w >= p.saturation - 0.5)
+    unsat = in_img & ~sat & (c > 0.3)
+    ratio = (ir_w - bgc * (1.0 - c)) / np.maximum(c, 1e-6)
+    b_lower = p.saturation / np.maximum(c.reshape(len(s0), -1).max(axis=1), 1e-3)
+    bright = _masked_median(ratio, unsat, b_lower)
+    bright = np.where(unsat.reshape(len(s0), -1).any(axis=1), bright, b_lower)
+    bc = bright[:, None, None] * c
+
+    pred_ir = bc + bgc * (1.0 - c)
+    with np.errstate(invalid="ignore"):
+        fits = np.where(
+            sat,
+            pred_ir >= 0.6 * p.saturation,
+            np.abs(ir_w - pred_ir) <= p.shape_tolerance * pred_ir + 3.0 * np.sqrt(pred_ir + 36.0),
+        )
+    core = in_img & (c >= 0.5)
+    n_core = core.sum(axis=(1, 2))
+    n_bad = (core & ~fits).sum(axis=(1, 2))
+    shape_ok = (n_core > 0) & (n_bad <= p.max_misfit * n_core)
+
+    sel = valid & in_img & fits & (c >= p.min_coverage)
+    bgi = bgc * (1.0 - c)
+    theta2 = (rho / r[:, None, None] * radius / s0[:, None, None]) ** 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s_i = (range_w * (bc + bgi) - bgi * bg_r[:, None, None]) / np.maximum(bc, 1e-9)
+        s_i += radius * g + 0.5 * s0[:, None, None] * theta2
+        w = (bc / (bc + bgi)) ** 2 * c**2 * np.where(sat, p.saturated_weight, 1.0)
+    w = np.where(sel, w, 0.0)
+    s_i = np.where(sel, s_i, 0.0)
+    # robust: drop pixels far from the median vote (a glint, a finger edge, a wrong pixel)
+    med = _masked_median(s_i, sel, s0)
+    mad = _masked_median(np.abs(s_i - med[:, None, None]), sel, np.zeros(len(s0)))
+    gate = np.maximum(4.0 * 1.4826 * mad, 0.002)
+    keep = sel & (np.abs(s_i - med[:, None, None]) <= gate[:, None, None])
+    w = np.where(keep, w, 0.0)
+    wsum = w.sum(axis=(1, 2))
+    n_px = keep.sum(axis=(1, 2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s = (w * s_i).sum(axis=(1, 2)) / wsum
+    s = np.where((n_px >= 2) & (wsum > 0), s, np.nan)
+    return SphereFit(s, shape_ok, n_px.astype(np.int64))
