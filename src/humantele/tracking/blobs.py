@@ -239,6 +239,7 @@ def _ranges(
         k.fx,
         p.threshold,
         p.sphere,
+        p.depth_wrap_m if p.unwrap else None,
     )
     out[g] = fit.range_m
     no[g] = ~fit.shape_ok

@@ -139,6 +139,7 @@ def fit_sphere_ranges(
     focal_px: float,
     threshold: float,
     params: SphereFitParams,
+    wrap_m: float | None = None,
 ) -> SphereFit:
     """Range (m) of each blob's sphere centre along its centroid ray.
 
@@ -146,7 +147,8 @@ def fit_sphere_ranges(
     ``range_w`` (N, H, W) measured ranges, m, unwrapped near ``s0`` (NaN = invalid);
     ``dx`` (N, 1, W), ``dy`` (N, H, 1) pixel offsets from the centroid; ``bearing`` (N, 2)
     the centroid's normalised image coordinates (x/z, y/z); ``s0`` (N,) a rough range (m)
-    that sets the disc size; ``threshold`` IR counts of blob pixels (kept out of the ring).
+    that sets the disc size; ``threshold`` IR counts of blob pixels (kept out of the ring);
+    ``wrap_m`` the range ambiguity: the background is then taken to lie behind the sphere.
     """
     p = params
     tab = sphere_tables(round(float(p.psf_sigma_px), 4))
@@ -170,7 +172,11 @@ def fit_sphere_ranges(
     valid = np.isfinite(range_w)
     ring = in_img & (c < 0.003) & (ir_w < threshold)
     bg = _masked_median(ir_w, ring, np.zeros(len(s0)))
-    bg_r = _masked_median(range_w, ring & valid, s0)
+    bg_w = range_w
+    if wrap_m:
+        s_lo = s0[:, None, None] - 0.01
+        bg_w = range_w + wrap_m * np.ceil((s_lo - range_w) / wrap_m)
+    bg_r = _masked_median(bg_w, ring & valid, s0)
     bgc = bg[:, None, None]
 
     sat = in_img & (ir_w >= p.saturation - 0.5)
