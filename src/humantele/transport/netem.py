@@ -1,0 +1,305 @@
+"""A user-space WAN emulator: an asyncio UDP relay that adds delay, jitter and loss.
+
+This kernel has no ``netem``, so a long link is emulated by a relay in front of a server (the
+TURN server)::
+
+    client A --+                                  +--> upstream (TURN server)
+               +--> [relay: client-facing port] --+
+    client B --+      one upstream socket per client, so the server sees one 5-tuple each
+
+Every datagram, in each direction, is held for ``delay_s + N(0, jitter_s)`` (never less than 0)
+and dropped with probability ``loss`` (independent per datagram, from a seeded generator, so a
+run is repeatable given the same arrival order). Without ``reorder`` the link is a FIFO: a
+datagram never leaves before the one that arrived before it (it waits for it, as in a real
+queue); with ``reorder`` jittered datagrams may overtake each other, as Linux netem does.
+
+A path through a TURN server that crosses the relay once each way (only one peer uses the
+relay's port, the other talks to the server directly) gets exactly one ``delay_s`` each way.
+If both peers use the relay, a datagram crosses it twice and gets twice the delay.
+
+Timing: the asyncio loop wakes with a resolution of about 1 ms (epoll), so a datagram is held
+``delay_s`` plus 0-1 ms; the counters record the hold actually given (``held_mean_s``).
+
+Usage::
+
+    relay = UdpRelay(("127.0.0.1", 3478), NetemConfig(delay_s=0.004, jitter_s=0.001, loss=0.01))
+    host, port = await relay.start()       # point clients at turn:host:port
+    ...
+    print(relay.counters.as_dict())
+    await relay.close()
+"""
+
+from __future__ import annotations
+
+import asyncio
+import heapq
+import logging
+import random
+import socket
+from dataclasses import asdict, dataclass, field
+
+from pydantic import Field
+
+from humantele.config import ConfigModel
+
+log = logging.getLogger(__name__)
+
+Address = tuple[str, int]
+_MAX_DATAGRAM = 65535
+# a timer may fire a hair before its time; sending that early beats waiting for the next
+# epoll wake-up, which asyncio rounds up to a whole millisecond
+_EARLY_S = 50e-6
+
+
+class NetemConfig(ConfigModel):
+    """Impairment applied to every datagram in each direction (SI units: s, probability)."""
+
+    delay_s: float = Field(0.0, ge=0.0, le=10.0)  # one-way delay added per crossing
+    jitter_s: float = Field(0.0, ge=0.0, le=10.0)  # std dev of a normal added to the delay
+    loss: float = Field(0.0, ge=0.0, le=1.0)  # probability a datagram is dropped
+    reorder: bool = False  # jittered datagrams may overtake each other
+    seed: int = 0  # seeds the delay and loss generators
+    max_queue: int = Field(10_000, ge=1)  # datagrams held per direction; beyond: dropped
+    max_clients: int = Field(64, ge=1)  # client addresses given an upstream socket
+
+
+@dataclass
+class DirectionCounters:
+    """What one direction of the relay did with its datagrams."""
+
+    received: int = 0
+    forwarded: int = 0
+    lost: int = 0  # dropped by the loss model
+    overflow: int = 0  # dropped because max_queue datagrams were already held
+    send_errors: int = 0  # the socket refused the datagram (buffer full, no listener)
+    bytes_forwarded: int = 0
+    held_sum_s: float = 0.0  # total time forwarded datagrams were held (s)
+    held_max_s: float = 0.0
+
+    @property
+    def held_mean_s(self) -> float | None:
+        """Mean hold (arrival to send) of forwarded datagrams (s), or None if none."""
+        return self.held_sum_s / self.forwarded if self.forwarded else None
+
+    def as_dict(self) -> dict[str, object]:
+        return {**asdict(self), "held_mean_s": self.held_mean_s}
+
+
+@dataclass
+class RelayCounters:
+    """``up``: clients -> upstream; ``down``: upstream -> clients."""
+
+    up: DirectionCounters = field(default_factory=DirectionCounters)
+    down: DirectionCounters = field(default_factory=DirectionCounters)
+    clients: int = 0  # client addresses seen (each got an upstream socket)
+    clients_refused: int = 0  # datagrams from new clients beyond max_clients
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "up": self.up.as_dict(),
+            "down": self.down.as_dict(),
+            "clients": self.clients,
+            "clients_refused": self.clients_refused,
+        }
+
+
+class _Direction:
+    """One direction: draws the fate of each datagram and sends it when it is due."""
+
+    def __init__(
+        self,
+        loop: asyncio.AbstractEventLoop,
+        config: NetemConfig,
+        counters: DirectionCounters,
+        name: str,
+    ) -> None:
+        self.loop = loop
+        self.config = config
+        self.counters = counters
+        self.rng = random.Random(f"{config.seed}:{name}")
+        self.heap: list[tuple[float, int, float, bytes, socket.socket, Address | None]] = []
+        self.seq = 0
+        self.last_due = 0.0
+        self.timer: asyncio.TimerHandle | None = None
+
+    def push(self, data: bytes, sock: socket.socket, addr: Address | None, t: float) -> None:
+        """Take a datagram that arrived at loop time ``t``; send it on ``sock`` (to ``addr``,
+        or connected when None) once due, unless it is lost."""
+        cfg, c = self.config, self.counters
+        c.received += 1
+        if cfg.loss > 0.0 and self.rng.random() < cfg.loss:
+            c.lost += 1
+            return
+        if len(self.heap) >= cfg.max_queue:
+            c.overflow += 1
+            return
+        delay = cfg.delay_s
+        if cfg.jitter_s > 0.0:
+            delay = max(0.0, self.rng.gauss(delay, cfg.jitter_s))
+        due = t + delay
+        if not cfg.reorder:
+            due = max(due, self.last_due)
+            self.last_due = due
+        self.seq += 1
+        heapq.heappush(self.heap, (due, self.seq, t, data, sock, addr))
+        if delay == 0.0 and len(self.heap) == 1 and due <= self.loop.time():
+            self.flush()
+        elif self.heap[0][1] == self.seq:  # the new datagram is the next to leave
+            self._schedule()
+
+    def _schedule(self) -> None:
+        if self.timer is not None:
+            self.timer.cancel()
+        self.timer = self.loop.call_at(self.heap[0][0], self.flush) if self.heap else None
+
+    def flush(self) -> None:
+        """Send every datagram that is due, in order."""
+        self.timer = None
+        c = self.counters
+        now = self.loop.time()
+        while self.heap and self.heap[0][0] <= now + _EARLY_S:
+            _due, _seq, t, data, sock, addr = heapq.heappop(self.heap)
+            try:
+                if addr is None:
+                    sock.send(data)
+                else:
+                    sock.sendto(data, addr)
+            except OSError as exc:  # buffer full, nobody listening (ECONNREFUSED), closed
+                log.debug("relay send failed: %s", exc)
+                c.send_errors += 1
+                continue
+            held = now - t
+            c.forwarded += 1
+            c.bytes_forwarded += len(data)
+            c.held_sum_s += held
+            c.held_max_s = max(c.held_max_s, held)
+        self._schedule()
+
+    def cancel(self) -> None:
+        if self.timer is not None:
+            self.timer.cancel()
+            self.timer = None
+        self.heap.clear()
+
+
+class UdpRelay:
+    """A UDP relay between a client-facing port and ``upstream`` that impairs both directions
+    with ``config`` (see the module docstring). Counters in ``counters``."""
+
+    def __init__(
+        self,
+        upstream: Address,
+        config: NetemConfig | None = None,
+        *,
+        host: str = "127.0.0.1",
+        port: int = 0,
+    ) -> None:
+        self.upstream = upstream
+        self.config = config or NetemConfig()
+        self.host = host
+        self.port = port
+        self.counters = RelayCounters()
+        self._sock: socket.socket | None = None
+        self._clients: dict[Address, socket.socket] = {}
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._up: _Direction | None = None
+        self._down: _Direction | None = None
+
+    @property
+    def address(self) -> Address:
+        """The client-facing (host, port); valid after :meth:`start`."""
+        if self._sock is None:
+            raise RuntimeError("the relay is not started")
+        return self._sock.getsockname()[:2]
+
+    async def start(self) -> Address:
+        """Bind the client-facing port and start relaying; returns its (host, port)."""
+        if self._sock is not None:
+            return self.address
+        loop = asyncio.get_running_loop()
+        self._loop = loop
+        self._up = _Direction(loop, self.config, self.counters.up, "up")
+        self._down = _Direction(loop, self.config, self.counters.down, "down")
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.setblocking(False)
+            sock.bind((self.host, self.port))
+        except OSError:
+            sock.close()
+            raise
+        self._sock = sock
+        loop.add_reader(sock.fileno(), self._on_client_readable)
+        log.info("udp relay %s -> %s, %s", self.address, self.upstream, self.config)
+        return self.address
+
+    async def close(self) -> None:
+        """Stop relaying; held datagrams are discarded."""
+        for d in (self._up, self._down):
+            if d is not None:
+                d.cancel()
+        for sock in [*self._clients.values(), self._sock]:
+            if sock is not None and self._loop is not None:
+                self._loop.remove_reader(sock.fileno())
+                sock.close()
+        self._clients.clear()
+        self._sock = None
+
+    async def __aenter__(self) -> UdpRelay:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    def _on_client_readable(self) -> None:
+        sock, loop, up = self._sock, self._loop, self._up
+        assert sock is not None and loop is not None and up is not None
+        while True:
+            try:
+                data, addr = sock.recvfrom(_MAX_DATAGRAM)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:  # e.g. ICMP port unreachable reported on this socket
+                log.debug("relay client socket: %s", exc)
+                return
+            addr = addr[:2]
+            upstream = self._clients.get(addr)
+            if upstream is None:
+                upstream = self._new_client(addr)
+                if upstream is None:
+                    continue
+            up.push(data, upstream, None, loop.time())
+
+    def _new_client(self, addr: Address) -> socket.socket | None:
+        if len(self._clients) >= self.config.max_clients:
+            self.counters.clients_refused += 1
+            return None
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.setblocking(False)
+            sock.bind((self.host, 0))
+            sock.connect(self.upstream)
+        except OSError as exc:
+            log.warning("relay: no upstream socket for %s: %s", addr, exc)
+            sock.close()
+            self.counters.clients_refused += 1
+            return None
+        self._clients[addr] = sock
+        self.counters.clients += 1
+        assert self._loop is not None
+        self._loop.add_reader(sock.fileno(), self._on_upstream_readable, sock, addr)
+        return sock
+
+    def _on_upstream_readable(self, sock: socket.socket, client: Address) -> None:
+        loop, down, front = self._loop, self._down, self._sock
+        assert loop is not None and down is not None and front is not None
+        while True:
+            try:
+                data = sock.recv(_MAX_DATAGRAM)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:  # ECONNREFUSED: a datagram sent up found no listener
+                log.debug("relay upstream socket: %s", exc)
+                self.counters.up.send_errors += 1
+                return
+            down.push(data, front, client, loop.time())
