@@ -12,6 +12,13 @@ follower's alignment error and the link state. ``--duration S`` ends the run; ``
 one summary object, on one line, as the last line of output. Ctrl-C or SIGTERM: the daemons
 say bye, every process ends, exit code 0.
 
+``--record FILE`` records the session: each daemon writes its own file,
+``role_path(FILE, "expert")`` and ``role_path(FILE, "follower")`` (``FILE.expert.mcap``,
+``FILE.follower.mcap``) with one session id, and the expert runs one scan, from shortly after
+the patient model arrives until the demo stops (``[expert.scans]``). The ids are the simulated
+participants' pseudonyms (``[demo]``). At the end the demo prints the ``humantele analyze``
+command for the files.
+
 The children report to the demo through JSON stats files (the helpers below are shared with
 the daemons). The signaling token is random per run and reaches the children through the
 environment; it is never printed.
@@ -33,6 +40,11 @@ import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
+
+from pydantic import Field, field_validator
+
+from humantele.config import ConfigModel
+from humantele.recording.schemas import check_participant_id
 
 PARENT_PID_ENV = "HUMANTELE_PARENT_PID"
 TOKEN_ENV = "HUMANTELE_TOKEN"
@@ -101,6 +113,98 @@ def process_cpu_seconds(pid: int | None) -> float | None:
         return None
 
 
+# --- recording a daemon's session (shared by both daemons) -----------------------------------
+
+
+class SessionConfig(ConfigModel):
+    """The session a daemon records (``[expert.session]``, ``[follower.session]``).
+
+    ``record``: the MCAP file (None: no recording; an existing file is never overwritten).
+    The ids are pseudonyms ('F03', 'S1'): a name or an e-mail address is refused, and no
+    patient identity is stored anywhere. Both daemons of a session use the same ``session_id``
+    (None: a random one) so ``humantele analyze`` joins their files.
+    """
+
+    record: str | None = Field(None, description="MCAP file to record to; None: no recording")
+    session_id: str | None = Field(
+        None, pattern=r"^[A-Za-z0-9_-]{1,64}$", description="None: a random id per run"
+    )
+    follower_id: str | None = Field(None, description="pseudonym of the follower, e.g. 'F03'")
+    sonographer_id: str | None = Field(None, description="pseudonym of the sonographer, e.g. 'S1'")
+
+    @field_validator("follower_id", "sonographer_id")
+    @classmethod
+    def _pseudonym(cls, v: str | None, info: Any) -> str | None:
+        return None if v is None else check_participant_id(v, info.field_name)
+
+
+def add_session_arguments(parser: argparse.ArgumentParser) -> None:
+    """The daemons' recording options (they override ``[<role>.session]``)."""
+    parser.add_argument("--record", metavar="FILE", help="record the session to this MCAP file")
+    parser.add_argument("--session-id", help="session id shared by both daemons' recordings")
+    parser.add_argument("--follower-id", help="follower's pseudonym, e.g. F03 (never a name)")
+    parser.add_argument("--sonographer-id", help="sonographer's pseudonym, e.g. S1")
+
+
+def session_overrides(args: argparse.Namespace, data: dict[str, Any]) -> None:
+    """Put the command line's recording options into a daemon config's ``data`` (a dict)."""
+    for key in ("record", "session_id", "follower_id", "sonographer_id"):
+        value = getattr(args, key, None)
+        if value is not None:
+            data["session"][key] = value
+
+
+def open_recorder(role: str, session: SessionConfig, config: Any) -> Any:
+    """The daemon's :class:`humantele.recording.Recorder`, or None when it does not record.
+    Raises :class:`humantele.recording.RecordingError` (unwritable path, existing file, disk
+    full) at start, so a daemon can refuse to run with a clear message."""
+    if not session.record:
+        return None
+    from humantele.recording import Recorder
+
+    return Recorder(
+        Path(session.record).expanduser(),
+        role,
+        session_id=session.session_id,
+        follower_id=session.follower_id,
+        sonographer_id=session.sonographer_id,
+        config=config,
+    )
+
+
+class ClockSyncLog:
+    """Records a link's clock-sync estimate (``offset_s``: peer clock minus ours, ``rtt_s``)
+    each time it changes, at the local time of the exchange it comes from."""
+
+    def __init__(self, topic: str) -> None:
+        self.topic = topic
+        self._last: object = None
+
+    def update(self, rec: Any, clock: Any) -> None:
+        best = clock.best
+        if rec is None or best is None or best is self._last:
+            return
+        self._last = best
+        rec.write(self.topic, best.t_local, {"offset_s": best.offset, "rtt_s": best.rtt})
+
+
+def recorder_stats(rec: Any) -> dict[str, Any] | None:
+    """A recorder's counters for a daemon's stats (None when it does not record)."""
+    if rec is None:
+        return None
+    st = rec.stats
+    return {
+        "path": str(rec.path),
+        "session_id": rec.metadata["session_id"],
+        "queued": st.queued,
+        "written": st.written,
+        "dropped": st.dropped_overflow + st.dropped_invalid + st.dropped_failed,
+        "dropped_invalid": st.dropped_invalid,
+        "last_invalid": st.last_invalid,
+        "error": st.error,
+    }
+
+
 # --- the demo ---------------------------------------------------------------------------------
 
 
@@ -116,6 +220,14 @@ def _demo_config_model():
         room: str = Field("demo", pattern=r"^[A-Za-z0-9_.-]{1,64}$")
         expert_config: str | None = None
         follower_config: str | None = None
+        # Pseudonyms recorded with --record: the simulated follower and sonographer.
+        follower_id: str = "F0"
+        sonographer_id: str = "S0"
+
+        @field_validator("follower_id", "sonographer_id")
+        @classmethod
+        def _pseudonym(cls, v: str, info: Any) -> str:
+            return check_participant_id(v, info.field_name)
 
     return DemoConfig
 
@@ -139,6 +251,37 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--room", help="session room name (default demo)")
     parser.add_argument("--keep", action="store_true", help="keep the run directory (logs)")
     parser.add_argument("--log-level", default="WARNING", help="daemons' logging level")
+    parser.add_argument(
+        "--record",
+        metavar="FILE",
+        help="record the session: FILE.expert.mcap and FILE.follower.mcap (one per daemon)",
+    )
+
+
+def recording_paths(record: str | Path) -> dict[str, Path]:
+    """The files the daemons record to for ``--record FILE``; ConfigError (exit code 2) when
+    one exists (never overwritten) or its directory is missing or not writable. The daemons
+    check again (and the disk space) when they open them."""
+    from humantele.config import ConfigError
+    from humantele.recording import role_path
+
+    paths = {role: role_path(Path(record).expanduser(), role) for role in ("expert", "follower")}
+    for path in paths.values():
+        parent = path.parent
+        if path.exists():
+            raise ConfigError(f"--record: {path} exists (a recording is never overwritten)")
+        if not parent.is_dir():
+            raise ConfigError(f"--record: no directory {parent} for {path}")
+        if not os.access(parent, os.W_OK):
+            raise ConfigError(f"--record: directory {parent} is not writable")
+    return paths
+
+
+def _log_tail(path: Path, lines: int = 5) -> str:
+    try:
+        return "\n".join(path.read_text(errors="replace").strip().splitlines()[-lines:])
+    except OSError:
+        return ""
 
 
 def _status_line(e: dict[str, Any], f: dict[str, Any], elapsed: float) -> str:
@@ -164,6 +307,9 @@ def summarize(
     e: dict[str, Any], f: dict[str, Any], duration: float, codes: dict[str, int | None]
 ) -> dict[str, Any]:
     """The demo's summary from the two daemons' final stats."""
+    recording = {
+        r: s["recording"] for r, s in (("expert", e), ("follower", f)) if s.get("recording")
+    }
     return {
         "duration_s": round(duration, 2),
         "poses_sent": e.get("poses_sent", 0),
@@ -186,6 +332,8 @@ def summarize(
         "cpu_percent_expert": e.get("cpu_percent"),
         "cpu_percent_servo": e.get("cpu_percent_servo"),
         "cpu_percent_follower": f.get("cpu_percent"),
+        "scans": e.get("scans_started", 0),
+        "recording": recording or None,
         "exit_codes": codes,
     }
 
@@ -215,6 +363,8 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
         "follower": _resolve(cfg.follower_config, base),
     }
     room = args.room or cfg.room
+    record = getattr(args, "record", None)
+    rec_paths = recording_paths(record) if record else {}
     run_dir = Path(tempfile.mkdtemp(prefix="humantele-demo-"))
     token = secrets.token_urlsafe(24)
     server = SignalingServer(SignalConfig(port=0), token=token)
@@ -238,6 +388,11 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
     for role, path in child_configs.items():
         if path:
             cmds[role] += ["--config", path]
+    if rec_paths:  # one file per daemon, one session id
+        ids = ["--session-id", secrets.token_hex(6), "--follower-id", cfg.follower_id,
+               "--sonographer-id", cfg.sonographer_id]  # fmt: skip
+        for role in cmds:
+            cmds[role] += ["--record", str(rec_paths[role]), *ids]
     procs: dict[str, asyncio.subprocess.Process] = {}
     t0 = time.monotonic()
     failed = ""
@@ -258,6 +413,8 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
             dead = [r for r, p in procs.items() if p.returncode is not None]
             if dead:
                 failed = f"{dead[0]} exited early with code {procs[dead[0]].returncode}"
+                tail = _log_tail(run_dir / f"{dead[0]}.log")
+                failed += f":\n{tail}\n" if tail else ""
                 break
             e, f = read_stats(stats["expert"]) or {}, read_stats(stats["follower"]) or {}
             if tty or now - last_print >= 2.0:
@@ -294,6 +451,17 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
             f"{summary['cpu_percent_servo']} %), follower {summary['cpu_percent_follower']} %",
             file=out,
         )
+    for role, st in (summary["recording"] or {}).items():
+        if st.get("error") or st.get("dropped"):
+            print(
+                f"humantele demo: {role} recording: {st.get('error') or 'ok'}, "
+                f"{st.get('dropped')} sample(s) dropped",
+                file=sys.stderr,
+            )
+    if rec_paths and all(p.exists() for p in rec_paths.values()):
+        files = " ".join(str(p) for p in rec_paths.values())
+        print(f"recorded {summary['scans']} scan(s); analyze with:\n  humantele analyze {files}",
+              file=sys.stderr if args.json else out)  # fmt: skip
     if ok and not args.keep:
         shutil.rmtree(run_dir, ignore_errors=True)
     elif args.keep:

@@ -243,8 +243,10 @@ class Hello(_Control):
 
 
 class EllipsoidParams(_Control):
-    """The patient model, exactly as ``Ellipsoid.to_dict()`` gives it: center (m, world frame),
-    semi-axes (m, all > 0; the paper makes the longitudinal one very large), heading (rad)."""
+    """The patient model, exactly as ``Ellipsoid.to_dict()`` gives it, in the patient frame the
+    poses use (the follower sends ``Calibration.model_patient()``: center (0, 0, 0) m and
+    heading 0 rad; other values place it in that frame): center (m), semi-axes (m, all > 0,
+    along patient x, y, z; the paper makes the longitudinal one very large), heading (rad)."""
 
     center: tuple[Coordinate, Coordinate, Coordinate]
     semi_axes: tuple[

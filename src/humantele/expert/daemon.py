@@ -15,7 +15,22 @@ last model, and the daemon keeps running until the follower is back (the link re
 signaling by itself; the follower sends its saved model again on Hello).
 
 Message handling is one method per kind (``on_state``, ``on_control``, ``on_link_state``,
-``publish_pose``), so recording can hook in at those places.
+``publish_pose``).
+
+Recording (``--record FILE`` or ``[expert.session] record``): every published pose
+(``/expert/pose``, the same ``t`` as the PoseMessage) and the rendered force (``/expert/force``,
+patient frame); about once a second the servo statistics, the state stream's one-way latency
+and, when it changes, the clock-sync estimate; scan starts and stops. ``t`` is this daemon's
+monotonic clock (s), the one its ClockSync uses. A path that cannot be recorded to stops the
+daemon at start (exit code 2); a failure during the session is reported in the stats and never
+stops the haptics or the session.
+
+Scans are started and stopped by the expert (:meth:`ExpertDaemon.start_scan`/``stop_scan``); each
+is announced to the follower with a ``Scan`` control message. ``[expert.scans]`` scripts them
+(the demo's: one scan from shortly after the patient model arrives until the daemon stops).
+
+Motion scaling has one setting, ``[expert.mapping] scale``; the servo gets it from the daemon
+(``[servo] motion_scale`` is refused, see :func:`servo_config_for`).
 """
 
 from __future__ import annotations
@@ -26,19 +41,27 @@ import contextlib
 import logging
 import math
 import os
+import sys
 import time
 from collections import deque
+from collections.abc import Callable
 
 import numpy as np
 from pydantic import Field
 
-from humantele.config import ConfigModel, load_config, validate_config
+from humantele.config import ConfigError, ConfigModel, load_config, validate_config
 from humantele.demo import (
+    ClockSyncLog,
     CpuMeter,
+    SessionConfig,
+    add_session_arguments,
     on_stop_signals,
+    open_recorder,
     parent_gone,
     percentile_ms,
     process_cpu_seconds,
+    recorder_stats,
+    session_overrides,
     write_stats,
 )
 from humantele.expert.mapping import (
@@ -50,6 +73,7 @@ from humantele.expert.mapping import (
 from humantele.geometry import Pose, quat_conjugate, quat_multiply
 from humantele.haptics.ellipsoid import Ellipsoid
 from humantele.haptics.loop import ServoConfig, ServoError, ServoProcess
+from humantele.recording import Recorder, RecorderConfig, RecordingError
 from humantele.transport import LinkConfig, PeerLink
 from humantele.wire import (
     Calibration as CalibrationMsg,
@@ -58,12 +82,27 @@ from humantele.wire import (
     ControlMessage,
     EllipsoidModel,
     PoseMessage,
+    Scan,
     StateMessage,
 )
 
 log = logging.getLogger(__name__)
 
 REINDEX_SETTLE_S = 0.005  # after a registration change, the servo takes it at its next tick
+REPORT_PERIOD_S = 1.0  # servo statistics and latency figures are recorded this often
+
+
+class ScanScriptConfig(ConfigModel):
+    """Scripted scans (``[expert.scans]``): scan 1 starts ``start_after_model_s`` after the
+    first patient model arrives and lasts ``length_s`` (None: until the daemon stops); then,
+    with ``repeat``, the next one starts ``gap_s`` later. ``enabled = false``: scans only by
+    hand (:meth:`ExpertDaemon.start_scan`)."""
+
+    enabled: bool = Field(True, description="script the scans (the demo's)")
+    start_after_model_s: float = Field(2.0, ge=0, le=3600, description="first scan after, s")
+    length_s: float | None = Field(None, gt=0, le=36000, description="None: until the stop")
+    repeat: bool = Field(False, description="start the next scan gap_s after one ends")
+    gap_s: float = Field(2.0, ge=0, le=3600, description="between scripted scans, s")
 
 
 class ExpertConfig(ConfigModel):
@@ -73,6 +112,25 @@ class ExpertConfig(ConfigModel):
     # Poses at 100 Hz, as the published system (ANCHORS); the follower's lag is ~0.35 s.
     link: LinkConfig = LinkConfig(pose_rate_hz=100.0)
     mapping: MappingConfig = MappingConfig()
+    scans: ScanScriptConfig = ScanScriptConfig()
+    session: SessionConfig = SessionConfig()
+    recording: RecorderConfig = RecorderConfig()
+
+
+def servo_config_for(mapping: MappingConfig, servo: ServoConfig) -> ServoConfig:
+    """The servo's configuration with the mapping's motion scale: ``[expert.mapping] scale`` is
+    the one setting (the passivity check then sees the scale actually used). A non-default
+    ``[servo] motion_scale`` is refused with a ConfigError saying where to set it."""
+    default = ServoConfig.model_fields["motion_scale"].default
+    if servo.motion_scale not in (default, mapping.scale):
+        raise ConfigError(
+            f"[servo] motion_scale = {servo.motion_scale:g}: the expert daemon takes the motion "
+            f"scale from the mapping; remove it and set [expert.mapping] scale = "
+            f"{servo.motion_scale:g} instead"
+        )
+    data = servo.model_dump()
+    data["motion_scale"] = mapping.scale
+    return validate_config(ServoConfig, data, "[servo] with [expert.mapping] scale")
 
 
 class ExpertDaemon:
@@ -85,7 +143,7 @@ class ExpertDaemon:
         stats_file: str | None = None,
     ) -> None:
         self.config = config
-        self.servo_config = servo_config or ServoConfig()
+        self.servo_config = servo_config_for(config.mapping, servo_config or ServoConfig())
         self.stats_file = stats_file
         self.servo = ServoProcess(self.servo_config)
         self.model: Ellipsoid | None = None
@@ -119,6 +177,17 @@ class ExpertDaemon:
         self.servo_started: float | None = None
         self._servo_cpu_last: float | None = None
         self._stop = asyncio.Event()
+        # Recording (opened by run(), or set by a caller) and scans.
+        self.rec: Recorder | None = None
+        self.clock_log = ClockSyncLog("/expert/clock_sync")
+        self.scan: int | None = None  # the scan in progress
+        self.scans_started = 0
+        self.scan_changed_t = -math.inf  # when the last scan started or stopped
+        self.model_t: float | None = None  # when the first patient model arrived
+        self._last_report = -math.inf
+        self._late_ticks_reported = 0
+        self._states_reported = 0
+        self.step_errors = 0
 
     # --- incoming messages, one handler per kind ------------------------------------------
 
@@ -149,6 +218,8 @@ class ExpertDaemon:
             return  # the same model again (the follower rejoined): nothing changes
         self.model = model
         self.models_installed += 1
+        if self.model_t is None:
+            self.model_t = self.clock()
         top = np.array(model.center) + [0.0, float(model.semi_axes[1]), 0.0]
         self.mapping.set_registration(default_registration(self.config.mapping, top))
         self.push_registration()
@@ -196,6 +267,91 @@ class ExpertDaemon:
             self.pose_times.append(t)
         else:
             self.pose_send_failures += 1
+        if self.rec is not None:  # what was published, at the PoseMessage's t
+            self.rec.write(
+                "/expert/pose", t, {"position": msg.position, "quaternion": msg.quaternion}
+            )
+            self.rec.write("/expert/force", t, {"force": s.force, "depth_m": s.depth})
+
+    # --- scans ----------------------------------------------------------------------------
+
+    def start_scan(self, t: float) -> int:
+        """Start the next scan (a running one is stopped first); returns its number."""
+        if self.scan is not None:
+            self.stop_scan(t)
+        self.scans_started += 1
+        self.scan = self.scans_started
+        self.scan_changed_t = t
+        if self.rec is not None:
+            self.rec.scan_start(t, self.scan)
+        self.link.send_control(Scan(action="start", scan_id=str(self.scan)))
+        log.info("expert: scan %d started", self.scan)
+        return self.scan
+
+    def stop_scan(self, t: float) -> None:
+        """Stop the scan in progress (nothing if none)."""
+        if self.scan is None:
+            return
+        if self.rec is not None:
+            self.rec.scan_stop(t, self.scan)
+        self.link.send_control(Scan(action="stop", scan_id=str(self.scan)))
+        log.info("expert: scan %d stopped", self.scan)
+        self.scan = None
+        self.scan_changed_t = t
+
+    def script_scans(self, t: float) -> None:
+        """The scripted scans of ``[expert.scans]``."""
+        cfg = self.config.scans
+        if not cfg.enabled or self.model_t is None:
+            return
+        if self.scan is None:
+            first = self.scans_started == 0
+            if first and t - self.model_t >= cfg.start_after_model_s:
+                self.start_scan(t)
+            elif not first and cfg.repeat and t - self.scan_changed_t >= cfg.gap_s:
+                self.start_scan(t)
+        elif cfg.length_s is not None and t - self.scan_changed_t >= cfg.length_s:
+            self.stop_scan(t)
+
+    # --- recording of the figures ---------------------------------------------------------
+
+    def record_reports(self, t: float) -> None:
+        """Clock sync when it changes; servo statistics and latency about once a second."""
+        rec = self.rec
+        if rec is None:
+            return
+        self.clock_log.update(rec, self.link.clock)
+        if t - self._last_report < REPORT_PERIOD_S:
+            return
+        self._last_report = t
+        if self.servo.alive:
+            try:
+                st = self.servo.stats()
+            except ServoError:
+                st = None
+            if st is not None and st.ticks > 0:
+                latest = self.servo.latest()
+                fault = "" if latest is None else latest.fault
+                rec.write(
+                    "/expert/servo_stats",
+                    t,
+                    {
+                        "rate_hz": st.rate_hz,
+                        "period_p99_s": st.period_p99_us * 1e-6,
+                        "late_ticks": max(0, st.late_ticks - self._late_ticks_reported),
+                        "state": f"fault:{fault}" if fault else "running",
+                    },
+                )
+                self._late_ticks_reported = st.late_ticks
+        else:
+            rec.write("/expert/servo_stats", t, {"rate_hz": 0.0, "state": "stopped"})
+        new = min(len(self.state_ages), self.states_received - self._states_reported)
+        self._states_reported = self.states_received
+        recent = list(self.state_ages)[-new:] if new > 0 else []
+        if recent:  # the follower's state stream, one way: median since the last report
+            rec.write(
+                "/expert/latency", t, {"name": "state_one_way", "value_s": float(np.median(recent))}
+            )
 
     def check_servo(self, t: float) -> None:
         """A dead servo process is restarted (the daemon itself keeps running)."""
@@ -267,15 +423,53 @@ class ExpertDaemon:
             "dropped_total": sum(self.link.counters.dropped.values()),
             "cpu_percent": self.cpu.overall(),
             "cpu_percent_servo": self.servo_cpu_percent(),
+            "scan": self.scan,
+            "scans_started": self.scans_started,
+            "step_errors": self.step_errors,
+            "recording": recorder_stats(self.rec),
         }
+
+    def guarded(self, step: Callable[[float], object], t: float) -> None:
+        """Run a step that must never end the daemon (scans, recording); failures counted."""
+        try:
+            step(t)
+        except Exception:
+            self.step_errors += 1
+            if self.step_errors in (1, 10, 100, 1000):
+                log.exception("expert: %s failed (%d so far)", step.__name__, self.step_errors)
+
+    def open_recording(self) -> bool:
+        """Open the recording of ``[expert.session]`` (if any); False, with a clear message on
+        stderr, if it cannot be recorded to."""
+        if self.rec is not None:
+            return True
+        try:
+            self.rec = open_recorder("expert", self.config.session, self.config.recording)
+        except RecordingError as exc:
+            print(f"humantele expert: {exc}", file=sys.stderr)
+            log.error("expert: %s", exc)
+            return False
+        if self.rec is not None:
+            log.info("expert: recording to %s", self.rec.path)
+        return True
+
+    def close_recording(self) -> None:
+        if self.rec is None:
+            return
+        stats = self.rec.close()
+        if stats.error:
+            log.error("expert: the recording failed during the session: %s", stats.error)
 
     async def run(self, duration_s: float | None = None) -> int:
         loop = asyncio.get_running_loop()
         on_stop_signals(loop, self._stop.set)
+        if not self.open_recording():
+            return 2
         try:
             await loop.run_in_executor(None, self.servo.start)
         except ServoError as exc:
             log.error("expert: %s", exc)
+            self.close_recording()
             return 1
         self.servo_started = time.monotonic()
         self.push_registration()
@@ -289,6 +483,8 @@ class ExpertDaemon:
                 t = self.clock()
                 self.check_servo(t)
                 self.publish_pose(t)
+                self.guarded(self.script_scans, t)
+                self.guarded(self.record_reports, t)
                 if t - last_stats > 0.5:
                     last_stats = t
                     write_stats(self.stats_file, self.stats())
@@ -304,11 +500,13 @@ class ExpertDaemon:
                     delay = 0.0
                 await asyncio.sleep(max(0.0, delay))
         finally:
+            self.guarded(self.stop_scan, self.clock())  # the scan ends before the bye
             await self.link.close("expert stopping")
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await asyncio.wait_for(link_task, 5.0)
             self.servo_cpu_percent()
             self.servo.stop()
+            self.close_recording()
             write_stats(self.stats_file, self.stats())
         return 0
 
@@ -323,6 +521,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, help="stop after this many seconds")
     parser.add_argument("--stats-file", help="write running figures (JSON) to this file")
     parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
+    add_session_arguments(parser)
 
 
 def configs_from_args(args: argparse.Namespace) -> tuple[ExpertConfig, ServoConfig]:
@@ -333,7 +532,9 @@ def configs_from_args(args: argparse.Namespace) -> tuple[ExpertConfig, ServoConf
         data["link"]["signaling_url"] = args.signaling_url
     if args.room:
         data["link"]["room"] = args.room
-    return validate_config(ExpertConfig, data, "command line"), servo
+    session_overrides(args, data)
+    config = validate_config(ExpertConfig, data, "command line")
+    return config, servo_config_for(config.mapping, servo)
 
 
 def run(args: argparse.Namespace) -> int:

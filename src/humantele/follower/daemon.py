@@ -4,13 +4,17 @@ Every tick (``rate_hz``, asyncio) it:
 
 1. moves the probe: the simulated person (:mod:`humantele.follower.sim_human`) follows the
    virtual probe, or performs the calibration presses when calibrating;
-2. measures it through the sensing pipeline (:mod:`humantele.follower.sensing` when present,
-   else the truth behind the same small interface), so what it streams is what a real
-   tracker and force sensor would give;
-3. feeds the calibration (:mod:`humantele.follower.calibration`) while calibrating;
-4. streams the probe pose and force to the expert (``state``, patient frame) and the virtual
-   probe to renderers (:mod:`humantele.follower.feed`, world frame; ``stale`` when no fresh
-   pose came or the link is down).
+2. at the tracker's rate (``sensing_rate_hz``) measures it through the sensing pipeline
+   (:mod:`humantele.follower.sensing` when present, else the truth behind the same small
+   interface), so what it streams is what a real tracker and force sensor would give. The
+   pipeline (~5-7 ms a frame) runs on one worker thread, off the asyncio loop, so the pose
+   path is never held up; frames are measured in order and never overlap: a frame due while
+   the previous one is still measured is skipped (counted in ``sensing_skipped``);
+3. with each measurement: feeds the calibration (:mod:`humantele.follower.calibration`) while
+   calibrating, streams the probe pose and force to the expert (``state``, patient frame) and
+   records them;
+4. publishes the virtual probe to renderers (:mod:`humantele.follower.feed`, world frame;
+   ``stale`` when no fresh pose came or the link is down).
 
 Frames: the headset's world frame (y up) here; the patient frame of the calibration on the
 wire (``T_world_patient`` from the saved calibration). Poses are of the transducer's tip frame
@@ -18,8 +22,18 @@ wire (``T_world_patient`` from the saved calibration). Poses are of the transduc
 is on the tracked probe body.
 
 Message handling is one method per kind (``on_pose``, ``on_control``, ``on_link_state``) and
-one per outgoing stream, so recording can hook in at those places. The calibration is saved
-under ``state_dir`` and reused after a restart; every Hello from the expert gets the model.
+one per outgoing stream. The calibration is saved under ``state_dir`` and reused after a
+restart; every Hello from the expert gets the model. The expert's ``Scan`` messages say which
+scan is in progress (``stats()['scan']``, the feed's ``scan`` object).
+
+Recording (``--record FILE`` or ``[follower.session] record``), ``t`` on this daemon's monotonic
+clock (the one its ClockSync uses): every tracker frame once calibrated
+(``/follower/probe_pose``, patient frame, ``tracked`` false with a zero pose when the probe was
+not found), every force reading (``/follower/force``, tip frame), the fitted model
+(``/follower/ellipsoid``, world frame), calibration events, the clock-sync estimate when it
+changes and the pose stream's one-way latency about once a second. A path that cannot be
+recorded to stops the daemon at start (exit code 2); a failure during the session is reported
+in the stats and never stops the session.
 """
 
 from __future__ import annotations
@@ -30,8 +44,10 @@ import contextlib
 import logging
 import math
 import os
+import sys
 import time
 from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -42,10 +58,16 @@ from pydantic import Field
 
 from humantele.config import ConfigModel, load_config, validate_config
 from humantele.demo import (
+    ClockSyncLog,
     CpuMeter,
+    SessionConfig,
+    add_session_arguments,
     on_stop_signals,
+    open_recorder,
     parent_gone,
     percentile_ms,
+    recorder_stats,
+    session_overrides,
     write_stats,
 )
 from humantele.follower.calibration import (
@@ -67,6 +89,7 @@ from humantele.follower.sim_human import (
     SimPatientConfig,
 )
 from humantele.geometry import Pose, matrix_to_quat
+from humantele.recording import Recorder, RecorderConfig, RecordingError
 from humantele.transport import LinkConfig, PeerLink
 from humantele.wire import (
     Calibration as CalibrationMsg,
@@ -77,6 +100,7 @@ from humantele.wire import (
     EllipsoidParams,
     Hello,
     PoseMessage,
+    Scan,
     StateMessage,
     TrackingStatus,
 )
@@ -84,6 +108,8 @@ from humantele.wire import (
 log = logging.getLogger(__name__)
 
 DEFAULT_STATE_DIR = "~/.local/state/humantele/follower"
+REPORT_PERIOD_S = 1.0  # latency figures are recorded this often
+ZERO_POSE = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))  # recorded when the probe is not tracked
 
 
 class FollowerConfig(ConfigModel):
@@ -107,16 +133,33 @@ class FollowerConfig(ConfigModel):
     sim_patient: SimPatientConfig = SimPatientConfig()
     sim_human: SimHumanConfig = SimHumanConfig()
     sim_head: SimHeadConfig = SimHeadConfig()
+    session: SessionConfig = SessionConfig()
+    recording: RecorderConfig = RecorderConfig()
 
 
 @dataclass
 class Measurement:
-    """What the follower knows of its probe at one tick (world frame, SI)."""
+    """What the follower knows of its probe at one tick (world frame, SI); ``force_tip`` is
+    the same force in the probe's tip frame (None when unknown)."""
 
     status: TrackingStatus
     T_world_tip: Pose | None
     force_world: NDArray[np.float64]
     contact: bool
+    force_tip: NDArray[np.float64] | None = None
+
+
+@dataclass
+class Frame:
+    """One tracker frame's inputs: the tick time (s), the truths driving the sim sensors, the
+    head camera, and the virtual probe and target the tick had (for the alignment figure)."""
+
+    t: float
+    true_tip: Pose | None
+    force: NDArray[np.float64]
+    camera: Pose | None
+    virtual: Pose | None
+    target: Pose | None
 
 
 def _tip_transform(tool_name: str) -> Pose:
@@ -167,7 +210,8 @@ class Sensing:
             return lost
         if self.pipeline is None:
             contact = float(np.linalg.norm(force_world)) > self.contact_n
-            return Measurement(TrackingStatus.TRACKED, T_world_tip, force_world, contact)
+            force_tip = T_world_tip.inverse().rotate(force_world)
+            return Measurement(TrackingStatus.TRACKED, T_world_tip, force_world, contact, force_tip)
         try:
             m = self.pipeline.measure(
                 t, T_world_tip @ self.T_tip_probe, force_world, T_world_camera
@@ -178,12 +222,13 @@ class Sensing:
                 log.exception("follower: sensing failed (counted, reported as lost)")
             return lost
         force = np.asarray(m.force_world, dtype=float)
-        if not np.all(np.isfinite(force)):
-            force = np.zeros(3)
+        force_tip = self.T_tip_probe.rotate(np.asarray(m.force_probe, dtype=float))
+        if not (np.all(np.isfinite(force)) and np.all(np.isfinite(force_tip))):
+            force, force_tip = np.zeros(3), None
         if m.status != "tracked" or m.T_world_probe is None:
-            return Measurement(TrackingStatus.LOST, None, force, bool(m.contact))
+            return Measurement(TrackingStatus.LOST, None, force, bool(m.contact), force_tip)
         tip = m.T_world_probe @ self.T_probe_tip
-        return Measurement(TrackingStatus.TRACKED, tip, force, bool(m.contact))
+        return Measurement(TrackingStatus.TRACKED, tip, force, bool(m.contact), force_tip)
 
     def close(self) -> None:
         if self.pipeline is not None:
@@ -243,6 +288,19 @@ class FollowerDaemon:
         self.cpu = CpuMeter()
         self.t_start = time.monotonic()
         self._stop = asyncio.Event()
+        # The sensing worker (run() starts it; without it, tick() measures in line).
+        self.executor: ThreadPoolExecutor | None = None
+        self._sensing: Future | None = None
+        self.sensing_skipped = 0
+        self.sensing_times: deque[float] = deque(maxlen=2000)  # s per measurement, worker
+        # Scans (from the expert) and recording (opened by run(), or set by a caller).
+        self.scan: int | None = None
+        self.scans_seen = 0
+        self.rec: Recorder | None = None
+        self.clock_log = ClockSyncLog("/follower/clock_sync")
+        self._last_report = -math.inf
+        self._poses_reported = 0
+        self._model_recorded: Calibration | None = None
 
     # --- incoming messages, one handler per kind ------------------------------------------
 
@@ -261,6 +319,21 @@ class FollowerDaemon:
             self.send_model()  # the expert (re)joined: give it the model we have
         elif isinstance(msg, CalibrationMsg) and msg.event == "start":
             self.start_calibration()
+        elif isinstance(msg, Scan):
+            self.on_scan(msg)
+
+    def on_scan(self, msg: Scan) -> None:
+        """The expert started or stopped a scan (its number is ``scan_id``)."""
+        number = int(msg.scan_id) if msg.scan_id.isdigit() else None
+        if msg.action == "start":
+            self.scan = number
+            self.scans_seen += 1
+        elif self.scan == number or number is None:
+            self.scan = None
+        log.info("follower: scan %s %s", msg.scan_id, msg.action)
+        # The expert's file has the scan events (/expert/scan). There is no follower-side scan
+        # channel in the recording schemas yet, so the follower's file does not carry them.
+        self.feed.publish("scan", {"scan": self.scan, "action": msg.action})
 
     def on_link_state(self, state: str) -> None:
         self.feed.publish("link", {"state": state})
@@ -341,16 +414,18 @@ class FollowerDaemon:
     def start_calibration(self) -> None:
         self.calibrating = True
         self.calibrator.reset()
+        self.record("/follower/calibration", time.monotonic(), {"event": "reset"})
         self.script = CalibrationScript(self.patient) if self.config.auto_calibrate else None
         self.script_t0 = time.monotonic()
         self.send_control(CalibrationMsg(event="start"))
         self.publish_calibration()
 
-    def on_calibration_event(self, ev: CalibrationEvent) -> None:
+    def on_calibration_event(self, ev: CalibrationEvent, t: float | None = None) -> None:
         self.last_event = ev
         log.info("calibration: %s", ev.message)
         index = LANDMARKS.index(ev.landmark)
         point = tuple(float(v) for v in ev.point)
+        self.record_calibration_event(t, ev)
         if ev.kind == "refused":
             self.send_control(
                 CalibrationMsg(event="error", index=index, point=point, detail=ev.message[:200])
@@ -364,6 +439,7 @@ class FollowerDaemon:
             self.script = None
             self.send_control(CalibrationMsg(event="done"))
             self.send_model()
+            self.record_model(t)
         self.publish_calibration(ev)
 
     # --- the tick -------------------------------------------------------------------------
@@ -392,36 +468,157 @@ class FollowerDaemon:
                 target = None  # the expert is re-indexing: hold still
         true_tip = self.human.step(t, target)
         force = np.zeros(3) if true_tip is None else self.patient.force(true_tip.position)
-        new = t - self.last_measure_t >= 1.0 / self.config.sensing_rate_hz
-        if new:  # a tracker frame and a force reading
-            self.last_measure_t = t
-            self.measurements += 1
+        if self.calibrating or target is None:
+            self.following_since = None
+        elif self.following_since is None:
+            self.following_since = t
+        frame_period = 1.0 / self.config.sensing_rate_hz
+        if t - self.last_measure_t >= frame_period:  # a tracker frame and a force reading
+            # On the frame clock, so the rate is sensing_rate_hz even when it is not a whole
+            # fraction of the tick rate (45 Hz from 100 Hz ticks, not 33); no catching up.
+            late = t - self.last_measure_t >= 2.0 * frame_period
+            self.last_measure_t = t if late else self.last_measure_t + frame_period
             tip_pos = None if true_tip is None else true_tip.position
             camera = self.head.step(t, tip_pos)
-            self.measurement = self.sensing.measure(t, true_tip, force, camera)
-            self.tracking_lost += self.measurement.T_world_tip is None
-        m = self.measurement
+            self.start_measurement(Frame(t, true_tip, force, camera, virtual, target))
+        # Video frame timestamps (/follower/video_frame: stream 'pov' or 'us', seq, event) are
+        # recorded here once the follower has its POV and ultrasound tracks; there is no video
+        # yet, so nothing is recorded for it.
+        self.publish_feed(t, virtual, self.measurement)
+
+    # --- measurements (sensing worker thread -> loop) -------------------------------------
+
+    def start_measurement(self, frame: Frame) -> None:
+        """Measure one tracker frame: on the sensing worker when the daemon runs (the result
+        is taken on the loop), else in line. Never two at once: a frame due while the previous
+        one is measured is skipped and counted."""
+        if self.executor is None:
+            m = self.sensing.measure(frame.t, frame.true_tip, frame.force, frame.camera)
+            self.take_measurement(frame, m)
+            return
+        if self._sensing is not None:
+            self.sensing_skipped += 1
+            return
+        fut = asyncio.get_running_loop().run_in_executor(self.executor, self._measure, frame)
+        self._sensing = fut
+        fut.add_done_callback(lambda f: self._measured(frame, f))
+
+    def _measure(self, frame: Frame) -> Measurement:
+        """On the sensing worker: measure, and time it."""
+        t0 = time.perf_counter()
+        m = self.sensing.measure(frame.t, frame.true_tip, frame.force, frame.camera)
+        self.sensing_times.append(time.perf_counter() - t0)
+        return m
+
+    def _measured(self, frame: Frame, fut: Future) -> None:
+        self._sensing = None
+        if fut.cancelled():
+            return
+        try:
+            exc = fut.exception()
+            if exc is not None:  # Sensing.measure catches the pipeline's; this is the worker's
+                raise exc
+            self.take_measurement(frame, fut.result())
+        except Exception:
+            self.tick_errors += 1
+            if self.tick_errors in (1, 10, 100, 1000):
+                log.exception("follower: measurement failed (%d so far)", self.tick_errors)
+
+    def take_measurement(self, frame: Frame, m: Measurement) -> None:
+        """One tracker frame measured: calibration, alignment, the state stream, recording."""
+        self.measurement = m
+        self.measurements += 1
+        self.tracking_lost += m.T_world_tip is None
         self.last_force_n = float(np.linalg.norm(m.force_world))
-        if self.calibrating:
-            self.following_since = None
-            if new:  # an untracked press still counts for the hysteresis
-                tip = None if m.T_world_tip is None else m.T_world_tip.position
-                ev = self.calibrator.update(tip, float(np.linalg.norm(m.force_world)))
-                if ev is not None:
-                    self.on_calibration_event(ev)
-        elif target is None:
-            self.following_since = None
-        else:
-            if self.following_since is None:
-                self.following_since = t
-            settled = t - self.following_since >= self.config.alignment_settle_s
-            if new and settled and m.T_world_tip is not None:
-                dp, da = m.T_world_tip.distance_to(virtual)
+        if self.calibrating:  # an untracked press still counts for the hysteresis
+            tip = None if m.T_world_tip is None else m.T_world_tip.position
+            ev = self.calibrator.update(tip, self.last_force_n)
+            if ev is not None:
+                self.on_calibration_event(ev, frame.t)
+        elif frame.target is not None and self.following_since is not None:
+            settled = frame.t - self.following_since >= self.config.alignment_settle_s
+            if settled and m.T_world_tip is not None:
+                dp, da = m.T_world_tip.distance_to(frame.virtual)
                 self.align_pos.append(dp)
                 self.align_ang.append(da)
-        if new:
-            self.send_state(t, m)
-        self.publish_feed(t, virtual, m)
+        self.send_state(frame.t, m)
+        self.record_measurement(frame.t, m)
+
+    # --- recording ------------------------------------------------------------------------
+
+    def record(self, topic: str, t: float | None, payload: dict) -> None:
+        """One sample (``t``: this daemon's monotonic clock, s; None: now), if recording."""
+        if self.rec is not None:
+            self.rec.write(topic, time.monotonic() if t is None else t, payload)
+
+    def record_measurement(self, t: float, m: Measurement) -> None:
+        """The force (tip frame) and, once calibrated, the probe pose (patient frame)."""
+        if self.rec is None:
+            return
+        if m.force_tip is not None:
+            self.rec.write("/follower/force", t, {"force": m.force_tip})
+        if self.calibration is None:
+            return
+        if m.status == TrackingStatus.TRACKED and m.T_world_tip is not None:
+            T = self.calibration.T_world_patient.inverse() @ m.T_world_tip
+            pose = {"position": T.position, "quaternion": T.quaternion, "tracked": True}
+        else:
+            pose = {"position": ZERO_POSE[0], "quaternion": ZERO_POSE[1], "tracked": False}
+        self.rec.write("/follower/probe_pose", t, pose)
+
+    def record_calibration_event(self, t: float | None, ev: CalibrationEvent) -> None:
+        point = {"landmark": ev.landmark, "position": [float(v) for v in ev.point]}
+        if ev.kind == "refused":
+            self.record("/follower/calibration", t, {"event": "error", **point,
+                                                      "message": ev.message[:200]})  # fmt: skip
+            return
+        self.record("/follower/calibration", t, {"event": "point", **point})
+        if ev.kind == "done":
+            self.record("/follower/calibration", t, {"event": "fit"})
+
+    def record_model(self, t: float | None = None) -> None:
+        """The fitted model (world frame, as ``Ellipsoid.to_dict``), once per calibration."""
+        if self.calibration is None or self._model_recorded is self.calibration:
+            return
+        self._model_recorded = self.calibration
+        self.record("/follower/ellipsoid", t, self.calibration.ellipsoid.to_dict())
+
+    def record_reports(self, t: float) -> None:
+        """The clock-sync estimate when it changes; the pose stream's one-way latency (median
+        since the last report) about once a second."""
+        if self.rec is None:
+            return
+        self.clock_log.update(self.rec, self.link.clock)
+        if t - self._last_report < REPORT_PERIOD_S:
+            return
+        self._last_report = t
+        new = min(len(self.pose_ages), self.poses_received - self._poses_reported)
+        self._poses_reported = self.poses_received
+        if new > 0:
+            value = float(np.median(list(self.pose_ages)[-new:]))
+            self.rec.write("/follower/latency", t, {"name": "pose_one_way", "value_s": value})
+
+    def open_recording(self) -> bool:
+        """Open the recording of ``[follower.session]`` (if any); False, with a clear message
+        on stderr, if it cannot be recorded to."""
+        if self.rec is not None:
+            return True
+        try:
+            self.rec = open_recorder("follower", self.config.session, self.config.recording)
+        except RecordingError as exc:
+            print(f"humantele follower: {exc}", file=sys.stderr)
+            log.error("follower: %s", exc)
+            return False
+        if self.rec is not None:
+            log.info("follower: recording to %s", self.rec.path)
+        return True
+
+    def close_recording(self) -> None:
+        if self.rec is None:
+            return
+        stats = self.rec.close()
+        if stats.error:
+            log.error("follower: the recording failed during the session: %s", stats.error)
 
     def pose_rate_hz(self, window_s: float = 1.0) -> float:
         """Poses received per second over the last ``window_s``."""
@@ -458,6 +655,12 @@ class FollowerDaemon:
             "measurements": self.measurements,
             "tracking_lost": self.tracking_lost,
             "sensing_errors": self.sensing.errors,
+            "sensing_skipped": self.sensing_skipped,
+            "sensing_p50_ms": percentile_ms(self.sensing_times, 50),
+            "sensing_p99_ms": percentile_ms(self.sensing_times, 99),
+            "scan": self.scan,
+            "scans_seen": self.scans_seen,
+            "recording": recorder_stats(self.rec),
             "tick_errors": self.tick_errors,
             "late_ticks": self.late_ticks,
             "cpu_percent": self.cpu.overall(),
@@ -466,6 +669,10 @@ class FollowerDaemon:
     async def run(self, duration_s: float | None = None) -> int:
         loop = asyncio.get_running_loop()
         on_stop_signals(loop, self._stop.set)
+        if not self.open_recording():
+            return 2
+        self.record_model()  # a saved calibration's model
+        self.executor = ThreadPoolExecutor(1, thread_name_prefix="humantele-sensing")
         if self.config.feed.enabled:
             await self.feed.start()
             log.info("follower: renderer feed at %s", self.feed.url)
@@ -485,6 +692,7 @@ class FollowerDaemon:
                 self.ticks += 1
                 try:
                     self.tick(t)
+                    self.record_reports(t)
                 except Exception:  # never let one bad tick end the daemon
                     self.tick_errors += 1
                     if self.tick_errors in (1, 10, 100, 1000):
@@ -509,7 +717,10 @@ class FollowerDaemon:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await asyncio.wait_for(link_task, 5.0)
             await self.feed.stop()
+            self.executor.shutdown(wait=True)  # the frame being measured ends first
+            self.executor = None
             self.sensing.close()
+            self.close_recording()
             write_stats(self.stats_file, self.stats())
         return 0
 
@@ -533,6 +744,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, help="stop after this many seconds")
     parser.add_argument("--stats-file", help="write running figures (JSON) to this file")
     parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
+    add_session_arguments(parser)
 
 
 def config_from_args(args: argparse.Namespace) -> FollowerConfig:
@@ -546,6 +758,7 @@ def config_from_args(args: argparse.Namespace) -> FollowerConfig:
         data["state_dir"] = args.state_dir
     if args.feed_port is not None:
         data["feed"]["port"] = args.feed_port
+    session_overrides(args, data)
     return validate_config(FollowerConfig, data, "command line")
 
 
