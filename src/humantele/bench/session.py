@@ -8,29 +8,46 @@ sends poses at ``--rate`` (default 1 kHz) for ``--seconds``; the follower sends 
 own CPU time. Reported: delivered %, pose age p50/p99/max (ms), state age p99, clock-sync
 offset and round trip, CPU % of each process (of one core), dropped messages by reason.
 
-The children are ``python -m humantele.bench.session --child ROLE ...``; the token reaches
-them through the environment, never the command line.
+With ``--turn`` both peers are ``relay_only`` through a coturn ``turnserver`` started on
+loopback (:mod:`humantele.transport.turnserver`). With ``--delay-ms``, ``--jitter-ms`` or
+``--loss`` (these imply ``--turn``) the user-space WAN emulator
+(:class:`humantele.transport.netem.UdpRelay`, in this process) sits between the expert and the
+TURN server, so each direction crosses it once: one ``D`` ms one-way delay, normal jitter
+(FIFO, no reordering) and ``P`` % loss each way, seeded by ``--seed``. The 750 km case of the
+study is ``--delay-ms 4 --jitter-ms 1.5`` (fibre >= 3.7 ms one way, the follower on WiFi).
+
+The section of docs/benchmarks.md keeps one row per link kind: a run replaces the row with its
+own label and keeps the others (loopback, TURN, TURN + delay ...).
+
+The children are ``python -m humantele.bench.session --child ROLE ...``; the token and the
+TURN password reach them through the environment, never the command line.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import logging
 import math
 import os
+import re
 import resource
 import secrets
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
+from humantele.bench import report
 from humantele.bench.report import machine_line, markdown_table, write_section
 
 ROOM = "bench"
 Q_IDENTITY = (0.0, 0.0, 0.0, 1.0)
+TURN_CREDENTIAL_ENV = "HUMANTELE_BENCH_TURN_CREDENTIAL"
+SECTION = "session"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -39,6 +56,55 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--state-rate", type=float, default=100.0, help="state rate (Hz)")
     parser.add_argument("--json", action="store_true", help="print a JSON summary last")
     parser.add_argument("--no-write", action="store_true", help="do not write benchmarks.md")
+    parser.add_argument(
+        "--turn", action="store_true", help="relay_only through a coturn turnserver on loopback"
+    )
+    parser.add_argument(
+        "--delay-ms", type=float, default=0.0, help="one-way delay added each way (ms; --turn)"
+    )
+    parser.add_argument(
+        "--jitter-ms", type=float, default=0.0, help="std dev of the added delay (ms; --turn)"
+    )
+    parser.add_argument(
+        "--loss", type=float, default=0.0, help="percent of datagrams lost each way (--turn)"
+    )
+    parser.add_argument("--seed", type=int, default=1, help="seed of the delay/loss emulator")
+
+
+def _impaired(args: argparse.Namespace) -> bool:
+    return bool(args.delay_ms or args.jitter_ms or args.loss)
+
+
+def link_label(args: argparse.Namespace) -> str:
+    """The table row's name for the link this run measures."""
+    if _impaired(args):
+        jitter = f" +- {args.jitter_ms:g}" if args.jitter_ms else ""
+        return f"TURN + {args.delay_ms:g}{jitter} ms, {args.loss:g} % loss"
+    return "TURN (coturn)" if args.turn else "loopback"
+
+
+def _link_config(args: argparse.Namespace):
+    """The child's LinkConfig: plain, or relay_only through the TURN URL it was given."""
+    from humantele.transport import IceServer, LinkConfig
+
+    if not args.turn_url:
+        return LinkConfig(signaling_url=args.url, room=args.room)
+    turn = IceServer(
+        urls=[args.turn_url],
+        username=args.turn_user,
+        credential=os.environ.get(TURN_CREDENTIAL_ENV),
+    )
+    return LinkConfig(signaling_url=args.url, room=args.room, ice_servers=[turn], relay_only=True)
+
+
+def _ice_pair(link) -> str | None:
+    """Candidate types of the link's nominated ICE pair, "local/remote" (e.g. "relay/relay").
+    aiortc has no ICE stats, so this reads the aioice connection; None if it cannot."""
+    try:
+        pair = link.peer_connection.sctp.transport.transport._connection._nominated[1]
+        return f"{pair.local_candidate.type}/{pair.remote_candidate.type}"
+    except (AttributeError, KeyError):
+        return None
 
 
 def _cpu_s() -> float:
@@ -65,7 +131,7 @@ def _stats_ms(ages_s: list[float]) -> dict[str, float | int]:
 
 
 async def _expert(args: argparse.Namespace) -> dict:
-    from humantele.transport import LinkConfig, PeerLink
+    from humantele.transport import PeerLink
     from humantele.transport.pacing import Pacer
     from humantele.wire import PoseMessage, Scan
 
@@ -73,13 +139,14 @@ async def _expert(args: argparse.Namespace) -> dict:
     link: PeerLink
     link = PeerLink(
         "expert",
-        LinkConfig(signaling_url=args.url, room=args.room),
+        _link_config(args),
         on_state=lambda m: state_ages.append(link.age_of(m.t_sent) or math.nan),
     )
     task = asyncio.create_task(link.run())
     await link.wait_state("connected", timeout=60)
     await asyncio.sleep(1.2)  # both sides finish their fast clock-sync pings
     link.send_control(Scan(action="start", scan_id="bench"))
+    ice_pair = _ice_pair(link)  # now: the follower closes its end right after the stream
     state_ages.clear()
     pacer = Pacer(args.rate)
     cpu0, t0 = _cpu_s(), time.monotonic()
@@ -91,6 +158,7 @@ async def _expert(args: argparse.Namespace) -> dict:
     await asyncio.sleep(0.5)
     result = {
         "role": "expert",
+        "ice_pair": ice_pair,
         "sent": link.counters.sent["pose"],
         "attempted": pacer.ticks,  # sent + dropped at the sender (send buffer full)
         "wall_s": wall,
@@ -108,7 +176,7 @@ async def _expert(args: argparse.Namespace) -> dict:
 
 
 async def _follower(args: argparse.Namespace) -> dict:
-    from humantele.transport import LinkConfig, PeerLink
+    from humantele.transport import PeerLink
     from humantele.transport.pacing import Pacer
     from humantele.wire import PoseMessage, Scan, StateMessage
 
@@ -134,7 +202,7 @@ async def _follower(args: argparse.Namespace) -> dict:
 
     link = PeerLink(
         "follower",
-        LinkConfig(signaling_url=args.url, room=args.room),
+        _link_config(args),
         on_pose=on_pose,
         on_control=on_control,
     )
@@ -153,6 +221,7 @@ async def _follower(args: argparse.Namespace) -> dict:
     await asyncio.sleep(0.2)  # poses still in flight when the (reliable) stop overtook them
     result = {
         "role": "follower",
+        "ice_pair": _ice_pair(link),
         "received": len(seqs),
         "unsynced": unsynced,
         "age_ms": _stats_ms(ages),
@@ -169,13 +238,13 @@ async def _follower(args: argparse.Namespace) -> dict:
 
 async def _echo_follower(args: argparse.Namespace) -> dict:
     """A follower that answers every pose with a state of the same sequence (for tests)."""
-    from humantele.transport import LinkConfig, PeerLink
+    from humantele.transport import PeerLink
     from humantele.wire import PoseMessage, StateMessage
 
     def on_pose(m: PoseMessage) -> None:
         link.send_state(StateMessage(m.seq, link.now(), m.position, m.quaternion))
 
-    link = PeerLink("follower", LinkConfig(signaling_url=args.url, room=args.room), on_pose=on_pose)
+    link = PeerLink("follower", _link_config(args), on_pose=on_pose)
     await link.run()
     return {"role": "follower"}
 
@@ -185,6 +254,8 @@ def child_main(argv: list[str] | None = None) -> int:
     p.add_argument("--child", choices=["expert", "follower", "echo-follower"], required=True)
     p.add_argument("--url", required=True)
     p.add_argument("--room", default=ROOM)
+    p.add_argument("--turn-url", default=None)
+    p.add_argument("--turn-user", default=None)
     add_arguments(p)
     args = p.parse_args(argv)
     logging.basicConfig(
@@ -200,43 +271,72 @@ def child_main(argv: list[str] | None = None) -> int:
 # --- the parent -------------------------------------------------------------------------------
 
 
+def netem_config(args: argparse.Namespace):
+    """The WAN emulator's settings from the command line (ms and % at this edge)."""
+    from humantele.transport.netem import NetemConfig
+
+    return NetemConfig(
+        delay_s=args.delay_ms * 1e-3,
+        jitter_s=args.jitter_ms * 1e-3,
+        loss=args.loss / 100.0,
+        seed=args.seed,
+    )
+
+
 async def measure(args: argparse.Namespace) -> dict:
     """Run one session benchmark; the summary dictionary."""
     from humantele.signaling.messages import TOKEN_ENV
     from humantele.signaling.server import SignalConfig, SignalingServer
+    from humantele.transport.netem import UdpRelay
+    from humantele.transport.turnserver import TurnServer
 
+    use_turn = args.turn or _impaired(args)
+    netem = netem_config(args) if _impaired(args) else None  # bad values fail before anything
     token = secrets.token_urlsafe(24)
-    server = SignalingServer(SignalConfig(port=0), token)
-    await server.start()
     env = {**os.environ, TOKEN_ENV: token}
-    child_args = [
-        "--url", server.url, "--seconds", str(args.seconds), "--rate", str(args.rate),
-        "--state-rate", str(args.state_rate),
-    ]  # fmt: skip
-    procs = [
-        await asyncio.create_subprocess_exec(
-            sys.executable,
-            "-m",
-            "humantele.bench.session",
-            "--child",
-            role,
-            *child_args,
-            stdout=asyncio.subprocess.PIPE,
-            stderr=asyncio.subprocess.PIPE,
-            env=env,
-        )  # fmt: skip
-        for role in ("expert", "follower")
-    ]
-    try:
-        outs = await asyncio.wait_for(
-            asyncio.gather(*(p.communicate() for p in procs)), args.seconds + 120
-        )
-    finally:
-        for p in procs:
-            if p.returncode is None:
-                p.kill()
-                await p.wait()
-        await server.stop()
+    role_args: dict[str, list[str]] = {"expert": [], "follower": []}
+    relay = None
+    async with contextlib.AsyncExitStack() as stack:
+        if use_turn:
+            turn = await stack.enter_async_context(TurnServer())
+            urls = {"expert": turn.ice_server(), "follower": turn.ice_server()}
+            if netem is not None:
+                relay = await stack.enter_async_context(UdpRelay((turn.host, turn.port), netem))
+                urls["expert"] = turn.ice_server(*relay.address)  # the expert's side is the WAN
+            for role, ice in urls.items():
+                role_args[role] = ["--turn-url", ice.urls[0], "--turn-user", ice.username or ""]
+                env[TURN_CREDENTIAL_ENV] = ice.credential.get_secret_value()
+        server = SignalingServer(SignalConfig(port=0), token)
+        await server.start()
+        stack.push_async_callback(server.stop)
+        child_args = [
+            "--url", server.url, "--seconds", str(args.seconds), "--rate", str(args.rate),
+            "--state-rate", str(args.state_rate),
+        ]  # fmt: skip
+        procs = [
+            await asyncio.create_subprocess_exec(
+                sys.executable,
+                "-m",
+                "humantele.bench.session",
+                "--child",
+                role,
+                *child_args,
+                *role_args[role],
+                stdout=asyncio.subprocess.PIPE,
+                stderr=asyncio.subprocess.PIPE,
+                env=env,
+            )  # fmt: skip
+            for role in ("expert", "follower")
+        ]
+        try:
+            outs = await asyncio.wait_for(
+                asyncio.gather(*(p.communicate() for p in procs)), args.seconds + 120
+            )
+        finally:
+            for p in procs:
+                if p.returncode is None:
+                    p.kill()
+                    await p.wait()
     results = {}
     if any(p.returncode != 0 for p in procs):
         logs = "\n".join(err.decode()[-3000:] for _out, err in outs)
@@ -248,6 +348,11 @@ async def measure(args: argparse.Namespace) -> dict:
     e, f = results["expert"], results["follower"]
     sent, attempted = e["sent"], e["attempted"]
     summary = {
+        "link": link_label(args),
+        "turn": use_turn,
+        "netem": None if netem is None else netem.model_dump(),
+        "relay": None if relay is None else relay.counters.as_dict(),
+        "ice_pair": {"expert": e["ice_pair"], "follower": f["ice_pair"]},
         "rate_hz": args.rate,
         "state_rate_hz": args.state_rate,
         "seconds": args.seconds,
@@ -272,29 +377,63 @@ async def measure(args: argparse.Namespace) -> dict:
     return summary
 
 
-def _markdown(s: dict) -> str:
+HEADER = [
+    "link", "pose Hz", "sent Hz", "delivered %", "age p50 ms", "age p99 ms", "age max ms",
+    "state age p99 ms", "sync RTT ms", "sync offset us", "emulator hold ms",
+    "CPU % expert / follower", "dropped", "measured (UTC)",
+]  # fmt: skip
+
+
+def _row(s: dict) -> list[str]:
     a, st = s["pose_age_ms"], s["state_age_ms"]
     dropped = sum(s["dropped"]["expert"].values()) + sum(s["dropped"]["follower"].values())
-    link = "loopback"
-    rows = [
-        [
-            link,
-            f"{s['rate_hz']:g}",
-            f"{s['send_rate_hz']:.0f}",
-            f"{s['delivered_pct']:.3f}",
-            f"{a.get('p50', math.nan):.2f}",
-            f"{a.get('p99', math.nan):.2f}",
-            f"{a.get('max', math.nan):.1f}",
-            f"{st.get('p99', math.nan):.2f}",
-            f"{s['offset_us']:.0f}" if s["offset_us"] is not None else "-",
-            f"{s['cpu_expert_pct']:.0f} / {s['cpu_follower_pct']:.0f}",
-            str(dropped),
-        ]
+    hold = "-"
+    if s["relay"] is not None:
+        up, down = s["relay"]["up"]["held_mean_s"], s["relay"]["down"]["held_mean_s"]
+        hold = " / ".join("-" if h is None else f"{h * 1e3:.2f}" for h in (up, down))
+    return [
+        s["link"],
+        f"{s['rate_hz']:g}",
+        f"{s['send_rate_hz']:.0f}",
+        f"{s['delivered_pct']:.3f}",
+        f"{a.get('p50', math.nan):.2f}",
+        f"{a.get('p99', math.nan):.2f}",
+        f"{a.get('max', math.nan):.1f}",
+        f"{st.get('p99', math.nan):.2f}",
+        f"{s['rtt_ms']:.2f}" if s["rtt_ms"] is not None else "-",
+        f"{s['offset_us']:.0f}" if s["offset_us"] is not None else "-",
+        hold,
+        f"{s['cpu_expert_pct']:.0f} / {s['cpu_follower_pct']:.0f}",
+        str(dropped),
+        time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
     ]
-    header = [
-        "link", "pose Hz", "sent Hz", "delivered %", "age p50 ms", "age p99 ms", "age max ms",
-        "state age p99 ms", "sync offset us", "CPU % expert / follower", "dropped",
-    ]  # fmt: skip
+
+
+def previous_rows(path: Path) -> list[list[str]]:
+    """The table rows already in the session section of ``path`` (same columns only)."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError:
+        return []
+    m = re.search(rf"<!-- bench:{SECTION} -->(.*?)<!-- /bench:{SECTION} -->", text, re.DOTALL)
+    if m is None:
+        return []
+    rows = []
+    for line in m.group(1).splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if line.startswith("|") and len(cells) == len(HEADER) and cells[0] != HEADER[0]:
+            if not set(cells[0]) <= set("-"):
+                rows.append(cells)
+    return rows
+
+
+def merge_rows(old: list[list[str]], new: list[str]) -> list[list[str]]:
+    """``old`` with the row of the same link replaced by ``new`` (appended if none)."""
+    rows = [new if r[0] == new[0] else r for r in old]
+    return rows if any(r is new for r in rows) else [*rows, new]
+
+
+def _markdown(s: dict, rows: list[list[str]]) -> str:
     return (
         "## Session link: pose stream over WebRTC (`humantele bench session`)\n\n"
         f"{machine_line()} Real aiortc between two OS processes through the signaling "
@@ -303,22 +442,52 @@ def _markdown(s: dict) -> str:
         "with the link's clock sync (true offset "
         "~0 here, so 'sync offset' is the sync error). Targets: >= 99.9 % delivered, pose "
         "age p99 <= 2 ms on loopback. Raw aiortc round trip here: p50 0.54 ms, p99 1.2 ms.\n\n"
-        + markdown_table(header, rows)
+        "'TURN' rows: both peers `relay_only` through coturn on loopback (`--turn`). 'TURN + D' "
+        "rows put the user-space WAN emulator (`humantele.transport.netem`) between the expert "
+        "and coturn, so each direction crosses it once: D ms one way, +- normal jitter (FIFO, "
+        "no reordering), loss each way, seeded (`--delay-ms D --jitter-ms J --loss P`). "
+        "'emulator hold' is the delay it actually gave (up / down; asyncio wakes to ~1 ms). "
+        "750 km of fibre is >= 3.7 ms one way; the study's follower was on WiFi (RTT 5.8 ms "
+        "mean), the expert on Ethernet (1.07 ms). Rows may come from different runs (last "
+        "column).\n\n" + markdown_table(HEADER, rows)
     )
 
 
+def _check(args: argparse.Namespace) -> str | None:
+    """What is wrong with the emulator options, or None."""
+    if not 0.0 <= args.loss <= 100.0:
+        return f"--loss {args.loss:g}: a percent between 0 and 100"
+    for name in ("delay_ms", "jitter_ms"):
+        value = getattr(args, name)
+        if not 0.0 <= value <= 10_000.0:
+            return f"--{name.replace('_', '-')} {value:g}: between 0 and 10000 ms"
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
-    summary = asyncio.run(measure(args))
+    from humantele.transport.turnserver import TurnServerError
+
+    problem = _check(args)
+    if problem is not None:
+        print(f"bench session: {problem}", file=sys.stderr)
+        return 2
+    try:
+        summary = asyncio.run(measure(args))
+    except TurnServerError as exc:
+        print(f"bench session: {exc}", file=sys.stderr)
+        return 2
     a = summary["pose_age_ms"]
     print(
-        f"session bench: {summary['sent']} poses at {summary['send_rate_hz']:.0f} Hz, "
+        f"session bench ({summary['link']}): {summary['sent']} poses at "
+        f"{summary['send_rate_hz']:.0f} Hz, "
         f"delivered {summary['delivered_pct']:.3f} %, age p50 {a.get('p50', math.nan):.2f} ms "
         f"p99 {a.get('p99', math.nan):.2f} ms max {a.get('max', math.nan):.1f} ms, "
         f"CPU expert {summary['cpu_expert_pct']:.0f} % follower "
         f"{summary['cpu_follower_pct']:.0f} %, sync offset {summary['offset_us']} us"
     )
     if not args.no_write:
-        path = write_section("session", _markdown(summary))
+        rows = merge_rows(previous_rows(report.BENCHMARKS_MD), _row(summary))
+        path = write_section(SECTION, _markdown(summary, rows))
         print(f"wrote {path}")
     if args.json:
         print(json.dumps(summary))
