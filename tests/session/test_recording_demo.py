@@ -1,0 +1,52 @@
+"""``humantele demo --record FILE`` then ``humantele analyze``: the alignment error found in the
+recordings is the one the simulated follower was configured with."""
+
+import asyncio
+import json
+import math
+import sys
+
+import pytest
+
+from humantele.analysis.cli import analyze
+from humantele.follower.sim_human import SimHumanConfig
+from humantele.recording import read_recording
+
+
+@pytest.mark.slow
+async def test_demo_records_a_scan_that_analyze_measures(tmp_path):
+    base = tmp_path / "demo.mcap"
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "humantele", "demo", "--duration", "25", "--json",
+        "--record", str(base),
+        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+    )  # fmt: skip
+    out, err = await asyncio.wait_for(proc.communicate(), 120)
+    assert proc.returncode == 0, err.decode()[-3000:]
+    summary = json.loads(out.decode().strip().splitlines()[-1])
+    expert, follower = tmp_path / "demo.expert.mcap", tmp_path / "demo.follower.mcap"
+    assert f"humantele analyze {expert} {follower}" in err.decode()
+    assert summary["scans"] == 1
+    for role in ("expert", "follower"):
+        st = summary["recording"][role]
+        assert st["error"] is None and st["dropped"] == 0 and st["written"] == st["queued"] > 100
+    e, f = read_recording(expert), read_recording(follower)
+    assert e.complete and f.complete
+    assert e.session["session_id"] == f.session["session_id"]
+    assert (f.session["follower_id"], e.session["sonographer_id"]) == ("F0", "S0")
+
+    report, _ = analyze([expert, follower])
+    assert report["warnings"] == []
+    (scan,) = report["scans"]
+    assert scan["complete"] and scan["duration_s"] > 3.0 and scan["samples_used"] > 50
+    # The sim follower holds the probe off by a constant offset (plus lag and tremor): the
+    # mean error is about that offset, centering removes it, and the RMSE is of its size.
+    cfg = SimHumanConfig()
+    offset_mm = math.dist(cfg.offset_mm, (0.0, 0.0, 0.0))  # 5.0 mm
+    offset_deg = math.dist(cfg.offset_rotation_deg, (0.0, 0.0, 0.0))  # 4.7 deg
+    mean_mm = math.dist(scan["mean_position_error_mm"], (0.0, 0.0, 0.0))
+    assert 0.5 * offset_mm < mean_mm < 2.0 * offset_mm
+    assert 0.5 * offset_deg < scan["mean_rotation_error_deg"] < 2.0 * offset_deg
+    assert scan["centered_position_rmse_mm"] < scan["position_rmse_mm"] < 4.0 * offset_mm
+    assert scan["position_rmse_mm"] > offset_mm * 0.8
+    assert scan["centered_orientation_rmse_deg"] < scan["orientation_rmse_deg"] < 3 * offset_deg
