@@ -67,11 +67,12 @@ def _empty(rejected: int) -> Blobs:
     return Blobs(z.reshape(0, 2), np.zeros(0, np.int64), z, z.reshape(0, 3), rejected)
 
 
-def _sums(w: NDArray, x: NDArray, y: NDArray) -> tuple[NDArray, NDArray, NDArray]:
-    """Zeroth moment and centroid (x, y) of weights ``w`` (N, H, W) per window."""
-    m0 = w.sum(axis=(1, 2))
-    safe = np.where(m0 > 0, m0, 1.0)
-    return m0, (w * x).sum(axis=(1, 2)) / safe, (w * y).sum(axis=(1, 2)) / safe
+def _ratio(m: dict[str, float]) -> float:
+    """Minor/major variance ratio of image moments (1 = round)."""
+    a, b, c = m["mu20"], m["mu02"], m["mu11"]
+    tr, det = a + b, a * b - c * c
+    disc = np.sqrt(max(tr * tr / 4.0 - det, 0.0))
+    return (tr / 2.0 - disc) / max(tr / 2.0 + disc, 1e-12)
 
 
 def detect_blobs(
@@ -91,12 +92,19 @@ def detect_blobs(
     mask = cv2.compare(ir, p.threshold, cv2.CMP_GT)
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     h_img, w_img = ir.shape
-    max_side = 2.0 * np.sqrt(p.max_area)
+    sig = np.hypot(p.sphere.psf_sigma_px, 0.3)
+    r_near = k.fx * radius / p.min_range  # disc radius (px) of the nearest sphere, on axis
     boxes = []
     rejected = 0
     for cnt in contours:
         b = cv2.boundingRect(cnt)
-        if b[2] > max_side or b[3] > max_side or len(boxes) >= p.max_blobs:
+        bu, bv = (b[0] + b[2] / 2.0 - k.cx) / k.fx, (b[1] + b[3] / 2.0 - k.cy) / k.fy
+        side = 2.0 * r_near * (1.0 + bu * bu + bv * bv) + 4.0 * sig + 3.0  # largest sphere
+        ok = b[2] <= side and b[3] <= side and b[2] * b[3] >= p.min_area
+        if ok and b[2] * b[3] >= 20:  # big enough for the outline's shape to mean something
+            m = cv2.moments(cnt)  # a bar or a cable is no sphere: refuse it before measuring
+            ok = m["m00"] <= 0 or _ratio(m) >= 0.5 * p.min_roundness / (1.0 + bu * bu + bv * bv)
+        if not ok or len(boxes) >= p.max_blobs:
             rejected += 1
         else:
             boxes.append(b)
@@ -104,60 +112,46 @@ def detect_blobs(
         return _empty(rejected)
     bx = np.array(boxes, dtype=np.int64)
     x, y, w, h = bx.T
-    sig = np.hypot(p.sphere.psf_sigma_px, 0.3)
-    half = int(np.ceil(bx[:, 2:].max() / 2.0 + 3.0 * sig + 3.0))
+    n = len(bx)
+    half = int(np.ceil(bx[:, 2:].max() / 2.0 + 3.0 * sig + 2.0))
     span = np.arange(-half, half + 1)
-    rows = (y + h // 2)[:, None] + span  # (N, S)
+    rows = (y + h // 2)[:, None] + span  # (N, S) image rows of each window
     cols = (x + w // 2)[:, None] + span
-    in_img = ((rows >= 0) & (rows < h_img))[:, :, None] & ((cols >= 0) & (cols < w_img))[:, None, :]
-    rc, cc = np.clip(rows, 0, h_img - 1), np.clip(cols, 0, w_img - 1)
-    ir_w = ir[rc[:, :, None], cc[:, None, :]].astype(np.float64)
-    yy, xx = rows[:, :, None].astype(np.float64), cols[:, None, :].astype(np.float64)
-
-    def box(lo: NDArray, n: NDArray, idx: NDArray, m: int) -> NDArray:
-        return (idx >= (lo - m)[:, None]) & (idx < (lo + n + m)[:, None])
-
-    inbox = box(y, h, rows, 0)[:, :, None] & box(x, w, cols, 0)[:, None, :] & in_img
-    rect = box(y, h, rows, 1)[:, :, None] & box(x, w, cols, 1)[:, None, :] & in_img
-    above = ir_w > p.threshold
-    area = (above & inbox).sum(axis=(1, 2))
-    keep = (area >= p.min_area) & (area <= p.max_area)
-
-    ir_r = np.where(rect, ir_w, 0.0)
-    peak = ir_r.max(axis=(1, 2))
-    core = rect & (ir_w >= 0.5 * peak[:, None, None])  # half maximum: the sphere's disc
-    n_core, cu, cv = _sums(core.astype(np.float64), xx, yy)
-    dxc, dyc = xx - cu[:, None, None], yy - cv[:, None, None]
-    a = (core * dxc * dxc).sum(axis=(1, 2))
-    b_ = (core * dyc * dyc).sum(axis=(1, 2))
-    c_ = (core * dxc * dyc).sum(axis=(1, 2))
-    tr, det = a + b_, a * b_ - c_ * c_
-    disc = np.sqrt(np.maximum(tr * tr / 4.0 - det, 0.0))
-    ratio = (tr / 2.0 - disc) / np.maximum(tr / 2.0 + disc, 1e-12)
-    off2 = ((cu - k.cx) / k.fx) ** 2 + ((cv - k.cy) / k.fy) ** 2
-    expected = 1.0 / (1.0 + off2)  # a sphere's image: axis ratio cos(off-axis angle)
-    keep &= (n_core < 5) | (ratio >= p.min_roundness * expected)
-
-    if p.centroid == "weighted":
-        _, u, v = _sums(np.clip(ir_r - p.centroid_floor, 0.0, None), xx, yy)
-    elif p.centroid == "binary":
-        _, u, v = _sums((above & inbox).astype(np.float64), xx, yy)
+    if rows.min() < 0 or cols.min() < 0 or rows.max() >= h_img or cols.max() >= w_img:
+        in_img = ((rows >= 0) & (rows < h_img))[:, :, None] & ((cols >= 0) & (cols < w_img))[
+            :, None, :
+        ]
+        rows_c, cols_c = np.clip(rows, 0, h_img - 1), np.clip(cols, 0, w_img - 1)
     else:
-        flat = ir_r.reshape(len(bx), -1).argmax(axis=1)
-        iy, ix = np.unravel_index(flat, ir_r.shape[1:])
-        u, v = (
-            cols[np.arange(len(bx)), ix].astype(float),
-            rows[np.arange(len(bx)), iy].astype(float),
-        )
-    r_px = np.sqrt(n_core / np.pi * np.sqrt(expected))
+        in_img, rows_c, cols_c = np.ones((1, 1, 1), bool), rows, cols
+    ir_w = ir[rows_c[:, :, None], cols_c[:, None, :]] * in_img  # (N, S, S), 0 off the image
+    # the bounding box and one pixel around it: this blob's own pixels
+    r_in = (rows >= (y - 1)[:, None]) & (rows <= (y + h)[:, None])
+    c_in = (cols >= (x - 1)[:, None]) & (cols <= (x + w)[:, None])
+    ir_r = ir_w * (r_in[:, :, None] & c_in[:, None, :])
+    area = (ir_r > p.threshold).sum(axis=(1, 2))
+    peak = ir_r.max(axis=(1, 2)).astype(np.float64)
+    n_core = (ir_r >= 0.5 * peak[:, None, None]).sum(axis=(1, 2))  # half maximum: the disc
+    if p.centroid == "peak":
+        iy, ix = np.unravel_index(ir_r.reshape(n, -1).argmax(axis=1), ir_r.shape[1:])
+        u, v = cols[np.arange(n), ix].astype(float), rows[np.arange(n), iy].astype(float)
+    else:
+        if p.centroid == "weighted":
+            wgt = np.clip(ir_r - p.centroid_floor, 0.0, None)
+        else:
+            wgt = (ir_r > p.threshold).astype(np.float64)
+        wx, wy = wgt.sum(axis=1), wgt.sum(axis=2)  # column and row profiles
+        m0 = np.maximum(wx.sum(axis=1), 1e-9)
+        u, v = (wx * cols).sum(axis=1) / m0, (wy * rows).sum(axis=1) / m0
+    off2 = ((u - k.cx) / k.fx) ** 2 + ((v - k.cy) / k.fy) ** 2
+    r_px = np.sqrt(n_core / np.pi / np.sqrt(1.0 + off2))  # an ellipse: r^2 / cos^3(off-axis)
     size_range = k.fx * radius / np.maximum(r_px, 0.5) * np.sqrt(1.0 + off2)
+    keep = (area >= p.min_area) & (area <= p.max_area)
     keep &= (size_range >= p.min_range) & (size_range <= p.max_range)
 
-    rng, not_sphere = _ranges(
-        p, k, depth_mm, rc, cc, in_img, rect, ir_w, peak, u, v, size_range, radius, keep
-    )
-    keep &= np.isfinite(rng) & (rng >= p.min_range) & (rng <= p.max_range)
-    keep &= ~not_sphere
+    ranges = _Ranges(p, k, radius, depth_mm, rows_c, cols_c, in_img, ir_w, ir_r, peak)
+    rng, not_sphere = ranges.measure(u, v, size_range)
+    keep &= np.isfinite(rng) & (rng >= p.min_range) & (rng <= p.max_range) & ~not_sphere
     idx = np.flatnonzero(keep)
     pts = k.rays(u[idx], v[idx]) * rng[idx, None]
     return Blobs(
@@ -165,82 +159,70 @@ def detect_blobs(
         area=area[idx].astype(np.int64),
         size_range=size_range[idx],
         points=pts.reshape(-1, 3),
-        rejected=rejected + len(bx) - len(idx),
-        not_sphere=int(np.count_nonzero(not_sphere)),
+        rejected=rejected + n - len(idx),
+        not_sphere=int(np.count_nonzero(not_sphere & ~np.isnan(rng))),
     )
 
 
-def _ranges(
-    p: BlobParams,
-    k: CameraIntrinsics,
-    depth_mm: NDArray | None,
-    rc: NDArray,
-    cc: NDArray,
-    in_img: NDArray,
-    rect: NDArray,
-    ir_w: NDArray,
-    peak: NDArray,
-    u: NDArray,
-    v: NDArray,
-    size_range: NDArray,
-    radius: float,
-    keep: NDArray,
-) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """Range (m) from the camera to each sphere centre along its centroid ray, and which
-    blobs the sphere model refuses (NaN range: no depth to measure it)."""
-    n = len(u)
-    no = np.zeros(n, dtype=bool)
-    if p.depth == "size" or depth_mm is None:
-        return size_range.copy(), no
-    d = depth_mm[rc[:, :, None], cc[:, None, :]].astype(np.float64) / 1000.0
-    valid = in_img & (d > 0)
-    rng_w = np.where(valid, d, np.nan)
-    if p.depth == "peak":
-        flat = np.where(valid & rect, ir_w, -1.0).reshape(n, -1)
-        j = flat.argmax(axis=1)
-        r = np.where(flat[np.arange(n), j] >= 0, rng_w.reshape(n, -1)[np.arange(n), j], np.nan)
-        r = r + radius
-    else:
-        core = rect & valid & (ir_w >= 0.8 * peak[:, None, None])
-        if p.depth == "mean":
-            cnt = core.sum(axis=(1, 2))
-            r = np.where(
-                cnt > 0, np.where(core, d, 0.0).sum(axis=(1, 2)) / np.maximum(cnt, 1), np.nan
-            )
+@dataclass
+class _Ranges:
+    """The windows of one frame's blobs and how to measure their centres' ranges."""
+
+    p: BlobParams
+    k: CameraIntrinsics
+    radius: float
+    depth_mm: NDArray | None
+    rows: NDArray
+    cols: NDArray
+    in_img: NDArray
+    ir_w: NDArray
+    ir_r: NDArray
+    peak: NDArray
+
+    def measure(
+        self, u: NDArray, v: NDArray, size_range: NDArray
+    ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        """Range (m) from the camera to each sphere centre along its centroid ray (NaN: no
+        depth to measure it), and which blobs the sphere model refuses (not a whole sphere)."""
+        p, k, n = self.p, self.k, len(u)
+        no = np.zeros(n, dtype=bool)
+        if p.depth == "size" or self.depth_mm is None:
+            return size_range.copy(), no
+        d = self.depth_mm[self.rows[:, :, None], self.cols[:, None, :]] * (self.in_img / 1000.0)
+        valid = d > 0
+        if p.depth == "peak":
+            flat = np.where(valid, self.ir_r, -1.0).reshape(n, -1)
+            j = flat.argmax(axis=1)
+            r = np.where(flat[np.arange(n), j] > 0, d.reshape(n, -1)[np.arange(n), j], np.nan)
+            r = r + self.radius
         else:
-            r = _masked_median(d, core, np.full(n, np.nan)) + p.sphere_offset * radius
-    if p.unwrap:
-        cands = r[:, None] + np.arange(3)[None, :] * p.depth_wrap_m
-        with np.errstate(invalid="ignore", divide="ignore"):
-            j = np.argmin(np.abs(np.log(cands / size_range[:, None])), axis=1)
-        r = np.where(np.isfinite(r), cands[np.arange(n), j], np.nan)
-    if p.depth != "model":
-        return r, no
-    s0 = np.where(np.isfinite(r), r, size_range)
-    go = keep & (s0 >= p.min_range) & (s0 <= p.max_range)
-    out = np.full(n, np.nan)
-    if not go.any():
-        return out, no
-    g = np.flatnonzero(go)
-    rw = rng_w[g]
-    if p.unwrap:
-        rw = rw + p.depth_wrap_m * np.round((s0[g, None, None] - rw) / p.depth_wrap_m)
-    dx = (cc[g] - u[g, None]).astype(np.float64)[:, None, :]
-    dy = ((rc[g] - v[g, None]) * (k.fx / k.fy)).astype(np.float64)[:, :, None]
-    bearing = np.stack([(u[g] - k.cx) / k.fx, (v[g] - k.cy) / k.fy], axis=1)
-    fit = fit_sphere_ranges(
-        np.where(in_img[g], ir_w[g], np.nan),
-        rw,
-        dx,
-        dy,
-        bearing,
-        s0[g],
-        radius,
-        k.fx,
-        p.threshold,
-        p.sphere,
-        p.depth_wrap_m if p.unwrap else None,
-    )
-    out[g] = fit.range_m
-    no[g] = ~fit.shape_ok
-    return out, no
+            core = valid & (self.ir_r >= 0.8 * self.peak[:, None, None])
+            if p.depth == "mean":
+                r = (d * core).sum(axis=(1, 2)) / core.sum(axis=(1, 2))
+            else:
+                r = _masked_median(d, core, np.full(n, np.nan)) + p.sphere_offset * self.radius
+        if p.unwrap:
+            cands = r[:, None] + np.arange(3)[None, :] * p.depth_wrap_m
+            with np.errstate(invalid="ignore", divide="ignore"):
+                j = np.argmin(np.abs(np.log(cands / size_range[:, None])), axis=1)
+            r = np.where(np.isfinite(r), cands[np.arange(n), j], np.nan)
+        if p.depth != "model":
+            return r, no
+        s0 = np.where(np.isfinite(r), r, size_range)
+        rw = np.where(valid, d, np.nan)
+        if p.unwrap:
+            rw = rw + p.depth_wrap_m * np.round((s0[:, None, None] - rw) / p.depth_wrap_m)
+        fit = fit_sphere_ranges(
+            np.where(self.in_img, self.ir_w, np.nan),
+            rw,
+            (self.cols - u[:, None])[:, None, :],
+            ((self.rows - v[:, None]) * (k.fx / k.fy))[:, :, None],
+            np.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy], axis=1),
+            s0,
+            self.radius,
+            k.fx,
+            p.threshold,
+            p.sphere,
+            p.depth_wrap_m if p.unwrap else None,
+        )
+        return fit.range_m, ~fit.shape_ok

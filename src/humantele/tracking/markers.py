@@ -10,6 +10,7 @@ different pose just as well (ambiguous): never a wrong pose given silently.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -44,6 +45,7 @@ class PoseEstimate:
     T_camera_probe: Pose
     residual_m: float
     matched: tuple[int, ...]
+    rotation: NDArray[np.float64] | None = None  # the same rotation as a 3x3 matrix
 
     @property
     def n_matched(self) -> int:
@@ -66,7 +68,7 @@ def _assignments(
     assigned markers within ``tol`` of the model distance and match >= min_visible markers."""
     m = d_model.shape[0]
     n = d_meas.shape[0]
-    ok = np.abs(d_meas[None, None, :, :] - d_model[:, :, None, None]) <= tol  # (m, m, n, n)
+    ok = (np.abs(d_meas[None, None, :, :] - d_model[:, :, None, None]) <= tol).tolist()
     max_missing = m - min_visible
     out: list[tuple[int, ...]] = []
     current: list[int] = []
@@ -78,7 +80,7 @@ def _assignments(
         for c in range(n):
             if c in current:
                 continue
-            if all(a < 0 or ok[j, i, a, c] for j, a in enumerate(current)):
+            if all(a < 0 or ok[j][i][a][c] for j, a in enumerate(current)):
                 current.append(c)
                 rec(i + 1, missing)
                 current.pop()
@@ -106,32 +108,32 @@ def match_markers(
     hyps = _assignments(d_meas, d_model, p.distance_tol, tool.min_visible)
     if not hyps:
         return MatchResult("lost", None, 0)
-    fits: list[tuple[int, float, tuple[int, ...], NDArray, NDArray]] = []
-    by_count: dict[int, list[tuple[int, ...]]] = {}
-    for h in hyps:
-        by_count.setdefault(sum(1 for a in h if a >= 0), []).append(h)
-    for k, group in by_count.items():
-        idx = np.array(group)
-        mask = idx >= 0
-        src = np.stack([model[mask[g]] for g in range(len(group))])
-        dst = np.stack([pts[idx[g][mask[g]]] for g in range(len(group))])
+    hyp = np.array(hyps, dtype=np.intp)  # (H, M): candidate index per marker, -1 missing
+    present = hyp >= 0
+    counts = present.sum(axis=1)
+    # most markers first: a fit with fewer markers is only looked at when none with more fits
+    for k in sorted(set(counts.tolist()), reverse=True):
+        rows = np.flatnonzero(counts == k)
+        h = hyp[rows]
+        marker = np.nonzero(present[rows])[1].reshape(len(rows), k)  # which markers, in order
+        src = model[marker]  # (G, k, 3)
+        dst = pts[np.take_along_axis(h, marker, axis=1)]
         r, t, rms = kabsch(src, dst)
         err = np.linalg.norm(np.einsum("gij,gnj->gni", r, src) + t[:, None] - dst, axis=-1)
-        good = (rms <= p.max_rms) & (err.max(axis=1) <= p.max_marker_error)
-        for g in np.flatnonzero(good):
-            fits.append((k, float(rms[g]), group[g], r[g], t[g]))
-    if not fits:
-        return MatchResult("lost", None, len(hyps))
-    fits.sort(key=lambda f: (-f[0], f[1]))
-    k0, rms0, h0, r0, t0 = fits[0]
-    model_0 = model @ r0.T + t0
-    for k, _rms, _h, r, t in fits[1:]:
-        if k < k0:
-            break
-        if np.max(np.linalg.norm(model @ r.T + t - model_0, axis=1)) > p.distinct_pose:
+        good = np.flatnonzero((rms <= p.max_rms) & (err.max(axis=1) <= p.max_marker_error))
+        if good.size == 0:
+            continue
+        best = good[np.argmin(rms[good])]
+        # ambiguous: another assignment with as many markers fits as well but moves the tool
+        placed = model @ r[good].transpose(0, 2, 1) + t[good][:, None, :]  # (g, M, 3)
+        moved = np.linalg.norm(placed - placed[good == best], axis=-1).max(axis=1)
+        if np.any(moved > p.distinct_pose):
             return MatchResult("ambiguous", None, len(hyps))
-    est = PoseEstimate(Pose(t0, matrix_to_quat(r0)), rms0, h0)
-    return MatchResult("tracked", est, len(hyps))
+        pose = Pose(t[best], matrix_to_quat(r[best]))
+        matched = tuple(int(i) for i in hyp[rows[best]])
+        est = PoseEstimate(pose, float(rms[best]), matched, r[best])
+        return MatchResult("tracked", est, len(hyps))
+    return MatchResult("lost", None, len(hyps))
 
 
 def estimate_pose(
@@ -161,39 +163,62 @@ def refine_pose(
     ``sigma_lateral`` (m, scalar or (K,)) across its ray and ``sigma_range`` (m) along it;
     Gauss-Newton on the pose minimises the sum of squared Mahalanobis distances.
     """
+    r, t = refine_rt(
+        T_camera_probe.rotation_matrix,
+        T_camera_probe.position,
+        model,
+        points,
+        sigma_lateral,
+        sigma_range,
+        iterations,
+    )
+    return Pose(t, matrix_to_quat(r))
+
+
+def refine_rt(
+    rotation: NDArray[np.float64],
+    translation: NDArray[np.float64],
+    model: ArrayLike,
+    points: ArrayLike,
+    sigma_lateral: ArrayLike,
+    sigma_range: float,
+    iterations: int = 3,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`refine_pose` on a rotation matrix and translation (m); returns both refined."""
     m = np.asarray(model, dtype=float)
     p = np.asarray(points, dtype=float)
+    k = len(p)
     d = p / np.linalg.norm(p, axis=1, keepdims=True)
-    sl = np.broadcast_to(np.asarray(sigma_lateral, dtype=float), (len(p),))
+    sl = np.broadcast_to(np.asarray(sigma_lateral, dtype=float), (k,))
     ddt = d[:, :, None] * d[:, None, :]
     w = (np.eye(3) - ddt) / sl[:, None, None] ** 2 + ddt / sigma_range**2  # (K, 3, 3)
-    r = T_camera_probe.rotation_matrix
-    t = T_camera_probe.position.copy()
+    r = np.asarray(rotation, dtype=float)
+    t = np.asarray(translation, dtype=float)
+    jac = np.zeros((k, 3, 6))
+    jac[:, :, 3:] = np.eye(3)
     for _ in range(iterations):
         rm = m @ r.T
-        e = rm + t - p
-        jac = np.zeros((len(p), 3, 6))
-        jac[:, 0, 1], jac[:, 0, 2] = rm[:, 2], -rm[:, 1]  # d(c)/d(theta) = -[rm]x
+        e = (rm + t - p).reshape(-1)
+        # d(residual)/d(small rotation theta, applied on the left) = -[rm]x
+        jac[:, 0, 1], jac[:, 0, 2] = rm[:, 2], -rm[:, 1]
         jac[:, 1, 0], jac[:, 1, 2] = -rm[:, 2], rm[:, 0]
         jac[:, 2, 0], jac[:, 2, 1] = rm[:, 1], -rm[:, 0]
-        jac[:, :, 3:] = np.eye(3)
-        jtw = np.swapaxes(jac, 1, 2) @ w
-        h = np.einsum("kij,kjl->il", jtw, jac)
-        g = np.einsum("kij,kj->i", jtw, e)
+        wj = (w @ jac).reshape(-1, 6)
+        jf = jac.reshape(-1, 6)
         try:
-            delta = -np.linalg.solve(h, g)
+            delta = -np.linalg.solve(jf.T @ wj, wj.T @ e)
         except np.linalg.LinAlgError:
             break
-        theta = delta[:3]
-        ang = float(np.linalg.norm(theta))
-        if ang > 1e-12:
-            kx = (
-                np.array(
-                    [[0, -theta[2], theta[1]], [theta[2], 0, -theta[0]], [-theta[1], theta[0], 0]]
-                )
-                / ang
-            )
-            dr = np.eye(3) + np.sin(ang) * kx + (1 - np.cos(ang)) * kx @ kx
-            r = dr @ r
+        r = _rotvec_matrix(delta[:3]) @ r
         t = t + delta[3:]
-    return Pose(t, matrix_to_quat(r))
+    return r, t
+
+
+def _rotvec_matrix(v: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Rotation matrix of a rotation vector (rad), Rodrigues' formula."""
+    ang = math.sqrt(float(v @ v))
+    if ang < 1e-12:
+        return np.eye(3)
+    x, y, z = v / ang
+    kx = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return np.eye(3) + math.sin(ang) * kx + (1.0 - math.cos(ang)) * (kx @ kx)

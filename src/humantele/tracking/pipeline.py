@@ -10,17 +10,18 @@ given only when tracked.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from pydantic import Field
 
 from humantele.config import ConfigModel
-from humantele.geometry import Pose
+from humantele.geometry import Pose, matrix_to_quat
 from humantele.tracking.blobs import BlobParams, CentroidMethod, DepthMethod, detect_blobs
 from humantele.tracking.filter import FilterConfig, PoseFilter
 from humantele.tracking.frames import TrackingFrame
-from humantele.tracking.markers import MatchParams, Status, match_markers, refine_pose
+from humantele.tracking.markers import MatchParams, Status, match_markers, refine_rt
 from humantele.tracking.sphere import SphereFitParams
 from humantele.tracking.tool import ToolDefinition
 
@@ -54,6 +55,7 @@ class PipelineConfig(ConfigModel):
     refine: bool = True
     lateral_sigma_px: float = Field(0.05, gt=0)
     range_sigma_mm: float = Field(0.8, gt=0)
+    iterations: int = Field(2, ge=1, le=10, description="Gauss-Newton steps of the refinement")
     distance_tol_mm: float = Field(4.0, gt=0)
     max_rms_mm: float = Field(1.5, gt=0)
     max_marker_error_mm: float = Field(3.0, gt=0)
@@ -127,15 +129,18 @@ class Tracker:
             return TrackingResult(frame.t, res.status, None, float("nan"), (), n)
         est = res.estimate
         pose = est.T_camera_probe
-        if c.refine:
+        if c.refine and est.rotation is not None:
             idx = np.array(est.matched)
             ok = idx >= 0
             pts = blobs.points[idx[ok]]
             sl = c.lateral_sigma_px / frame.intrinsics.fx * np.linalg.norm(pts, axis=1)
-            refined = refine_pose(pose, self.tool.markers[ok], pts, sl, c.range_sigma_mm / 1e3)
-            dp, dr = refined.distance_to(pose)
-            if dp < 0.005 and dr < np.radians(5.0):  # never let a refinement run away
-                pose = refined
+            r0, t0 = est.rotation, pose.position
+            r, t = refine_rt(
+                r0, t0, self.tool.markers[ok], pts, sl, c.range_sigma_mm / 1e3, c.iterations
+            )
+            cos_d = (np.trace(r @ r0.T) - 1.0) / 2.0
+            if np.linalg.norm(t - t0) < 0.005 and cos_d > math.cos(math.radians(5.0)):
+                pose = Pose(t, matrix_to_quat(r))  # never let a refinement run away
         if self.filter is not None:
             pose = self.filter.update(frame.t, pose)
         return TrackingResult(frame.t, "tracked", pose, est.residual_m, est.matched, n)

@@ -37,33 +37,31 @@ from scipy.special import i0e
 
 @dataclass(frozen=True)
 class SphereTables:
-    """``C`` and ``G`` sampled on a grid of disc radii ``r`` (px) and pixel distances ``rho``."""
+    """``C`` and ``G`` sampled on a grid of disc radii ``r`` (px) and pixel distances ``rho``
+    (``cg[:, 0]`` is C, ``cg[:, 1]`` is G; shape (nr, 2, nrho))."""
 
     sigma_px: float
     r_grid: NDArray[np.float64]  # (nr,) uniform
     rho_step: float
-    c: NDArray[np.float64]  # (nr, nrho)
-    g: NDArray[np.float64]  # (nr, nrho)
+    cg: NDArray[np.float64]
 
     def lookup(
         self, r: NDArray[np.float64], rho: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """``C, G`` (N, ...) for disc radii ``r`` (N,) px at distances ``rho`` (N, ...) px."""
+        """``C, G`` (N, ...) for disc radii ``r`` (N,) px (nearest in the grid) at distances
+        ``rho`` (N, ...) px (linear)."""
         r0, dr = self.r_grid[0], self.r_grid[1] - self.r_grid[0]
-        fr = np.clip((r - r0) / dr, 0.0, len(self.r_grid) - 1.001)
-        jr = fr.astype(np.intp)
-        ar = (fr - jr)[:, None]
-        n = len(r)
-        fq = np.clip(rho.reshape(n, -1) / self.rho_step, 0.0, self.c.shape[1] - 1.001)
+        n, nq = len(r), self.cg.shape[2]
+        jr = np.minimum(np.maximum(np.rint((r - r0) / dr), 0), len(self.r_grid) - 1)
+        flat = self.cg.take(jr.astype(np.intp), axis=0).ravel()  # (N, 2, nrho): C then G
+        fq = np.minimum(rho.reshape(n, -1) * (1.0 / self.rho_step), nq - 1.001)
         jq = fq.astype(np.intp)
         aq = fq - jq
-        out = []
-        for t in (self.c, self.g):
-            row = t[jr] * (1.0 - ar) + t[jr + 1] * ar  # (N, nrho): this blob's radius
-            lo = np.take_along_axis(row, jq, axis=1)
-            hi = np.take_along_axis(row, jq + 1, axis=1)
-            out.append((lo + (hi - lo) * aq).reshape(rho.shape))
-        return out[0], out[1]
+        jq += (np.arange(n) * (2 * nq))[:, None]
+        c0, g0 = flat.take(jq), flat.take(jq + nq)
+        c = c0 + (flat.take(jq + 1) - c0) * aq
+        g = g0 + (flat.take(jq + (nq + 1)) - g0) * aq
+        return c.reshape(rho.shape), g.reshape(rho.shape)
 
 
 @lru_cache(maxsize=8)
@@ -75,9 +73,9 @@ def sphere_tables(psf_sigma_px: float, r_max: float = 16.0) -> SphereTables:
     surface depth ``sqrt(1 - a^2 / r^2)`` inside for ``C G`` (Gauss-Legendre, 64 nodes).
     """
     s = math.hypot(psf_sigma_px, math.sqrt(1.0 / 12.0))
-    r_grid = np.arange(0.75, r_max + 1e-9, 0.25)
+    r_grid = np.arange(0.75, r_max + 1e-9, 0.1)  # fine enough to take the nearest
     rho_step = 0.08
-    rho = np.arange(0.0, r_max + 6.0 * s + 1.0, rho_step)
+    rho = np.arange(0.0, r_max + 6.0 * s + 1.0, rho_step)  # beyond: C = 0
     x, wq = np.polynomial.legendre.leggauss(64)
     t = (x + 1.0) * (math.pi / 4.0)  # t in (0, pi/2)
     wt = wq * (math.pi / 4.0)
@@ -89,7 +87,7 @@ def sphere_tables(psf_sigma_px: float, r_max: float = 16.0) -> SphereTables:
     c = kern.sum(axis=-1)
     cg = (kern * np.cos(t)[None, None, :]).sum(axis=-1)
     g = np.where(c > 1e-9, cg / np.maximum(c, 1e-12), 1.0)
-    return SphereTables(float(s), r_grid, rho_step, np.clip(c, 0.0, 1.0), g)
+    return SphereTables(float(s), r_grid, rho_step, np.stack([np.clip(c, 0.0, 1.0), g], axis=1))
 
 
 @dataclass(frozen=True)
@@ -120,11 +118,12 @@ class SphereFit:
 def _masked_median(x: NDArray, mask: NDArray, default: NDArray) -> NDArray[np.float64]:
     """Median over the last two axes of ``x`` (N, H, W) where ``mask``; ``default`` where none."""
     n = x.shape[0]
-    v = np.sort(np.where(mask, x, np.inf).reshape(n, -1), axis=1)
-    cnt = mask.reshape(n, -1).sum(axis=1)
-    i = np.arange(n)
-    lo = v[i, np.maximum(cnt - 1, 0) // 2]
-    hi = v[i, np.minimum(cnt // 2, v.shape[1] - 1)]
+    v = np.sort(np.where(mask, x, np.inf).reshape(n, -1), axis=1).ravel()
+    m = v.size // max(n, 1)
+    cnt = np.count_nonzero(mask.reshape(n, -1), axis=1)
+    base = np.arange(n) * m
+    lo = v.take(base + np.maximum(cnt - 1, 0) // 2)
+    hi = v.take(base + np.minimum(cnt // 2, m - 1))
     return np.where(cnt > 0, 0.5 * (lo + hi), default)
 
 
@@ -151,72 +150,59 @@ def fit_sphere_ranges(
     ``wrap_m`` the range ambiguity: the background is then taken to lie behind the sphere.
     """
     p = params
-    tab = sphere_tables(round(float(p.psf_sigma_px), 4))
-    n2 = np.sum(bearing**2, axis=1)
-    cosa = 1.0 / np.sqrt(1.0 + n2)
-    r_t = focal_px * radius / (s0 * cosa)  # across the radial direction, px
-    r_r = r_t / cosa  # along it
-    r = np.sqrt(r_t * r_r)
-    nrm = np.sqrt(n2)
-    safe = nrm > 1e-9
-    ex = np.where(safe, bearing[:, 0] / np.where(safe, nrm, 1.0), 1.0)[:, None, None]
-    ey = np.where(safe, bearing[:, 1] / np.where(safe, nrm, 1.0), 0.0)[:, None, None]
-    d_r = dx * ex + dy * ey
-    d_t = dy * ex - dx * ey
-    rho = r[:, None, None] * np.sqrt(
-        (d_r / r_r[:, None, None]) ** 2 + (d_t / r_t[:, None, None]) ** 2
-    )
-    c, g = tab.lookup(r, rho)
+    n = len(s0)
+    tab = sphere_tables(float(p.psf_sigma_px))
+    bx, by = bearing[:, 0, None, None], bearing[:, 1, None, None]
+    sec2 = (1.0 + bearing[:, 0] ** 2 + bearing[:, 1] ** 2)[:, None, None]  # 1 / cos^2(a)
+    r_t = (focal_px * radius / s0)[:, None, None] * np.sqrt(sec2)  # disc radius across, px
+    proj = dx * bx + dy * by  # the radial direction is stretched by 1 / cos(a): undo it
+    q2 = (dx * dx + dy * dy - proj * proj / sec2) / (r_t * r_t)  # (offset / disc radius)^2
+    r = r_t * np.sqrt(np.sqrt(sec2))  # the ellipse's mean radius, px
+    c, g = tab.lookup(r[:, 0, 0], r * np.sqrt(q2))
+    theta2 = q2 * (radius / s0[:, None, None]) ** 2  # angle of a pixel's ray off the centre's
 
-    in_img = np.isfinite(ir_w)
-    valid = np.isfinite(range_w)
-    ring = in_img & (c < 0.003) & (ir_w < threshold)
-    bg = _masked_median(ir_w, ring, np.zeros(len(s0)))
+    ring = (c < 0.003) & (ir_w < threshold)  # NaN (off the image) compares False
+    n_ring = ring.sum(axis=(1, 2))
+    bg = (np.where(ring, ir_w, 0.0).sum(axis=(1, 2)) / np.maximum(n_ring, 1))[:, None, None]
     bg_w = range_w
     if wrap_m:
-        s_lo = s0[:, None, None] - 0.01
-        bg_w = range_w + wrap_m * np.ceil((s_lo - range_w) / wrap_m)
-    bg_r = _masked_median(bg_w, ring & valid, s0)
-    bgc = bg[:, None, None]
+        bg_w = range_w + wrap_m * np.ceil((s0[:, None, None] - 0.01 - range_w) / wrap_m)
+    bg_r = _masked_median(bg_w, ring & (bg_w > 0), s0)[:, None, None]
 
-    sat = in_img & (ir_w >= p.saturation - 0.5)
-    unsat = in_img & ~sat & (c > 0.3)
-    ratio = (ir_w - bgc * (1.0 - c)) / np.maximum(c, 1e-6)
-    b_lower = p.saturation / np.maximum(c.reshape(len(s0), -1).max(axis=1), 1e-3)
-    bright = _masked_median(ratio, unsat, b_lower)
-    bright = np.where(unsat.reshape(len(s0), -1).any(axis=1), bright, b_lower)
-    bc = bright[:, None, None] * c
+    sat = ir_w >= p.saturation - 0.5
+    unsat = (c > 0.3) & (ir_w < p.saturation - 0.5)
+    cu = np.where(unsat, c, 0.0)
+    num = (cu * (ir_w - bg * (1.0 - c))).sum(axis=(1, 2), where=unsat)
+    den = (cu * cu).sum(axis=(1, 2))
+    b_lower = p.saturation / np.maximum(c.max(axis=(1, 2)), 1e-3)
+    bright = np.where(den > 0, num / np.where(den > 0, den, 1.0), b_lower)
+    bc = np.maximum(bright, 1.0)[:, None, None] * c
+    bgi = bg * (1.0 - c)
+    pred_ir = bc + bgi
 
-    pred_ir = bc + bgc * (1.0 - c)
+    # does the IR image look like a whole sphere? (not cut by a finger, not merged)
     with np.errstate(invalid="ignore"):
-        fits = np.where(
-            sat,
-            pred_ir >= 0.6 * p.saturation,
-            np.abs(ir_w - pred_ir) <= p.shape_tolerance * pred_ir + 3.0 * np.sqrt(pred_ir + 36.0),
-        )
-    core = in_img & (c >= 0.5)
+        misfit = np.abs(ir_w - pred_ir) > p.shape_tolerance * pred_ir + 3.0 * np.sqrt(pred_ir + 36)
+    fits = np.where(sat, pred_ir >= 0.6 * p.saturation, ~misfit)
+    core = c >= 0.5
     n_core = core.sum(axis=(1, 2))
     n_bad = (core & ~fits).sum(axis=(1, 2))
     shape_ok = (n_core > 0) & (n_bad <= p.max_misfit * n_core)
 
-    sel = valid & in_img & fits & (c >= p.min_coverage)
-    bgi = bgc * (1.0 - c)
-    theta2 = (rho / r[:, None, None] * radius / s0[:, None, None]) ** 2
+    sel = fits & (c >= p.min_coverage) & (range_w > 0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        s_i = (range_w * (bc + bgi) - bgi * bg_r[:, None, None]) / np.maximum(bc, 1e-9)
-        s_i += radius * g + 0.5 * s0[:, None, None] * theta2
-        w = (bc / (bc + bgi)) ** 2 * c**2 * np.where(sat, p.saturated_weight, 1.0)
-    w = np.where(sel, w, 0.0)
-    s_i = np.where(sel, s_i, 0.0)
+        s_i = (range_w * pred_ir - bgi * bg_r) / bc + radius * g + 0.5 * s0[:, None, None] * theta2
+        w = (bc / pred_ir) ** 2 * c * c
+    if p.saturated_weight != 1.0:
+        w = np.where(sat, w * p.saturated_weight, w)
     # robust: drop pixels far from the median vote (a glint, a finger edge, a wrong pixel)
-    med = _masked_median(s_i, sel, s0)
-    mad = _masked_median(np.abs(s_i - med[:, None, None]), sel, np.zeros(len(s0)))
-    gate = np.maximum(4.0 * 1.4826 * mad, 0.002)
-    keep = sel & (np.abs(s_i - med[:, None, None]) <= gate[:, None, None])
+    med = _masked_median(s_i, sel, s0)[:, None, None]
+    dev = np.where(sel, np.abs(s_i - med), np.inf)
+    mad = _masked_median(dev, sel, np.zeros(n))
+    keep = dev <= np.maximum(4.0 * 1.4826 * mad, 0.002)[:, None, None]
     w = np.where(keep, w, 0.0)
     wsum = w.sum(axis=(1, 2))
     n_px = keep.sum(axis=(1, 2))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        s = (w * s_i).sum(axis=(1, 2)) / wsum
+    s = (w * np.where(keep, s_i, 0.0)).sum(axis=(1, 2)) / np.where(wsum > 0, wsum, 1.0)
     s = np.where((n_px >= 2) & (wsum > 0), s, np.nan)
     return SphereFit(s, shape_ok, n_px.astype(np.int64))
