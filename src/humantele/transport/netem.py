@@ -17,8 +17,9 @@ A path through a TURN server that crosses the relay once each way (only one peer
 relay's port, the other talks to the server directly) gets exactly one ``delay_s`` each way.
 If both peers use the relay, a datagram crosses it twice and gets twice the delay.
 
-Timing: the asyncio loop wakes with a resolution of about 1 ms (epoll), so a datagram is held
-``delay_s`` plus 0-1 ms; the counters record the hold actually given (``held_mean_s``).
+Datagrams are read on the asyncio loop and sent, when due, by one thread per direction
+(asyncio's timers wake only to the whole millisecond; a thread's timed wait to ~0.1 ms). The
+counters record the hold actually given (``held_mean_s``, ``held_max_s``).
 
 Usage::
 
@@ -36,6 +37,8 @@ import heapq
 import logging
 import random
 import socket
+import threading
+import time
 from dataclasses import asdict, dataclass, field
 
 from pydantic import Field
@@ -46,9 +49,8 @@ log = logging.getLogger(__name__)
 
 Address = tuple[str, int]
 _MAX_DATAGRAM = 65535
-# a timer may fire a hair before its time; sending that early beats waiting for the next
-# epoll wake-up, which asyncio rounds up to a whole millisecond
-_EARLY_S = 50e-6
+# a datagram due within this is sent now: a timed wait cannot be shorter than its wake-up
+_EARLY_S = 20e-6
 
 
 class NetemConfig(ConfigModel):
@@ -104,82 +106,87 @@ class RelayCounters:
 
 
 class _Direction:
-    """One direction: draws the fate of each datagram and sends it when it is due."""
+    """One direction: draws the fate of each datagram (on the event loop) and sends it when it
+    is due (from its own thread: asyncio timers wake only to the millisecond, a thread's
+    timed wait to ~0.1 ms)."""
 
-    def __init__(
-        self,
-        loop: asyncio.AbstractEventLoop,
-        config: NetemConfig,
-        counters: DirectionCounters,
-        name: str,
-    ) -> None:
-        self.loop = loop
+    def __init__(self, config: NetemConfig, counters: DirectionCounters, name: str) -> None:
         self.config = config
         self.counters = counters
         self.rng = random.Random(f"{config.seed}:{name}")
         self.heap: list[tuple[float, int, float, bytes, socket.socket, Address | None]] = []
         self.seq = 0
         self.last_due = 0.0
-        self.timer: asyncio.TimerHandle | None = None
+        self.cond = threading.Condition()
+        self.stopped = False
+        self.thread = threading.Thread(target=self._run, name=f"netem-{name}", daemon=True)
+        self.thread.start()
 
     def push(self, data: bytes, sock: socket.socket, addr: Address | None, t: float) -> None:
-        """Take a datagram that arrived at loop time ``t``; send it on ``sock`` (to ``addr``,
-        or connected when None) once due, unless it is lost."""
+        """Take a datagram that arrived at ``t`` (time.monotonic, s); send it on ``sock`` (to
+        ``addr``, or connected when None) once due, unless it is lost."""
         cfg, c = self.config, self.counters
         c.received += 1
         if cfg.loss > 0.0 and self.rng.random() < cfg.loss:
             c.lost += 1
             return
-        if len(self.heap) >= cfg.max_queue:
-            c.overflow += 1
-            return
         delay = cfg.delay_s
         if cfg.jitter_s > 0.0:
             delay = max(0.0, self.rng.gauss(delay, cfg.jitter_s))
-        due = t + delay
-        if not cfg.reorder:
-            due = max(due, self.last_due)
-            self.last_due = due
-        self.seq += 1
-        heapq.heappush(self.heap, (due, self.seq, t, data, sock, addr))
-        if delay == 0.0 and len(self.heap) == 1 and due <= self.loop.time():
-            self.flush()
-        elif self.heap[0][1] == self.seq:  # the new datagram is the next to leave
-            self._schedule()
+        with self.cond:
+            if len(self.heap) >= cfg.max_queue:
+                c.overflow += 1
+                return
+            due = t + delay
+            if not cfg.reorder:
+                due = max(due, self.last_due)
+                self.last_due = due
+            self.seq += 1
+            heapq.heappush(self.heap, (due, self.seq, t, data, sock, addr))
+            if self.heap[0][1] == self.seq:  # the new datagram is the next to leave
+                self.cond.notify()
 
-    def _schedule(self) -> None:
-        if self.timer is not None:
-            self.timer.cancel()
-        self.timer = self.loop.call_at(self.heap[0][0], self.flush) if self.heap else None
-
-    def flush(self) -> None:
-        """Send every datagram that is due, in order."""
-        self.timer = None
+    def _run(self) -> None:
         c = self.counters
-        now = self.loop.time()
-        while self.heap and self.heap[0][0] <= now + _EARLY_S:
-            _due, _seq, t, data, sock, addr = heapq.heappop(self.heap)
-            try:
-                if addr is None:
-                    sock.send(data)
-                else:
-                    sock.sendto(data, addr)
-            except OSError as exc:  # buffer full, nobody listening (ECONNREFUSED), closed
-                log.debug("relay send failed: %s", exc)
-                c.send_errors += 1
-                continue
-            held = now - t
-            c.forwarded += 1
-            c.bytes_forwarded += len(data)
-            c.held_sum_s += held
-            c.held_max_s = max(c.held_max_s, held)
-        self._schedule()
+        while True:
+            with self.cond:
+                while not self.stopped:
+                    if not self.heap:
+                        self.cond.wait()
+                        continue
+                    wait = self.heap[0][0] - time.monotonic()
+                    if wait <= _EARLY_S:
+                        break
+                    self.cond.wait(wait)
+                if self.stopped:
+                    return
+                now = time.monotonic()
+                due = []
+                while self.heap and self.heap[0][0] <= now + _EARLY_S:
+                    due.append(heapq.heappop(self.heap))
+            for _due, _seq, t, data, sock, addr in due:  # in order, outside the lock
+                try:
+                    if addr is None:
+                        sock.send(data)
+                    else:
+                        sock.sendto(data, addr)
+                except OSError as exc:  # buffer full, nobody listening, closed
+                    log.debug("relay send failed: %s", exc)
+                    c.send_errors += 1
+                    continue
+                held = time.monotonic() - t
+                c.forwarded += 1
+                c.bytes_forwarded += len(data)
+                c.held_sum_s += held
+                c.held_max_s = max(c.held_max_s, held)
 
-    def cancel(self) -> None:
-        if self.timer is not None:
-            self.timer.cancel()
-            self.timer = None
-        self.heap.clear()
+    def stop(self) -> None:
+        """Stop the sender thread; held datagrams are discarded."""
+        with self.cond:
+            self.stopped = True
+            self.heap.clear()
+            self.cond.notify()
+        self.thread.join(timeout=5.0)
 
 
 class UdpRelay:
@@ -218,8 +225,6 @@ class UdpRelay:
             return self.address
         loop = asyncio.get_running_loop()
         self._loop = loop
-        self._up = _Direction(loop, self.config, self.counters.up, "up")
-        self._down = _Direction(loop, self.config, self.counters.down, "down")
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             sock.setblocking(False)
@@ -227,6 +232,8 @@ class UdpRelay:
         except OSError:
             sock.close()
             raise
+        self._up = _Direction(self.config, self.counters.up, "up")
+        self._down = _Direction(self.config, self.counters.down, "down")
         self._sock = sock
         loop.add_reader(sock.fileno(), self._on_client_readable)
         log.info("udp relay %s -> %s, %s", self.address, self.upstream, self.config)
@@ -236,7 +243,8 @@ class UdpRelay:
         """Stop relaying; held datagrams are discarded."""
         for d in (self._up, self._down):
             if d is not None:
-                d.cancel()
+                d.stop()
+        self._up = self._down = None
         for sock in [*self._clients.values(), self._sock]:
             if sock is not None and self._loop is not None:
                 self._loop.remove_reader(sock.fileno())
@@ -268,7 +276,7 @@ class UdpRelay:
                 upstream = self._new_client(addr)
                 if upstream is None:
                     continue
-            up.push(data, upstream, None, loop.time())
+            up.push(data, upstream, None, time.monotonic())
 
     def _new_client(self, addr: Address) -> socket.socket | None:
         if len(self._clients) >= self.config.max_clients:
@@ -302,4 +310,4 @@ class UdpRelay:
                 log.debug("relay upstream socket: %s", exc)
                 self.counters.up.send_errors += 1
                 return
-            down.push(data, front, client, loop.time())
+            down.push(data, front, client, time.monotonic())
