@@ -45,8 +45,8 @@ class PipelineConfig(ConfigModel):
     shape_tolerance: float = Field(
         0.35, gt=0, description="relative IR misfit of a pixel the sphere model calls bright"
     )
-    max_misfit: float = Field(
-        0.2, ge=0, le=1, description="share of misfit pixels that marks a sphere partly hidden"
+    max_ir_misfit: float = Field(
+        0.06, gt=0, description="RMS IR misfit to the sphere model (x brightness): partly hidden"
     )
     min_range_m: float = Field(0.15, gt=0)
     max_range_m: float = Field(0.58, gt=0, description="farther markers are too small")
@@ -104,7 +104,7 @@ class Tracker:
                 saturation=c.saturation,
                 min_coverage=c.min_coverage,
                 shape_tolerance=c.shape_tolerance,
-                max_misfit=c.max_misfit,
+                max_ir_misfit=c.max_ir_misfit,
             ),
         )
         self.match_params = MatchParams(
