@@ -60,6 +60,7 @@ class Blobs:
     points: NDArray[np.float64]
     rejected: int
     not_sphere: int = 0
+    ir_misfit: NDArray[np.float64] | None = None  # (N,) "model" depth: IR misfit to a sphere
 
 
 def _empty(rejected: int) -> Blobs:
@@ -150,7 +151,7 @@ def detect_blobs(
     keep &= (size_range >= p.min_range) & (size_range <= p.max_range)
 
     ranges = _Ranges(p, k, radius, depth_mm, rows_c, cols_c, in_img, ir_w, ir_r, peak)
-    rng, not_sphere = ranges.measure(u, v, size_range)
+    rng, not_sphere, misfit = ranges.measure(u, v, size_range)
     keep &= np.isfinite(rng) & (rng >= p.min_range) & (rng <= p.max_range) & ~not_sphere
     idx = np.flatnonzero(keep)
     pts = k.rays(u[idx], v[idx]) * rng[idx, None]
@@ -161,6 +162,7 @@ def detect_blobs(
         points=pts.reshape(-1, 3),
         rejected=rejected + n - len(idx),
         not_sphere=int(np.count_nonzero(not_sphere & ~np.isnan(rng))),
+        ir_misfit=None if misfit is None else misfit[idx],
     )
 
 
@@ -181,13 +183,14 @@ class _Ranges:
 
     def measure(
         self, u: NDArray, v: NDArray, size_range: NDArray
-    ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    ) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64] | None]:
         """Range (m) from the camera to each sphere centre along its centroid ray (NaN: no
-        depth to measure it), and which blobs the sphere model refuses (not a whole sphere)."""
+        depth to measure it), which blobs the sphere model refuses (not a whole sphere) and
+        their IR misfit to it (None unless ``depth == "model"``)."""
         p, k, n = self.p, self.k, len(u)
         no = np.zeros(n, dtype=bool)
         if p.depth == "size" or self.depth_mm is None:
-            return size_range.copy(), no
+            return size_range.copy(), no, None
         d = self.depth_mm[self.rows[:, :, None], self.cols[:, None, :]] * (self.in_img / 1000.0)
         valid = d > 0
         if p.depth == "peak":
@@ -207,7 +210,7 @@ class _Ranges:
                 j = np.argmin(np.abs(np.log(cands / size_range[:, None])), axis=1)
             r = np.where(np.isfinite(r), cands[np.arange(n), j], np.nan)
         if p.depth != "model":
-            return r, no
+            return r, no, None
         s0 = np.where(np.isfinite(r), r, size_range)
         rw = np.where(valid, d, np.nan)
         if p.unwrap:
@@ -225,4 +228,4 @@ class _Ranges:
             p.sphere,
             p.depth_wrap_m if p.unwrap else None,
         )
-        return fit.range_m, ~fit.shape_ok
+        return fit.range_m, ~fit.shape_ok, fit.ir_misfit
