@@ -299,8 +299,19 @@ def _status_line(e: dict[str, Any], f: dict[str, Any], elapsed: float) -> str:
         f"force {num(e.get('force_n'), '.2f')} N | "
         f"alignment {num(f.get('alignment_mm_rms'), '.1f')} mm "
         f"{num(f.get('alignment_deg_rms'), '.1f')} deg | "
-        f"servo {num(e.get('servo_rate_hz'), '.0f')} Hz"
+        f"servo {num(e.get('servo_rate_hz'), '.0f')} Hz" + _recording_status(e, f)
     )
+
+
+def _recording_status(e: dict[str, Any], f: dict[str, Any]) -> str:
+    """`` | scan 1, recording`` (or ``recording FAILED``) when the daemons record."""
+    recs = [s["recording"] for s in (e, f) if s.get("recording")]
+    scan = e.get("scan")
+    text = f" | scan {scan}" if scan else ""
+    if recs:
+        failed = any(r.get("error") for r in recs)
+        text += (", " if text else " | ") + ("recording FAILED" if failed else "recording")
+    return text
 
 
 def summarize(
@@ -413,8 +424,6 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
             dead = [r for r, p in procs.items() if p.returncode is not None]
             if dead:
                 failed = f"{dead[0]} exited early with code {procs[dead[0]].returncode}"
-                tail = _log_tail(run_dir / f"{dead[0]}.log")
-                failed += f":\n{tail}\n" if tail else ""
                 break
             e, f = read_stats(stats["expert"]) or {}, read_stats(stats["follower"]) or {}
             if tty or now - last_print >= 2.0:
@@ -437,7 +446,11 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
     summary = summarize(e, f, elapsed, codes)
     ok = not failed and all(c == 0 for c in codes.values())
     if failed:
+        role = failed.split(" ", 1)[0]
+        tail = _log_tail(run_dir / f"{role}.log")
         print(f"humantele demo: {failed}; logs in {run_dir}", file=sys.stderr)
+        if tail:
+            print(f"{role} log ends with:\n{tail}", file=sys.stderr)
     elif not ok:
         print(f"humantele demo: a daemon failed {codes}; logs in {run_dir}", file=sys.stderr)
     if not args.json:

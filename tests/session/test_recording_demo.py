@@ -9,6 +9,7 @@ import sys
 import pytest
 
 from humantele.analysis.cli import analyze
+from humantele.demo import _status_line, summarize
 from humantele.follower.sim_human import SimHumanConfig
 from humantele.recording import read_recording
 
@@ -17,7 +18,7 @@ from humantele.recording import read_recording
 async def test_demo_records_a_scan_that_analyze_measures(tmp_path):
     base = tmp_path / "demo.mcap"
     proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "humantele", "demo", "--duration", "25", "--json",
+        sys.executable, "-m", "humantele", "demo", "--duration", "22", "--json",
         "--record", str(base),
         stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
     )  # fmt: skip
@@ -50,3 +51,14 @@ async def test_demo_records_a_scan_that_analyze_measures(tmp_path):
     assert scan["centered_position_rmse_mm"] < scan["position_rmse_mm"] < 4.0 * offset_mm
     assert scan["position_rmse_mm"] > offset_mm * 0.8
     assert scan["centered_orientation_rmse_deg"] < scan["orientation_rmse_deg"] < 3 * offset_deg
+
+
+def test_status_line_and_summary_report_a_failed_recording():
+    ok = {"scan": 1, "scans_started": 1, "recording": {"error": None, "dropped": 0}}
+    bad = {"recording": {"error": "OSError: [Errno 28] No space left on device", "dropped": 9}}
+    assert _status_line(ok, {"recording": ok["recording"]}, 5.0).endswith("scan 1, recording")
+    assert _status_line(ok, bad, 5.0).endswith("scan 1, recording FAILED")
+    assert "recording" not in _status_line({}, {}, 5.0)
+    s = summarize(ok, bad, 5.0, {"expert": 0, "follower": 0})
+    assert s["scans"] == 1 and s["recording"]["follower"]["dropped"] == 9
+    assert summarize({}, {}, 5.0, {})["recording"] is None

@@ -20,14 +20,16 @@ Message handling is one method per kind (``on_state``, ``on_control``, ``on_link
 Recording (``--record FILE`` or ``[expert.session] record``): every published pose
 (``/expert/pose``, the same ``t`` as the PoseMessage) and the rendered force (``/expert/force``,
 patient frame); about once a second the servo statistics, the state stream's one-way latency
-and, when it changes, the clock-sync estimate; scan starts and stops. ``t`` is this daemon's
-monotonic clock (s), the one its ClockSync uses. A path that cannot be recorded to stops the
-daemon at start (exit code 2); a failure during the session is reported in the stats and never
-stops the haptics or the session.
+and, when it changes, the clock-sync estimate; scan starts and stops. Video frame timestamps
+(``/expert/video_frame``) come with the video tracks: there is no video yet. ``t`` is this
+daemon's monotonic clock (s), the one its ClockSync uses. A path that cannot be recorded to
+stops the daemon at start (exit code 2); a failure during the session is reported in the stats
+and never stops the haptics or the session.
 
-Scans are started and stopped by the expert (:meth:`ExpertDaemon.start_scan`/``stop_scan``); each
-is announced to the follower with a ``Scan`` control message. ``[expert.scans]`` scripts them
-(the demo's: one scan from shortly after the patient model arrives until the daemon stops).
+Scans are started and stopped by the expert (:meth:`ExpertDaemon.start_scan`, ``stop_scan``);
+each is announced to the follower with a ``Scan`` control message. ``[expert.scans]`` scripts
+them (the demo's: one scan from shortly after the patient model arrives until the daemon
+stops).
 
 Motion scaling has one setting, ``[expert.mapping] scale``; the servo gets it from the daemon
 (``[servo] motion_scale`` is refused, see :func:`servo_config_for`).
@@ -447,7 +449,6 @@ class ExpertDaemon:
             self.rec = open_recorder("expert", self.config.session, self.config.recording)
         except RecordingError as exc:
             print(f"humantele expert: {exc}", file=sys.stderr)
-            log.error("expert: %s", exc)
             return False
         if self.rec is not None:
             log.info("expert: recording to %s", self.rec.path)

@@ -607,7 +607,6 @@ class FollowerDaemon:
             self.rec = open_recorder("follower", self.config.session, self.config.recording)
         except RecordingError as exc:
             print(f"humantele follower: {exc}", file=sys.stderr)
-            log.error("follower: %s", exc)
             return False
         if self.rec is not None:
             log.info("follower: recording to %s", self.rec.path)
