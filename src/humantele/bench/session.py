@@ -446,7 +446,8 @@ def _markdown(s: dict, rows: list[list[str]]) -> str:
         "rows put the user-space WAN emulator (`humantele.transport.netem`) between the expert "
         "and coturn, so each direction crosses it once: D ms one way, +- normal jitter (FIFO, "
         "no reordering), loss each way, seeded (`--delay-ms D --jitter-ms J --loss P`). "
-        "'emulator hold' is the delay it actually gave (up / down; asyncio wakes to ~1 ms). "
+        "'emulator hold' is the mean delay it actually gave (up / down; FIFO jitter adds to "
+        "the mean). "
         "750 km of fibre is >= 3.7 ms one way; the study's follower was on WiFi (RTT 5.8 ms "
         "mean), the expert on Ethernet (1.07 ms). Rows may come from different runs (last "
         "column).\n\n" + markdown_table(HEADER, rows)
