@@ -201,7 +201,8 @@ class _Ranges:
         else:
             core = valid & (self.ir_r >= 0.8 * self.peak[:, None, None])
             if p.depth == "mean":
-                r = (d * core).sum(axis=(1, 2)) / core.sum(axis=(1, 2))
+                cnt = core.sum(axis=(1, 2))
+                r = np.where(cnt > 0, (d * core).sum(axis=(1, 2)) / np.maximum(cnt, 1), np.nan)
             else:
                 r = _masked_median(d, core, np.full(n, np.nan)) + p.sphere_offset * self.radius
         if p.unwrap:
