@@ -673,7 +673,11 @@ class FollowerDaemon:
         self.record_model()  # a saved calibration's model
         self.executor = ThreadPoolExecutor(1, thread_name_prefix="humantele-sensing")
         if self.config.feed.enabled:
-            await self.feed.start()
+            try:
+                await self.feed.start()
+            except BaseException:  # e.g. the port is taken: the recording is still closed
+                self.close_recording()
+                raise
             log.info("follower: renderer feed at %s", self.feed.url)
         link_task = asyncio.create_task(self.link.run())
         if self.calibration is None:
