@@ -154,6 +154,8 @@ async def test_a_turn_server_that_cannot_start_raises_with_its_log():
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
         server = TurnServer(port=port, start_timeout_s=1.0)
-        with pytest.raises(TurnServerError):
+        with pytest.raises(TurnServerError) as info:
             await server.start()
+    assert f"did not answer on turn:127.0.0.1:{port}" in str(info.value)
+    assert "Cannot bind" in str(info.value)  # coturn's own log says why
     assert server._proc is None  # nothing left running

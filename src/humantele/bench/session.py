@@ -38,6 +38,7 @@ import secrets
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -48,6 +49,9 @@ ROOM = "bench"
 Q_IDENTITY = (0.0, 0.0, 0.0, 1.0)
 TURN_CREDENTIAL_ENV = "HUMANTELE_BENCH_TURN_CREDENTIAL"
 SECTION = "session"
+
+if TYPE_CHECKING:  # for hints only: the transport (aiortc) is imported where it runs
+    from humantele.transport import LinkConfig, PeerLink
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -83,7 +87,7 @@ def link_label(args: argparse.Namespace) -> str:
     return "TURN (coturn)" if args.turn else "loopback"
 
 
-def _link_config(args: argparse.Namespace):
+def _link_config(args: argparse.Namespace) -> LinkConfig:
     """The child's LinkConfig: plain, or relay_only through the TURN URL it was given."""
     from humantele.transport import IceServer, LinkConfig
 
@@ -97,7 +101,7 @@ def _link_config(args: argparse.Namespace):
     return LinkConfig(signaling_url=args.url, room=args.room, ice_servers=[turn], relay_only=True)
 
 
-def _ice_pair(link) -> str | None:
+def _ice_pair(link: PeerLink) -> str | None:
     """Candidate types of the link's nominated ICE pair, "local/remote" (e.g. "relay/relay").
     aiortc has no ICE stats, so this reads the aioice connection; None if it cannot."""
     try:
