@@ -148,6 +148,17 @@ def test_scans_from_the_expert_are_followed(tmp_path):
     assert d.scan is None and d.stats()["recording"] is None
 
 
+def test_scans_from_the_expert_are_recorded_by_the_follower(tmp_path):
+    d = make(tmp_path)
+    d.on_control(Scan(action="start", scan_id="3"))
+    d.on_control(Scan(action="stop", scan_id="3"))
+    d.on_control(Scan(action="start", scan_id="not-a-number"))  # followed, not recorded
+    d.rec.close()
+    rec = read_recording(tmp_path / "s.follower.mcap")
+    events = [(s["event"], s["scan"]) for s in rec.samples("/follower/scan")]
+    assert events == [("start", 3), ("stop", 3)]
+
+
 async def test_sensing_runs_off_the_loop_in_order_without_overlap(tmp_path):
     d = make(tmp_path, record=False, sensing_rate_hz=45.0)
     release = threading.Event()

@@ -331,8 +331,8 @@ class FollowerDaemon:
         elif self.scan == number or number is None:
             self.scan = None
         log.info("follower: scan %s %s", msg.scan_id, msg.action)
-        # The expert's file has the scan events (/expert/scan). There is no follower-side scan
-        # channel in the recording schemas yet, so the follower's file does not carry them.
+        if number is not None:  # the analysis takes scans from /expert/scan; this is the echo
+            self.record("/follower/scan", None, {"event": msg.action, "scan": number})
         self.feed.publish("scan", {"scan": self.scan, "action": msg.action})
 
     def on_link_state(self, state: str) -> None:

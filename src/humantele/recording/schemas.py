@@ -124,6 +124,16 @@ CHANNELS: dict[str, ChannelSpec] = {
             enums={"event": ("start", "stop")},
         ),
         ChannelSpec(
+            "/follower/scan",
+            "scan start and stop as the follower received them from the expert (follower clock)",
+            {
+                "event": ("string", "'start' or 'stop'"),
+                "scan": ("integer", "scan number (>= 0)"),
+            },
+            ("event", "scan"),
+            enums={"event": ("start", "stop")},
+        ),
+        ChannelSpec(
             "/expert/clock_sync",
             "clock offset estimates to the follower",
             _CLOCK_SYNC,
