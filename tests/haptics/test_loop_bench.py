@@ -2,6 +2,8 @@
 
 import json
 
+import pytest
+
 from humantele.bench import loop as bench_loop
 from humantele.cli import main
 
@@ -15,6 +17,7 @@ def test_bench_loop_prints_json_last_and_keeps_the_other_row(tmp_path, monkeypat
     for key in ("rate_hz", "period_p50_us", "period_p99_us", "period_max_us", "overruns"):
         assert key in r
     assert r["load"] is True and r["ticks"] > 0 and r["period_max_us"] >= r["period_p50_us"]
+    assert 0 <= r["periods_over_2ms"] <= r["overruns"]  # over 2 ms is also over 1.5 ms
     floor = r["floor"]  # the bare timing loop measured under the same load
     assert 900.0 < floor["rate_hz"] < 1100.0 and floor["period_max_us"] >= floor["period_p99_us"]
     assert main(["bench", "loop", "--seconds", "0.3", "--json"]) == 0
@@ -22,3 +25,17 @@ def test_bench_loop_prints_json_last_and_keeps_the_other_row(tmp_path, monkeypat
     assert len(lines) == 1 and json.loads(lines[0])["load"] is False
     text = md.read_text()
     assert "| idle |" in text and "| one core busy |" in text  # each run kept the other's row
+
+
+def test_periods_over_two_ticks_are_counted():
+    from humantele.haptics.loop import _Timing
+
+    timing = _Timing(0.001)
+    t = 0.0
+    for period in (0.001, 0.001, 0.0025, 0.001, 0.005, 0.0019):
+        timing.add(t)
+        t += period
+    timing.add(t)
+    assert timing.count_over(0.002) == 2  # 2.5 ms and 5 ms
+    assert timing.overruns == 3  # over 1.5 ms: 2.5, 5 and 1.9 ms
+    assert timing.max_us == pytest.approx(5000.0)

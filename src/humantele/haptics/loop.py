@@ -161,7 +161,8 @@ class ServoSample:
 @dataclass(frozen=True)
 class ServoStats:
     """Loop statistics since start. Periods are between tick starts (us); ``overruns``: periods
-    over 1.5 T (a tick slipped); ``late_ticks``: later than late_after_s (fault)."""
+    over 1.5 T (a tick slipped); ``periods_over_2t``: periods over 2 T (2 ms at 1 kHz);
+    ``late_ticks``: later than late_after_s (fault)."""
 
     ticks: int
     elapsed_s: float
@@ -170,6 +171,7 @@ class ServoStats:
     period_p99_us: float
     period_max_us: float
     overruns: int
+    periods_over_2t: int
     late_ticks: int
     stale_ticks: int
     device_errors: int
@@ -499,6 +501,10 @@ class _Timing:
         self.t_last = t
         self.ticks += 1
 
+    def count_over(self, seconds: float) -> int:
+        """Periods longer than ``seconds``."""
+        return int(self.hist[int(seconds * 1e6) :].sum())
+
     def percentile(self, q: float) -> float:
         total = int(self.hist.sum())
         if total == 0:
@@ -662,6 +668,7 @@ def _stats_row(timing: _Timing, r: ForceRenderer, realtime: bool) -> list[float]
         "period_p99_us": timing.percentile(0.99),
         "period_max_us": timing.max_us,
         "overruns": timing.overruns,
+        "periods_over_2t": timing.count_over(2.0 * timing.period),
         "late_ticks": c["late"],
         "stale_ticks": c["stale"],
         "device_errors": c["device"],
