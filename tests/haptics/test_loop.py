@@ -283,3 +283,62 @@ def test_seqlock_readers_never_see_a_torn_write():
         r.close()
         w.close()
         w.unlink()
+
+
+def test_seqlock_try_read_never_waits_on_a_write_in_progress():
+    from humantele.haptics.shm import SeqlockArray
+
+    w = SeqlockArray(4)
+    r = SeqlockArray(4, w.name)
+    try:
+        w.write([1.0, 2.0, 3.0, 4.0])
+        np.testing.assert_array_equal(r.try_read(), [1.0, 2.0, 3.0, 4.0])
+        w._a[0] += 1.0  # the writer was preempted half-way through a write
+        t0 = time.monotonic()
+        assert r.try_read() is None
+        assert time.monotonic() - t0 < 0.005  # returned at once, unlike read()'s timeout
+        with pytest.raises(TimeoutError):
+            r.read(timeout_s=0.01)
+        w._a[0] += 1.0  # the write completes
+        assert r.try_read() is not None
+    finally:
+        r.close()
+        w.close()
+        w.unlink()
+
+
+def test_servo_survives_a_daemon_preempted_mid_write():
+    """A normal-priority daemon can be preempted inside a command write; the SCHED_FIFO servo
+    keeps its last command (it used to spin 10 ms, then die with TimeoutError)."""
+    sp = ServoProcess(_pressing_config(), MODEL)
+    sp.start()
+    try:
+        _wait(lambda: (x := sp.latest()) and x.tick > 100 and x.force[1] > 0.0)
+        sp._cmd._a[0] += 1.0  # odd: a write "in progress" for much longer than 10 ms
+        tick0 = sp.latest().tick
+        time.sleep(0.3)
+        s = sp.latest()
+        assert sp.alive and s.tick > tick0 + 100 and s.force[1] > 0.0  # still rendering
+        sp._cmd._a[0] += 1.0  # the write completes; new commands take effect again
+        sp.set_model(None)
+        _wait(lambda: (x := sp.latest()) and x.force == (0.0, 0.0, 0.0))
+    finally:
+        sp.stop()
+    assert not sp.alive
+
+
+def test_daemon_side_reads_survive_a_servo_killed_mid_write():
+    sp = ServoProcess(_pressing_config(), MODEL)
+    sp.start()
+    try:
+        s0 = _wait(lambda: (x := sp.latest()) and x.tick > 50 and x)
+        st0 = _wait(lambda: (x := sp.stats()) and x.ticks > 0 and x)
+        os.kill(sp.pid, signal.SIGKILL)
+        _wait(lambda: not sp.alive)
+        sp._out._a[0] += 1.0 if int(sp._out._a[0]) % 2 == 0 else 0.0  # left odd by the death
+        sp._st._a[0] += 1.0 if int(sp._st._a[0]) % 2 == 0 else 0.0
+        s1, st1 = sp.latest(), sp.stats()  # no TimeoutError into the daemon
+        assert s1 is not None and s1.tick >= s0.tick and s1.t <= time.monotonic()
+        assert st1.ticks >= st0.ticks
+    finally:
+        sp.stop()

@@ -594,6 +594,10 @@ def _run(config, device, cmd, out, st, stop, parent_pid, realtime) -> None:
     clock = time.monotonic
     next_t = clock() + period
     next_stats = next_t
+    # Until the first consistent read: no stop, and generations equal to "nothing applied yet"
+    # (the renderer starts with no model: zero force).
+    c = np.zeros(CMD_LEN)
+    c[C_MODEL_GEN] = c[C_REG_GEN] = -1.0
     try:
         while not stop["flag"]:
             # Wait for the deadline: sleep, then spin the last `spin` seconds.
@@ -607,8 +611,10 @@ def _run(config, device, cmd, out, st, stop, parent_pid, realtime) -> None:
             flags = FAULT_LATE if now - next_t > config.late_after_s else 0
             if flags:
                 r.fault(flags, now)
-            # Commands from the daemon.
-            c = cmd.read()
+            # Commands from the daemon; mid-write (the daemon preempted): last tick's copy.
+            c_new = cmd.try_read()
+            if c_new is not None:
+                c = c_new
             if c[C_STOP] != 0.0 or os.getppid() != parent_pid:
                 break
             if c[C_MODEL_GEN] != model_gen or c[C_REG_GEN] != reg_gen:
@@ -693,6 +699,8 @@ class ServoProcess:
     def __init__(self, config: ServoConfig | None = None, model: Ellipsoid | None = None) -> None:
         self.config = config or ServoConfig()
         self._cmd_values = np.zeros(CMD_LEN)
+        self._last_sample: ServoSample | None = None
+        self._last_stats: ServoStats | None = None
         self._lock = threading.Lock()
         self._proc: mp.process.BaseProcess | None = None
         self._blocks: list[SeqlockArray] = []
@@ -804,13 +812,17 @@ class ServoProcess:
 
     # -- state -----------------------------------------------------------------------------
     def latest(self) -> ServoSample | None:
-        """The latest tick's sample, or None before the first tick."""
+        """The latest tick's sample, or None before the first tick. If the servo died half-way
+        through a write, the last sample read (its ``t`` shows its age)."""
         if not self._blocks:
             return None
-        a = self._out.read()
+        try:
+            a = self._out.read()
+        except TimeoutError:
+            return self._last_sample
         if a[S_TICK] == 0:
             return None
-        return ServoSample(
+        self._last_sample = ServoSample(
             t=float(a[S_T]),
             pose=Pose(a[S_P : S_P + 3], a[S_Q : S_Q + 4]),
             velocity=tuple(float(x) for x in a[S_V : S_V + 3]),  # type: ignore[arg-type]
@@ -822,14 +834,21 @@ class ServoProcess:
             tick=int(a[S_TICK]),
             ramp=float(a[S_RAMP]),
         )
+        return self._last_sample
 
     def _read_stats(self) -> ServoStats:
-        a = self._st.read()
+        try:
+            a = self._st.read()
+        except TimeoutError:  # the servo died half-way through a write: the last we read
+            if self._last_stats is None:
+                raise ServoError("servo statistics unreadable") from None
+            return self._last_stats
         vals: dict[str, Any] = {}
         for k, x in zip(STAT_FIELDS, a, strict=True):
             ftype = ServoStats.__dataclass_fields__[k].type
             vals[k] = bool(x) if ftype == "bool" else int(x) if ftype == "int" else float(x)
-        return ServoStats(**vals)
+        self._last_stats = ServoStats(**vals)
+        return self._last_stats
 
     def stats(self) -> ServoStats:
         """Loop statistics (updated 4 times a second, and at stop)."""

@@ -60,6 +60,22 @@ class SeqlockArray:
             elif now > deadline:
                 raise TimeoutError("seqlock: writer did not finish a write in time")
 
+    def try_read(self, attempts: int = 3) -> NDArray[np.float64] | None:
+        """A consistent copy of the data, or None while a write is in progress; never waits.
+
+        For the real-time reader: a SCHED_FIFO servo must not spin on a lower-priority writer
+        that was preempted half-way through a write (priority inversion); it keeps its last
+        copy and reads again next tick.
+        """
+        a = self._a
+        for _ in range(attempts):
+            s1 = a[0]
+            data = a[1:].copy()
+            if s1 == a[0] and not int(s1) & 1:
+                return data
+            self.retries += 1
+        return None
+
     @property
     def sequence(self) -> int:
         """The write counter (2 per completed write)."""
