@@ -30,6 +30,7 @@ import argparse
 import asyncio
 import contextlib
 import json
+import logging
 import os
 import secrets
 import shutil
@@ -45,6 +46,8 @@ from pydantic import Field, field_validator
 
 from humantele.config import ConfigModel
 from humantele.recording.schemas import check_participant_id
+
+log = logging.getLogger(__name__)
 
 PARENT_PID_ENV = "HUMANTELE_PARENT_PID"
 TOKEN_ENV = "HUMANTELE_TOKEN"
@@ -170,6 +173,30 @@ def open_recorder(role: str, session: SessionConfig, config: Any) -> Any:
         sonographer_id=session.sonographer_id,
         config=config,
     )
+
+
+def open_daemon_recording(role: str, session: SessionConfig, config: Any) -> tuple[bool, Any]:
+    """``(ok, recorder)`` for daemon ``role``: the recorder (None when it does not record), or
+    ok False, with one clear line on stderr, when the path cannot be recorded to."""
+    from humantele.recording import RecordingError
+
+    try:
+        rec = open_recorder(role, session, config)
+    except RecordingError as exc:
+        print(f"humantele {role}: {exc}", file=sys.stderr)
+        return False, None
+    if rec is not None:
+        log.info("%s: recording to %s", role, rec.path)
+    return True, rec
+
+
+def close_daemon_recording(role: str, rec: Any) -> None:
+    """Close ``rec`` (if any); a failure during the session is logged, never raised."""
+    if rec is None:
+        return
+    stats = rec.close()
+    if stats.error:
+        log.error("%s: the recording failed during the session: %s", role, stats.error)
 
 
 class ClockSyncLog:

@@ -43,7 +43,6 @@ import contextlib
 import logging
 import math
 import os
-import sys
 import time
 from collections import deque
 from collections.abc import Callable
@@ -57,8 +56,9 @@ from humantele.demo import (
     CpuMeter,
     SessionConfig,
     add_session_arguments,
+    close_daemon_recording,
     on_stop_signals,
-    open_recorder,
+    open_daemon_recording,
     parent_gone,
     percentile_ms,
     process_cpu_seconds,
@@ -75,7 +75,7 @@ from humantele.expert.mapping import (
 from humantele.geometry import Pose, quat_conjugate, quat_multiply
 from humantele.haptics.ellipsoid import Ellipsoid
 from humantele.haptics.loop import ServoConfig, ServoError, ServoProcess
-from humantele.recording import Recorder, RecorderConfig, RecordingError
+from humantele.recording import Recorder, RecorderConfig
 from humantele.transport import LinkConfig, PeerLink
 from humantele.wire import (
     Calibration as CalibrationMsg,
@@ -445,21 +445,11 @@ class ExpertDaemon:
         stderr, if it cannot be recorded to."""
         if self.rec is not None:
             return True
-        try:
-            self.rec = open_recorder("expert", self.config.session, self.config.recording)
-        except RecordingError as exc:
-            print(f"humantele expert: {exc}", file=sys.stderr)
-            return False
-        if self.rec is not None:
-            log.info("expert: recording to %s", self.rec.path)
-        return True
+        ok, self.rec = open_daemon_recording("expert", self.config.session, self.config.recording)
+        return ok
 
     def close_recording(self) -> None:
-        if self.rec is None:
-            return
-        stats = self.rec.close()
-        if stats.error:
-            log.error("expert: the recording failed during the session: %s", stats.error)
+        close_daemon_recording("expert", self.rec)
 
     async def run(self, duration_s: float | None = None) -> int:
         loop = asyncio.get_running_loop()

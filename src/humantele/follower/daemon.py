@@ -44,7 +44,6 @@ import contextlib
 import logging
 import math
 import os
-import sys
 import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -62,8 +61,9 @@ from humantele.demo import (
     CpuMeter,
     SessionConfig,
     add_session_arguments,
+    close_daemon_recording,
     on_stop_signals,
-    open_recorder,
+    open_daemon_recording,
     parent_gone,
     percentile_ms,
     recorder_stats,
@@ -89,7 +89,7 @@ from humantele.follower.sim_human import (
     SimPatientConfig,
 )
 from humantele.geometry import Pose, matrix_to_quat
-from humantele.recording import Recorder, RecorderConfig, RecordingError
+from humantele.recording import Recorder, RecorderConfig
 from humantele.transport import LinkConfig, PeerLink
 from humantele.wire import (
     Calibration as CalibrationMsg,
@@ -603,21 +603,11 @@ class FollowerDaemon:
         on stderr, if it cannot be recorded to."""
         if self.rec is not None:
             return True
-        try:
-            self.rec = open_recorder("follower", self.config.session, self.config.recording)
-        except RecordingError as exc:
-            print(f"humantele follower: {exc}", file=sys.stderr)
-            return False
-        if self.rec is not None:
-            log.info("follower: recording to %s", self.rec.path)
-        return True
+        ok, self.rec = open_daemon_recording("follower", self.config.session, self.config.recording)
+        return ok
 
     def close_recording(self) -> None:
-        if self.rec is None:
-            return
-        stats = self.rec.close()
-        if stats.error:
-            log.error("follower: the recording failed during the session: %s", stats.error)
+        close_daemon_recording("follower", self.rec)
 
     def pose_rate_hz(self, window_s: float = 1.0) -> float:
         """Poses received per second over the last ``window_s``."""
