@@ -38,7 +38,7 @@ import signal
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import AsyncIterator, Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -103,6 +103,45 @@ def parent_gone() -> bool:
     """True when this process was started by a demo (``HUMANTELE_PARENT_PID``) that is gone."""
     want = os.environ.get(PARENT_PID_ENV)
     return bool(want) and str(os.getppid()) != want
+
+
+async def daemon_ticks(
+    rate_hz: float,
+    duration_s: float | None,
+    running: Callable[[], bool],
+    report: Callable[[], None],
+    clock: Callable[[], float] = time.monotonic,
+    on_late: Callable[[], None] | None = None,
+) -> AsyncIterator[float]:
+    """A daemon's main-loop ticks at ``rate_hz`` on the asyncio loop: yields ``clock()`` (s).
+
+    Ends when ``running()`` turns false, after ``duration_s`` (None: never), or when the demo
+    that started this daemon is gone (checked with ``report()`` every 0.5 s). A tick late by
+    more than a period is not caught up: the schedule restarts and ``on_late()`` is called.
+    """
+    period = 1.0 / rate_hz
+    t_end = None if duration_s is None else time.monotonic() + duration_s
+    next_t = time.monotonic()
+    last_stats = 0.0
+    while running():
+        t = clock()
+        yield t
+        if t - last_stats > 0.5:
+            last_stats = t
+            report()
+            if parent_gone():
+                log.warning("the demo that started this daemon is gone; stopping")
+                return
+        if t_end is not None and t >= t_end:
+            return
+        next_t += period
+        delay = next_t - time.monotonic()
+        if delay < -period:  # late by more than a tick: do not try to catch up
+            if on_late is not None:
+                on_late()
+            next_t = time.monotonic()
+            delay = 0.0
+        await asyncio.sleep(max(0.0, delay))
 
 
 def process_cpu_seconds(pid: int | None) -> float | None:

@@ -57,9 +57,9 @@ from humantele.demo import (
     SessionConfig,
     add_session_arguments,
     close_daemon_recording,
+    daemon_ticks,
     on_stop_signals,
     open_daemon_recording,
-    parent_gone,
     percentile_ms,
     process_cpu_seconds,
     recorder_stats,
@@ -465,31 +465,18 @@ class ExpertDaemon:
         self.servo_started = time.monotonic()
         self.push_registration()
         link_task = asyncio.create_task(self.link.run())
-        period = 1.0 / self.config.link.pose_rate_hz
-        t_end = None if duration_s is None else time.monotonic() + duration_s
-        next_t = time.monotonic()
-        last_stats = 0.0
         try:
-            while not self._stop.is_set() and not link_task.done():
-                t = self.clock()
+            async for t in daemon_ticks(
+                self.config.link.pose_rate_hz,
+                duration_s,
+                running=lambda: not self._stop.is_set() and not link_task.done(),
+                report=lambda: write_stats(self.stats_file, self.stats()),
+                clock=self.clock,
+            ):
                 self.check_servo(t)
                 self.publish_pose(t)
                 self.guarded(self.script_scans, t)
                 self.guarded(self.record_reports, t)
-                if t - last_stats > 0.5:
-                    last_stats = t
-                    write_stats(self.stats_file, self.stats())
-                    if parent_gone():
-                        log.warning("the demo that started this daemon is gone; stopping")
-                        break
-                if t_end is not None and t >= t_end:
-                    break
-                next_t += period
-                delay = next_t - time.monotonic()
-                if delay < -period:
-                    next_t = time.monotonic()
-                    delay = 0.0
-                await asyncio.sleep(max(0.0, delay))
         finally:
             self.guarded(self.stop_scan, self.clock())  # the scan ends before the bye
             await self.link.close("expert stopping")

@@ -62,9 +62,9 @@ from humantele.demo import (
     SessionConfig,
     add_session_arguments,
     close_daemon_recording,
+    daemon_ticks,
     on_stop_signals,
     open_daemon_recording,
-    parent_gone,
     percentile_ms,
     recorder_stats,
     session_overrides,
@@ -655,6 +655,9 @@ class FollowerDaemon:
             "cpu_percent": self.cpu.overall(),
         }
 
+    def _count_late_tick(self) -> None:
+        self.late_ticks += 1
+
     async def run(self, duration_s: float | None = None) -> int:
         loop = asyncio.get_running_loop()
         on_stop_signals(loop, self._stop.set)
@@ -675,13 +678,14 @@ class FollowerDaemon:
         else:
             log.info("follower: reusing the saved calibration %s", self.calibration_path)
         self.publish_calibration()
-        period = 1.0 / self.config.rate_hz
-        t_end = None if duration_s is None else time.monotonic() + duration_s
-        next_t = time.monotonic()
-        last_stats = 0.0
         try:
-            while not self._stop.is_set() and not link_task.done():
-                t = time.monotonic()
+            async for t in daemon_ticks(
+                self.config.rate_hz,
+                duration_s,
+                running=lambda: not self._stop.is_set() and not link_task.done(),
+                report=lambda: write_stats(self.stats_file, self.stats()),
+                on_late=self._count_late_tick,
+            ):
                 self.ticks += 1
                 try:
                     self.tick(t)
@@ -690,21 +694,6 @@ class FollowerDaemon:
                     self.tick_errors += 1
                     if self.tick_errors in (1, 10, 100, 1000):
                         log.exception("follower: tick failed (%d so far)", self.tick_errors)
-                if t - last_stats > 0.5:
-                    last_stats = t
-                    write_stats(self.stats_file, self.stats())
-                    if parent_gone():
-                        log.warning("the demo that started this daemon is gone; stopping")
-                        break
-                if t_end is not None and t >= t_end:
-                    break
-                next_t += period
-                delay = next_t - time.monotonic()
-                if delay < -period:  # late by more than a tick: do not try to catch up
-                    self.late_ticks += 1
-                    next_t = time.monotonic()
-                    delay = 0.0
-                await asyncio.sleep(max(0.0, delay))
         finally:
             await self.link.close("follower stopping")
             with contextlib.suppress(asyncio.CancelledError, Exception):
