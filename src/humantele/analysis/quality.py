@@ -14,8 +14,6 @@ its RMSE) is the mean score of its captured images.
 
 from __future__ import annotations
 
-import csv
-import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +22,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
+from humantele.analysis.csvfile import csv_rows, number_cell
 from humantele.config import ConfigError
 
 SCORES = range(0, 6)
@@ -38,26 +37,13 @@ class Score:
 
 
 def _int_cell(value: str, where: str, column: str, lo: int, hi: int) -> int:
-    text = (value or "").strip()
-    try:
-        number = float(text)
-    except ValueError:
-        raise ConfigError(f"{where}: column {column!r}: {text!r} is not a number") from None
-    if not math.isfinite(number) or number != int(number) or not lo <= number <= hi:
-        raise ConfigError(f"{where}: column {column!r}: {text!r} is not an integer {lo}-{hi}")
-    return int(number)
+    return int(number_cell(value, where, column, lo, hi, integer=True))
 
 
 def read_scores(path: str | Path) -> list[Score]:
     """Scores from a CSV (long or wide layout); ConfigError naming the row and column."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read scores: {exc.strerror or exc}") from exc
-    reader = csv.DictReader(text.splitlines())
-    header = [h.strip() for h in reader.fieldnames or []]
-    reader.fieldnames = header
+    header, rows = csv_rows(path, "scores")
     if "scan" not in header or "target" not in header:
         raise ConfigError(f"{path}: the header needs columns 'scan' and 'target', got {header}")
     long = set(header) == {"scan", "target", "rater", "score"}
@@ -66,10 +52,7 @@ def read_scores(path: str | Path) -> list[Score]:
         raise ConfigError(f"{path}: no rater columns (or use scan,target,rater,score)")
     out: list[Score] = []
     seen: set[tuple[int, str, str]] = set()
-    for row_no, row in enumerate(reader, start=2):
-        where = f"{path}: row {row_no}"
-        if None in row:
-            raise ConfigError(f"{where}: more cells than header columns")
+    for _row_no, where, row in rows:
         scan = _int_cell(row["scan"], where, "scan", 0, 10**6)
         target = (row["target"] or "").strip()
         if not target:

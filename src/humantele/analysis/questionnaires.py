@@ -11,14 +11,13 @@ Usability (Table III of the paper, 0 = strongly disagree .. 4 = strongly agree):
 
 from __future__ import annotations
 
-import csv
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from humantele.analysis.csvfile import csv_rows, number_cell
 from humantele.config import ConfigError
 from humantele.recording.schemas import check_participant_id
 
@@ -68,13 +67,7 @@ def _read(
     path: str | Path, items: tuple[str, ...], lo: float, hi: float, integer: bool
 ) -> Responses:
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read responses: {exc.strerror or exc}") from exc
-    reader = csv.DictReader(text.splitlines())
-    header = [h.strip() for h in reader.fieldnames or []]
-    reader.fieldnames = header
+    header, csv_reader = csv_rows(path, "responses")
     unknown = [h for h in header if h not in items and h not in _ID_COLUMNS]
     missing = [i for i in items if i not in header]
     if unknown or missing:
@@ -91,28 +84,14 @@ def _read(
             + f" (expected optional follower, scan and {', '.join(items)})"
         )
     rows, who = [], []
-    for row_no, row in enumerate(reader, start=2):
-        where = f"{path}: row {row_no}"
-        if None in row:
-            raise ConfigError(f"{where}: more cells than header columns")
+    for row_no, where, row in csv_reader:
         if "follower" in row:
             try:
                 check_participant_id((row["follower"] or "").strip(), "follower")
             except ValueError as exc:
                 raise ConfigError(f"{where}: column 'follower': {exc}") from None
         who.append((row.get("follower") or f"#{row_no - 1}").strip())
-        vals = []
-        for item in items:
-            text = (row[item] or "").strip()
-            try:
-                v = float(text)
-            except ValueError:
-                raise ConfigError(f"{where}: column {item!r}: {text!r} is not a number") from None
-            if not math.isfinite(v) or not lo <= v <= hi or (integer and v != int(v)):
-                kind = "an integer" if integer else "a number"
-                raise ConfigError(f"{where}: column {item!r}: {text!r} is not {kind} {lo:g}-{hi:g}")
-            vals.append(v)
-        rows.append(vals)
+        rows.append([number_cell(row[item], where, item, lo, hi, integer) for item in items])
     if not rows:
         raise ConfigError(f"{path}: no responses")
     return Responses(items, np.array(rows, dtype=float), tuple(who))
