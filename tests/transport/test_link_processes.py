@@ -6,9 +6,9 @@ import contextlib
 import os
 import signal
 import sys
-import time
 
 import pytest
+from link_helpers import until
 
 from humantele.signaling.messages import TOKEN_ENV
 from humantele.signaling.server import SignalConfig, SignalingServer
@@ -26,14 +26,6 @@ async def _spawn_follower(url: str, room: str) -> asyncio.subprocess.Process:
         "--url", url, "--room", room,
         stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE, env=env,
     )  # fmt: skip
-
-
-async def _until(cond, timeout: float) -> None:
-    end = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > end:
-            raise TimeoutError("condition not met")
-        await asyncio.sleep(0.02)
 
 
 @pytest.mark.slow
@@ -67,10 +59,10 @@ async def test_rejoin_after_the_follower_process_is_killed_and_restarted():
     try:
         procs.append(await _spawn_follower(server.url, "proc"))
         await expert.wait_state("connected", timeout=60)
-        await _until(lambda: len(echoes) >= 20, 30)
+        await until(lambda: len(echoes) >= 20, 30)
         # the echo carries our sequence back: the other process really got our poses
         assert all(e.seq <= seq for e in echoes)
-        await _until(lambda: expert.clock.synced, 10)
+        await until(lambda: expert.clock.synced, 10)
         assert abs(expert.clock.offset) < 5e-3  # one machine: the true offset is ~0
         first_connections = expert.counters.connections
 
@@ -81,7 +73,7 @@ async def test_rejoin_after_the_follower_process_is_killed_and_restarted():
 
         procs.append(await _spawn_follower(server.url, "proc"))
         await expert.wait_state("connected", timeout=60)
-        await _until(lambda: len(echoes) >= n_before + 20, 30)
+        await until(lambda: len(echoes) >= n_before + 20, 30)
         assert expert.counters.connections == first_connections + 1
         assert echoes[-1].seq > echoes[n_before - 1].seq
     finally:

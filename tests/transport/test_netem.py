@@ -1,11 +1,13 @@
 """The user-space WAN emulator (UdpRelay) on loopback: delay, loss, order, clients, limits."""
 
 import asyncio
+import functools
 import math
 import struct
 import time
 
 import pytest
+from link_helpers import until
 from pydantic import ValidationError
 
 from humantele.transport.netem import NetemConfig, UdpRelay
@@ -41,12 +43,7 @@ async def _endpoint(echo: bool = False, remote=None) -> _Endpoint:
     return proto
 
 
-async def _until(cond, timeout=5.0):
-    end = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > end:
-            raise TimeoutError("condition not met")
-        await asyncio.sleep(0.01)
+_until = functools.partial(until, timeout=5.0, poll=0.01)
 
 
 def _seqs(ep: _Endpoint) -> list[int]:

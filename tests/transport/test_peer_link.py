@@ -1,11 +1,11 @@
 """Two PeerLinks in one process over real aiortc on loopback, through a real signaling server."""
 
 import asyncio
-import contextlib
 import struct
 import time
 
 import pytest
+from link_helpers import running_links, until
 
 from humantele.signaling.client import SignalingRefused
 from humantele.signaling.server import SignalConfig, SignalingServer
@@ -37,29 +37,6 @@ def _config(server, **kw) -> LinkConfig:
     return LinkConfig(**base)
 
 
-@contextlib.asynccontextmanager
-async def _links(expert: PeerLink, follower: PeerLink):
-    tasks = [asyncio.create_task(expert.run()), asyncio.create_task(follower.run())]
-    try:
-        await expert.wait_state("connected", timeout=20)
-        await follower.wait_state("connected", timeout=20)
-        yield
-    finally:
-        await expert.close()
-        await follower.close()
-        for t in tasks:
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(t, 5)
-
-
-async def _until(cond, timeout=10.0):
-    end = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > end:
-            raise TimeoutError("condition not met")
-        await asyncio.sleep(0.02)
-
-
 async def test_streams_control_and_clock_sync_with_an_injected_offset(server):
     poses, states, controls = [], [], []
     offset = 37.25  # the follower's clock runs this far ahead of the expert's
@@ -71,7 +48,7 @@ async def test_streams_control_and_clock_sync_with_an_injected_offset(server):
         on_control=controls.append,
         clock=lambda: time.monotonic() + offset,
     )
-    async with _links(expert, follower):
+    async with running_links(expert, follower, timeout=20):
         for i in range(200):
             assert expert.send_pose(PoseMessage(i, expert.now(), (0.0, 0.1, 0.0), Q, clutch=i % 2))
             if i % 4 == 0:
@@ -82,8 +59,8 @@ async def test_streams_control_and_clock_sync_with_an_injected_offset(server):
         model = {"center": [0, 0.1, 0], "semi_axes": [0.15, 0.1, 10.0], "heading": 0.0}
         assert expert.send_control(EllipsoidModel(model=model))
         assert expert.send_control(Scan(action="start"))
-        await _until(lambda: len(poses) >= 195 and len(controls) >= 3 and follower.clock.synced)
-        await _until(lambda: expert.clock.synced)
+        await until(lambda: len(poses) >= 195 and len(controls) >= 3 and follower.clock.synced)
+        await until(lambda: expert.clock.synced)
         # the peer's hello arrives first, then the messages in order
         assert isinstance(controls[0], Hello) and controls[0].role == "expert"
         assert [type(c).__name__ for c in controls[1:3]] == ["EllipsoidModel", "Scan"]
@@ -109,7 +86,7 @@ async def test_bad_messages_are_dropped_and_counted_never_raised(server):
 
     expert = PeerLink("expert", _config(server))
     follower = PeerLink("follower", _config(server), on_pose=poses.append, on_control=flaky_control)
-    async with _links(expert, follower):
+    async with running_links(expert, follower, timeout=20):
         raw = expert.peer_connection
         assert raw is not None
         channels = expert._peer.channels  # the raw aiortc channels, to send garbage
@@ -125,7 +102,7 @@ async def test_bad_messages_are_dropped_and_counted_never_raised(server):
         channels["control"].send("{broken json")
         channels["control"].send('{"type": "scan", "action": "explode"}')
         expert.send_control(Scan(action="stop"))  # callback raises: counted, link lives
-        await _until(lambda: follower.counters.dropped.total() >= 9)
+        await until(lambda: follower.counters.dropped.total() >= 9)
         dropped = follower.counters.dropped
         assert dropped["pose:size"] == 2
         assert dropped["pose:version"] == 1
@@ -138,7 +115,7 @@ async def test_bad_messages_are_dropped_and_counted_never_raised(server):
         assert [p.seq for p in poses] == [10]
         # the link still works
         assert expert.send_pose(PoseMessage(11, expert.now(), (0.0, 0.0, 0.0), Q))
-        await _until(lambda: len(poses) == 2)
+        await until(lambda: len(poses) == 2)
         assert follower.state == "connected"
         # sending a NaN is refused at the sender
         assert not expert.send_pose(PoseMessage(12, expert.now(), (float("nan"), 0.0, 0.0), Q))
@@ -158,7 +135,7 @@ async def test_heartbeat_finds_a_silent_peer_and_the_link_comes_back(server):
     states = []
     expert = PeerLink("expert", cfg, on_link_state=states.append)
     follower = PeerLink("follower", cfg, on_pose=lambda m: None)
-    async with _links(expert, follower):
+    async with running_links(expert, follower, timeout=20):
         # the follower goes silent while ICE and SCTP stay up (a hung process, say)
         silent = follower._peer
         follower._peer = None
@@ -171,14 +148,14 @@ async def test_heartbeat_finds_a_silent_peer_and_the_link_comes_back(server):
         await follower.wait_state("connected", timeout=20)
         assert expert.counters.connections == 2
         assert expert.send_pose(PoseMessage(1, expert.now(), (0.0, 0.0, 0.0), Q))
-        await _until(lambda: follower.counters.received["pose"] == 1)
+        await until(lambda: follower.counters.received["pose"] == 1)
     assert states[:2] == ["connecting", "connected"] and "disconnected" in states
 
 
 async def test_bye_on_close_and_wrong_token_fails(server):
     expert = PeerLink("expert", _config(server))
     follower = PeerLink("follower", _config(server))
-    async with _links(expert, follower):
+    async with running_links(expert, follower, timeout=20):
         await expert.close()
         await follower.wait_state("disconnected", timeout=5)
         assert expert.state == "closed"

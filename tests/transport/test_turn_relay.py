@@ -2,11 +2,11 @@
 through the user-space delay relay in front of it (the WAN emulation of the 750 km link)."""
 
 import asyncio
-import contextlib
 import statistics
 import time
 
 import pytest
+from link_helpers import running_links
 
 from humantele.signaling.server import SignalConfig, SignalingServer
 from humantele.transport import LinkConfig, PeerLink
@@ -50,21 +50,6 @@ def _config(signaling, ice_server, **kw) -> LinkConfig:
     )
 
 
-@contextlib.asynccontextmanager
-async def _linked(expert: PeerLink, follower: PeerLink):
-    tasks = [asyncio.create_task(expert.run()), asyncio.create_task(follower.run())]
-    try:
-        await expert.wait_state("connected", timeout=30)
-        await follower.wait_state("connected", timeout=30)
-        yield
-    finally:
-        await expert.close()
-        await follower.close()
-        for t in tasks:
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(t, 5)
-
-
 def _ice_snapshot(link: PeerLink) -> dict:
     """Local candidate types and the nominated ICE pair of the link's data transport (aiortc
     has no ICE stats, so the pair is read from the aioice connection under RTCIceTransport)."""
@@ -100,7 +85,7 @@ async def _run(signaling, expert_ice, follower_ice, n=200):
         _config(signaling, follower_ice),
         on_pose=lambda m: ages.append(follower.age_of(m.t_sent)),
     )
-    async with _linked(expert, follower):
+    async with running_links(expert, follower, timeout=30):
         pairs = [_ice_snapshot(link) for link in (expert, follower)]
         await _stream_poses(expert, follower, ages, n)
         rtt, offset = follower.clock.rtt, follower.clock.offset
