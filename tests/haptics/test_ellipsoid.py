@@ -9,6 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import minimize
 
+from humantele.bench.haptics import scene_points
 from humantele.haptics.ellipsoid import (
     DEFAULT_LONGITUDINAL,
     METHODS,
@@ -61,28 +62,12 @@ def brute_distance(local, s):
     return min(results, key=lambda t: t[0])
 
 
-def near_surface_points(s, n, band, rng):
-    """Points within ``band`` m of the surface (patient frame), inside and outside."""
-    s = np.asarray(s)
-    u = rng.normal(size=(n, 3))
-    u /= np.linalg.norm(u, axis=1)[:, None]
-    c = u * s
-    if s[0] > 1.0:
-        c[:, 0] = rng.uniform(-0.3, 0.3, n)
-        r = np.sqrt(1 - (c[:, 0] / s[0]) ** 2)
-        ang = rng.uniform(0, 2 * np.pi, n)
-        c[:, 1], c[:, 2] = s[1] * r * np.cos(ang), s[2] * r * np.sin(ang)
-    g = c / s**2
-    g /= np.linalg.norm(g, axis=1)[:, None]
-    return c - rng.uniform(-band, band, n)[:, None] * g
-
-
 @pytest.mark.parametrize("scene", list(SCENES))
 def test_exact_matches_brute_force(scene):
     s = SCENES[scene]
     e = Ellipsoid((0.2, 0.8, -0.4), s, heading=1.1)
     rng = np.random.default_rng(3)
-    local = near_surface_points(s, 12, 0.02, rng)
+    local = scene_points(s, 12, rng, 0.02)
     for lp in local:
         p = e.T_world_patient.apply(lp)
         d, n = e.penetration(p, "exact")
@@ -98,7 +83,7 @@ def test_exact_matches_brute_force(scene):
 def test_newton_within_0_05_mm_of_exact(scene):
     s = SCENES[scene]
     e = Ellipsoid((0.0, 0.0, 0.0), s)
-    pts = near_surface_points(s, 2000, 0.02, np.random.default_rng(4))
+    pts = scene_points(s, 2000, np.random.default_rng(4), 0.02)
     dx, nx = e.penetration_batch(pts, "exact")
     dn, nn = e.penetration_batch(pts, "newton")
     assert np.max(np.abs(dn - dx)) < 0.05e-3
@@ -110,7 +95,7 @@ def test_radial_fails_where_documented():
     s = SCENES["flattened"]
     e = Ellipsoid((0.0, 0.0, 0.0), s)
     rng = np.random.default_rng(5)
-    pts = near_surface_points(s, 2000, 0.02, rng)
+    pts = scene_points(s, 2000, rng, 0.02)
     dr, _ = e.penetration_batch(pts, "radial")
     dx, _ = e.penetration_batch(pts, "exact")
     assert np.max(dr - dx) > 1e-3
@@ -119,7 +104,7 @@ def test_radial_fails_where_documented():
     # on the torso it is good to a fraction of a millimetre within 20 mm of the skin
     s = SCENES["torso"]
     e = Ellipsoid((0.0, 0.0, 0.0), s)
-    pts = near_surface_points(s, 2000, 0.02, rng)
+    pts = scene_points(s, 2000, rng, 0.02)
     dr, _ = e.penetration_batch(pts, "radial")
     dx, _ = e.penetration_batch(pts, "exact")
     assert np.max(np.abs(dr - dx)) < 0.1e-3

@@ -44,10 +44,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def scene_points(
-    semi_axes: tuple[float, float, float], n: int, rng: np.random.Generator
+    semi_axes: tuple[float, float, float],
+    n: int,
+    rng: np.random.Generator,
+    band: float = BAND,
 ) -> np.ndarray:
-    """Patient-frame points within BAND of the surface: a surface point moved along its normal
-    by a uniform offset in [-BAND, BAND]. Along a very long axis only |x| <= 0.3 m is used."""
+    """Patient-frame points within ``band`` m of the surface: a surface point moved along its
+    normal by a uniform offset in [-band, band]. Along a very long axis only |x| <= 0.3 m."""
     s = np.asarray(semi_axes)
     u = rng.normal(size=(n, 3))
     u /= np.linalg.norm(u, axis=1)[:, None]
@@ -59,7 +62,7 @@ def scene_points(
         c[:, 1], c[:, 2] = s[1] * r * np.cos(ang), s[2] * r * np.sin(ang)
     g = c / s**2
     g /= np.linalg.norm(g, axis=1)[:, None]
-    return c - rng.uniform(-BAND, BAND, n)[:, None] * g
+    return c - rng.uniform(-band, band, n)[:, None] * g
 
 
 def scalar_cost_us(e: Ellipsoid, points: list[tuple[float, float, float]], method: str) -> float:
