@@ -253,36 +253,45 @@ def test_parent_death_stops_the_servo(tmp_path):
         parent.kill()
 
 
+def _seqlock_writer(name: str, n: int, stop) -> None:
+    """Child process: write np.full(n, k) for k = 1, 2, ... until told to stop."""
+    from humantele.haptics.shm import SeqlockArray
+
+    w = SeqlockArray(n, name)
+    k = 0.0
+    while not stop.is_set():
+        k += 1.0
+        w.write(np.full(n, k))
+    w.close()
+
+
 def test_seqlock_readers_never_see_a_torn_write():
-    import threading
+    """Writer and reader in two processes over shared memory, as the servo and daemon are."""
+    import multiprocessing
 
     from humantele.haptics.shm import SeqlockArray
 
-    w = SeqlockArray(64)
-    r = SeqlockArray(64, w.name)  # attached by name, as the other process does
-    stop = threading.Event()
-
-    def writer():
-        k = 0.0
-        while not stop.is_set():
-            k += 1.0
-            w.write(np.full(64, k))
-
-    th = threading.Thread(target=writer)
-    th.start()
+    n = 512  # wide enough that an unguarded copy overlapping a write tears
+    owner = SeqlockArray(n)
+    r = SeqlockArray(n, owner.name)
+    ctx = multiprocessing.get_context("fork")
+    stop = ctx.Event()
+    child = ctx.Process(target=_seqlock_writer, args=(owner.name, n, stop), daemon=True)
+    child.start()
     try:
-        seen = set()
-        for _ in range(5000):
-            a = r.read(timeout_s=1.0)
-            assert np.all(a == a[0])
-            seen.add(a[0])
-        assert len(seen) > 3  # the writer really was writing meanwhile
+        seen: set[float] = set()
+        deadline = time.monotonic() + 60.0  # a hang guard only: the count below decides
+        while len(seen) < 200 and time.monotonic() < deadline:
+            a = r.read(timeout_s=5.0)
+            assert np.all(a == a[0]), "a read mixed two writes"
+            seen.add(float(a[0]))
+        assert len(seen) >= 200  # the writer really was writing while we read
     finally:
         stop.set()
-        th.join()
+        child.join(10.0)
         r.close()
-        w.close()
-        w.unlink()
+        owner.close()
+        owner.unlink()
 
 
 def test_seqlock_try_read_never_waits_on_a_write_in_progress():

@@ -3,6 +3,8 @@
 import json
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from humantele.bench import loop as bench_loop
 from humantele.cli import main
@@ -39,3 +41,20 @@ def test_periods_over_two_ticks_are_counted():
     assert timing.count_over(0.002) == 2  # 2.5 ms and 5 ms
     assert timing.overruns == 3  # over 1.5 ms: 2.5, 5 and 1.9 ms
     assert timing.max_us == pytest.approx(5000.0)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(1e-6, 0.019), min_size=1, max_size=50), st.floats(0.0, 1.0))
+def test_period_percentiles_stay_within_the_measured_min_and_max(periods, q):
+    from humantele.haptics.loop import _Timing
+
+    timing = _Timing(0.001)
+    t = 0.0
+    for period in periods:
+        timing.add(t)
+        t += period
+    timing.add(t)
+    exact = [p * 1e6 for p in periods]
+    # Bins are 1 us wide; the middle of a bin may not pass the exact extremes.
+    assert min(exact) - 1e-3 <= timing.percentile(q) <= timing.max_us
+    assert timing.percentile(0.5) <= timing.max_us

@@ -480,6 +480,7 @@ class _Timing:
     def __init__(self, period: float) -> None:
         self.period = period
         self.hist = np.zeros(self.BINS, dtype=np.int64)
+        self.min_us = float("inf")
         self.max_us = 0.0
         self.max_at = 0
         self.ticks = 0
@@ -491,6 +492,7 @@ class _Timing:
         if self.t_last is not None:
             p_us = (t - self.t_last) * 1e6
             self.hist[min(int(p_us), self.BINS - 1)] += 1
+            self.min_us = min(self.min_us, p_us)
             if p_us > self.max_us:
                 self.max_us = p_us
                 self.max_at = self.ticks
@@ -506,11 +508,12 @@ class _Timing:
         return int(self.hist[int(seconds * 1e6) :].sum())
 
     def percentile(self, q: float) -> float:
+        """The ``q`` quantile of the periods, us: a bin's middle, kept within [min, max]."""
         total = int(self.hist.sum())
         if total == 0:
             return 0.0
         idx = int(np.searchsorted(np.cumsum(self.hist), q * total))
-        return idx + 0.5
+        return min(max(idx + 0.5, self.min_us), self.max_us)
 
     def rate(self) -> float:
         if self.ticks < 2:
