@@ -2,8 +2,8 @@ import asyncio
 import json
 import logging
 
-import aiohttp
 import pytest
+from signaling_helpers import closed_with, raw_ws, running_server
 
 from humantele.config import ConfigError
 from humantele.signaling import (
@@ -13,7 +13,7 @@ from humantele.signaling import (
     CLOSE_ROOM_FULL,
     CLOSE_UNAUTHORIZED,
 )
-from humantele.signaling.client import SignalingClient, SignalingRefused
+from humantele.signaling.client import SignalingClient, SignalingError, SignalingRefused
 from humantele.signaling.messages import (
     DEV_TOKEN,
     TOKEN_ENV,
@@ -30,30 +30,14 @@ TOKEN = "s3cret-Token-that-must-never-be-logged"
 
 @pytest.fixture
 async def server():
-    s = SignalingServer(SignalConfig(port=0, join_timeout_s=0.5, max_message_bytes=4096), TOKEN)
-    await s.start()
-    yield s
-    await s.stop()
+    async with running_server(TOKEN, join_timeout_s=0.5, max_message_bytes=4096) as s:
+        yield s
 
 
 async def _client(server, role="expert", room="r1", token=TOKEN):
     c = SignalingClient(server.url, room, role, token)
     joined = await c.join()
     return c, joined
-
-
-async def _raw(server):
-    session = aiohttp.ClientSession()
-    ws = await session.ws_connect(server.url)
-    return session, ws
-
-
-async def _closed_with(ws) -> int:
-    """Read until the server closes; the close code."""
-    while True:
-        m = await asyncio.wait_for(ws.receive(), 5)
-        if m.type in (aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSED, aiohttp.WSMsgType.CLOSING):
-            return ws.close_code
 
 
 async def test_join_relay_and_presence(server):
@@ -146,12 +130,12 @@ async def test_third_peer_and_duplicate_role_are_refused(server):
 )
 async def test_bad_first_messages_close_only_that_connection(server, payload, code):
     expert, _ = await _client(server, "expert")
-    session, ws = await _raw(server)
+    session, ws = await raw_ws(server.url)
     if isinstance(payload, bytes):
         await ws.send_bytes(payload)
     else:
         await ws.send_str(payload)
-    assert await _closed_with(ws) == code
+    assert await closed_with(ws) == code
     await session.close()
     # the server still serves the room
     follower, joined = await _client(server, "follower")
@@ -162,31 +146,42 @@ async def test_bad_first_messages_close_only_that_connection(server, payload, co
 
 async def test_out_of_order_after_join_closes_that_peer_and_tells_the_other(server):
     expert, _ = await _client(server, "expert")
-    session, ws = await _raw(server)
+    session, ws = await raw_ws(server.url)
     await ws.send_str(
         json.dumps({"type": "join", "room": "r1", "role": "follower", "token": TOKEN})
     )
     assert json.loads((await ws.receive()).data)["peer_present"] is True
     assert await expert.receive() == PeerJoined(role="follower")
     await ws.send_str(json.dumps({"type": "offer", "sdp": "x"}))  # followers do not offer
-    assert await _closed_with(ws) == CLOSE_OUT_OF_ORDER
+    assert await closed_with(ws) == CLOSE_OUT_OF_ORDER
     assert await expert.receive() == PeerLeft(role="follower")
     await session.close()
     await expert.close()
 
 
 async def test_second_join_and_silence_are_refused(server):
-    session, ws = await _raw(server)
+    session, ws = await raw_ws(server.url)
     join = json.dumps({"type": "join", "room": "r9", "role": "expert", "token": TOKEN})
     await ws.send_str(join)
     await ws.receive()
     await ws.send_str(join)
-    assert await _closed_with(ws) == CLOSE_OUT_OF_ORDER
+    assert await closed_with(ws) == CLOSE_OUT_OF_ORDER
     await session.close()
-    session, ws = await _raw(server)  # says nothing: closed after join_timeout_s
-    assert await _closed_with(ws) == CLOSE_JOIN_TIMEOUT
+    session, ws = await raw_ws(server.url)  # says nothing: closed after join_timeout_s
+    assert await closed_with(ws) == CLOSE_JOIN_TIMEOUT
     await session.close()
     assert server.rooms == {}
+
+
+async def test_stop_tells_joined_peers_the_server_is_going_away():
+    async with running_server(TOKEN) as s:
+        c, _ = await _client(s)
+        listening = asyncio.create_task(c.receive())  # as a link does
+        session, _ = await raw_ws(s.url)  # upgraded, never joins nor reads
+        await asyncio.wait_for(s.stop(), 10)
+    with pytest.raises(SignalingError, match="code 1001"):
+        await asyncio.wait_for(listening, 5)
+    await session.close()
 
 
 def test_token_resolution_and_dev_token_only_on_loopback(monkeypatch):
@@ -196,8 +191,9 @@ def test_token_resolution_and_dev_token_only_on_loopback(monkeypatch):
     monkeypatch.delenv(TOKEN_ENV)
     assert resolve_token(None) == DEV_TOKEN
     with pytest.raises(ConfigError, match="token"):
-        SignalingServer(SignalConfig(host="0.0.0.0"))
-    SignalingServer(SignalConfig(host="0.0.0.0"), token="real")  # fine with a real token
+        SignalingServer(SignalConfig(host="0.0.0.0", insecure=True))
+    # fine with a real token (and TLS, or insecure behind a TLS proxy)
+    SignalingServer(SignalConfig(host="0.0.0.0", insecure=True), token="real")
 
 
 def test_cli_runs_and_refuses_bad_config(tmp_path, capsys):
@@ -207,3 +203,9 @@ def test_cli_runs_and_refuses_bad_config(tmp_path, capsys):
     bad.write_text("port = 70000\n")
     assert main(["signal", "--config", str(bad)]) == 2
     assert "port" in capsys.readouterr().err
+
+
+def test_shipped_config_is_the_defaults():
+    from humantele.config import CONFIG_DIR, load_config
+
+    assert load_config(SignalConfig, CONFIG_DIR / "signal.toml") == SignalConfig()

@@ -33,6 +33,11 @@ FATAL_CLOSE_CODES = frozenset({CLOSE_UNAUTHORIZED, CLOSE_BAD_MESSAGE})
 
 ROOM_PATTERN = r"^[A-Za-z0-9_.-]{1,64}$"
 MAX_SDP_CHARS = 60_000
+MAX_REASON_CHARS = 200
+"""Longest ``error`` reason (characters)."""
+MAX_CLOSE_REASON_BYTES = 123
+"""Longest close-frame reason (UTF-8 bytes): RFC 6455 5.5 allows 125 payload bytes, 2 of them
+the close code."""
 
 Role = Literal["expert", "follower"]
 
@@ -85,7 +90,7 @@ class PeerLeft(_Msg):
 
 class Error(_Msg):
     type: Literal["error"] = "error"
-    reason: Annotated[str, Field(max_length=200)]
+    reason: Annotated[str, Field(max_length=MAX_REASON_CHARS)]
 
 
 ClientMessage = Annotated[Join | Offer | Answer, Field(discriminator="type")]
@@ -104,6 +109,31 @@ def parse(adapter: TypeAdapter, text: str) -> BaseModel:
         err = exc.errors(include_input=False)[0]
         loc = ".".join(str(p) for p in err["loc"]) or "(message)"
         raise ValueError(f"{loc}: {err['msg']}") from None
+
+
+def printable(text: str) -> str:
+    """``text`` with every non-printable character (newline, escape, bidi control, lone
+    surrogate...) written as its Python escape, so a client-supplied value stays on one log
+    line and shows what it is."""
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode() for c in text)
+
+
+def clip_utf8(text: str, max_bytes: int) -> str:
+    """The longest prefix of ``text`` whose UTF-8 encoding fits in ``max_bytes`` (never cuts a
+    character in two)."""
+    data = text.encode("utf-8", "backslashreplace")
+    if len(data) <= max_bytes:
+        return data.decode("utf-8")
+    return data[:max_bytes].decode("utf-8", "ignore")
+
+
+def safe_reason(text: str) -> str:
+    """A refusal reason fit for a log line and an ``error`` message: printable, at most
+    :data:`MAX_REASON_CHARS` characters."""
+    text = printable(text)
+    return text if len(text) <= MAX_REASON_CHARS else text[: MAX_REASON_CHARS - 3] + "..."
 
 
 def resolve_token(configured: SecretStr | str | None) -> str:

@@ -3,23 +3,41 @@ follower, relaying complete SDP offers and answers (protocol in :mod:`humantele.
 
 A bad peer only loses its own connection: a wrong or missing token, a full room, a malformed,
 oversized or out-of-order message each close that socket with a reason; every other room keeps
-working. Dead sockets are found by WebSocket pings every ``heartbeat_s``. The token is never
-logged.
+working. Every connection has a deadline at each stage: the WebSocket handshake (TLS included)
+within ``handshake_timeout_s`` of accept, the join within ``join_timeout_s`` of the upgrade,
+then WebSocket pings every ``heartbeat_s`` find dead or silent peers. Open connections are capped
+in total and per client address (:mod:`humantele.signaling.guard`).
+
+With ``tls_cert`` (and ``tls_key``) it serves ``wss://``; a non-loopback host without TLS is
+refused unless ``insecure`` (for a server behind a TLS proxy, see docs/signaling.md). Logs quote
+every client-supplied value and never show the token.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import errno
 import logging
 import signal
+import ssl
+import sys
 from collections import Counter
 from dataclasses import dataclass, field
+from typing import Self
 
-from aiohttp import WSMsgType, web
-from pydantic import Field, SecretStr
+from aiohttp import WSCloseCode, WSMsgType, web
+from pydantic import Field, FilePath, SecretStr, model_validator
 
-from humantele.config import ConfigError, ConfigModel, load_config
+from humantele.config import ConfigError, ConfigModel, load_config, validate_config
+from humantele.signaling.guard import (
+    ACCEPT_BACKLOG,
+    FD_RESERVE,
+    AcceptErrorLog,
+    GuardedServer,
+    RateLimitedLog,
+    fd_soft_limit,
+)
 from humantele.signaling.messages import (
     CLIENT_MESSAGE,
     CLOSE_BAD_MESSAGE,
@@ -29,6 +47,7 @@ from humantele.signaling.messages import (
     CLOSE_SERVER_FULL,
     CLOSE_UNAUTHORIZED,
     DEV_TOKEN,
+    MAX_CLOSE_REASON_BYTES,
     SIGNALING_PROTOCOL,
     Answer,
     Error,
@@ -37,9 +56,12 @@ from humantele.signaling.messages import (
     Offer,
     PeerJoined,
     PeerLeft,
+    clip_utf8,
     is_loopback,
     parse,
+    printable,
     resolve_token,
+    safe_reason,
     token_matches,
 )
 
@@ -53,14 +75,48 @@ class SignalConfig(ConfigModel):
     port: int = Field(8765, ge=0, le=65535)
     path: str = Field("/ws", pattern=r"^/[A-Za-z0-9_/.-]*$")
     token: SecretStr | None = None  # else $HUMANTELE_TOKEN, else the loopback-only dev token
+    tls_cert: FilePath | None = None  # PEM certificate (chain): serve wss://
+    tls_key: FilePath | None = None  # PEM private key of tls_cert (if not inside tls_cert)
+    insecure: bool = False  # allow plain ws:// on a non-loopback host (behind a TLS proxy only)
     max_message_bytes: int = Field(65536, ge=1024, le=1 << 22)
-    join_timeout_s: float = Field(5.0, gt=0, le=60)
+    handshake_timeout_s: float = Field(10.0, gt=0, le=120)  # accept -> WebSocket upgrade
+    join_timeout_s: float = Field(5.0, gt=0, le=60)  # upgrade -> join message
     heartbeat_s: float = Field(2.0, gt=0, le=60)
     max_rooms: int = Field(1000, ge=1)
+    max_connections: int = Field(512, ge=2)  # open at once (lowered to fit `ulimit -n`)
+    max_connections_per_address: int = Field(16, ge=2)  # from one client address
+
+    @model_validator(mode="after")
+    def _tls_pair(self) -> Self:
+        if self.tls_key is not None and self.tls_cert is None:
+            raise ValueError("tls_key needs tls_cert")
+        return self
+
+    @property
+    def scheme(self) -> str:
+        return "ws" if self.tls_cert is None else "wss"
+
+
+def server_tls_context(config: SignalConfig) -> ssl.SSLContext | None:
+    """The TLS context serving ``config.tls_cert``; None without TLS; ConfigError naming the
+    field if the certificate or key cannot be loaded."""
+    if config.tls_cert is None:
+        return None
+    ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    ctx.minimum_version = ssl.TLSVersion.TLSv1_2
+    try:
+        ctx.load_cert_chain(config.tls_cert, config.tls_key)
+    except (ssl.SSLError, OSError) as exc:
+        field_name = "tls_cert" if config.tls_key is None else "tls_cert/tls_key"
+        raise ConfigError(
+            f"{field_name}: cannot load the certificate and key: {exc.strerror or exc}"
+        ) from None
+    return ctx
 
 
 class _Refuse(Exception):
     def __init__(self, code: int, reason: str) -> None:
+        reason = safe_reason(reason)  # it quotes client input: keep it one short line
         super().__init__(reason)
         self.code = code
         self.reason = reason
@@ -79,43 +135,113 @@ class SignalingServer:
     def __init__(self, config: SignalConfig | None = None, token: str | None = None) -> None:
         self.config = config or SignalConfig()
         self._token = token if token is not None else resolve_token(self.config.token)
-        if self._token == DEV_TOKEN and not is_loopback(self.config.host):
+        host = self.config.host
+        if self._token == DEV_TOKEN and not is_loopback(host):
             raise ConfigError(
                 "token: the development token is only allowed on a loopback host; "
                 "set token or $HUMANTELE_TOKEN"
             )
+        self._ssl = server_tls_context(self.config)
+        if self._ssl is None and not is_loopback(host) and not self.config.insecure:
+            raise ConfigError(
+                f"host: {host} is not a loopback address and there is no TLS, so the token "
+                "would cross the network in clear; set tls_cert and tls_key (--tls-cert, "
+                "--tls-key) to serve wss://, or insecure = true (--insecure) only behind a TLS "
+                "proxy (docs/signaling.md)"
+            )
         self.rooms: dict[str, _Room] = {}
         self.counters: Counter[str] = Counter()
-        self._runner: web.AppRunner | None = None
+        self.guard: GuardedServer | None = None
+        self._runner: web.ServerRunner | None = None
+        self._listener: asyncio.Server | None = None
+        self._accept_errors: AcceptErrorLog | None = None
+        self._sockets: set[web.WebSocketResponse] = set()
+        self._refusals = RateLimitedLog(log)
         self.port: int | None = None
-
-    def app(self) -> web.Application:
-        app = web.Application()
-        app.router.add_get(self.config.path, self._handle)
-        return app
 
     @property
     def url(self) -> str:
-        """ws:// URL clients connect to (after start)."""
-        return f"ws://{self.config.host}:{self.port}{self.config.path}"
+        """ws:// or wss:// URL clients connect to (after start)."""
+        host = self.config.host
+        host = f"[{host}]" if ":" in host else host
+        return f"{self.config.scheme}://{host}:{self.port}{self.config.path}"
+
+    def connection_cap(self) -> int:
+        """``max_connections``, lowered to fit this process's descriptor limit."""
+        cap = self.config.max_connections
+        limit = fd_soft_limit()
+        if limit is not None and cap > limit - FD_RESERVE:
+            cap = max(2, limit - FD_RESERVE)
+            log.warning(
+                "signaling: max_connections lowered from %d to %d to fit the descriptor limit "
+                "(ulimit -n %d)", self.config.max_connections, cap, limit,
+            )  # fmt: skip
+        return cap
 
     async def start(self) -> None:
-        self._runner = web.AppRunner(self.app(), handle_signals=False, access_log=None)
+        """Bind and serve; OSError if the address cannot be bound (in use, unresolvable)."""
+        cfg = self.config
+        loop = asyncio.get_running_loop()
+        self.guard = GuardedServer(
+            self._handle,
+            max_connections=self.connection_cap(),
+            max_per_address=cfg.max_connections_per_address,
+            handshake_timeout_s=cfg.handshake_timeout_s,
+            counters=self.counters,
+            logger=log,
+            access_log=None,
+            keepalive_timeout=cfg.handshake_timeout_s,  # aiohttp's idle timer agrees with ours
+            max_headers=64,
+        )
+        self._runner = web.ServerRunner(self.guard, shutdown_timeout=2.0)
         await self._runner.setup()
-        site = web.TCPSite(self._runner, self.config.host, self.config.port)
-        await site.start()
-        self.port = site._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
+        try:
+            self._listener = await loop.create_server(
+                self.guard, cfg.host, cfg.port, ssl=self._ssl, backlog=ACCEPT_BACKLOG,
+                ssl_handshake_timeout=cfg.handshake_timeout_s if self._ssl else None,
+            )  # fmt: skip
+        except BaseException:
+            await self._runner.cleanup()
+            self._runner = None
+            raise
+        self._accept_errors = AcceptErrorLog(loop, log, self.counters)
+        self.port = self._listener.sockets[0].getsockname()[1]
         log.info("signaling server listening on %s", self.url)
 
     async def stop(self) -> None:
+        """Stop listening, tell every connected peer the server is going away, close."""
+        if self._listener is not None:
+            self._listener.close()
+        await asyncio.gather(
+            *(
+                ws.close(code=WSCloseCode.GOING_AWAY, message=b"server stopping")
+                for ws in self._sockets
+            ),
+            return_exceptions=True,
+        )
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None
+        if self._listener is not None:
+            await self._listener.wait_closed()
+            self._listener = None
+        if self._accept_errors is not None:
+            self._accept_errors.remove()
+            self._accept_errors = None
 
-    async def _handle(self, request: web.Request) -> web.WebSocketResponse:
+    async def _handle(self, request: web.BaseRequest) -> web.StreamResponse:
         cfg = self.config
-        ws = web.WebSocketResponse(max_msg_size=cfg.max_message_bytes, heartbeat=cfg.heartbeat_s)
+        if request.path != cfg.path:
+            return web.Response(status=404, text="not found\n")
+        if request.method != "GET":
+            return web.Response(status=405, text="method not allowed\n")
+        ws = web.WebSocketResponse(
+            max_msg_size=cfg.max_message_bytes, heartbeat=cfg.heartbeat_s, timeout=2.0
+        )  # timeout: for the close handshake
         await ws.prepare(request)
+        if self.guard is not None:
+            self.guard.handshake_done(request.protocol)
+        self._sockets.add(ws)
         where = request.remote or "?"
         joined: tuple[str, str] | None = None
         try:
@@ -144,11 +270,16 @@ class SignalingServer:
                 await self._relay(msg, *joined)
         except _Refuse as refusal:
             self.counters[f"refused:{refusal.code}"] += 1
-            log.info("signaling peer %s refused: %s", where, refusal.reason)
+            self._refusals.log(
+                logging.INFO, refusal.code, "signaling peer %s refused: %s",
+                printable(where), refusal.reason,
+            )  # fmt: skip
             if not ws.closed:
                 await self._send_quietly(ws, Error(reason=refusal.reason).model_dump_json())
-                await ws.close(code=refusal.code, message=refusal.reason[:120].encode())
+                close_reason = clip_utf8(refusal.reason, MAX_CLOSE_REASON_BYTES)
+                await ws.close(code=refusal.code, message=close_reason.encode())
         finally:
+            self._sockets.discard(ws)
             if joined is not None:
                 await self._leave(ws, *joined)
         return ws
@@ -160,7 +291,7 @@ class SignalingServer:
         if m.type == WSMsgType.ERROR:
             # aiohttp reports oversized frames (and protocol errors) this way and closes.
             self.counters["refused:error_frame"] += 1
-            log.info("signaling socket error: %s", m.data)
+            log.info("signaling socket error: %s", printable(str(m.data)))
             return None
         if m.type != WSMsgType.TEXT:
             raise _Refuse(CLOSE_BAD_MESSAGE, "messages must be JSON text")
@@ -240,6 +371,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", help="TOML/JSON file with the server settings")
     parser.add_argument("--host", help="address to bind (default 127.0.0.1)")
     parser.add_argument("--port", type=int, help="TCP port (default 8765; 0 picks one)")
+    parser.add_argument("--tls-cert", help="PEM certificate (chain): serve wss://")
+    parser.add_argument("--tls-key", help="PEM private key of --tls-cert")
+    parser.add_argument(
+        "--insecure",
+        action="store_true",
+        default=None,
+        help="allow plain ws:// on a non-loopback host (only behind a TLS proxy)",
+    )
 
 
 async def serve(config: SignalConfig, stop: asyncio.Event | None = None) -> None:
@@ -253,12 +392,27 @@ async def serve(config: SignalConfig, stop: asyncio.Event | None = None) -> None
         await server.stop()
 
 
+def _bind_error(config: SignalConfig, exc: OSError) -> str:
+    reasons = {
+        errno.EADDRINUSE: "the port is in use (another server running?)",
+        errno.EACCES: "permission denied (ports below 1024 need privileges)",
+        errno.EADDRNOTAVAIL: "this machine has no such address",
+    }
+    reason = reasons.get(exc.errno or 0) or exc.strerror or str(exc)
+    return f"humantele signal: cannot listen on {config.host}:{config.port}: {reason}"
+
+
 def run(args: argparse.Namespace) -> int:
     config = load_config(SignalConfig, args.config)
-    updates = {k: v for k, v in (("host", args.host), ("port", args.port)) if v is not None}
+    flags = {
+        "host": args.host,
+        "port": args.port,
+        "tls_cert": args.tls_cert,
+        "tls_key": args.tls_key,
+        "insecure": args.insecure,
+    }
+    updates = {k: v for k, v in flags.items() if v is not None}
     if updates:
-        from humantele.config import validate_config
-
         config = validate_config(SignalConfig, {**config.model_dump(), **updates}, "command line")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
 
@@ -269,5 +423,9 @@ def run(args: argparse.Namespace) -> int:
             loop.add_signal_handler(sig, stop.set)
         await serve(config, stop)
 
-    asyncio.run(main())
+    try:
+        asyncio.run(main())
+    except OSError as exc:
+        print(_bind_error(config, exc), file=sys.stderr)
+        return 1
     return 0

@@ -7,6 +7,7 @@ from typing import Self
 from pydantic import Field, SecretStr, field_validator, model_validator
 
 from humantele.config import ConfigModel
+from humantele.signaling.client import CaFile
 from humantele.signaling.messages import ROOM_PATTERN
 
 
@@ -35,6 +36,7 @@ class LinkConfig(ConfigModel):
     """
 
     signaling_url: str = Field("ws://127.0.0.1:8765/ws", pattern=r"^wss?://\S+$")
+    signaling_ca_file: CaFile | None = None  # PEM CA/certificate to trust for wss:// (self-signed)
     room: str = Field("demo", pattern=ROOM_PATTERN)
     token: SecretStr | None = None
     ice_servers: list[IceServer] = Field(default_factory=list)
@@ -44,7 +46,7 @@ class LinkConfig(ConfigModel):
     heartbeat_interval_s: float = Field(0.5, gt=0, le=10)
     heartbeat_timeout_s: float = Field(2.0, gt=0, le=60)
     clock_sync_interval_s: float = Field(1.0, gt=0, le=60)
-    connect_timeout_s: float = Field(10.0, gt=0, le=120)
+    connect_timeout_s: float = Field(10.0, gt=0, le=120)  # joining signaling; a link after an offer
     reconnect_delay_s: float = Field(0.5, gt=0, le=60)
     reconnect_max_delay_s: float = Field(5.0, gt=0, le=600)
     # pose/state bytes allowed to wait in the sender (~28 poses): newer ones are dropped beyond

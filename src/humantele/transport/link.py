@@ -23,8 +23,9 @@ Behaviour:
   joins, after a lost link); the follower answers. Every negotiation uses a new
   RTCPeerConnection, so a peer whose process died and came back gets a fresh link.
 - ``state`` is ``"new"``, ``"connecting"``, ``"connected"``, ``"disconnected"`` (lost, waiting
-  for the peer), ``"failed"`` (refused: bad token or protocol) or ``"closed"``;
-  ``on_link_state(state)`` is called on every change.
+  for the peer), ``"unreachable"`` (no link and the signaling server cannot be reached or does
+  not answer; retried with backoff), ``"failed"`` (refused: bad token or protocol) or
+  ``"closed"``; ``on_link_state(state)`` is called on every change.
 - Heartbeats every ``heartbeat_interval_s`` on ``control``; with no message at all from the
   peer for ``heartbeat_timeout_s`` the link is declared lost, even when ICE has not noticed.
 - Clock sync: ping/pong on ``control`` (``clock``: a :class:`ClockSync`, offset and rtt).
@@ -84,7 +85,9 @@ from humantele.wire import (
 log = logging.getLogger(__name__)
 
 Role = Literal["expert", "follower"]
-LinkState = Literal["new", "connecting", "connected", "disconnected", "failed", "closed"]
+LinkState = Literal[
+    "new", "connecting", "connected", "disconnected", "unreachable", "failed", "closed"
+]
 
 CHANNEL_IDS = {"pose": 0, "state": 1, "control": 2}
 FAST_SYNC_PINGS = 8  # first pings after connecting go every 0.1 s, to sync quickly
@@ -255,6 +258,8 @@ class PeerLink:
                     if self._closing:
                         break
                     log.warning("%s link: %s; retrying in %.1f s", self.role, exc, delay)
+                    if self._state != "connected":
+                        self._set_state("unreachable")
                 else:
                     delay = self.config.reconnect_delay_s
                 if self._closing:
@@ -291,12 +296,17 @@ class PeerLink:
 
     async def _signaling_session(self) -> None:
         cfg = self.config
-        sig = SignalingClient(cfg.signaling_url, cfg.room, self.role, self._token)
+        sig = SignalingClient(
+            cfg.signaling_url, cfg.room, self.role, self._token,
+            ca_file=cfg.signaling_ca_file, connect_timeout_s=cfg.connect_timeout_s,
+        )  # fmt: skip
+        self._sig = sig  # so that close() ends a join in progress
         try:
             joined = await sig.join()
             if self._closing:
                 return
-            self._sig = sig
+            if self._state == "unreachable":
+                self._set_state("connecting")
             self.peer_present = joined.peer_present
             log.info("%s joined room %s (peer present: %s)", self.role, cfg.room, self.peer_present)
             if self.role == "expert" and self.peer_present and self._state != "connected":
