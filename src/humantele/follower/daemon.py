@@ -78,7 +78,7 @@ from humantele.follower.calibration import (
     CalibrationEvent,
     Calibrator,
 )
-from humantele.follower.feed import FeedConfig, RendererFeed
+from humantele.follower.feed import FeedConfig, RendererFeed, model_fields
 from humantele.follower.sim_human import (
     CalibrationScript,
     SimHead,
@@ -258,7 +258,7 @@ class FollowerDaemon:
         self.measurement = Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
         self.last_measure_t = -math.inf
         self.measurements = 0
-        self.feed = RendererFeed(config.feed)
+        self.feed = RendererFeed(config.feed, self.state_dir)
         self.link = PeerLink(
             "follower",
             config.link,
@@ -381,6 +381,7 @@ class FollowerDaemon:
                     "stale": self.virtual_stale(t),
                     "clutch": bool(self.last_pose.clutch) if self.last_pose else False,
                 },
+                t_origin=self.last_pose_rx,
             )
         if m.T_world_tip is not None:
             self.feed.publish(
@@ -393,6 +394,11 @@ class FollowerDaemon:
                     "tracking": m.status.name.lower(),
                 },
             )
+
+    def publish_model(self) -> None:
+        """The fitted ellipsoid (world frame) for the page's outline, if calibrated."""
+        if self.calibration is not None:
+            self.feed.publish("model", model_fields(self.calibration.ellipsoid))
 
     def publish_calibration(self, event: CalibrationEvent | None = None) -> None:
         step = self.calibrator.step if self.calibrating else None
@@ -440,6 +446,7 @@ class FollowerDaemon:
             self.send_control(CalibrationMsg(event="done"))
             self.send_model()
             self.record_model(t)
+            self.publish_model()
         self.publish_calibration(ev)
 
     # --- the tick -------------------------------------------------------------------------
@@ -640,6 +647,7 @@ class FollowerDaemon:
             "dropped_total": sum(self.link.counters.dropped.values()),
             "feed_clients": len(self.feed.clients),
             "feed_url": self.feed.url if self.feed.port else None,
+            "feed": self.feed.stats(),
             "ticks": self.ticks,
             "measurements": self.measurements,
             "tracking_lost": self.tracking_lost,
@@ -671,13 +679,14 @@ class FollowerDaemon:
             except BaseException:  # e.g. the port is taken: the recording is still closed
                 self.close_recording()
                 raise
-            log.info("follower: renderer feed at %s", self.feed.url)
+            print(f"humantele follower: {self.feed.banner()}", flush=True)
         link_task = asyncio.create_task(self.link.run())
         if self.calibration is None:
             self.start_calibration()
         else:
             log.info("follower: reusing the saved calibration %s", self.calibration_path)
         self.publish_calibration()
+        self.publish_model()
         try:
             async for t in daemon_ticks(
                 self.config.rate_hz,

@@ -1,49 +1,114 @@
-"""The follower's local feed for renderers: JSON objects over a WebSocket on loopback.
+"""The follower's headset page and its feed: one aiohttp server, ``https`` by default.
 
-A renderer (the headset page later, a test, a debugging tool) connects to
-``ws://HOST:PORT/feed`` and receives one JSON object per text message, each with a ``type``:
+``GET /`` is the headset page (:mod:`humantele.follower.web`, three.js vendored in the package);
+``GET /web/...`` its files; ``path`` (``/feed``) the feed, a WebSocket on the same origin (a
+``https`` page may only open ``wss://``). TLS uses the self-signed certificate kept in the
+follower's state dir (:mod:`humantele.web.tls`); plain ``http``/``ws`` is allowed on loopback
+only (``tls = false``, for tools and tests).
+
+The feed sends one JSON object per text message, each with a ``type``. Frames: the follower's
+**world** frame (the headset's: y up, metres), quaternions (x, y, z, w) as three.js uses them.
 
 ``virtual_probe``
-    where to draw the virtual transducer: ``position`` (m) and ``quaternion`` (x, y, z, w) of
-    its tip frame in the follower's **world** frame, ``age_ms`` since the expert sent it,
-    ``stale`` (true when no fresh pose came for a while or the link is down: draw it greyed),
-    ``clutch``.
+    where to draw the virtual transducer: ``position`` (m) and ``quaternion`` of its tip frame
+    (origin at the centre of the face, +z along the beam), ``age_ms`` since the expert sent it,
+    ``stale`` (no fresh pose for a while or the link is down), ``clutch``, and ``pose_id``
+    (new for each new pose; the page echoes it, see below).
 ``probe``
     the tracked real probe tip, world frame, with the measured force (N) and ``contact``.
+``model``
+    the fitted patient ellipsoid: ``center`` (m), ``semi_axes`` (m, along the patient frame's
+    x, y, z: body, up, lateral), ``quaternion`` (``T_world_patient``), ``bed_y`` (m); sent
+    when a calibration exists and on each new one.
 ``calibration``
     calibration progress: ``step`` (landmark asked for, or null), ``prompt`` (what to do),
     ``event``/``message`` (the last landmark taken or refused, and why), ``calibrated``.
 ``link``
     the link to the expert: ``state`` (``connected``, ``connecting``, ``disconnected``).
+``scan``
+    the scan in progress (``scan``, or null).
 
-Newer objects of a type replace older unsent ones (a slow renderer sees the latest pose, not a
+Newer objects of a type replace older unsent ones (a slow page sees the latest pose, not a
 backlog); ``coalesced`` counts those. A new client first gets the latest object of each type.
-Nothing a client sends is used; the feed never blocks the daemon.
+
+A page may send one kind of message, ``{"type": "drawn", "pose_id": N, "draw_to_send_ms": D}``:
+it drew pose N (first time) and sent this D ms after its draw call. The feed's added latency
+is then ``arrival - t_origin(N) - D``, where ``t_origin`` is when the follower received the
+pose: an upper bound on pose receipt to draw call that includes the echo's own transit.
+Anything else a page sends (malformed, unknown, a flood, an unknown or repeated id, a wrong
+``Origin``, too many pages) is refused and counted in ``refused``; the daemon goes on.
 """
 
 from __future__ import annotations
 
 import asyncio
+import base64
+import hashlib
+import ipaddress
 import json
 import logging
 import math
-from typing import Any
+import re
+import time
+from collections import Counter, OrderedDict, deque
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal
 
-from aiohttp import WSMsgType, web
-from pydantic import Field
+import numpy as np
+from aiohttp import WSCloseCode, WSMsgType, web
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from humantele.config import ConfigModel
+from humantele.signaling.messages import is_loopback
+from humantele.web.guard import MessageBudget, origin_allowed
+from humantele.web.tls import Certificate, ensure_certificate, local_hosts
 
 log = logging.getLogger(__name__)
 
+WEB_DIR = Path(str(resources.files("humantele.follower") / "web"))
+TLS_SUBDIR = "tls"
+MAX_PAGE_MESSAGE = 512  # bytes: a "drawn" echo is ~60
+ORIGINS_KEPT = 1024  # pose ids whose receipt time is kept for the echoes
+LATENCIES_KEPT = 20000
+FLOOD_CLOSE = 600  # a page refused this many times in a row for flooding is closed
+
 
 class FeedConfig(ConfigModel):
-    """Where the renderer feed listens (loopback by default; port 0 picks a free one)."""
+    """Where the headset page and its feed are served (all interfaces, ``https``, by default:
+    the headset is another device on the clinic's network; port 0 picks a free one)."""
 
     enabled: bool = True
-    host: str = "127.0.0.1"
+    host: str = Field("0.0.0.0", description="address to listen on ('0.0.0.0': all)")
     port: int = Field(8766, ge=0, le=65535)
     path: str = Field("/feed", pattern=r"^/[A-Za-z0-9_/.-]*$")
+    tls: bool = Field(True, description="https/wss with the self-signed certificate in state_dir")
+    hosts: list[str] = Field(
+        default_factory=list, description="more names for the certificate, e.g. a DNS name"
+    )
+    max_clients: int = Field(8, ge=1, le=256, description="pages at once; more are refused")
+    page_rate_hz: float = Field(
+        30.0, gt=0, le=1000, description="messages a page may send per second (more: dropped)"
+    )
+
+    @model_validator(mode="after")
+    def _plain_only_on_loopback(self) -> FeedConfig:
+        if not self.tls and not is_loopback(self.host):
+            raise ValueError(
+                f"tls = false serves plain http/ws: only on a loopback host, not {self.host!r}"
+            )
+        if self.path in ("/", "/web") or self.path.startswith("/web/"):
+            raise ValueError(f"path {self.path!r} is taken by the page")
+        return self
+
+
+class DrawnEcho(BaseModel):
+    """What a page sends: it drew pose ``pose_id`` and sent this ``draw_to_send_ms`` later."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+    type: Literal["drawn"]
+    pose_id: int = Field(ge=1)
+    draw_to_send_ms: float = Field(ge=0.0, le=10_000.0, allow_inf_nan=False)
 
 
 def _clean(obj: Any) -> Any:
@@ -59,35 +124,118 @@ def _clean(obj: Any) -> Any:
     return obj
 
 
+def model_fields(ellipsoid: Any) -> dict[str, Any]:
+    """The ``model`` object of a fitted :class:`humantele.haptics.ellipsoid.Ellipsoid` (world)."""
+    T = ellipsoid.T_world_patient
+    return {
+        "center": T.position,
+        "semi_axes": ellipsoid.semi_axes,
+        "quaternion": T.quaternion,
+        "bed_y": float(ellipsoid.center[1] - ellipsoid.semi_axes[1]),
+    }
+
+
 class _Client:
-    def __init__(self, ws: web.WebSocketResponse) -> None:
+    def __init__(self, ws: web.WebSocketResponse, budget: MessageBudget) -> None:
         self.ws = ws
+        self.budget = budget
         self.pending: dict[str, str] = {}
         self.wake = asyncio.Event()
+        self.last_echo = 0
+        self.flooding = 0
 
 
 class RendererFeed:
-    """The WebSocket server; ``publish(kind, fields)`` from the daemon's event loop."""
+    """The page and feed server; ``publish(kind, fields)`` from the daemon's event loop.
 
-    def __init__(self, config: FeedConfig | None = None) -> None:
+    ``cert_dir``: where the TLS certificate is kept (the follower's state dir); needed when
+    ``config.tls`` is on."""
+
+    def __init__(
+        self, config: FeedConfig | None = None, cert_dir: str | Path | None = None
+    ) -> None:
         self.config = config or FeedConfig()
+        self.cert_dir = None if cert_dir is None else Path(cert_dir).expanduser() / TLS_SUBDIR
+        self.certificate: Certificate | None = None
         self.port: int | None = None
         self.latest: dict[str, str] = {}
         self.clients: set[_Client] = set()
         self.sent = 0
         self.coalesced = 0
+        self.refused: Counter[str] = Counter()
+        self.disconnects = 0
+        self.echoes = 0
+        self.latencies: deque[float] = deque(maxlen=LATENCIES_KEPT)  # s, receipt to draw
+        self.pose_id = 0
+        self._pose_key: str | None = None
+        self._origins: OrderedDict[int, float] = OrderedDict()
         self._runner: web.AppRunner | None = None
+        self._index: bytes = b""
+        self._csp = ""
+
+    # --- addresses ------------------------------------------------------------------------
+
+    @property
+    def scheme(self) -> str:
+        return "https" if self.config.tls else "http"
+
+    def _local_host(self) -> str:
+        h = self.config.host
+        return "127.0.0.1" if h in ("", "0.0.0.0") else "::1" if h == "::" else h
 
     @property
     def url(self) -> str:
-        return f"ws://{self.config.host}:{self.port}{self.config.path}"
+        """The feed's WebSocket URL for a tool on this machine."""
+        ws = "wss" if self.config.tls else "ws"
+        return f"{ws}://{_url_host(self._local_host())}:{self.port}{self.config.path}"
+
+    @property
+    def page_url(self) -> str:
+        """The page's URL for the headset: the first non-loopback address the certificate
+        names (the machine's address on the clinic network), else loopback."""
+        host = self._local_host()
+        if self.certificate is not None and self.config.host in ("", "0.0.0.0", "::"):
+            for h in self.certificate.hosts:
+                try:
+                    ip = ipaddress.ip_address(h)
+                except ValueError:
+                    continue
+                if not ip.is_loopback and ip.version == 4:
+                    host = h
+                    break
+        return f"{self.scheme}://{_url_host(host)}:{self.port}/"
+
+    @property
+    def fingerprint(self) -> str | None:
+        return None if self.certificate is None else self.certificate.fingerprint_sha256
+
+    def banner(self) -> str:
+        """One line for the console: where the page is and the certificate to check."""
+        text = f"headset page {self.page_url}"
+        if self.certificate is not None:
+            text += f" (certificate SHA-256 {self.certificate.fingerprint_sha256})"
+        return text
+
+    # --- server ---------------------------------------------------------------------------
 
     async def start(self) -> None:
+        ssl_context = None
+        if self.config.tls:
+            if self.cert_dir is None:
+                raise ValueError("the feed serves TLS (tls = true) but has no cert_dir")
+            hosts = local_hosts(self.config.host, self.config.hosts)
+            self.certificate = await asyncio.to_thread(ensure_certificate, self.cert_dir, hosts)
+            ssl_context = self.certificate.ssl_context()
+        self._index, self._csp = _index_page(self.config.path)
         app = web.Application()
+        app.router.add_get("/", self._page)
         app.router.add_get(self.config.path, self._handle)
+        app.router.add_static("/web/", WEB_DIR, follow_symlinks=False)
         self._runner = web.AppRunner(app, handle_signals=False, access_log=None)
         await self._runner.setup()
-        site = web.TCPSite(self._runner, self.config.host, self.config.port)
+        site = web.TCPSite(
+            self._runner, self.config.host, self.config.port, ssl_context=ssl_context
+        )
         await site.start()
         self.port = site._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
 
@@ -98,33 +246,39 @@ class RendererFeed:
             await self._runner.cleanup()
             self._runner = None
 
-    def publish(self, kind: str, fields: dict[str, Any]) -> None:
-        """Send ``{"type": kind, **fields}`` to every client (latest wins per type)."""
-        text = json.dumps(_clean({"type": kind, **fields}), separators=(",", ":"))
+    async def _page(self, request: web.Request) -> web.Response:
+        return web.Response(
+            body=self._index,
+            content_type="text/html",
+            charset="utf-8",
+            headers={"Cache-Control": "no-cache", "Content-Security-Policy": self._csp},
+        )
+
+    # --- to the pages ---------------------------------------------------------------------
+
+    def publish(self, kind: str, fields: dict[str, Any], t_origin: float | None = None) -> None:
+        """Send ``{"type": kind, **fields}`` to every client (latest wins per type).
+
+        For ``virtual_probe``, a pose that differs from the last one gets a new ``pose_id``;
+        ``t_origin`` (``time.monotonic()`` when the follower received it; default now) is what
+        the page's echoes are measured from."""
+        obj = _clean({"type": kind, **fields})
+        if kind == "virtual_probe":
+            key = json.dumps([obj.get("position"), obj.get("quaternion"), obj.get("clutch")])
+            if key != self._pose_key:
+                self._pose_key = key
+                self.pose_id += 1
+                self._origins[self.pose_id] = time.monotonic() if t_origin is None else t_origin
+                while len(self._origins) > ORIGINS_KEPT:
+                    self._origins.popitem(last=False)
+            obj["pose_id"] = self.pose_id
+        text = json.dumps(obj, separators=(",", ":"))
         self.latest[kind] = text
         for c in self.clients:
             if kind in c.pending:
                 self.coalesced += 1
             c.pending[kind] = text
             c.wake.set()
-
-    async def _handle(self, request: web.Request) -> web.WebSocketResponse:
-        ws = web.WebSocketResponse(heartbeat=5.0, max_msg_size=4096)
-        await ws.prepare(request)
-        client = _Client(ws)
-        client.pending.update(self.latest)
-        client.wake.set()
-        self.clients.add(client)
-        sender = asyncio.create_task(self._send_loop(client))
-        try:
-            async for msg in ws:  # nothing from a renderer is used; just notice it leave
-                if msg.type == WSMsgType.ERROR:
-                    break
-        finally:
-            self.clients.discard(client)
-            sender.cancel()
-            await asyncio.gather(sender, return_exceptions=True)
-        return ws
 
     async def _send_loop(self, client: _Client) -> None:
         try:
@@ -137,3 +291,117 @@ class RendererFeed:
                     self.sent += 1
         except (ConnectionError, RuntimeError) as exc:
             log.debug("feed client gone: %s", exc)
+
+    # --- from the pages -------------------------------------------------------------------
+
+    async def _handle(self, request: web.Request) -> web.StreamResponse:
+        if not origin_allowed(request):
+            self.refused["origin"] += 1
+            return web.Response(status=403, text="wrong origin\n")
+        if len(self.clients) >= self.config.max_clients:
+            self.refused["too_many_clients"] += 1
+            return web.Response(status=503, text="too many pages open\n")
+        ws = web.WebSocketResponse(heartbeat=5.0, max_msg_size=MAX_PAGE_MESSAGE)
+        await ws.prepare(request)
+        rate = self.config.page_rate_hz
+        client = _Client(ws, MessageBudget(rate, max(1, int(2 * rate))))
+        client.pending.update(self.latest)
+        client.wake.set()
+        self.clients.add(client)
+        sender = asyncio.create_task(self._send_loop(client))
+        try:
+            async for msg in ws:
+                if msg.type == WSMsgType.ERROR:
+                    self.refused["too_big" if _too_big(ws) else "socket_error"] += 1
+                    break
+                if not client.budget.take():
+                    self.refused["flood"] += 1
+                    client.flooding += 1
+                    if client.flooding >= FLOOD_CLOSE:
+                        self.refused["closed_flooding"] += 1
+                        await ws.close(code=WSCloseCode.POLICY_VIOLATION, message=b"flood")
+                        break
+                    continue
+                client.flooding = 0
+                if msg.type != WSMsgType.TEXT:
+                    self.refused["malformed"] += 1
+                    continue
+                self._on_page_message(client, msg.data)
+        finally:
+            self.clients.discard(client)
+            self.disconnects += 1
+            sender.cancel()
+            await asyncio.gather(sender, return_exceptions=True)
+        return ws
+
+    def _on_page_message(self, client: _Client, text: str) -> None:
+        arrival = time.monotonic()
+        try:
+            echo = DrawnEcho.model_validate_json(text)
+        except ValidationError:
+            self.refused["malformed"] += 1
+            return
+        t_origin = self._origins.get(echo.pose_id)
+        if t_origin is None:
+            self.refused["unknown_pose"] += 1
+            return
+        if echo.pose_id <= client.last_echo:
+            self.refused["repeated_pose"] += 1
+            return
+        latency = arrival - t_origin - echo.draw_to_send_ms / 1000.0
+        if not 0.0 <= latency <= 10.0:
+            self.refused["implausible"] += 1
+            return
+        client.last_echo = echo.pose_id
+        self.echoes += 1
+        self.latencies.append(latency)
+
+    # --- figures --------------------------------------------------------------------------
+
+    def stats(self) -> dict[str, Any]:
+        """Counters and the latency figures (ms) for the daemon's stats."""
+        return {
+            "clients": len(self.clients),
+            "url": self.url if self.port else None,
+            "page_url": self.page_url if self.port else None,
+            "certificate_sha256": self.fingerprint,
+            "sent": self.sent,
+            "coalesced": self.coalesced,
+            "echoes": self.echoes,
+            "draw_latency_p50_ms": _percentile_ms(self.latencies, 50),
+            "draw_latency_p95_ms": _percentile_ms(self.latencies, 95),
+            "refused": dict(self.refused),
+            "refused_total": sum(self.refused.values()),
+            "disconnects": self.disconnects,
+        }
+
+
+def _percentile_ms(values_s: deque[float], q: float) -> float | None:
+    return round(float(np.percentile(values_s, q)) * 1000.0, 3) if values_s else None
+
+
+def _too_big(ws: web.WebSocketResponse) -> bool:
+    exc = ws.exception()
+    return getattr(exc, "code", None) == WSCloseCode.MESSAGE_TOO_BIG
+
+
+def _url_host(host: str) -> str:
+    return f"[{host}]" if ":" in host else host
+
+
+_IMPORT_MAP = re.compile(rb'<script type="importmap">(.*?)</script>', re.S)
+
+
+def _index_page(feed_path: str) -> tuple[bytes, str]:
+    """The page with the feed's path filled in, and its Content-Security-Policy (the inline
+    import map allowed by its hash, nothing else inline)."""
+    html = (WEB_DIR / "index.html").read_bytes().replace(b"{{FEED_PATH}}", feed_path.encode())
+    hashes = " ".join(
+        "'sha256-" + base64.b64encode(hashlib.sha256(m.group(1)).digest()).decode() + "'"
+        for m in _IMPORT_MAP.finditer(html)
+    )
+    csp = (
+        f"default-src 'self'; script-src 'self' {hashes}; connect-src 'self'; "
+        "img-src 'self' data: blob:; style-src 'self'; object-src 'none'; base-uri 'none'"
+    )
+    return html, csp

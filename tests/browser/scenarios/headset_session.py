@@ -1,0 +1,103 @@
+"""The headset page against the real daemons on sim devices (signaling server here, expert
+and follower as processes): the calibration prompt, following, the expert killed (not live)
+and rejoining, WebXR entry under IWER, bad page input counted by the follower."""
+
+from __future__ import annotations
+
+import asyncio
+
+from headset_views import BAD_INPUT_JS, CROSS_ORIGIN_JS, capture, next_frames
+from stage import page_url
+
+PORT = 8443  # a fixed port is free in our own namespace: the page keeps its URL on restart
+LIVE = "['green', 'amber', 'red'].includes(h.cue) && h.guide.live"
+
+
+async def hud_when(ctx, page, condition: str, timeout: float = 30.0) -> dict:
+    js = f"(() => {{ const h = headset.hud(); return ({condition}) ? h : null; }})()"
+    return await ctx.until(page, js, timeout)
+
+
+def feed_stats(s) -> dict:
+    return s.stats("follower").get("feed") or {}
+
+
+async def run(ctx) -> dict:
+    s = await ctx.daemons()
+    data: dict = {}
+    # 1. A follower whose technician has not pressed yet: the page asks for the xiphoid.
+    still = ctx.out / "no_presses.toml"
+    still.write_text("[follower]\nauto_calibrate = false\n")
+    await s.start("follower", "--config", str(still), "--feed-port", str(PORT))
+    await s.wait("the headset page", lambda e, f: (f.get("feed") or {}).get("page_url"))
+    data["follower_feed"] = feed_stats(s)
+    url = page_url(s.stats("follower"))
+    page = await ctx.page(url)
+    data["calibrating"] = await hud_when(ctx, page, "h.cue === 'calibrating'")
+    await next_frames(ctx, page)
+    await ctx.shot(page, "session_calibrating")
+
+    # 2. The follower again (same port), pressing, and the expert: calibration, then following.
+    await s.terminate("follower")
+    await s.start("follower", "--feed-port", str(PORT))
+    await s.start("expert")
+    data["steps_seen"] = []
+    for _ in range(900):  # the page reconnects by itself; watch the prompts go by
+        h = await page.evaluate("headset.hud()")
+        if h["cue"] == "calibrating" and h["headline"] not in data["steps_seen"]:
+            data["steps_seen"].append(h["headline"])
+        if h["cue"] != "calibrating" and h["cue"] != "stale" and h["guide"]["live"]:
+            break
+        await asyncio.sleep(0.1)
+
+    def following(e, f):
+        return f.get("calibrated") and f.get("link_state") == "connected"
+
+    await s.wait("calibrated and following", following)
+    data["following"] = await hud_when(ctx, page, f"{LIVE} && headset.state.model")
+    try:  # a picture once the novice has caught up (the checks do not need it)
+        await hud_when(ctx, page, f"{LIVE} && parseFloat(h.mm) < 25", timeout=30)
+    except AssertionError:
+        pass
+    data["view"] = await capture(ctx, page, "session_following")
+
+    # 3. The expert killed: the guide greys out and says why; the expert back: live again.
+    await s.kill("expert")
+    # Not live for good (a loaded machine may grey the guide for a moment before: older
+    # than 1.5 s, or the link found down, is the kill).
+    gone = "h.cue === 'stale' && (h.guide.ageMs === undefined || h.guide.ageMs > 1500)"
+    data["expert_killed"] = await hud_when(ctx, page, gone, timeout=30)
+    await ctx.shot(page, "session_stale")
+    await s.start("expert")
+    data["rejoined"] = await hud_when(ctx, page, LIVE, timeout=90)
+
+    # 4. WebXR under Meta's emulator (a Quest 3): immersive-ar is offered and entered.
+    xr_page = await ctx.page(url, iwer=True)
+    data["xr_supported"] = await ctx.until(xr_page, "headset.xr.supported", timeout=20)
+    await xr_page.click("#enter-ar")
+    data["xr_presenting"] = await ctx.until(xr_page, "headset.presenting", timeout=20)
+    f0 = await xr_page.evaluate("headset.frames")
+    await ctx.until(xr_page, f"headset.frames > {f0 + 10}", timeout=20)
+    data["xr_hud"] = await xr_page.evaluate("headset.hud()")
+    data["xr_error"] = await xr_page.evaluate("headset.xr.error")
+    await ctx.close_page(xr_page)
+
+    # 5. Bad input from pages; a tab closed mid-stream: counted, the follower goes on.
+    wss = url.replace("https://", "wss://") + "feed"
+    data["bad_input_close_code"] = await page.evaluate(BAD_INPUT_JS, wss)
+    other = await ctx.other_site()
+    data["cross_origin"] = await other.evaluate(CROSS_ORIGIN_JS, wss)
+    tab = await ctx.page(url)
+    await ctx.until(tab, "headset.frames > 5 && headset.state.messages > 5")
+    await ctx.close_page(tab)
+
+    def counted(e, f):
+        refused = (f.get("feed") or {}).get("refused", {})
+        return refused.get("origin", 0) >= 1 and refused.get("too_big", 0) >= 1
+
+    await s.wait("the refusals counted", counted)
+    uptime = s.stats("follower")["uptime_s"]
+    await s.wait("the follower going on", lambda e, f: f.get("uptime_s", 0) > uptime + 1.0)
+    data["still_live"] = await hud_when(ctx, page, LIVE)
+    data["follower"] = s.stats("follower")
+    return data

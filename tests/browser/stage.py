@@ -1,0 +1,232 @@
+"""What a browser scenario gets, inside its network namespace: :class:`Ctx`.
+
+``ctx.page(url)`` opens a page in headless Chromium (self-signed certificates accepted, the
+page's console errors collected, optionally Meta's IWER WebXR emulator installed first);
+``ctx.shot(page, name)`` saves a screenshot in the scenario's directory; ``ctx.daemons()``
+starts a signaling server here and the daemons as processes (tests/session's
+:class:`Session`: ``start``, ``kill``, ``stats``, ``wait``); ``ctx.demo()`` runs
+``humantele demo``; ``ctx.feed()`` serves the headset page from a feed in this process, which
+the scenario publishes to. Everything is stopped at the end, pages first (an aiohttp runner
+waits for open pages otherwise).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import secrets
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from playwright.async_api import Browser, BrowserContext, Page, async_playwright
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent / "session"))
+
+from netns import chromium_path  # noqa: E402
+from session_helpers import Session, read_json  # noqa: E402
+
+IWER = HERE / "vendor" / "iwer" / "iwer.min.js"
+CHROMIUM_ARGS = [
+    "--allow-loopback-in-peer-connection",  # WebRTC ICE on loopback, in the namespace
+    "--disable-features=WebRtcHideLocalIpsWithMdns",
+    "--autoplay-policy=no-user-gesture-required",
+    "--enable-unsafe-swiftshader",  # WebGL in software, headless
+    "--use-angle=swiftshader",
+]
+# Meta's emulator as a Quest 3, installed before any page script runs.
+IWER_INSTALL = "new IWER.XRDevice(IWER.metaQuest3).installRuntime({forceInstall: true});"
+
+
+class Ctx:
+    """A scenario's browser and the processes it started; use as ``async with``."""
+
+    def __init__(self, out_dir: Path, args: dict[str, Any]) -> None:
+        self.out = out_dir
+        self.args = args
+        self.browser: Browser | None = None
+        self.console_errors: list[str] = []
+        self._contexts: list[BrowserContext] = []
+        self._services = contextlib.AsyncExitStack()
+        self._pw = None
+
+    async def __aenter__(self) -> Ctx:
+        self._pw = await async_playwright().start()
+        extra = ["--no-sandbox"] if os.geteuid() == 0 else []
+        self.browser = await self._pw.chromium.launch(
+            executable_path=chromium_path(), args=[*CHROMIUM_ARGS, *extra]
+        )
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        for c in self._contexts:  # pages first
+            with contextlib.suppress(Exception):
+                await c.close()
+        await self._services.aclose()
+        if self.browser is not None:
+            await self.browser.close()
+        if self._pw is not None:
+            await self._pw.stop()
+
+    # --- the browser ----------------------------------------------------------------------
+
+    async def page(
+        self, url: str, iwer: bool = False, width: int = 1280, height: int = 800
+    ) -> Page:
+        """A new page (its own context) at ``url``; with ``iwer``, the WebXR emulator."""
+        assert self.browser is not None
+        context = await self.browser.new_context(
+            ignore_https_errors=True, viewport={"width": width, "height": height}
+        )
+        self._contexts.append(context)
+        if iwer:
+            await context.add_init_script(IWER.read_text() + "\n" + IWER_INSTALL)
+        page = await context.new_page()
+        page.on(
+            "console",
+            lambda m: self.console_errors.append(f"{url}: {m.text}") if m.type == "error" else None,
+        )
+        page.on("pageerror", lambda e: self.console_errors.append(f"{url}: {e}"))
+        await page.goto(url)
+        return page
+
+    async def until(self, page: Page, expression: str, timeout: float = 30.0) -> Any:
+        """Poll ``expression`` (JavaScript) in the page until it is truthy; its value.
+        (Playwright's ``wait_for_function`` evaluates strings, which the pages' CSP forbids;
+        ``page.evaluate`` is not subject to it.)"""
+        end = time.monotonic() + timeout
+        value = None
+        while time.monotonic() < end:
+            value = await page.evaluate(expression)
+            if value:
+                return value
+            await asyncio.sleep(0.05)
+        raise AssertionError(f"page: {expression!r} still {value!r} after {timeout} s")
+
+    async def close_page(self, page: Page) -> None:
+        """Close a page as a user closing the tab would."""
+        await page.context.close()
+        self._contexts.remove(page.context)
+
+    async def shot(self, page: Page, name: str) -> str:
+        """Save a screenshot as ``<name>.png`` in the scenario's directory; its file name."""
+        await page.screenshot(path=str(self.out / f"{name}.png"))
+        return f"{name}.png"
+
+    async def other_site(self) -> Page:
+        """A page from another origin (a blank page served here on another port)."""
+        url, stop = await _serve_blank()
+        self._services.push_async_callback(stop)
+        return await self.page(url)
+
+    # --- what the pages talk to -----------------------------------------------------------
+
+    async def daemons(self) -> Session:
+        """A signaling server here and a :class:`Session` to start the daemons with."""
+        from humantele.signaling.server import SignalConfig, SignalingServer
+
+        token = secrets.token_urlsafe(16)
+        server = SignalingServer(SignalConfig(port=0), token=token)
+        await server.start()
+        (self.out / "daemons").mkdir(exist_ok=True)
+        session = Session(self.out / "daemons", server, token)
+        self._services.push_async_callback(session.close)
+        return session
+
+    async def demo(self, *args: str) -> DemoRun:
+        """``humantele demo --keep ARGS`` running (its run directory is found under ours)."""
+        run = DemoRun(self.out / "demo")
+        await run.start(*args)
+        self._services.push_async_callback(run.stop)
+        return run
+
+    async def feed(self, **config: Any):
+        """A headset page and feed served from this process (TLS, certificate in ours)."""
+        from humantele.follower.feed import FeedConfig, RendererFeed
+
+        feed = RendererFeed(FeedConfig(port=0, **config), self.out / "feed-state")
+        await feed.start()
+        self._services.push_async_callback(feed.stop)
+        return feed
+
+
+async def _serve_blank(host: str = "127.0.0.1"):
+    """A page of another origin (another site, as far as a browser knows): its URL and a
+    stop function."""
+    from aiohttp import web
+
+    app = web.Application()
+    app.router.add_get("/", lambda r: web.Response(text="<!doctype html><title>other</title>",
+                                                   content_type="text/html"))  # fmt: skip
+    runner = web.AppRunner(app, access_log=None)
+    await runner.setup()
+    site = web.TCPSite(runner, host, 0)
+    await site.start()
+    port = site._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
+    return f"http://{host}:{port}/", runner.cleanup
+
+
+def page_url(follower_stats: dict) -> str | None:
+    """The headset page of a follower from its stats, on loopback (the namespace has no other
+    address the page could be reached at)."""
+    feed = follower_stats.get("feed") or {}
+    url = feed.get("page_url")
+    if not url:
+        return None
+    scheme, rest = url.split("://", 1)
+    port = rest.split("/", 1)[0].rsplit(":", 1)[1]
+    return f"{scheme}://127.0.0.1:{port}/"
+
+
+class DemoRun:
+    """``humantele demo`` as a process; ``follower()`` reads its follower's stats."""
+
+    def __init__(self, tmp: Path) -> None:
+        self.tmp = tmp
+        self.proc: asyncio.subprocess.Process | None = None
+
+    async def start(self, *args: str) -> None:
+        self.tmp.mkdir(parents=True, exist_ok=True)
+        env = dict(os.environ, TMPDIR=str(self.tmp))
+        env.pop("HUMANTELE_TOKEN", None)
+        log = open(self.tmp / "demo.log", "wb")  # noqa: SIM115 - the child has it
+        self.proc = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "humantele", "demo", "--keep", "--log-level", "INFO", *args,
+            stdin=asyncio.subprocess.DEVNULL, stdout=log, stderr=log, env=env,
+        )  # fmt: skip
+        log.close()
+
+    def run_dir(self) -> Path | None:
+        dirs = sorted(self.tmp.glob("humantele-demo-*"))
+        return dirs[0] if dirs else None
+
+    def stats(self, role: str) -> dict:
+        d = self.run_dir()
+        return {} if d is None else read_json(d / f"{role}.json")
+
+    async def wait(self, what: str, pred, timeout: float = 60.0) -> None:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if pred(self.stats("expert"), self.stats("follower")):
+                return
+            if self.proc is not None and self.proc.returncode is not None:
+                break
+            await asyncio.sleep(0.2)
+        raise AssertionError(
+            f"demo: failed waiting for {what}; follower {json.dumps(self.stats('follower'))}"
+        )
+
+    async def stop(self) -> None:
+        if self.proc is None or self.proc.returncode is not None:
+            return
+        self.proc.send_signal(signal.SIGTERM)
+        try:
+            await asyncio.wait_for(self.proc.wait(), 30)
+        except TimeoutError:
+            self.proc.kill()
+            await self.proc.wait()

@@ -1,0 +1,80 @@
+"""The headset page against the real daemons on sim devices: calibration prompt, following,
+the expert killed and rejoining, WebXR entry under IWER, bad page input counted."""
+
+import numpy as np
+import pytest
+from pixels import changed, changed_near, handle_point, matrix, project
+
+from humantele.geometry import Pose
+
+GREY = 0x8B9096
+
+
+@pytest.fixture(scope="module")
+def run(browser_scenario):
+    return browser_scenario("headset_session", timeout_s=420.0)
+
+
+@pytest.mark.slow
+def test_calibration_prompt_shows_the_landmark(run):
+    c = run.data["calibrating"]
+    assert c["headline"] == "Calibration 1 of 4: Xiphoid"
+    assert "xiphoid" in c["detail"] and c["steps"] == ["now", "", "", ""]
+    # With the person pressing, the page shows each landmark in turn (it reconnected by
+    # itself to the restarted follower at the same address).
+    assert run.data["steps_seen"][0].startswith("Calibration 1 of 4")
+    assert len(run.data["steps_seen"]) >= 2
+    assert run.data["follower_feed"]["certificate_sha256"].count(":") == 31
+
+
+@pytest.mark.slow
+def test_page_draws_the_expert_pose_with_ghost_and_outline(run):
+    view = run.data["view"]
+    v, p = view["virtual"], view["probe"]
+    assert np.allclose(
+        matrix(view["matrix"]["virtual"]),
+        Pose(v["position"], v["quaternion"]).as_matrix(),
+        atol=1e-6,
+    )
+    assert view["visible"] == {"virtual": True, "ghost": True, "outline": True}
+    cam = view["camera"]
+    mask = changed(run.path(view["shots"]["all"]), run.path(view["shots"]["virtual"]))
+    hits = [changed_near(mask, project(cam, handle_point(v, up)), 4) for up in (0.05, 0.08, 0.11)]
+    assert min(hits) > 0.5, hits
+    ghost = changed(run.path(view["shots"]["all"]), run.path(view["shots"]["ghost"]), 8)
+    assert changed_near(ghost, project(cam, handle_point(p, 0.11)), 6) > 0.2
+    outline = changed(run.path(view["shots"]["all"]), run.path(view["shots"]["outline"]), 20)
+    assert outline.sum() > 2000
+    assert view["hud"]["cue"] in ("green", "amber", "red")
+
+
+@pytest.mark.slow
+def test_stale_when_the_expert_is_killed_and_live_again_on_rejoin(run):
+    k = run.data["expert_killed"]
+    assert k["cue"] == "stale" and k["headline"] == "Guide paused: not live"
+    assert "Hold the probe still" in k["detail"] and not k["guide"]["live"]
+    assert k["colour"] == GREY
+    r = run.data["rejoined"]
+    assert r["guide"]["live"] and r["cue"] in ("green", "amber", "red")
+
+
+@pytest.mark.slow
+def test_webxr_session_entry_under_iwer(run):
+    assert run.data["xr_supported"] is True  # immersive-ar offered: the Enter AR button
+    assert run.data["xr_presenting"] is True and run.data["xr_error"] is None
+    assert run.data["xr_hud"]["headline"]  # the HUD keeps running in AR (DOM overlay)
+
+
+@pytest.mark.slow
+def test_bad_page_input_counted_by_the_follower_which_goes_on(run):
+    feed = run.data["follower"]["feed"]
+    refused = feed["refused"]
+    assert run.data["bad_input_close_code"] == 1009 and run.data["cross_origin"] == "refused"
+    assert refused.get("malformed", 0) >= 5 and refused.get("flood", 0) >= 1
+    assert refused.get("origin") == 1 and refused.get("too_big") == 1
+    assert feed["disconnects"] >= 3  # the bad page, the IWER page, the closed tab
+    assert run.data["still_live"]["guide"]["live"]
+    assert run.data["follower"]["tick_errors"] == 0
+    errors = [e for e in run.data["console_errors"]
+              if "WebSocket connection" not in e and "404" not in e]  # fmt: skip
+    assert errors == []
