@@ -56,20 +56,6 @@ from numpy.typing import NDArray
 from pydantic import Field
 
 from humantele.config import ConfigModel, load_config, validate_config
-from humantele.demo import (
-    ClockSyncLog,
-    CpuMeter,
-    SessionConfig,
-    add_session_arguments,
-    close_daemon_recording,
-    daemon_ticks,
-    on_stop_signals,
-    open_daemon_recording,
-    percentile_ms,
-    recorder_stats,
-    session_overrides,
-    write_stats,
-)
 from humantele.follower.calibration import (
     CALIBRATION_FILE,
     LANDMARKS,
@@ -89,7 +75,15 @@ from humantele.follower.sim_human import (
     SimPatientConfig,
 )
 from humantele.geometry import Pose, matrix_to_quat
-from humantele.recording import Recorder, RecorderConfig
+from humantele.recording import RecorderConfig
+from humantele.runtime.daemon import (
+    Daemon,
+    add_daemon_arguments,
+    daemon_overrides,
+    setup_logging,
+)
+from humantele.runtime.session import SessionConfig, recorder_stats
+from humantele.runtime.stats import percentile_ms
 from humantele.transport import LinkConfig, PeerLink
 from humantele.wire import (
     Calibration as CalibrationMsg,
@@ -236,8 +230,10 @@ class Sensing:
                 self.pipeline.close()
 
 
-class FollowerDaemon:
+class FollowerDaemon(Daemon):
     """The follower's state and its message handlers; :meth:`run` is the daemon."""
+
+    role = "follower"
 
     def __init__(
         self,
@@ -245,8 +241,7 @@ class FollowerDaemon:
         stats_file: str | None = None,
         sensing_config: object | None = None,
     ) -> None:
-        self.config = config
-        self.stats_file = stats_file
+        super().__init__(config, stats_file)
         self.state_dir = Path(config.state_dir).expanduser()
         self.calibration_path = self.state_dir / CALIBRATION_FILE
         self.calibration: Calibration | None = Calibration.load(self.calibration_path)
@@ -285,20 +280,14 @@ class FollowerDaemon:
         self.late_ticks = 0
         self.last_event: CalibrationEvent | None = None
         self.loaded_calibration = self.calibration is not None
-        self.cpu = CpuMeter()
-        self.t_start = time.monotonic()
-        self._stop = asyncio.Event()
         # The sensing worker (run() starts it; without it, tick() measures in line).
         self.executor: ThreadPoolExecutor | None = None
         self._sensing: Future | None = None
         self.sensing_skipped = 0
         self.sensing_times: deque[float] = deque(maxlen=2000)  # s per measurement, worker
-        # Scans (from the expert) and recording (opened by run(), or set by a caller).
+        # Scans (from the expert) and what has been recorded.
         self.scan: int | None = None
         self.scans_seen = 0
-        self.rec: Recorder | None = None
-        self.clock_log = ClockSyncLog("/follower/clock_sync")
-        self._last_report = -math.inf
         self._poses_reported = 0
         self._model_recorded: Calibration | None = None
 
@@ -605,17 +594,6 @@ class FollowerDaemon:
             value = float(np.median(list(self.pose_ages)[-new:]))
             self.rec.write("/follower/latency", t, {"name": "pose_one_way", "value_s": value})
 
-    def open_recording(self) -> bool:
-        """Open the recording of ``[follower.session]`` (if any); False, with a clear message
-        on stderr, if it cannot be recorded to."""
-        if self.rec is not None:
-            return True
-        ok, self.rec = open_daemon_recording("follower", self.config.session, self.config.recording)
-        return ok
-
-    def close_recording(self) -> None:
-        close_daemon_recording("follower", self.rec)
-
     def pose_rate_hz(self, window_s: float = 1.0) -> float:
         """Poses received per second over the last ``window_s``."""
         now = time.monotonic()
@@ -667,9 +645,7 @@ class FollowerDaemon:
         self.late_ticks += 1
 
     async def run(self, duration_s: float | None = None) -> int:
-        loop = asyncio.get_running_loop()
-        on_stop_signals(loop, self._stop.set)
-        if not self.open_recording():
+        if not self.start_run():
             return 2
         self.record_model()  # a saved calibration's model
         self.executor = ThreadPoolExecutor(1, thread_name_prefix="humantele-sensing")
@@ -688,12 +664,8 @@ class FollowerDaemon:
         self.publish_calibration()
         self.publish_model()
         try:
-            async for t in daemon_ticks(
-                self.config.rate_hz,
-                duration_s,
-                running=lambda: not self._stop.is_set() and not link_task.done(),
-                report=lambda: write_stats(self.stats_file, self.stats()),
-                on_late=self._count_late_tick,
+            async for t in self.loop_ticks(
+                self.config.rate_hz, duration_s, link_task, on_late=self._count_late_tick
             ):
                 self.ticks += 1
                 try:
@@ -704,15 +676,12 @@ class FollowerDaemon:
                     if self.tick_errors in (1, 10, 100, 1000):
                         log.exception("follower: tick failed (%d so far)", self.tick_errors)
         finally:
-            await self.link.close("follower stopping")
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await asyncio.wait_for(link_task, 5.0)
+            await self.close_link(self.link, link_task)
             await self.feed.stop()
             self.executor.shutdown(wait=True)  # the frame being measured ends first
             self.executor = None
             self.sensing.close()
-            self.close_recording()
-            write_stats(self.stats_file, self.stats())
+            self.finish_run()
         return 0
 
 
@@ -726,30 +695,20 @@ def _rms_scaled(values: list[float], scale: float) -> float | None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", help="TOML file; the [follower] section is used")
-    parser.add_argument("--signaling-url", help="signaling server, e.g. ws://127.0.0.1:8765/ws")
-    parser.add_argument("--room", help="session room name")
+    add_daemon_arguments(parser, "TOML file; the [follower] section is used")
     parser.add_argument("--state-dir", help="where the calibration is saved")
     parser.add_argument("--feed-port", type=int, help="renderer feed port (0 picks one)")
     parser.add_argument("--recalibrate", action="store_true", help="ignore a saved calibration")
-    parser.add_argument("--duration", type=float, help="stop after this many seconds")
-    parser.add_argument("--stats-file", help="write running figures (JSON) to this file")
-    parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
-    add_session_arguments(parser)
 
 
 def config_from_args(args: argparse.Namespace) -> FollowerConfig:
     config = load_config(FollowerConfig, args.config, "follower" if args.config else None)
     data = config.model_dump()
-    if args.signaling_url:
-        data["link"]["signaling_url"] = args.signaling_url
-    if args.room:
-        data["link"]["room"] = args.room
+    daemon_overrides(args, data)
     if args.state_dir:
         data["state_dir"] = args.state_dir
     if args.feed_port is not None:
         data["feed"]["port"] = args.feed_port
-    session_overrides(args, data)
     return validate_config(FollowerConfig, data, "command line")
 
 
@@ -763,11 +722,7 @@ def sensing_config_from_args(args: argparse.Namespace) -> object | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    logging.basicConfig(
-        level=getattr(logging, str(args.log_level).upper(), logging.WARNING),
-        format="%(asctime)s follower %(name)s: %(message)s",
-    )
-    logging.getLogger("aioice").setLevel(logging.WARNING)
+    setup_logging("follower", args.log_level)
     config = config_from_args(args)
     daemon = FollowerDaemon(config, args.stats_file, sensing_config_from_args(args))
     if args.recalibrate:
