@@ -42,8 +42,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from humantele.bench import report
-from humantele.bench.report import machine_line, markdown_table, write_section
+from humantele import report
+from humantele.report import machine_line, markdown_table, write_section
 
 ROOM = "bench"
 Q_IDENTITY = (0.0, 0.0, 0.0, 1.0)

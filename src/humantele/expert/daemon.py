@@ -1,6 +1,6 @@
 """``humantele expert``: the expert daemon (the sonographer's side).
 
-It runs the 1 kHz servo process (:class:`humantele.haptics.loop.ServoProcess`, its own OS
+It runs the 1 kHz servo process (:class:`humantele.haptics.servo.ServoProcess`, its own OS
 process), and at the link's pose rate:
 
 - reads the servo's latest sample (the stylus already mapped into the patient frame by the
@@ -58,7 +58,9 @@ from humantele.expert.mapping import (
 )
 from humantele.geometry import Pose, quat_conjugate, quat_multiply
 from humantele.haptics.ellipsoid import Ellipsoid
-from humantele.haptics.loop import ServoConfig, ServoError, ServoProcess
+from humantele.haptics.servo import ServoProcess
+from humantele.haptics.servo_config import ServoConfig
+from humantele.haptics.servo_layout import ServoError
 from humantele.recording import RecorderConfig
 from humantele.runtime.daemon import (
     Daemon,
