@@ -2,8 +2,9 @@
 
 Every tick (``rate_hz``, asyncio) it:
 
-1. moves the probe: the simulated person (:mod:`humantele.follower.sim_human`) follows the
-   virtual probe, or performs the calibration presses when calibrating;
+1. moves the probe: the simulated world (:mod:`humantele.follower.sim_world`: patient,
+   person, head) advances; its person follows the virtual probe, or performs the calibration
+   presses when calibrating;
 2. at the tracker's rate (``sensing_rate_hz``) measures it through the sensing pipeline
    (:mod:`humantele.follower.sensing` when present, else the truth behind the same small
    interface), so what it streams is what a real tracker and force sensor would give. The
@@ -67,13 +68,11 @@ from humantele.follower.calibration import (
 from humantele.follower.feed import FeedConfig, RendererFeed, model_fields
 from humantele.follower.sim_human import (
     CalibrationScript,
-    SimHead,
     SimHeadConfig,
-    SimHuman,
     SimHumanConfig,
-    SimPatient,
     SimPatientConfig,
 )
+from humantele.follower.sim_world import SimWorld, WorldTruth
 from humantele.geometry import Pose, matrix_to_quat
 from humantele.recording import RecorderConfig
 from humantele.runtime.daemon import (
@@ -144,16 +143,18 @@ class Measurement:
 
 
 @dataclass
-class Frame:
-    """One tracker frame's inputs: the tick time (s), the truths driving the sim sensors, the
-    head camera, and the virtual probe and target the tick had (for the alignment figure)."""
+class TrackerImage:
+    """One tracker image to measure: the simulated world at its time (what the sim sensors
+    see; ``truth.t`` is the tick time, s), and the virtual probe and target the tick had
+    (world frame, for the alignment figure)."""
 
-    t: float
-    true_tip: Pose | None
-    force: NDArray[np.float64]
-    camera: Pose | None
+    truth: WorldTruth
     virtual: Pose | None
     target: Pose | None
+
+    @property
+    def t(self) -> float:
+        return self.truth.t
 
 
 def _tip_transform(tool_name: str) -> Pose:
@@ -174,7 +175,7 @@ def _tip_transform(tool_name: str) -> Pose:
 
 class Sensing:
     """Measure the probe: the sensing pipeline (sim IR tracker and force sensor) by default,
-    else the truth. ``measure(t, T_world_tip_true, force_true_world)`` gives a
+    else the truth. ``measure(truth)`` (the simulated world at a tracker image) gives a
     :class:`Measurement`; a pipeline error gives a LOST measurement (counted), never a crash.
     """
 
@@ -192,13 +193,9 @@ class Sensing:
             else:
                 self.pipeline = ProbeSensing(sensing_config)
 
-    def measure(
-        self,
-        t: float,
-        T_world_tip: Pose | None,
-        force_world: NDArray,
-        T_world_camera: Pose | None = None,
-    ) -> Measurement:
+    def measure(self, truth: WorldTruth) -> Measurement:
+        t, T_world_tip, force_world = truth.t, truth.T_world_tip, truth.force_world
+        T_world_camera = truth.T_world_camera
         lost = Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
         if T_world_tip is None:
             return lost
@@ -246,9 +243,7 @@ class FollowerDaemon(Daemon):
         self.calibration_path = self.state_dir / CALIBRATION_FILE
         self.calibration: Calibration | None = Calibration.load(self.calibration_path)
         self.calibrator = Calibrator(config.calibration)
-        self.patient = SimPatient(config.sim_patient)
-        self.human = SimHuman(config.sim_human, self.patient)
-        self.head = SimHead(config.sim_head)
+        self.world = SimWorld(config.sim_patient, config.sim_human, config.sim_head)
         self.sensing = Sensing(config, sensing_config)
         self.measurement = Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
         self.last_measure_t = -math.inf
@@ -410,7 +405,7 @@ class FollowerDaemon(Daemon):
         self.calibrating = True
         self.calibrator.reset()
         self.record("/follower/calibration", time.monotonic(), {"event": "reset"})
-        self.script = CalibrationScript(self.patient) if self.config.auto_calibrate else None
+        self.script = self.world.calibration_script() if self.config.auto_calibrate else None
         self.script_t0 = time.monotonic()
         self.send_control(CalibrationMsg(event="start"))
         self.publish_calibration()
@@ -462,8 +457,7 @@ class FollowerDaemon(Daemon):
             target = virtual if fresh else None
             if target is not None and self.last_pose.clutch:
                 target = None  # the expert is re-indexing: hold still
-        true_tip = self.human.step(t, target)
-        force = np.zeros(3) if true_tip is None else self.patient.force(true_tip.position)
+        self.world.step(t, target)
         if self.calibrating or target is None:
             self.following_since = None
         elif self.following_since is None:
@@ -474,9 +468,7 @@ class FollowerDaemon(Daemon):
             # fraction of the tick rate (45 Hz from 100 Hz ticks, not 33); no catching up.
             late = t - self.last_measure_t >= 2.0 * frame_period
             self.last_measure_t = t if late else self.last_measure_t + frame_period
-            tip_pos = None if true_tip is None else true_tip.position
-            camera = self.head.step(t, tip_pos)
-            self.start_measurement(Frame(t, true_tip, force, camera, virtual, target))
+            self.start_measurement(TrackerImage(self.world.truth(t), virtual, target))
         # Video frame timestamps (/follower/video_frame: stream 'pov' or 'us', seq, event) are
         # recorded here once the follower has its POV and ultrasound tracks; there is no video
         # yet, so nothing is recorded for it.
@@ -484,13 +476,12 @@ class FollowerDaemon(Daemon):
 
     # --- measurements (sensing worker thread -> loop) -------------------------------------
 
-    def start_measurement(self, frame: Frame) -> None:
-        """Measure one tracker frame: on the sensing worker when the daemon runs (the result
-        is taken on the loop), else in line. Never two at once: a frame due while the previous
-        one is measured is skipped and counted."""
+    def start_measurement(self, frame: TrackerImage) -> None:
+        """Measure one tracker image: on the sensing worker when the daemon runs (the result
+        is taken on the loop), else in line. Never two at once: an image due while the
+        previous one is measured is skipped and counted."""
         if self.executor is None:
-            m = self.sensing.measure(frame.t, frame.true_tip, frame.force, frame.camera)
-            self.take_measurement(frame, m)
+            self.take_measurement(frame, self.sensing.measure(frame.truth))
             return
         if self._sensing is not None:
             self.sensing_skipped += 1
@@ -499,14 +490,14 @@ class FollowerDaemon(Daemon):
         self._sensing = fut
         fut.add_done_callback(lambda f: self._measured(frame, f))
 
-    def _measure(self, frame: Frame) -> Measurement:
+    def _measure(self, frame: TrackerImage) -> Measurement:
         """On the sensing worker: measure, and time it."""
         t0 = time.perf_counter()
-        m = self.sensing.measure(frame.t, frame.true_tip, frame.force, frame.camera)
+        m = self.sensing.measure(frame.truth)
         self.sensing_times.append(time.perf_counter() - t0)
         return m
 
-    def _measured(self, frame: Frame, fut: Future) -> None:
+    def _measured(self, frame: TrackerImage, fut: Future) -> None:
         self._sensing = None
         if fut.cancelled():
             return
@@ -520,7 +511,7 @@ class FollowerDaemon(Daemon):
             if self.tick_errors in (1, 10, 100, 1000):
                 log.exception("follower: measurement failed (%d so far)", self.tick_errors)
 
-    def take_measurement(self, frame: Frame, m: Measurement) -> None:
+    def take_measurement(self, frame: TrackerImage, m: Measurement) -> None:
         """One tracker frame measured: calibration, alignment, the state stream, recording."""
         self.measurement = m
         self.measurements += 1
