@@ -14,8 +14,9 @@ Every tick (``rate_hz``, asyncio) it:
 3. with each measurement: feeds the calibration (:mod:`humantele.follower.calibration`) while
    calibrating, streams the probe pose and force to the expert (``state``, patient frame) and
    records them;
-4. publishes the virtual probe to renderers (:mod:`humantele.follower.feed`, world frame;
-   ``stale`` when no fresh pose came or the link is down).
+4. publishes the measured probe to renderers (:mod:`humantele.follower.feed`, world frame),
+   and the virtual probe while it is ``stale`` (no fresh pose came or the link is down); a
+   fresh virtual probe is published as its pose arrives, not at the next tick.
 
 Frames: the headset's world frame (y up) here; the patient frame of the calibration on the
 wire (``T_world_patient`` from the saved calibration). Poses are of the transducer's tip frame
@@ -85,9 +86,7 @@ from humantele.runtime.session import SessionConfig, recorder_stats
 from humantele.runtime.stats import percentile_ms
 from humantele.transport import LinkConfig, PeerLink
 from humantele.wire import (
-    Calibration as CalibrationMsg,
-)
-from humantele.wire import (
+    CalibrationProgress,
     ControlMessage,
     EllipsoidModel,
     EllipsoidParams,
@@ -297,11 +296,12 @@ class FollowerDaemon(Daemon):
         age = self.link.age_of(msg.t_sent)
         if age is not None and math.isfinite(age):
             self.pose_ages.append(max(0.0, age))
+        self.publish_virtual(self.last_pose_rx)
 
     def on_control(self, msg: ControlMessage) -> None:
         if isinstance(msg, Hello):
             self.send_model()  # the expert (re)joined: give it the model we have
-        elif isinstance(msg, CalibrationMsg) and msg.event == "start":
+        elif isinstance(msg, CalibrationProgress) and msg.event == "start":
             self.start_calibration()
         elif isinstance(msg, Scan):
             self.on_scan(msg)
@@ -353,20 +353,30 @@ class FollowerDaemon(Daemon):
             )
         )
 
-    def publish_feed(self, t: float, virtual: Pose | None, m: Measurement) -> None:
-        age = None if self.last_pose is None else self.link.age_of(self.last_pose.t_sent)
-        if virtual is not None:
-            self.feed.publish(
-                "virtual_probe",
-                {
-                    "position": virtual.position,
-                    "quaternion": virtual.quaternion,
-                    "age_ms": None if age is None else age * 1000.0,
-                    "stale": self.virtual_stale(t),
-                    "clutch": bool(self.last_pose.clutch) if self.last_pose else False,
-                },
-                t_origin=self.last_pose_rx,
-            )
+    def publish_virtual(self, t: float) -> None:
+        """The virtual probe (world frame) to renderers, once calibrated: as each pose arrives
+        (from :meth:`on_pose`, so the page sees it at once), and at each tick while it is
+        stale (``t``: the time it is judged at, s)."""
+        virtual = self.virtual_world()
+        if virtual is None or self.last_pose is None:
+            return
+        age = self.link.age_of(self.last_pose.t_sent)
+        self.feed.publish(
+            "virtual_probe",
+            {
+                "position": virtual.position,
+                "quaternion": virtual.quaternion,
+                "age_ms": None if age is None else age * 1000.0,
+                "stale": self.virtual_stale(t),
+                "clutch": bool(self.last_pose.clutch),
+            },
+            t_origin=self.last_pose_rx,
+        )
+
+    def publish_feed(self, t: float, m: Measurement) -> None:
+        """At each tick: the virtual probe if it went stale, and the measured probe."""
+        if self.virtual_stale(t):
+            self.publish_virtual(t)
         if m.T_world_tip is not None:
             self.feed.publish(
                 "probe",
@@ -407,7 +417,7 @@ class FollowerDaemon(Daemon):
         self.record("/follower/calibration", time.monotonic(), {"event": "reset"})
         self.script = self.world.calibration_script() if self.config.auto_calibrate else None
         self.script_t0 = time.monotonic()
-        self.send_control(CalibrationMsg(event="start"))
+        self.send_control(CalibrationProgress(event="start"))
         self.publish_calibration()
 
     def on_calibration_event(self, ev: CalibrationEvent, t: float | None = None) -> None:
@@ -418,16 +428,18 @@ class FollowerDaemon(Daemon):
         self.record_calibration_event(t, ev)
         if ev.kind == "refused":
             self.send_control(
-                CalibrationMsg(event="error", index=index, point=point, detail=ev.message[:200])
+                CalibrationProgress(
+                    event="error", index=index, point=point, detail=ev.message[:200]
+                )
             )
         else:
-            self.send_control(CalibrationMsg(event="point", index=index, point=point))
+            self.send_control(CalibrationProgress(event="point", index=index, point=point))
         if ev.kind == "done" and self.calibrator.result is not None:
             self.calibration = self.calibrator.result
             self.calibration.save(self.calibration_path)
             self.calibrating = False
             self.script = None
-            self.send_control(CalibrationMsg(event="done"))
+            self.send_control(CalibrationProgress(event="done"))
             self.send_model()
             self.record_model(t)
             self.publish_model()
@@ -472,7 +484,7 @@ class FollowerDaemon(Daemon):
         # Video frame timestamps (/follower/video_frame: stream 'pov' or 'us', seq, event) are
         # recorded here once the follower has its POV and ultrasound tracks; there is no video
         # yet, so nothing is recorded for it.
-        self.publish_feed(t, virtual, self.measurement)
+        self.publish_feed(t, self.measurement)
 
     # --- measurements (sensing worker thread -> loop) -------------------------------------
 
