@@ -16,8 +16,8 @@ import time
 
 import numpy as np
 
-from humantele.bench.report import DOCS_DIR, machine_line, markdown_table, write_section
 from humantele.geometry import Pose, quat_from_axis_angle, quat_multiply
+from humantele.report import DOCS_DIR, machine_line, markdown_table, write_section
 from humantele.tracking.filter import FilterConfig
 from humantele.tracking.pipeline import PipelineConfig, Tracker
 from humantele.tracking.psf import estimate_psf_sigma
