@@ -151,7 +151,6 @@ def match_markers(
     if not hyps:
         return MatchResult("lost", None, 0, n_bad)
     n_refuted = 0
-    near_seen = tool.min_separation_mm / 1000.0
     hyp = np.array(hyps, dtype=np.intp)  # (H, M): candidate index per marker, -1 missing
     present = hyp >= 0
     counts = present.sum(axis=1)
@@ -174,7 +173,7 @@ def match_markers(
             # whose unmatched marker was seen (a candidate on its ray) but did not fit
             ok = np.array(
                 [
-                    not (p.refuse_seen_missing and _seen_unmatched(pl[~pr], pts, h_row, near_seen))
+                    not (p.refuse_seen_missing and _missing_contradicted(pl, pr, pts, h_row, tool))
                     and (explain_missing is None or bool(np.all(explain_missing(pl[~pr]))))
                     for pl, pr, h_row in zip(placed, present[rows[good]], h[good], strict=True)
                 ]
@@ -196,19 +195,35 @@ def match_markers(
     return MatchResult("lost", None, len(hyps), n_bad, n_refuted)
 
 
-def _seen_unmatched(
-    missing: NDArray[np.float64], pts: NDArray[np.float64], used: NDArray[np.intp], near_seen: float
+def _missing_contradicted(
+    placed: NDArray[np.float64],
+    present: NDArray[np.bool_],
+    pts: NDArray[np.float64],
+    used: NDArray[np.intp],
+    tool: ToolDefinition,
 ) -> bool:
-    """Whether a candidate point left out of the fit lies on the ray of a missing marker's
-    fitted place (within ``LATERAL_SEEN`` m across the ray, at any range) or within
-    ``near_seen`` m of it (the tool's marker spacing: nothing else belongs there)."""
-    rest = np.delete(pts, used[used >= 0], axis=0)
-    if len(rest) == 0 or len(missing) == 0:
-        return False
+    """Whether the fit's own evidence contradicts a marker it leaves unmatched.
+
+    ``placed`` (M, 3) the fitted marker centres, ``present`` (M,) which were matched,
+    ``pts`` the candidates, ``used`` (M,) candidate index per marker (-1 missing). True when
+    a candidate left out of the fit lies on a missing marker's ray (within ``LATERAL_SEEN``
+    m) or within the tool's marker spacing of its fitted place (seen, did not fit), or when
+    the fit puts a missing marker's image onto one of its matched markers' (it would have
+    merged with it: the detector would not have seen that marker whole).
+    """
+    missing = placed[~present]
     ray = missing / np.linalg.norm(missing, axis=1, keepdims=True)  # (K, 3)
+    own = placed[present]
+    if np.any(
+        np.linalg.norm(np.cross(own[None], ray[:, None]), axis=-1) < 2.0 * tool.sphere_radius
+    ):
+        return True
+    rest = np.delete(pts, used[used >= 0], axis=0)
+    if len(rest) == 0:
+        return False
     across = np.linalg.norm(np.cross(rest[None, :, :], ray[:, None, :]), axis=-1)
     near = np.linalg.norm(rest[None, :, :] - missing[:, None, :], axis=-1)
-    return bool(np.any(across < LATERAL_SEEN) or np.any(near < near_seen))
+    return bool(np.any(across < LATERAL_SEEN) or np.any(near < tool.min_separation_mm / 1000.0))
 
 
 def estimate_pose(
