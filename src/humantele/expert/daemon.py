@@ -102,7 +102,7 @@ class ExpertConfig(ConfigModel):
     """The expert daemon (``[expert]`` of configs/expert.toml; the servo has ``[servo]``)."""
 
     servo_restart_s: float = Field(2.0, gt=0, le=60, description="retry a dead servo after")
-    # Poses at 100 Hz, as the published system (ANCHORS); the follower's lag is ~0.35 s.
+    # Poses at 100 Hz, as the published system (C&G 2024, Table 1; docs/references.md).
     link: LinkConfig = LinkConfig(pose_rate_hz=100.0)
     mapping: MappingConfig = MappingConfig()
     scans: ScanScriptConfig = ScanScriptConfig()

@@ -6,11 +6,11 @@ Every tick (``rate_hz``, asyncio) it:
    person, head) advances; its person follows the virtual probe, or performs the calibration
    presses when calibrating;
 2. at the tracker's rate (``sensing_rate_hz``) measures it through the sensing pipeline
-   (:mod:`humantele.follower.sensing` when present, else the truth behind the same small
-   interface), so what it streams is what a real tracker and force sensor would give. The
-   pipeline (~5-7 ms a frame) runs on one worker thread, off the asyncio loop, so the pose
-   path is never held up; frames are measured in order and never overlap: a frame due while
-   the previous one is still measured is skipped (counted in ``sensing_skipped``);
+   (:mod:`humantele.follower.sensing`; ``probe_source = "truth"``: the simulated truth behind
+   the same small interface), so what it streams is what a real tracker and force sensor
+   would give. The pipeline (~5-7 ms a frame) runs on one worker thread, off the asyncio
+   loop, so the pose path is never held up; images are measured in order and never overlap:
+   an image due while the previous one is still measured is skipped (``sensing_skipped``);
 3. with each measurement: feeds the calibration (:mod:`humantele.follower.calibration`) while
    calibrating, streams the probe pose and force to the expert (``state``, patient frame) and
    records them;
@@ -67,6 +67,7 @@ from humantele.follower.calibration import (
     Calibrator,
 )
 from humantele.follower.feed import FeedConfig, RendererFeed, model_fields
+from humantele.follower.sensing import ProbeSensing, SensingConfig
 from humantele.follower.sim_human import (
     CalibrationScript,
     SimHeadConfig,
@@ -84,6 +85,7 @@ from humantele.runtime.daemon import (
 )
 from humantele.runtime.session import SessionConfig, recorder_stats
 from humantele.runtime.stats import percentile_ms
+from humantele.tracking.tool import load_tool
 from humantele.transport import LinkConfig, PeerLink
 from humantele.wire import (
     CalibrationProgress,
@@ -158,13 +160,8 @@ class TrackerImage:
 
 def _tip_transform(tool_name: str) -> Pose:
     """``T_probe_tip``: the tip frame on the tracked probe body (from the tool definition)."""
-    try:
-        from humantele.tracking.tool import load_tool
-
-        tool = load_tool(tool_name)
-        tip, z = np.asarray(tool.tip, dtype=float), np.asarray(tool.face_direction, dtype=float)
-    except (ImportError, AttributeError):  # no tracking package: the default tool's figures
-        tip, z = np.array([0.0, 0.0, -0.15]), np.array([0.0, 0.0, -1.0])
+    tool = load_tool(tool_name)
+    tip, z = np.asarray(tool.tip, dtype=float), np.asarray(tool.face_direction, dtype=float)
     z = z / np.linalg.norm(z)
     x = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     x = x - z * float(x @ z)
@@ -178,19 +175,14 @@ class Sensing:
     :class:`Measurement`; a pipeline error gives a LOST measurement (counted), never a crash.
     """
 
-    def __init__(self, config: FollowerConfig, sensing_config: object | None = None) -> None:
+    def __init__(self, config: FollowerConfig, sensing_config: SensingConfig | None = None) -> None:
         self.T_probe_tip = _tip_transform(config.tool)
         self.T_tip_probe = self.T_probe_tip.inverse()
         self.pipeline = None
         self.errors = 0
         self.contact_n = config.calibration.force_off_n
         if config.probe_source == "pipeline":
-            try:
-                from humantele.follower.sensing import ProbeSensing
-            except ImportError:
-                log.warning("follower: no sensing pipeline here; streaming the simulated truth")
-            else:
-                self.pipeline = ProbeSensing(sensing_config)
+            self.pipeline = ProbeSensing(sensing_config)
 
     def measure(self, truth: WorldTruth) -> Measurement:
         t, T_world_tip, force_world = truth.t, truth.T_world_tip, truth.force_world
@@ -235,7 +227,7 @@ class FollowerDaemon(Daemon):
         self,
         config: FollowerConfig,
         stats_file: str | None = None,
-        sensing_config: object | None = None,
+        sensing_config: SensingConfig | None = None,
     ) -> None:
         super().__init__(config, stats_file)
         self.state_dir = Path(config.state_dir).expanduser()
@@ -715,12 +707,8 @@ def config_from_args(args: argparse.Namespace) -> FollowerConfig:
     return validate_config(FollowerConfig, data, "command line")
 
 
-def sensing_config_from_args(args: argparse.Namespace) -> object | None:
+def sensing_config_from_args(args: argparse.Namespace) -> SensingConfig:
     """The ``[sensing]`` section of the follower's file (the sensing pipeline's own)."""
-    try:
-        from humantele.follower.sensing import SensingConfig
-    except ImportError:
-        return None
     return load_config(SensingConfig, args.config, "sensing" if args.config else None)
 
 

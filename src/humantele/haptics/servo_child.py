@@ -262,7 +262,7 @@ def _stats_row(timing: PeriodTiming, r: ForceRenderer, realtime: bool) -> list[f
         "period_p99_us": timing.percentile(0.99),
         "period_max_us": timing.max_us,
         "overruns": timing.overruns,
-        "periods_over_2t": timing.count_over(2.0 * timing.period),
+        "periods_over_2ms": timing.count_over(2.0 * timing.period),
         "late_ticks": c["late"],
         "stale_ticks": c["stale"],
         "device_errors": c["device"],

@@ -38,7 +38,8 @@ class ServoSample:
 @dataclass(frozen=True)
 class ServoStats:
     """Loop statistics since start. Periods are between tick starts (us); ``overruns``: periods
-    over 1.5 T (a tick slipped); ``periods_over_2t``: periods over 2 T (2 ms at 1 kHz);
+    over 1.5 T (a tick slipped); ``periods_over_2ms``: periods over 2 T (2 ms at
+    the 1 kHz the figure is named for);
     ``late_ticks``: later than late_after_s (fault)."""
 
     ticks: int
@@ -48,7 +49,7 @@ class ServoStats:
     period_p99_us: float
     period_max_us: float
     overruns: int
-    periods_over_2t: int
+    periods_over_2ms: int
     late_ticks: int
     stale_ticks: int
     device_errors: int
