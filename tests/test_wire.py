@@ -13,7 +13,7 @@ from humantele.wire import (
     PROTOCOL_VERSION,
     STATE_SIZE,
     Bye,
-    Calibration,
+    CalibrationProgress,
     EllipsoidModel,
     Hello,
     Ping,
@@ -157,7 +157,7 @@ def test_control_round_trip():
     msgs = [
         Hello(role="expert", software="x"),
         EllipsoidModel(model={"center": [0, 0.1, 0], "semi_axes": [0.15, 0.1, 10], "heading": 0.2}),
-        Calibration(event="point", index=2, point=(0.1, 0.0, -0.2)),
+        CalibrationProgress(event="point", index=2, point=(0.1, 0.0, -0.2)),
         Scan(action="start", scan_id="s-01"),
         Ping(seq=3, t0=1.5),
         Pong(seq=3, t0=1.5, t1=2.0, t2=2.1),

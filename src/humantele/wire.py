@@ -264,9 +264,10 @@ class EllipsoidModel(_Control):
     model: EllipsoidParams
 
 
-class Calibration(_Control):
+class CalibrationProgress(_Control):
     """Calibration progress: ``start``, a landmark ``point`` (index 0-3, position m in the
-    patient/world frame the calibration uses), ``done``, ``cancel`` or ``error``."""
+    patient/world frame the calibration uses), ``done``, ``cancel`` or ``error``. (The fitted
+    calibration itself is :class:`humantele.follower.calibration.Calibration`.)"""
 
     type: Literal["calibration"] = "calibration"
     event: Literal["start", "point", "done", "cancel", "error"]
@@ -317,7 +318,7 @@ class Bye(_Control):
 
 
 ControlMessage = Annotated[
-    Hello | EllipsoidModel | Calibration | Scan | Ping | Pong | Heartbeat | Bye,
+    Hello | EllipsoidModel | CalibrationProgress | Scan | Ping | Pong | Heartbeat | Bye,
     Field(discriminator="type"),
 ]
 _CONTROL = TypeAdapter(ControlMessage)

@@ -175,7 +175,11 @@ def test_process_runs_swaps_model_and_stops_cleanly():
         s = _wait(lambda: (x := sp.latest()) and x.tick > 300 and x.ramp == 1.0 and x)
         assert s.force[1] > 0.5 and s.depth > 0 and s.fault == ""
         assert s.force[1] == pytest.approx(300 * s.depth, rel=0.1)
-        assert isinstance(s.pose, Pose) and s.t <= time.monotonic()
+        assert (
+            isinstance(s.T_patient_stylus, Pose)
+            and isinstance(s.T_device_stylus, Pose)
+            and s.t <= time.monotonic()
+        )
         sp.set_model(None)
         _wait(lambda: (x := sp.latest()) and x.force == (0.0, 0.0, 0.0))
         st_ = _wait(lambda: (x := sp.stats()) and x.ticks > 0 and x)

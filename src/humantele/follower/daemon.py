@@ -6,16 +6,17 @@ Every tick (``rate_hz``, asyncio) it:
    person, head) advances; its person follows the virtual probe, or performs the calibration
    presses when calibrating;
 2. at the tracker's rate (``sensing_rate_hz``) measures it through the sensing pipeline
-   (:mod:`humantele.follower.sensing` when present, else the truth behind the same small
-   interface), so what it streams is what a real tracker and force sensor would give. The
-   pipeline (~5-7 ms a frame) runs on one worker thread, off the asyncio loop, so the pose
-   path is never held up; frames are measured in order and never overlap: a frame due while
-   the previous one is still measured is skipped (counted in ``sensing_skipped``);
+   (:mod:`humantele.follower.sensing`; ``probe_source = "truth"``: the simulated truth behind
+   the same small interface), so what it streams is what a real tracker and force sensor
+   would give. The pipeline (~5-7 ms a frame) runs on one worker thread, off the asyncio
+   loop, so the pose path is never held up; images are measured in order and never overlap:
+   an image due while the previous one is still measured is skipped (``sensing_skipped``);
 3. with each measurement: feeds the calibration (:mod:`humantele.follower.calibration`) while
    calibrating, streams the probe pose and force to the expert (``state``, patient frame) and
    records them;
-4. publishes the virtual probe to renderers (:mod:`humantele.follower.feed`, world frame;
-   ``stale`` when no fresh pose came or the link is down).
+4. publishes the measured probe to renderers (:mod:`humantele.follower.feed`, world frame),
+   and the virtual probe while it is ``stale`` (no fresh pose came or the link is down); a
+   fresh virtual probe is published as its pose arrives, not at the next tick.
 
 Frames: the headset's world frame (y up) here; the patient frame of the calibration on the
 wire (``T_world_patient`` from the saved calibration). Poses are of the transducer's tip frame
@@ -66,6 +67,7 @@ from humantele.follower.calibration import (
     Calibrator,
 )
 from humantele.follower.feed import FeedConfig, RendererFeed, model_fields
+from humantele.follower.sensing import ProbeSensing, SensingConfig
 from humantele.follower.sim_human import (
     CalibrationScript,
     SimHeadConfig,
@@ -83,11 +85,10 @@ from humantele.runtime.daemon import (
 )
 from humantele.runtime.session import SessionConfig, recorder_stats
 from humantele.runtime.stats import percentile_ms
+from humantele.tracking.tool import load_tool
 from humantele.transport import LinkConfig, PeerLink
 from humantele.wire import (
-    Calibration as CalibrationMsg,
-)
-from humantele.wire import (
+    CalibrationProgress,
     ControlMessage,
     EllipsoidModel,
     EllipsoidParams,
@@ -159,13 +160,8 @@ class TrackerImage:
 
 def _tip_transform(tool_name: str) -> Pose:
     """``T_probe_tip``: the tip frame on the tracked probe body (from the tool definition)."""
-    try:
-        from humantele.tracking.tool import load_tool
-
-        tool = load_tool(tool_name)
-        tip, z = np.asarray(tool.tip, dtype=float), np.asarray(tool.face_direction, dtype=float)
-    except (ImportError, AttributeError):  # no tracking package: the default tool's figures
-        tip, z = np.array([0.0, 0.0, -0.15]), np.array([0.0, 0.0, -1.0])
+    tool = load_tool(tool_name)
+    tip, z = np.asarray(tool.tip, dtype=float), np.asarray(tool.face_direction, dtype=float)
     z = z / np.linalg.norm(z)
     x = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     x = x - z * float(x @ z)
@@ -179,19 +175,14 @@ class Sensing:
     :class:`Measurement`; a pipeline error gives a LOST measurement (counted), never a crash.
     """
 
-    def __init__(self, config: FollowerConfig, sensing_config: object | None = None) -> None:
+    def __init__(self, config: FollowerConfig, sensing_config: SensingConfig | None = None) -> None:
         self.T_probe_tip = _tip_transform(config.tool)
         self.T_tip_probe = self.T_probe_tip.inverse()
         self.pipeline = None
         self.errors = 0
         self.contact_n = config.calibration.force_off_n
         if config.probe_source == "pipeline":
-            try:
-                from humantele.follower.sensing import ProbeSensing
-            except ImportError:
-                log.warning("follower: no sensing pipeline here; streaming the simulated truth")
-            else:
-                self.pipeline = ProbeSensing(sensing_config)
+            self.pipeline = ProbeSensing(sensing_config)
 
     def measure(self, truth: WorldTruth) -> Measurement:
         t, T_world_tip, force_world = truth.t, truth.T_world_tip, truth.force_world
@@ -236,7 +227,7 @@ class FollowerDaemon(Daemon):
         self,
         config: FollowerConfig,
         stats_file: str | None = None,
-        sensing_config: object | None = None,
+        sensing_config: SensingConfig | None = None,
     ) -> None:
         super().__init__(config, stats_file)
         self.state_dir = Path(config.state_dir).expanduser()
@@ -297,11 +288,12 @@ class FollowerDaemon(Daemon):
         age = self.link.age_of(msg.t_sent)
         if age is not None and math.isfinite(age):
             self.pose_ages.append(max(0.0, age))
+        self.publish_virtual(self.last_pose_rx)
 
     def on_control(self, msg: ControlMessage) -> None:
         if isinstance(msg, Hello):
             self.send_model()  # the expert (re)joined: give it the model we have
-        elif isinstance(msg, CalibrationMsg) and msg.event == "start":
+        elif isinstance(msg, CalibrationProgress) and msg.event == "start":
             self.start_calibration()
         elif isinstance(msg, Scan):
             self.on_scan(msg)
@@ -353,20 +345,30 @@ class FollowerDaemon(Daemon):
             )
         )
 
-    def publish_feed(self, t: float, virtual: Pose | None, m: Measurement) -> None:
-        age = None if self.last_pose is None else self.link.age_of(self.last_pose.t_sent)
-        if virtual is not None:
-            self.feed.publish(
-                "virtual_probe",
-                {
-                    "position": virtual.position,
-                    "quaternion": virtual.quaternion,
-                    "age_ms": None if age is None else age * 1000.0,
-                    "stale": self.virtual_stale(t),
-                    "clutch": bool(self.last_pose.clutch) if self.last_pose else False,
-                },
-                t_origin=self.last_pose_rx,
-            )
+    def publish_virtual(self, t: float) -> None:
+        """The virtual probe (world frame) to renderers, once calibrated: as each pose arrives
+        (from :meth:`on_pose`, so the page sees it at once), and at each tick while it is
+        stale (``t``: the time it is judged at, s)."""
+        virtual = self.virtual_world()
+        if virtual is None or self.last_pose is None:
+            return
+        age = self.link.age_of(self.last_pose.t_sent)
+        self.feed.publish(
+            "virtual_probe",
+            {
+                "position": virtual.position,
+                "quaternion": virtual.quaternion,
+                "age_ms": None if age is None else age * 1000.0,
+                "stale": self.virtual_stale(t),
+                "clutch": bool(self.last_pose.clutch),
+            },
+            t_origin=self.last_pose_rx,
+        )
+
+    def publish_feed(self, t: float, m: Measurement) -> None:
+        """At each tick: the virtual probe if it went stale, and the measured probe."""
+        if self.virtual_stale(t):
+            self.publish_virtual(t)
         if m.T_world_tip is not None:
             self.feed.publish(
                 "probe",
@@ -407,7 +409,7 @@ class FollowerDaemon(Daemon):
         self.record("/follower/calibration", time.monotonic(), {"event": "reset"})
         self.script = self.world.calibration_script() if self.config.auto_calibrate else None
         self.script_t0 = time.monotonic()
-        self.send_control(CalibrationMsg(event="start"))
+        self.send_control(CalibrationProgress(event="start"))
         self.publish_calibration()
 
     def on_calibration_event(self, ev: CalibrationEvent, t: float | None = None) -> None:
@@ -418,16 +420,18 @@ class FollowerDaemon(Daemon):
         self.record_calibration_event(t, ev)
         if ev.kind == "refused":
             self.send_control(
-                CalibrationMsg(event="error", index=index, point=point, detail=ev.message[:200])
+                CalibrationProgress(
+                    event="error", index=index, point=point, detail=ev.message[:200]
+                )
             )
         else:
-            self.send_control(CalibrationMsg(event="point", index=index, point=point))
+            self.send_control(CalibrationProgress(event="point", index=index, point=point))
         if ev.kind == "done" and self.calibrator.result is not None:
             self.calibration = self.calibrator.result
             self.calibration.save(self.calibration_path)
             self.calibrating = False
             self.script = None
-            self.send_control(CalibrationMsg(event="done"))
+            self.send_control(CalibrationProgress(event="done"))
             self.send_model()
             self.record_model(t)
             self.publish_model()
@@ -472,7 +476,7 @@ class FollowerDaemon(Daemon):
         # Video frame timestamps (/follower/video_frame: stream 'pov' or 'us', seq, event) are
         # recorded here once the follower has its POV and ultrasound tracks; there is no video
         # yet, so nothing is recorded for it.
-        self.publish_feed(t, virtual, self.measurement)
+        self.publish_feed(t, self.measurement)
 
     # --- measurements (sensing worker thread -> loop) -------------------------------------
 
@@ -703,12 +707,8 @@ def config_from_args(args: argparse.Namespace) -> FollowerConfig:
     return validate_config(FollowerConfig, data, "command line")
 
 
-def sensing_config_from_args(args: argparse.Namespace) -> object | None:
+def sensing_config_from_args(args: argparse.Namespace) -> SensingConfig:
     """The ``[sensing]`` section of the follower's file (the sensing pipeline's own)."""
-    try:
-        from humantele.follower.sensing import SensingConfig
-    except ImportError:
-        return None
     return load_config(SensingConfig, args.config, "sensing" if args.config else None)
 
 
