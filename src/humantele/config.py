@@ -30,13 +30,38 @@ class ConfigModel(BaseModel):
 M = TypeVar("M", bound=BaseModel)
 
 
+def _backend_message(e: Any, loc: str) -> tuple[str, str] | None:
+    """(field path, reason) for a device/source section whose ``backend`` is bad, else None."""
+    ctx = e.get("ctx") or {}
+    if ctx.get("discriminator") != "'backend'":
+        return None
+    where = f"{loc}.backend" if loc else "backend"
+    if e["type"] == "union_tag_invalid":
+        return where, f"unknown backend {ctx['tag']!r}; choose one of: {ctx['expected_tags']}"
+    data = e.get("input")
+    if isinstance(data, dict) and "kind" in data:
+        return where, (
+            f"the field 'kind' is now called 'backend': write backend = {data['kind']!r} "
+            "instead of kind = ... (every device and source family picks its backend this way)"
+        )
+    return where, "missing: say which backend this section configures (backend = ...)"
+
+
 def describe_validation_error(err: ValidationError, source: str = "") -> str:
-    """One line per bad field: ``source: field.path: reason``."""
+    """One line per bad field: ``source: field.path: reason``.
+
+    A section whose ``backend`` is unknown or missing (a discriminated union of backend
+    configurations) gets one line naming ``section.backend`` and the backends to choose from.
+    """
     lines = []
+    prefix = f"{source}: " if source else ""
     for e in err.errors():
-        loc = ".".join(str(part) for part in e["loc"]) or "(top level)"
-        prefix = f"{source}: " if source else ""
-        lines.append(f"{prefix}{loc}: {e['msg']}")
+        loc = ".".join(str(part) for part in e["loc"])
+        special = _backend_message(e, loc)
+        if special is not None:
+            lines.append(f"{prefix}{special[0]}: {special[1]}")
+        else:
+            lines.append(f"{prefix}{loc or '(top level)'}: {e['msg']}")
     return "\n".join(lines)
 
 

@@ -138,7 +138,7 @@ def load_profile(name_or_path: str) -> HidProfile:
 class HidDeviceConfig(ConfigModel):
     """The ``hid`` backend: ``profile`` is a name in configs/hid/ or a .toml path."""
 
-    kind: Literal["hid"] = "hid"
+    backend: Literal["hid"] = "hid"
     profile: str = "spacemouse"
     spec: DeviceSpec = DeviceSpec(max_force_n=0.0, continuous_force_n=0.0)
 
@@ -174,7 +174,7 @@ class HidDevice(HapticDevice):
             ids = ", ".join(f"0x{v:04x}" for v in prof.vendor_ids)
             raise DeviceError(
                 f"hid: no {prof.name} found (vendor id {ids}); check the USB connection and "
-                'read permission on /dev/hidraw* (a udev rule), or use kind = "sim".'
+                'read permission on /dev/hidraw* (a udev rule), or use backend = "sim".'
             )
         dev = hid.device()
         try:
