@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Annotated, Literal
+from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -30,10 +30,9 @@ from humantele.forcesense.sensors import ForceSensorConfig, calibration_path, ma
 from humantele.forcesense.sim import SimForceConfig, SimForceSensor
 from humantele.geometry import Pose, matrix_to_quat
 from humantele.tracking.filter import FilterConfig
-from humantele.tracking.opencv_source import OpenCVFrameConfig
 from humantele.tracking.pipeline import PipelineConfig, Tracker
 from humantele.tracking.sim import SimFrameConfig, SimFrameSource
-from humantele.tracking.sources import make_frame_source
+from humantele.tracking.sources import FrameSourceConfig, make_frame_source
 from humantele.tracking.tool import DEFAULT_TOOL, load_tool
 
 Status = Literal["tracked", "lost", "ambiguous"]
@@ -52,9 +51,7 @@ class SensingConfig(ConfigModel):
     """
 
     tool: str = DEFAULT_TOOL
-    camera: Annotated[SimFrameConfig | OpenCVFrameConfig, Field(discriminator="backend")] = Field(
-        default_factory=SimFrameConfig
-    )
+    camera: FrameSourceConfig = Field(default_factory=SimFrameConfig)
     pipeline: PipelineConfig = Field(default_factory=PipelineConfig)
     filter: FilterConfig = Field(default_factory=FilterConfig)
     force: ForceSensorConfig = Field(default_factory=ForceSensorConfig)
@@ -88,6 +85,7 @@ class ProbeSensing:
         self.config = c = config or SensingConfig()
         self.tool = load_tool(c.tool)
         self.source = make_frame_source(c.camera)
+        self.source.open()
         self.tracker = Tracker(self.tool, c.pipeline, c.filter)
         self.sensor = make_force_sensor(c.force.sensor)
         path = calibration_path(c.force)

@@ -31,7 +31,7 @@ from pydantic import Field
 from humantele.config import ConfigModel
 from humantele.geometry import Pose, quat_from_axis_angle, quat_multiply
 from humantele.tracking.camera import CameraIntrinsics
-from humantele.tracking.frames import TrackingFrame
+from humantele.tracking.frames import FrameSource, TrackingFrame
 from humantele.tracking.tool import DEFAULT_TOOL, ToolDefinition, load_tool
 
 _SS = 4  # supersampling per pixel side
@@ -70,10 +70,14 @@ class SimFrameConfig(ConfigModel):
     occluded_markers: list[int] = Field(default_factory=list, description="hidden markers")
 
 
-class SimFrameSource:
-    """Renders frames of the tool at ``pose`` (``set_pose``) or a given pose (``render``)."""
+class SimFrameSource(FrameSource):
+    """Renders frames of the tool at ``pose`` (``set_pose``, then ``read``) or at a given pose
+    (``render``: what the follower's sensing does with the simulated probe's true pose)."""
+
+    name = "sim frames"
 
     def __init__(self, config: SimFrameConfig | None = None, tool: ToolDefinition | None = None):
+        super().__init__()
         self.config = config or SimFrameConfig()
         self.tool = tool or load_tool(self.config.tool)
         self.intrinsics = self.config.intrinsics
@@ -141,6 +145,9 @@ class SimFrameSource:
     def read(self, t: float | None = None) -> TrackingFrame:
         """A frame at the current pose; ``t`` defaults to seq / frame rate."""
         return self.render(self.pose, t)
+
+    def open(self) -> None:
+        """Nothing to open: the scene was drawn when the source was made."""
 
     def close(self) -> None:
         pass
