@@ -85,7 +85,6 @@ class ProbeSensing:
         self.config = c = config or SensingConfig()
         self.tool = load_tool(c.tool)
         self.source = make_frame_source(c.camera)
-        self.source.open()
         self.tracker = Tracker(self.tool, c.pipeline, c.filter)
         self.sensor = make_force_sensor(c.force.sensor)
         path = calibration_path(c.force)
@@ -106,6 +105,12 @@ class ProbeSensing:
         self._R_world_probe = np.eye(3)
         self._force_probe = np.zeros(3)
         self.bad_force = 0
+        try:  # the devices last: a bad setting above fails before any hardware is touched
+            self.source.open()
+            self.sensor.open()
+        except Exception:
+            self.close()
+            raise
 
     def measure(
         self,

@@ -1,4 +1,9 @@
-"""Force sensor configuration and factory: sim or hid, the same ``read(t)`` interface."""
+"""Force sensor configuration and factory: one config union, one function.
+
+Each backend's configuration has a ``backend`` field that picks it: ``sim`` (the simulated
+board, :mod:`humantele.forcesense.sim`) or ``hid`` (the board over USB HID,
+:mod:`humantele.forcesense.hid`); both give :class:`~humantele.forcesense.base.ForceSensor` s.
+"""
 
 from __future__ import annotations
 
@@ -8,11 +13,13 @@ from typing import Annotated
 from pydantic import Field
 
 from humantele.config import CONFIG_DIR, ConfigModel, load_config
+from humantele.forcesense.base import ForceSensor
 from humantele.forcesense.contact import ContactConfig
 from humantele.forcesense.hid import HidForceConfig, HidForceSensor
 from humantele.forcesense.sim import SimForceConfig, SimForceSensor
 
 ForceBackendConfig = Annotated[SimForceConfig | HidForceConfig, Field(discriminator="backend")]
+"""A force sensor board's configuration, picked by its ``backend`` field: "sim" or "hid"."""
 
 
 class ForceSensorConfig(ConfigModel):
@@ -24,11 +31,14 @@ class ForceSensorConfig(ConfigModel):
     contact: ContactConfig = Field(default_factory=ContactConfig)
 
 
-def make_force_sensor(config: SimForceConfig | HidForceConfig) -> SimForceSensor | HidForceSensor:
-    """The backend a configuration asks for; HidForceSensor raises ForceSensorUnavailable."""
+def make_force_sensor(config: SimForceConfig | HidForceConfig) -> ForceSensor:
+    """The force sensor a configuration asks for, not yet opened (``open()`` raises
+    ForceSensorUnavailable when the board is missing)."""
     if isinstance(config, SimForceConfig):
         return SimForceSensor(config)
-    return HidForceSensor(config)
+    if isinstance(config, HidForceConfig):
+        return HidForceSensor(config)
+    raise TypeError(f"not a force sensor configuration: {type(config).__name__}")
 
 
 def calibration_path(config: ForceSensorConfig) -> Path | None:
