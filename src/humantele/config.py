@@ -10,9 +10,9 @@ from __future__ import annotations
 import json
 import tomllib
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, ClassVar, TypeVar
 
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, ValidationError, model_validator
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
 
@@ -22,9 +22,23 @@ class ConfigError(ValueError):
 
 
 class ConfigModel(BaseModel):
-    """Base of every configuration model: strict about unknown keys, validated on assignment."""
+    """Base of every configuration model: strict about unknown keys, validated on assignment.
+
+    ``moved_fields`` names fields a model no longer has and where their setting went; a file
+    that still sets one is refused with that hint rather than a bare "extra field".
+    """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=False)
+    moved_fields: ClassVar[dict[str, str]] = {}
+
+    @model_validator(mode="before")
+    @classmethod
+    def _refuse_moved_fields(cls, data: Any) -> Any:
+        if isinstance(data, dict):
+            for name, hint in cls.moved_fields.items():
+                if name in data:
+                    raise ValueError(f"{name!r} is no longer set here: {hint}")
+        return data
 
 
 M = TypeVar("M", bound=BaseModel)
@@ -61,7 +75,8 @@ def describe_validation_error(err: ValidationError, source: str = "") -> str:
         if special is not None:
             lines.append(f"{prefix}{special[0]}: {special[1]}")
         else:
-            lines.append(f"{prefix}{loc or '(top level)'}: {e['msg']}")
+            msg = e["msg"].removeprefix("Value error, ")  # our own validators' words
+            lines.append(f"{prefix}{loc or '(top level)'}: {msg}")
     return "\n".join(lines)
 
 

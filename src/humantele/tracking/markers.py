@@ -12,15 +12,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from humantele.geometry import Pose, matrix_to_quat
+from humantele.tracking.status import TrackingStatus
 from humantele.tracking.tool import ToolDefinition, kabsch
-
-Status = Literal["tracked", "lost", "ambiguous"]
 
 
 @dataclass(frozen=True)
@@ -56,7 +54,7 @@ class PoseEstimate:
 class MatchResult:
     """Outcome of a match: status, the estimate when tracked, and the number of fits tried."""
 
-    status: Status
+    status: TrackingStatus
     estimate: PoseEstimate | None
     n_hypotheses: int
 
@@ -102,12 +100,12 @@ def match_markers(
     pts = pts[np.all(np.isfinite(pts), axis=1)][: p.max_candidates]
     model = tool.markers
     if len(pts) < tool.min_visible:
-        return MatchResult("lost", None, 0)
+        return MatchResult(TrackingStatus.LOST, None, 0)
     d_meas = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
     d_model = np.linalg.norm(model[:, None] - model[None], axis=-1)
     hyps = _assignments(d_meas, d_model, p.distance_tol, tool.min_visible)
     if not hyps:
-        return MatchResult("lost", None, 0)
+        return MatchResult(TrackingStatus.LOST, None, 0)
     hyp = np.array(hyps, dtype=np.intp)  # (H, M): candidate index per marker, -1 missing
     present = hyp >= 0
     counts = present.sum(axis=1)
@@ -128,12 +126,12 @@ def match_markers(
         placed = model @ r[good].transpose(0, 2, 1) + t[good][:, None, :]  # (g, M, 3)
         moved = np.linalg.norm(placed - placed[good == best], axis=-1).max(axis=1)
         if np.any(moved > p.distinct_pose):
-            return MatchResult("ambiguous", None, len(hyps))
+            return MatchResult(TrackingStatus.AMBIGUOUS, None, len(hyps))
         pose = Pose(t[best], matrix_to_quat(r[best]))
         matched = tuple(int(i) for i in hyp[rows[best]])
         est = PoseEstimate(pose, float(rms[best]), matched, r[best])
-        return MatchResult("tracked", est, len(hyps))
-    return MatchResult("lost", None, len(hyps))
+        return MatchResult(TrackingStatus.TRACKED, est, len(hyps))
+    return MatchResult(TrackingStatus.LOST, None, len(hyps))
 
 
 def estimate_pose(

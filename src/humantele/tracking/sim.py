@@ -45,11 +45,16 @@ def default_sim_pose() -> Pose:
 
 
 class SimFrameConfig(ConfigModel):
-    """Simulated AHAT-like sensor. Counts are IR active-brightness units; distances m."""
+    """Simulated AHAT-like sensor. Counts are IR active-brightness units; distances m. The
+    marker tree it draws is given to :class:`SimFrameSource` (the follower's ``tool``)."""
+
+    moved_fields = {
+        "tool": "the sim draws the follower's probe, set once in [follower] tool "
+        "(SimFrameSource(config, tool) elsewhere)"
+    }
 
     backend: Literal["sim"] = "sim"
     seed: int = 0
-    tool: str = Field(DEFAULT_TOOL, description="tool name in configs/tools or a path")
     intrinsics: CameraIntrinsics = Field(default_factory=CameraIntrinsics)
     frame_rate_hz: float = Field(45.0, gt=0, le=1000)
     noise_scale: float = Field(1.0, ge=0, le=20, description="multiplies every noise term")
@@ -71,15 +76,16 @@ class SimFrameConfig(ConfigModel):
 
 
 class SimFrameSource(FrameSource):
-    """Renders frames of the tool at ``pose`` (``set_pose``, then ``read``) or at a given pose
-    (``render``: what the follower's sensing does with the simulated probe's true pose)."""
+    """Renders frames of ``tool`` (None: the default probe) at ``pose`` (``set_pose``, then
+    ``read``) or at a given pose (``render``: what the follower's sensing does with the
+    simulated probe's true pose)."""
 
     name = "sim frames"
 
     def __init__(self, config: SimFrameConfig | None = None, tool: ToolDefinition | None = None):
         super().__init__()
         self.config = config or SimFrameConfig()
-        self.tool = tool or load_tool(self.config.tool)
+        self.tool = tool or load_tool(DEFAULT_TOOL)
         self.intrinsics = self.config.intrinsics
         self.pose = default_sim_pose()
         self._rng = np.random.default_rng(self.config.seed)

@@ -24,7 +24,7 @@ def make_frame_source(
     config: SimFrameConfig | OpenCVFrameConfig, tool: ToolDefinition | None = None
 ) -> FrameSource:
     """The frame source a configuration asks for, not yet opened. ``tool`` is the marker tree
-    the sim backend draws (None: its configured one); the others ignore it."""
+    the sim backend draws (None: the default probe); the others ignore it."""
     if isinstance(config, SimFrameConfig):
         return SimFrameSource(config, tool)
     if isinstance(config, OpenCVFrameConfig):
