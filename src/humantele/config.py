@@ -1,4 +1,11 @@
-"""Configuration: pydantic models loaded from TOML or JSON files in ``configs/``.
+"""Configuration: pydantic models loaded from TOML or JSON files.
+
+Where the files are: the daemons' own files are wherever ``--config`` says (``configs/`` in the
+repository holds editable examples); named definitions (probe tools ``tools/``, HID profiles
+``hid/``, force sensor set-ups ``forcesense/``) ship inside the package as
+``humantele/defaults/<folder>/<name>.toml``, read through :mod:`importlib.resources`
+(:func:`named_config_path`), so an installed package finds them; a path in their place reads
+the user's own file.
 
 Every model derives from :class:`ConfigModel`: unknown fields are refused, and every field has a
 default that runs the demo. A bad value fails at start with :class:`ConfigError`, whose message
@@ -9,12 +16,11 @@ from __future__ import annotations
 
 import json
 import tomllib
+from importlib import resources
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar
 
 from pydantic import BaseModel, ConfigDict, ValidationError, model_validator
-
-CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
 
 
 class ConfigError(ValueError):
@@ -117,3 +123,25 @@ def load_config(model: type[M], path: str | Path | None = None, section: str | N
         if not isinstance(data, dict):
             raise ConfigError(f"{path}: [{section}] must be a table")
     return validate_config(model, data, str(path) + (f" [{section}]" if section else ""))
+
+
+def defaults_dir(folder: str = "") -> Path:
+    """The packaged defaults folder ``humantele/defaults/<folder>`` (installed or checkout)."""
+    return Path(str(resources.files("humantele").joinpath("defaults"))) / folder
+
+
+def named_config_path(folder: str, name_or_path: str | Path, what: str = "definition") -> Path:
+    """The file for ``name_or_path``: a path as given when it ends in .toml or .json (relative:
+    from the current directory), else the packaged ``defaults/<folder>/<name>.toml``.
+    ConfigError naming the known names when the name has no packaged file."""
+    p = Path(name_or_path)
+    if p.suffix in (".toml", ".json"):
+        return p
+    f = defaults_dir(folder) / f"{p.name}.toml"
+    if p.name != str(name_or_path) or not f.is_file():
+        known = ", ".join(sorted(x.stem for x in defaults_dir(folder).glob("*.toml")))
+        raise ConfigError(
+            f"{str(name_or_path)!r}: no such {what} (known {what}s: {known or 'none'}); or give "
+            "the path of your own .toml file"
+        )
+    return f

@@ -6,7 +6,7 @@ readings of the simulated follower's probe from the true pose and force it is gi
 it returns is measured (noise, occlusion, lost frames), not the truth.
 
 Frames: world (the headset's, y up), camera (OpenCV: x right, y down, z forward), probe
-(see configs/tools). Units: m, N, s.
+(see humantele/defaults/tools). Units: m, N, s.
 
 Cost per ``measure`` call with the sim backends, one core: about 2-5 ms (frame rendering about
 half, the pipeline the rest; see ``humantele bench tracking``), so 45 Hz takes < 25 % of a

@@ -12,7 +12,7 @@ from typing import Annotated
 
 from pydantic import Field
 
-from humantele.config import CONFIG_DIR, ConfigModel, load_config
+from humantele.config import ConfigModel, load_config, named_config_path
 from humantele.forcesense.base import ForceSensor
 from humantele.forcesense.contact import ContactConfig
 from humantele.forcesense.hid import HidForceConfig, HidForceSensor
@@ -24,7 +24,7 @@ ForceBackendConfig = Annotated[SimForceConfig | HidForceConfig, Field(discrimina
 
 class ForceSensorConfig(ConfigModel):
     """The sensor backend, where its calibration lives (None: calibrate the sim at start),
-    and the contact detector. File: ``configs/forcesense/*.toml``."""
+    and the contact detector. Packaged set-ups: ``humantele/defaults/forcesense/*.toml``."""
 
     sensor: ForceBackendConfig = Field(default_factory=SimForceConfig)
     calibration_file: str | None = None
@@ -42,16 +42,15 @@ def make_force_sensor(config: SimForceConfig | HidForceConfig) -> ForceSensor:
 
 
 def calibration_path(config: ForceSensorConfig) -> Path | None:
-    """The calibration file (relative names are in configs/forcesense/), or None."""
+    """The calibration file (a relative path is from the current directory; ``~`` is the
+    user's home), or None when the sim is calibrated at start."""
     if not config.calibration_file:
         return None
-    p = Path(config.calibration_file)
-    return p if p.is_absolute() else CONFIG_DIR / "forcesense" / p
+    return Path(config.calibration_file).expanduser()
 
 
 def load_force_config(name_or_path: str = "sim") -> ForceSensorConfig:
-    """A force sensor configuration by name in configs/forcesense/ or by path."""
-    path = CONFIG_DIR / "forcesense" / f"{name_or_path}.toml"
-    if name_or_path.endswith((".toml", ".json")):
-        path = name_or_path
+    """A force sensor set-up by name (packaged ``humantele/defaults/forcesense/NAME.toml``:
+    ``sim``, ``hid``) or by path."""
+    path = named_config_path("forcesense", name_or_path, "force sensor set-up")
     return load_config(ForceSensorConfig, path)
