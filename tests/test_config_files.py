@@ -15,7 +15,7 @@ from humantele.follower.daemon import FollowerConfig
 from humantele.follower.sensing import SensingConfig
 from humantele.forcesense.sensors import ForceSensorConfig, load_force_config
 from humantele.haptics.devices.hid import HidProfile, load_profile
-from humantele.haptics.loop import ServoConfig
+from humantele.haptics.servo_config import ServoConfig
 from humantele.signaling.server import SignalConfig
 from humantele.tracking.tool import ToolDefinition, load_tool
 
@@ -28,13 +28,13 @@ def test_every_packaged_definition_loads_by_name_and_lives_in_the_package():
 
     package = Path(humantele.__file__).parent
     assert defaults_dir() == package / "defaults"
-    found = 0
+    found = set()
     for folder, model in PACKAGED.items():
         for f in sorted(defaults_dir(folder).glob("*.toml")):
             assert named_config_path(folder, f.stem) == f
             load_config(model, f)
-            found += 1
-    assert found == 4  # probe_default, spacemouse, forcesense sim and hid
+            found.add(f"{folder}/{f.stem}")
+    assert {"tools/probe_default", "hid/spacemouse", "forcesense/sim", "forcesense/hid"} <= found
     assert load_tool("probe_default").markers.shape == (4, 3)
     assert load_profile("spacemouse").vendor_ids
     assert load_force_config("hid").sensor.backend == "hid"
@@ -43,7 +43,7 @@ def test_every_packaged_definition_loads_by_name_and_lives_in_the_package():
 
 def test_unknown_names_list_the_packaged_ones_and_paths_are_read_as_given(tmp_path):
     with pytest.raises(
-        ConfigError, match=r"'probe_x': no such tool \(known tools: probe_default\)"
+        ConfigError, match=r"'probe_x': no such tool \(known tools: probe_default, reference_"
     ):
         load_tool("probe_x")
     with pytest.raises(
