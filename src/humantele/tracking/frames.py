@@ -47,16 +47,13 @@ class FrameSource(ABC):
 
     ``open()`` raises :class:`FrameSourceUnavailable` (one line naming the camera and what to
     check) when the camera cannot start; ``read(t)`` returns the next frame stamped ``t`` (s;
-    None: the source's own clock), or None when the camera gave none (counted in
-    ``dropped``); ``close()`` releases the camera, safe to call twice. ``intrinsics`` are the
-    camera's (the configured ones until opened).
+    None: the source's own clock), or None when the camera gave none (the backend counts
+    it, in its ``dropped``); ``close()`` releases the camera, safe to call twice.
+    ``intrinsics`` are the camera's (the configured ones until opened).
     """
 
     name: str = "frames"
     intrinsics: CameraIntrinsics
-
-    def __init__(self) -> None:
-        self.dropped = 0
 
     @abstractmethod
     def open(self) -> None: ...

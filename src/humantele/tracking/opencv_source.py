@@ -46,12 +46,12 @@ class OpenCVFrameSource(FrameSource):
     name = "opencv frames"
 
     def __init__(self, config: OpenCVFrameConfig | None = None):
-        super().__init__()
         self.config = c = config or OpenCVFrameConfig()
         self.intrinsics = c.intrinsics
         self._ir: cv2.VideoCapture | None = None
         self._depth: cv2.VideoCapture | None = None
         self._seq = 0
+        self.dropped = 0  # reads that gave no frame
 
     def open(self) -> None:
         """Open the IR (and depth) captures; FrameSourceUnavailable if one cannot be opened."""

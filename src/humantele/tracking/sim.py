@@ -107,7 +107,6 @@ class SimFrameSource(FrameSource):
     name = "sim frames"
 
     def __init__(self, config: SimFrameConfig | None = None, tool: ToolDefinition | None = None):
-        super().__init__()
         self.config = config or SimFrameConfig()
         self.tool = tool or load_tool(DEFAULT_TOOL)
         self.intrinsics = self.config.intrinsics
