@@ -70,3 +70,11 @@ def test_unknown_names_list_the_packaged_ones_and_paths_are_read_as_given(tmp_pa
 def test_example_configs_load_with_their_models(name, sections):
     for section, model in sections.items():
         load_config(model, EXAMPLES / name, section)
+
+
+def test_the_follower_example_shows_the_sensing_defaults_with_their_backends():
+    sensing = load_config(SensingConfig, EXAMPLES / "follower.toml", "sensing")
+    assert sensing == SensingConfig()
+    assert sensing.camera.backend == "sim" and sensing.force.sensor.backend == "sim"
+    servo = load_config(ServoConfig, EXAMPLES / "expert.toml", "servo")
+    assert servo.device.backend == "sim"
