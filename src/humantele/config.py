@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, ClassVar, TypeVar
 
 from pydantic import BaseModel, ConfigDict, ValidationError, model_validator
+from pydantic_core import PydanticCustomError
 
 
 class ConfigError(ValueError):
@@ -43,7 +44,9 @@ class ConfigModel(BaseModel):
         if isinstance(data, dict):
             for name, hint in cls.moved_fields.items():
                 if name in data:
-                    raise ValueError(f"{name!r} is no longer set here: {hint}")
+                    raise PydanticCustomError(
+                        "moved_field", "no longer set here: {hint}", {"field": name, "hint": hint}
+                    )
         return data
 
 
@@ -76,7 +79,10 @@ def describe_validation_error(err: ValidationError, source: str = "") -> str:
     lines = []
     prefix = f"{source}: " if source else ""
     for e in err.errors():
-        loc = ".".join(str(part) for part in e["loc"])
+        parts = [str(part) for part in e["loc"]]
+        if e["type"] == "moved_field":  # name the field itself, not the section it was in
+            parts.append(e["ctx"]["field"])
+        loc = ".".join(parts)
         special = _backend_message(e, loc)
         if special is not None:
             lines.append(f"{prefix}{special[0]}: {special[1]}")

@@ -70,8 +70,8 @@ def test_one_tool_setting_drives_both_the_sim_camera_and_the_tracker(tmp_path):
     # the old per-section settings are refused with where the one setting lives
     with pytest.raises(
         ConfigError,
-        match=r"\[sensing\]: \(top level\): 'tool' is no longer set here: .*\[follower\] tool",
+        match=r"\[sensing\]: tool: no longer set here: .*\[follower\] tool",
     ):
         validate_config(SensingConfig, {"tool": "probe_default"}, "follower.toml [sensing]")
-    with pytest.raises(ConfigError, match=r"camera\.sim: 'tool' is no longer set here"):
+    with pytest.raises(ConfigError, match=r"camera\.sim\.tool: no longer set here"):
         validate_config(SensingConfig, {"camera": {"backend": "sim", "tool": "probe_default"}})
