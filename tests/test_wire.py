@@ -12,6 +12,7 @@ from humantele.wire import (
     POSE_SIZE,
     PROTOCOL_VERSION,
     STATE_SIZE,
+    TRACKING_CODES,
     Bye,
     CalibrationProgress,
     EllipsoidModel,
@@ -119,6 +120,18 @@ def test_bad_pose_numbers_are_refused(offset, value, reason):
     with pytest.raises(WireError) as err:
         PoseMessage.decode(_patch_double(_pose().encode(), offset, value))
     assert err.value.reason == reason
+
+
+def test_every_tracking_status_has_one_wire_code_and_round_trips():
+    assert sorted(TRACKING_CODES.values()) == list(range(len(TrackingStatus)))
+    for status in TrackingStatus:
+        raw = _state(tracking=status).encode()
+        assert raw[70] == TRACKING_CODES[status]
+        back = StateMessage.decode(raw).tracking
+        assert back is status and back == str(status)  # the same words as the tracker's
+    assert StateMessage.decode(_state(tracking="ambiguous").encode()).tracking == "ambiguous"
+    with pytest.raises(WireError, match="tracking status 'searching' is unknown"):
+        _state(tracking="searching").encode()
 
 
 def test_bad_state_fields():

@@ -146,10 +146,12 @@ def test_never_nan_never_over_limit(p, v, dt):
 def test_config_errors_name_the_field():
     with pytest.raises(ConfigError, match="force_limit_n"):
         validate_config(ServoConfig, {"force_limit_n": 20})
-    with pytest.raises(ConfigError, match=r"device.*kind|tag 'nope'"):
-        validate_config(ServoConfig, {"device": {"kind": "nope"}})
-    cfg = validate_config(ServoConfig, {"device": {"kind": "hid"}, "kp": 4000})
-    assert cfg.device.kind == "hid"  # no force output: the gains cannot destabilise it
+    with pytest.raises(ConfigError, match=r"device\.backend: unknown backend 'nope'"):
+        validate_config(ServoConfig, {"device": {"backend": "nope"}})
+    with pytest.raises(ConfigError, match=r"device\.backend: .*'kind' is now called 'backend'"):
+        validate_config(ServoConfig, {"device": {"kind": "hid"}})
+    cfg = validate_config(ServoConfig, {"device": {"backend": "hid"}, "kp": 4000})
+    assert cfg.device.backend == "hid"  # no force output: the gains cannot destabilise it
 
 
 # ------------------------------------------------------------------ the servo process
@@ -203,7 +205,7 @@ def test_process_stale_fault_zeroes_force_then_recovers():
 
 
 def test_process_reports_device_errors_at_start():
-    cfg = ServoConfig(device={"kind": "touchx", "library": "/nonexistent/libHD.so"})
+    cfg = ServoConfig(device={"backend": "touchx", "library": "/nonexistent/libHD.so"})
     with pytest.raises(ServoError, match="libHD"):
         ServoProcess(cfg).start()
 

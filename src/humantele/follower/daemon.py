@@ -120,7 +120,9 @@ class FollowerConfig(ConfigModel):
         "pipeline", description="measure through the sensing pipeline ([sensing]), or the truth"
     )
     sensing_rate_hz: float = Field(45.0, gt=1, le=1000, description="tracker frames per second")
-    tool: str = Field("probe_default", description="probe tool definition (configs/tools)")
+    tool: str = Field(
+        "probe_default", description="the probe's tool definition: tracked, drawn, tip (one)"
+    )
     link: LinkConfig = LinkConfig()
     feed: FeedConfig = FeedConfig()
     calibration: CalibrationConfig = CalibrationConfig()
@@ -182,7 +184,7 @@ class Sensing:
         self.errors = 0
         self.contact_n = config.calibration.force_off_n
         if config.probe_source == "pipeline":
-            self.pipeline = ProbeSensing(sensing_config)
+            self.pipeline = ProbeSensing(sensing_config, config.tool)
 
     def measure(self, truth: WorldTruth) -> Measurement:
         t, T_world_tip, force_world = truth.t, truth.T_world_tip, truth.force_world
@@ -198,6 +200,7 @@ class Sensing:
             m = self.pipeline.measure(
                 t, T_world_tip @ self.T_tip_probe, force_world, T_world_camera
             )
+            status = TrackingStatus(m.status)
         except Exception:  # a sensing fault must not stop the daemon
             self.errors += 1
             if self.errors == 1:
@@ -207,10 +210,11 @@ class Sensing:
         force_tip = self.T_tip_probe.rotate(np.asarray(m.force_probe, dtype=float))
         if not (np.all(np.isfinite(force)) and np.all(np.isfinite(force_tip))):
             force, force_tip = np.zeros(3), None
-        if m.status != "tracked" or m.T_world_probe is None:
-            return Measurement(TrackingStatus.LOST, None, force, bool(m.contact), force_tip)
+        if not status.has_pose or m.T_world_probe is None:
+            status = TrackingStatus.LOST if status.has_pose else status  # lost or ambiguous
+            return Measurement(status, None, force, bool(m.contact), force_tip)
         tip = m.T_world_probe @ self.T_probe_tip
-        return Measurement(TrackingStatus.TRACKED, tip, force, bool(m.contact), force_tip)
+        return Measurement(status, tip, force, bool(m.contact), force_tip)
 
     def close(self) -> None:
         if self.pipeline is not None:
