@@ -127,6 +127,9 @@ class FollowerConfig(ConfigModel):
         description="where frames are measured while the daemon runs: a child process (its "
         "GIL apart from the loop's) or a thread",
     )
+    sensing_nice: int = Field(
+        10, ge=0, le=19, description="the sensing process's nice: the daemon's loop wakes first"
+    )
     tool: str = Field("probe_default", description="probe tool definition (configs/tools)")
     link: LinkConfig = LinkConfig()
     feed: FeedConfig = FeedConfig()
@@ -712,6 +715,7 @@ class FollowerDaemon(Daemon):
                 self.sensing.sensing_config,
                 self._measured_in_process,
                 self._sensing_cannot_start,
+                nice=self.config.sensing_nice,
             )
             self.sensing_proc.start()
             # as the in-thread pipeline was built before the daemon ran: measure from the start

@@ -15,7 +15,9 @@ caller skips frames while :attr:`busy`, as it did with the thread. A child that 
 restarted (``max_restarts``, then :attr:`failed` and the caller falls back to its thread); a
 child that cannot build its sensing (a bad config) reports why and is not restarted. The child
 ignores SIGINT (Ctrl-C reaches the whole process group; the daemon stops it) and exits when
-the pipe closes, so it never outlives the daemon.
+the pipe closes, so it never outlives the daemon. It runs at ``nice`` +10 by default
+(``sensing_nice``): when the daemon's loop and the child both want the CPU, the loop, which
+only needs it briefly to read a pose, wakes first; the child still gets every idle moment.
 """
 
 from __future__ import annotations
@@ -33,12 +35,16 @@ from typing import Any
 
 log = logging.getLogger(__name__)
 
+NICE = 10  # the child's nice: the loops it shares the CPU with wake first (it is a batch job)
 OnResult = Callable[[int, Any, float], None]  # (job, Measurement, seconds measuring)
 
 
-def sensing_main(config: Any, sensing_config: Any, conn: Connection) -> None:
+def sensing_main(config: Any, sensing_config: Any, conn: Connection, nice: int = 0) -> None:
     """The child: build the sensing, then measure each request until the pipe closes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if nice:
+        with contextlib.suppress(OSError):
+            os.nice(nice)
     try:
         from humantele.follower.daemon import Sensing
 
@@ -79,12 +85,14 @@ class SensingProcess:
         on_result: OnResult,
         on_error: Callable[[str], None] | None = None,
         max_restarts: int = 5,
+        nice: int = NICE,
     ) -> None:
         self.config = config
         self.sensing_config = sensing_config
         self.on_result = on_result
         self.on_error = on_error
         self.max_restarts = max_restarts
+        self.nice = nice
         self.restarts = 0
         self.child_errors = 0  # sensing faults the child counted (all children so far)
         self._errors_before = 0
@@ -123,7 +131,7 @@ class SensingProcess:
         parent, child = ctx.Pipe(duplex=True)
         self._proc = ctx.Process(
             target=sensing_main,
-            args=(self.config, self.sensing_config, child),
+            args=(self.config, self.sensing_config, child, self.nice),
             name="humantele-sensing",
             daemon=True,
         )
