@@ -8,9 +8,11 @@ Every tick (``rate_hz``, asyncio) it:
 2. at the tracker's rate (``sensing_rate_hz``) measures it through the sensing pipeline
    (:mod:`humantele.follower.sensing`; ``probe_source = "truth"``: the simulated truth behind
    the same small interface), so what it streams is what a real tracker and force sensor
-   would give. The pipeline (~5-7 ms a frame) runs on one worker thread, off the asyncio
-   loop, so the pose path is never held up; images are measured in order and never overlap:
-   an image due while the previous one is still measured is skipped (``sensing_skipped``);
+   would give. The pipeline (~5-7 ms a frame) runs in a child process
+   (``sensing_worker = "process"``, :mod:`humantele.follower.sensing_process`; ``"thread"``:
+   a worker thread), off the asyncio loop and off its GIL, so the pose path is never held
+   up; frames are measured in order and never overlap: a frame due while the previous one is
+   still measured (or while the child starts) is skipped (counted in ``sensing_skipped``);
 3. with each measurement: feeds the calibration (:mod:`humantele.follower.calibration`) while
    calibrating, streams the probe pose and force to the expert (``state``, patient frame) and
    records them;
@@ -68,6 +70,7 @@ from humantele.follower.calibration import (
 )
 from humantele.follower.feed import FeedConfig, RendererFeed, model_fields
 from humantele.follower.sensing import ProbeSensing, SensingConfig
+from humantele.follower.sensing_process import SensingProcess
 from humantele.follower.sim_human import (
     CalibrationScript,
     SimHeadConfig,
@@ -120,6 +123,14 @@ class FollowerConfig(ConfigModel):
         "pipeline", description="measure through the sensing pipeline ([sensing]), or the truth"
     )
     sensing_rate_hz: float = Field(45.0, gt=1, le=1000, description="tracker frames per second")
+    sensing_worker: Literal["process", "thread"] = Field(
+        "process",
+        description="where frames are measured while the daemon runs: a child process (its "
+        "GIL apart from the loop's) or a thread",
+    )
+    sensing_nice: int = Field(
+        10, ge=0, le=19, description="the sensing process's nice: the daemon's loop wakes first"
+    )
     tool: str = Field(
         "probe_default", description="the probe's tool definition: tracked, drawn, tip (one)"
     )
@@ -177,16 +188,37 @@ class Sensing:
     :class:`Measurement`; a pipeline error gives a LOST measurement (counted), never a crash.
     """
 
-    def __init__(self, config: FollowerConfig, sensing_config: SensingConfig | None = None) -> None:
+    def __init__(
+        self,
+        config: FollowerConfig,
+        sensing_config: SensingConfig | None = None,
+        build: bool = True,
+    ) -> None:
+        """``build=False``: build the pipeline at the first :meth:`measure` (the daemon's own
+        copy when a :class:`~humantele.follower.sensing_process.SensingProcess` measures)."""
         self.T_probe_tip = _tip_transform(config.tool)
         self.T_tip_probe = self.T_probe_tip.inverse()
         self.pipeline = None
         self.errors = 0
         self.contact_n = config.calibration.force_off_n
-        if config.probe_source == "pipeline":
-            self.pipeline = ProbeSensing(sensing_config, config.tool)
+        self.sensing_config = sensing_config
+        self.tool = config.tool
+        self.unbuilt = config.probe_source == "pipeline"  # the pipeline is still to be built
+        if build:
+            self.build()
+
+    def build(self) -> None:
+        """Build the sensing pipeline (once; nothing in ``truth`` mode)."""
+        if not self.unbuilt:
+            return
+        self.unbuilt = False
+        if self.pipeline is not None:  # given by the caller
+            return
+        self.pipeline = ProbeSensing(self.sensing_config, self.tool)
 
     def measure(self, truth: WorldTruth) -> Measurement:
+        if self.unbuilt:
+            self.build()
         t, T_world_tip, force_world = truth.t, truth.T_world_tip, truth.force_world
         T_world_camera = truth.T_world_camera
         lost = Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
@@ -239,7 +271,12 @@ class FollowerDaemon(Daemon):
         self.calibration: Calibration | None = Calibration.load(self.calibration_path)
         self.calibrator = Calibrator(config.calibration)
         self.world = SimWorld(config.sim_patient, config.sim_human, config.sim_head)
-        self.sensing = Sensing(config, sensing_config)
+        # with a sensing process, the daemon's own pipeline is built only if ever used
+        self.sensing = Sensing(config, sensing_config, build=config.sensing_worker == "thread")
+        self.sensing_proc: SensingProcess | None = None  # run() starts it
+        self._proc_frame: tuple[int, TrackerImage] | None = None  # (job, image) in flight
+        self._jobs = 0
+        self.sensing_failure: str | None = None
         self.measurement = Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
         self.last_measure_t = -math.inf
         self.measurements = 0
@@ -488,6 +525,17 @@ class FollowerDaemon(Daemon):
         """Measure one tracker image: on the sensing worker when the daemon runs (the result
         is taken on the loop), else in line. Never two at once: an image due while the
         previous one is measured is skipped and counted."""
+        proc = self.sensing_proc
+        if proc is not None and proc.running:
+            if not proc.ready or proc.busy:
+                self.sensing_skipped += 1
+                return
+            self._jobs += 1
+            if proc.submit(self._jobs, frame.truth):
+                self._proc_frame = (self._jobs, frame)
+            else:
+                self.sensing_skipped += 1
+            return
         if self.executor is None:
             self.take_measurement(frame, self.sensing.measure(frame.truth))
             return
@@ -497,6 +545,24 @@ class FollowerDaemon(Daemon):
         fut = asyncio.get_running_loop().run_in_executor(self.executor, self._measure, frame)
         self._sensing = fut
         fut.add_done_callback(lambda f: self._measured(frame, f))
+
+    def _measured_in_process(self, job: int, m: Measurement, seconds: float) -> None:
+        """A measurement from the sensing process (on the loop)."""
+        pending, self._proc_frame = self._proc_frame, None
+        self.sensing_times.append(seconds)
+        if pending is None or pending[0] != job:
+            return  # a frame submitted to a child that has since been replaced
+        try:
+            self.take_measurement(pending[1], m)
+        except Exception:
+            self.tick_errors += 1
+            if self.tick_errors in (1, 10, 100, 1000):
+                log.exception("follower: measurement failed (%d so far)", self.tick_errors)
+
+    def _sensing_cannot_start(self, reason: str) -> None:
+        """The sensing process refused its config: the daemon stops (exit code 2)."""
+        self.sensing_failure = reason
+        self.stop()
 
     def _measure(self, frame: TrackerImage) -> Measurement:
         """On the sensing worker: measure, and time it."""
@@ -628,8 +694,15 @@ class FollowerDaemon(Daemon):
             "ticks": self.ticks,
             "measurements": self.measurements,
             "tracking_lost": self.tracking_lost,
-            "sensing_errors": self.sensing.errors,
+            "sensing_errors": self.sensing.errors
+            + (0 if self.sensing_proc is None else self.sensing_proc.child_errors),
             "sensing_skipped": self.sensing_skipped,
+            "sensing_worker": (
+                "process"
+                if self.sensing_proc is not None and self.sensing_proc.running
+                else "thread"
+            ),
+            "sensing_restarts": 0 if self.sensing_proc is None else self.sensing_proc.restarts,
             "sensing_p50_ms": percentile_ms(self.sensing_times, 50),
             "sensing_p99_ms": percentile_ms(self.sensing_times, 99),
             "scan": self.scan,
@@ -648,6 +721,25 @@ class FollowerDaemon(Daemon):
             return 2
         self.record_model()  # a saved calibration's model
         self.executor = ThreadPoolExecutor(1, thread_name_prefix="humantele-sensing")
+        if self.config.sensing_worker == "process" and self.sensing.unbuilt:
+            self.sensing_proc = SensingProcess(
+                self.config,
+                self.sensing.sensing_config,
+                self._measured_in_process,
+                self._sensing_cannot_start,
+                nice=self.config.sensing_nice,
+            )
+            self.sensing_proc.start()
+            # as the in-thread pipeline was built before the daemon ran: measure from the start
+            ready = await self.sensing_proc.wait_ready(cancel=self._stop.is_set)
+            if not ready and not self.sensing_proc.failed and not self._stop.is_set():
+                log.warning("follower: the sensing process is slow to start; going on")
+            if self.sensing_failure is not None:
+                self.sensing_proc.close()
+                self.executor.shutdown(wait=False)
+                self.finish_run()
+                print(f"humantele follower: sensing cannot start: {self.sensing_failure}")
+                return 2
         if self.config.feed.enabled:
             try:
                 await self.feed.start()
@@ -679,8 +771,13 @@ class FollowerDaemon(Daemon):
             await self.feed.stop()
             self.executor.shutdown(wait=True)  # the frame being measured ends first
             self.executor = None
+            if self.sensing_proc is not None:
+                self.sensing_proc.close()
             self.sensing.close()
             self.finish_run()
+        if self.sensing_failure is not None:
+            print(f"humantele follower: sensing cannot start: {self.sensing_failure}", flush=True)
+            return 2
         return 0
 
 
