@@ -44,6 +44,7 @@ import contextlib
 import logging
 import math
 import os
+import sys
 import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -89,8 +90,13 @@ from humantele.follower.sim_human import (
     SimPatientConfig,
 )
 from humantele.geometry import Pose, matrix_to_quat
+from humantele.haptics.ellipsoid import Ellipsoid
+from humantele.media.config import FollowerVideoConfig
+from humantele.media.sender import VideoSender
 from humantele.recording import Recorder, RecorderConfig
 from humantele.transport import LinkConfig, PeerLink
+from humantele.video.base import VideoSourceUnavailable
+from humantele.video.scene import SceneSnapshot
 from humantele.wire import (
     Calibration as CalibrationMsg,
 )
@@ -133,6 +139,7 @@ class FollowerConfig(ConfigModel):
     sim_patient: SimPatientConfig = SimPatientConfig()
     sim_human: SimHumanConfig = SimHumanConfig()
     sim_head: SimHeadConfig = SimHeadConfig()
+    video: FollowerVideoConfig = FollowerVideoConfig()
     session: SessionConfig = SessionConfig()
     recording: RecorderConfig = RecorderConfig()
 
@@ -252,6 +259,12 @@ class FollowerDaemon:
         self.calibration: Calibration | None = Calibration.load(self.calibration_path)
         self.calibrator = Calibrator(config.calibration)
         self.patient = SimPatient(config.sim_patient)
+        sp = config.sim_patient
+        self.patient_ellipsoid = Ellipsoid(
+            tuple(self.patient.T_world_body.position),
+            tuple(float(v) for v in self.patient.semi_axes),
+            math.radians(sp.yaw_deg),
+        )
         self.human = SimHuman(config.sim_human, self.patient)
         self.head = SimHead(config.sim_head)
         self.sensing = Sensing(config, sensing_config)
@@ -259,12 +272,24 @@ class FollowerDaemon:
         self.last_measure_t = -math.inf
         self.measurements = 0
         self.feed = RendererFeed(config.feed, self.state_dir)
+        # Video: the us and pov tracks (humantele.media.sender), fed by the sim world's latest
+        # snapshot (self.scene_snapshot, updated each tick) for the sim sources.
+        self._scene: SceneSnapshot | None = None
+        self._head: Pose | None = None
+        self.video = (
+            VideoSender(config.video, self.scene_snapshot, self.record_any)
+            if config.video.enabled
+            else None
+        )
+        self._video_check_t = -math.inf
+        self._video_late_ticks = 0
         self.link = PeerLink(
             "follower",
             config.link,
             on_pose=self.on_pose,
             on_control=self.on_control,
             on_link_state=self.on_link_state,
+            media=None if self.video is None else (lambda pc, role: self.video.attach(pc)),
         )
         self.calibrating = False
         self.following_since: float | None = None
@@ -487,11 +512,36 @@ class FollowerDaemon:
             self.last_measure_t = t if late else self.last_measure_t + frame_period
             tip_pos = None if true_tip is None else true_tip.position
             camera = self.head.step(t, tip_pos)
+            self._head = camera
             self.start_measurement(Frame(t, true_tip, force, camera, virtual, target))
-        # Video frame timestamps (/follower/video_frame: stream 'pov' or 'us', seq, event) are
-        # recorded here once the follower has its POV and ultrasound tracks; there is no video
-        # yet, so nothing is recorded for it.
+        # The sim video sources render this snapshot in their threads; video frame timestamps
+        # (/follower/video_frame) are recorded there, as each frame is captured and sent.
+        self.publish_scene(t, true_tip, force, virtual)
         self.publish_feed(t, virtual, self.measurement)
+
+    def publish_scene(
+        self, t: float, true_tip: Pose | None, force: NDArray, virtual: Pose | None
+    ) -> None:
+        """The sim world now, for the sim video sources (an immutable snapshot)."""
+        if self.video is None:
+            return
+        force_n = 0.0
+        if true_tip is not None:
+            beam = true_tip.rotate((0.0, 0.0, 1.0))
+            force_n = max(0.0, -float(np.dot(force, beam)))
+        self._scene = SceneSnapshot(t, self.patient_ellipsoid, true_tip, force_n, self._head,
+                                    virtual)  # fmt: skip
+
+    def scene_snapshot(self) -> SceneSnapshot:
+        """The latest snapshot (called from the video threads)."""
+        s = self._scene
+        return s if s is not None else SceneSnapshot(0.0, self.patient_ellipsoid, None, 0.0, None)
+
+    def record_any(self, topic: str, t: float, payload: dict) -> None:
+        """Record from any thread (the recorder only queues)."""
+        rec = self.rec
+        if rec is not None:
+            rec.write(topic, t, payload)
 
     # --- measurements (sensing worker thread -> loop) -------------------------------------
 
@@ -661,7 +711,19 @@ class FollowerDaemon:
             "tick_errors": self.tick_errors,
             "late_ticks": self.late_ticks,
             "cpu_percent": self.cpu.overall(),
+            "video": None if self.video is None else self.video.stats(),
         }
+
+    def check_video(self, t: float) -> None:
+        """Once a second, the video's degradation policy (POV first), in a task."""
+        if self.video is None or t - self._video_check_t < 1.0:
+            return
+        dt = 1.0 if self._video_check_t == -math.inf else t - self._video_check_t
+        self._video_check_t = t
+        late = (self.late_ticks - self._video_late_ticks) / dt
+        self._video_late_ticks = self.late_ticks
+        task = asyncio.ensure_future(self.video.check(t, late))
+        task.add_done_callback(_log_task_error)
 
     def _count_late_tick(self) -> None:
         self.late_ticks += 1
@@ -672,6 +734,14 @@ class FollowerDaemon:
         if not self.open_recording():
             return 2
         self.record_model()  # a saved calibration's model
+        if self.video is not None:
+            try:
+                await asyncio.to_thread(self.video.open)
+            except VideoSourceUnavailable as exc:
+                print(f"humantele follower: {exc}", file=sys.stderr, flush=True)
+                self.close_recording()
+                return 2
+            self.video.start(loop)
         self.executor = ThreadPoolExecutor(1, thread_name_prefix="humantele-sensing")
         if self.config.feed.enabled:
             try:
@@ -699,6 +769,7 @@ class FollowerDaemon:
                 try:
                     self.tick(t)
                     self.record_reports(t)
+                    self.check_video(t)
                 except Exception:  # never let one bad tick end the daemon
                     self.tick_errors += 1
                     if self.tick_errors in (1, 10, 100, 1000):
@@ -708,12 +779,19 @@ class FollowerDaemon:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await asyncio.wait_for(link_task, 5.0)
             await self.feed.stop()
+            if self.video is not None:
+                await asyncio.to_thread(self.video.close)
             self.executor.shutdown(wait=True)  # the frame being measured ends first
             self.executor = None
             self.sensing.close()
             self.close_recording()
             write_stats(self.stats_file, self.stats())
         return 0
+
+
+def _log_task_error(task: asyncio.Future) -> None:
+    if not task.cancelled() and task.exception() is not None:
+        log.error("follower: video check failed: %s", task.exception())
 
 
 def _rms_scaled(values: list[float], scale: float) -> float | None:
