@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from video_helpers import until, video_follower
+from video_helpers import small_video_config, until, video_follower
 
 from humantele.media.config import ExpertVideoConfig
 from humantele.media.receiver import VideoReceiver
@@ -121,3 +121,51 @@ async def test_tracks_come_back_after_the_follower_process_is_killed_and_restart
         await rx.close()
         with contextlib.suppress(Exception):
             await asyncio.wait_for(run, 5)
+
+
+@pytest.mark.slow
+async def test_us_image_follows_the_probe_through_the_video_process(server):
+    """The sim world's probe on the kidney, then lifted off the skin: the decoded US image at
+    the expert goes from an image to dark (the sources run in the video process)."""
+    from humantele.video.scene import DEFAULT_PATIENT, DemoScene, SceneSnapshot
+
+    expert, rx = expert_with_video(server)
+    follower, tx = video_follower(server.url, "v", TOKEN, small_video_config(process=True))
+    demo = DemoScene()
+    lifted = {"on": False}
+
+    async def world() -> None:  # the follower's tick publishing the sim world
+        while True:
+            s = demo()
+            if lifted["on"]:  # no contact: the probe 5 cm above the skin, no force
+                tip = s.T_world_tip
+                tip = type(tip)(tip.position + [0.0, 0.05, 0.0], tip.quaternion)
+                s = SceneSnapshot(s.t, DEFAULT_PATIENT, tip, 0.0, s.T_world_head)
+            tx.publish_scene(s)
+            await asyncio.sleep(0.01)
+
+    await asyncio.to_thread(tx.open)
+    tx.start(asyncio.get_running_loop())
+    tasks = [asyncio.create_task(t) for t in (expert.run(), follower.run(), world())]
+
+    async def us_brightness(after_seq: int) -> tuple[int, float]:
+        await until(lambda: (f := rx.latest("us")) is not None and (f.seq or 0) > after_seq + 5)
+        f = rx.latest("us")
+        img = await asyncio.to_thread(f.image)
+        return f.seq, float(img[40:, :].mean())  # below the counter
+
+    try:
+        await expert.wait_state("connected", timeout=60)
+        seq, on = await us_brightness(0)
+        lifted["on"] = True
+        _, off = await us_brightness(seq)
+        assert on > 20.0 and off < 0.5 * on, (on, off)
+    finally:
+        tasks[2].cancel()
+        await follower.close()
+        await expert.close()
+        await asyncio.to_thread(tx.close)
+        await rx.close()
+        for t in tasks:
+            with contextlib.suppress(BaseException):
+                await asyncio.wait_for(t, 5)

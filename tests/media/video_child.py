@@ -6,11 +6,12 @@ import asyncio
 import os
 import sys
 
-from video_helpers import video_follower
+from video_helpers import small_video_config, video_follower
 
 
 async def main(url: str, room: str) -> None:
-    link, sender = video_follower(url, room, os.environ["HUMANTELE_TOKEN"])
+    config = small_video_config(process=True)  # as the daemon runs it: a video process
+    link, sender = video_follower(url, room, os.environ["HUMANTELE_TOKEN"], config)
     await asyncio.to_thread(sender.open)
     sender.start(asyncio.get_running_loop())
     await link.run()

@@ -11,8 +11,10 @@ from humantele.video.sim_ultrasound import SimUltrasoundConfig
 
 
 def small_video_config(**kw) -> FollowerVideoConfig:
-    """Small, slow sim sources so the tests are light on a loaded machine."""
+    """Small, slow sim sources so the tests are light on a loaded machine (threads unless
+    ``process=True``)."""
     base = dict(
+        process=False,
         us=SimUltrasoundConfig(width=320, height=240, fps=10, beams=64, samples=128),
         pov=SimPovConfig(width=320, height=180, fps=10),
         record_us_hz=0,
@@ -32,7 +34,9 @@ async def until(cond, timeout: float = 20.0, poll: float = 0.05) -> None:
 
 def video_follower(url: str, room: str, token: str, config=None, scene=None, record=None):
     """(PeerLink, VideoSender): a follower link whose peer connections carry the two tracks."""
-    sender = VideoSender(config or small_video_config(), scene, record)
+    from humantele.video.scene import DEFAULT_PATIENT
+
+    sender = VideoSender(config or small_video_config(), scene, record, DEFAULT_PATIENT)
     link = PeerLink(
         "follower",
         LinkConfig(signaling_url=url, room=room, token=token),

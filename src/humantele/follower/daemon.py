@@ -277,11 +277,12 @@ class FollowerDaemon:
         self._scene: SceneSnapshot | None = None
         self._head: Pose | None = None
         self.video = (
-            VideoSender(config.video, self.scene_snapshot, self.record_any)
+            VideoSender(config.video, self.scene_snapshot, self.record_any, self.patient_ellipsoid)
             if config.video.enabled
             else None
         )
         self._video_check_t = -math.inf
+        self.video_error = ""
         self._video_late_ticks = 0
         self.link = PeerLink(
             "follower",
@@ -531,6 +532,7 @@ class FollowerDaemon:
             force_n = max(0.0, -float(np.dot(force, beam)))
         self._scene = SceneSnapshot(t, self.patient_ellipsoid, true_tip, force_n, self._head,
                                     virtual)  # fmt: skip
+        self.video.publish_scene(self._scene)
 
     def scene_snapshot(self) -> SceneSnapshot:
         """The latest snapshot (called from the video threads)."""
@@ -734,14 +736,9 @@ class FollowerDaemon:
         if not self.open_recording():
             return 2
         self.record_model()  # a saved calibration's model
-        if self.video is not None:
-            try:
-                await asyncio.to_thread(self.video.open)
-            except VideoSourceUnavailable as exc:
-                print(f"humantele follower: {exc}", file=sys.stderr, flush=True)
-                self.close_recording()
-                return 2
-            self.video.start(loop)
+        # The video sources open beside the session (the video process takes a few seconds
+        # to start); one that cannot open stops the daemon with a clear message, exit code 2.
+        video_task = None if self.video is None else asyncio.create_task(self.start_video())
         self.executor = ThreadPoolExecutor(1, thread_name_prefix="humantele-sensing")
         if self.config.feed.enabled:
             try:
@@ -779,14 +776,29 @@ class FollowerDaemon:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await asyncio.wait_for(link_task, 5.0)
             await self.feed.stop()
-            if self.video is not None:
+            if video_task is not None:
+                with contextlib.suppress(BaseException):
+                    await video_task  # opening cannot be interrupted: it ends by itself
                 await asyncio.to_thread(self.video.close)
             self.executor.shutdown(wait=True)  # the frame being measured ends first
             self.executor = None
             self.sensing.close()
             self.close_recording()
             write_stats(self.stats_file, self.stats())
-        return 0
+        return 2 if self.video_error else 0
+
+    async def start_video(self) -> None:
+        """Open the video sources (in a thread: it blocks) and start them; a source that
+        cannot open is reported on stderr and stops the daemon (exit code 2)."""
+        assert self.video is not None
+        try:
+            await asyncio.to_thread(self.video.open)
+        except VideoSourceUnavailable as exc:
+            self.video_error = str(exc)
+            print(f"humantele follower: {exc}", file=sys.stderr, flush=True)
+            self._stop.set()
+            return
+        self.video.start(asyncio.get_running_loop())
 
 
 def _log_task_error(task: asyncio.Future) -> None:

@@ -50,6 +50,10 @@ class FollowerVideoConfig(ConfigModel):
         True, description="draw the frame counter (64x32 px, top left) into every frame sent"
     )
     degrade: DegradeConfig = DegradeConfig()
+    process: bool = Field(
+        True, description="render/capture in a separate, lower-priority process (not threads)"
+    )
+    process_nice: int = Field(5, ge=0, le=19, description="the video process's nice increment")
     record_us_hz: float = Field(
         3.0, ge=0.0, le=120.0, description="US frames recorded as JPEG per second (0: none)"
     )

@@ -63,6 +63,14 @@ class CapturedFrame:
     height: int
 
 
+def i420_frame(yuv: np.ndarray, t_capture: float) -> av.VideoFrame:
+    """An aiortc frame of I420 pixels ((h * 3 / 2, w) uint8), pts = capture time at 90 kHz."""
+    frame = av.VideoFrame.from_ndarray(yuv, format="yuv420p")
+    frame.pts = int(round(t_capture * 90000))
+    frame.time_base = VIDEO_TIME_BASE
+    return frame
+
+
 def _even(n: float) -> int:
     return max(2, int(round(n / 2.0)) * 2)
 
@@ -178,14 +186,16 @@ class VideoCapture:
         if self.stamp_counter and w >= 64 and h >= 32:
             draw_counter(img, f.seq)
         yuv = cv2.cvtColor(img, cv2.COLOR_BGR2YUV_I420)
-        frame = av.VideoFrame.from_ndarray(yuv, format="yuv420p")
-        frame.pts = int(round(t * 90000))
-        frame.time_base = VIDEO_TIME_BASE
         self.prepare_times.append(time.perf_counter() - t0)
         if len(self.prepare_times) > 500:
             del self.prepare_times[:250]
         self.published += 1
-        self.slot.put(CapturedFrame(frame, f.seq, t, w, h))
+        self.emit(f.seq, t, yuv, w, h)
+
+    def emit(self, seq: int, t: float, yuv: np.ndarray, width: int, height: int) -> None:
+        """Hand a prepared frame (I420, (h * 3 / 2, w) uint8) on: wrapped for aiortc into the
+        slot (the video process overrides this to use shared memory)."""
+        self.slot.put(CapturedFrame(i420_frame(yuv, t), seq, t, width, height))
 
     def _record(self, f: Any) -> None:
         """Every captured frame's timestamps; a JPEG at ``record_hz`` (any thread: the recorder
@@ -246,24 +256,43 @@ class VideoSender:
         config: FollowerVideoConfig,
         scene: Scene | None = None,
         record: Record | None = None,
+        patient: Any = None,
     ) -> None:
         self.config = config
         self.record = record
         self.policy = DegradationPolicy(config.degrade)
         sources = {"us": config.us, "pov": config.pov}
         rates = {"us": config.record_us_hz, "pov": config.record_pov_hz}
-        self.captures = {
-            name: VideoCapture(
-                name,
-                make_video_source(sources[name], scene),
-                stamp_counter=config.stamp_counter,
-                record=record,
-                record_hz=rates[name],
-                jpeg_quality=config.jpeg_quality,
-            )
-            for name in TRACKS
-        }
-        self.pov_fps = self.captures["pov"].source.fps
+        self.process: Any = None
+        if config.process:  # the sources in a video process (humantele.media.process)
+            from humantele.media.process import ProcessVideo
+
+            specs = {}
+            for name in TRACKS:
+                c = sources[name]
+                w, h = c.width, c.height
+                if getattr(c, "backend", "") != "sim":  # a device may give another size
+                    w, h = max(w, 1920), max(h, 1080)
+                specs[name] = {
+                    "config": c, "stamp_counter": config.stamp_counter, "fps": float(c.fps) or 30.0,
+                    "record_hz": rates[name], "jpeg_quality": config.jpeg_quality,
+                    "size": (w, h),
+                }  # fmt: skip
+            self.process = ProcessVideo(specs, patient, record, config.process_nice)
+            self.captures: dict[str, Any] = self.process.captures
+        else:
+            self.captures = {
+                name: VideoCapture(
+                    name,
+                    make_video_source(sources[name], scene),
+                    stamp_counter=config.stamp_counter,
+                    record=record,
+                    record_hz=rates[name],
+                    jpeg_quality=config.jpeg_quality,
+                )
+                for name in TRACKS
+            }
+        self.pov_fps = float(self.captures["pov"].source.fps)
         self.infos_sent = 0
         self.infos_dropped = 0
         self.attached = 0
@@ -273,8 +302,16 @@ class VideoSender:
         self._last_check: float | None = None
         self._started = False
 
+    def publish_scene(self, snapshot: Any) -> None:
+        """The sim world's latest snapshot, for the video process (threads call ``scene``)."""
+        if self.process is not None:
+            self.process.publish_scene(snapshot)
+
     def open(self) -> None:
         """Open both sources (blocks); VideoSourceUnavailable names the one that failed."""
+        if self.process is not None:
+            self.process.open()
+            return
         opened = []
         try:
             for cap in self.captures.values():
@@ -292,8 +329,11 @@ class VideoSender:
         self._started = True
 
     def close(self) -> None:
-        for cap in self.captures.values():
-            cap.stop()
+        if self.process is not None:
+            self.process.close()
+        else:
+            for cap in self.captures.values():
+                cap.stop()
         self._started = False
 
     # --- per peer connection ------------------------------------------------------------------
@@ -370,6 +410,9 @@ class VideoSender:
 
     def stats(self) -> dict[str, Any]:
         out: dict[str, Any] = {
+            "process": None
+            if self.process is None
+            else {"alive": self.process.alive, "cpu_s": self.process.cpu_seconds()},
             "pov_level": self.policy.level,
             "pov_level_changes": self.policy.changes,
             "pov_level_reason": self.policy.reason,

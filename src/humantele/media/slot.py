@@ -65,6 +65,7 @@ class LatestSlot(Generic[T]):
                 if self._number > number and self._item is not None:
                     self._taken = max(self._taken, self._number)
                     return self._number, self._item
-            if self._event is None:
-                raise RuntimeError("LatestSlot.bind(loop) was not called")
+            if self._event is None:  # the first consumer binds the slot to its loop
+                self.bind(asyncio.get_running_loop())
+            assert self._event is not None
             await self._event.wait()
