@@ -383,7 +383,7 @@ class ProcessVideo:
         return p is not None and p.is_alive()
 
     def cpu_seconds(self) -> float | None:
-        from humantele.demo import process_cpu_seconds
+        from humantele.runtime.stats import process_cpu_seconds
 
         p = self.shared.process
         return None if p is None else process_cpu_seconds(p.pid)

@@ -298,7 +298,8 @@ class VideoReceiver:
         elif st.anchor is not None and pts is not None:
             t_follower = (int(pts) + st.anchor) / VIDEO_RATE
             if seq is None:  # the counter did not read (a codec smear): the record says which
-                seq = self._seq_at.get(name, {}).get(int(pts) + st.anchor)
+                key, seq_at = int(pts) + st.anchor, self._seq_at[name]
+                seq = next((seq_at[k] for k in (key, key - 1, key + 1) if k in seq_at), None)
         if value is None:
             st.unreadable += 1
         if seq is not None:
