@@ -301,13 +301,15 @@ class ProcessVideo:
         self.patient = patient
         self.nice = nice
         self.specs = specs
+        self.closed = False
         self.captures = {
             name: ProcessCapture(name, self.shared, spec, spec["fps"])
             for name, spec in specs.items()
         }
 
     def publish_scene(self, snapshot: SceneSnapshot) -> None:
-        self.shared.scene.write(pack_scene(snapshot))
+        if not self.closed:
+            self.shared.scene.write(pack_scene(snapshot))
 
     def open(self) -> None:
         """Start the process and wait until it opened every source (VideoSourceUnavailable
@@ -360,6 +362,9 @@ class ProcessVideo:
         sh.opened_event.set()
 
     def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
         sh = self.shared
         sh.stop.set()
         if sh.process is not None:
