@@ -202,13 +202,15 @@ def video_summary(e: dict[str, Any] | None, f: dict[str, Any] | None) -> dict[st
     if not e:
         return None
     out: dict[str, Any] = {}
-    keys = ("frames", "fps", "age_p50_ms", "age_p95_ms", "age_max_ms", "unreadable", "no_info")
+    keys = ("frames", "fps", "fps_mean", "gap_max_ms", "age_p50_ms", "age_p95_ms", "age_max_ms",
+            "unreadable", "no_info")  # fmt: skip
     for name in ("us", "pov"):
         t = e.get(name) or {}
         out[name] = {k: t.get(k) for k in (*keys, "size")}
     if f:
         out["pov_level"] = f.get("pov_level")
         out["pov_level_changes"] = f.get("pov_level_changes")
+        out["process"] = f.get("process")
         out["follower"] = {n: f.get(n) for n in ("us", "pov")}
     return out
 

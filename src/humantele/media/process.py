@@ -302,6 +302,7 @@ class ProcessVideo:
         self.nice = nice
         self.specs = specs
         self.closed = False
+        self._cpu_s: float | None = None
         self.captures = {
             name: ProcessCapture(name, self.shared, spec, spec["fps"])
             for name, spec in specs.items()
@@ -364,6 +365,7 @@ class ProcessVideo:
     def close(self) -> None:
         if self.closed:
             return
+        self.cpu_seconds()  # the last figure, while it runs
         self.closed = True
         sh = self.shared
         sh.stop.set()
@@ -391,4 +393,6 @@ class ProcessVideo:
         from humantele.runtime.stats import process_cpu_seconds
 
         p = self.shared.process
-        return None if p is None else process_cpu_seconds(p.pid)
+        if p is not None and p.is_alive():
+            self._cpu_s = process_cpu_seconds(p.pid) or self._cpu_s
+        return self._cpu_s
