@@ -21,8 +21,8 @@ Message handling is one method per kind (``on_state``, ``on_control``, ``on_link
 Recording (``--record FILE`` or ``[expert.session] record``): every published pose
 (``/expert/pose``, the same ``t`` as the PoseMessage) and the rendered force (``/expert/force``,
 patient frame); about once a second the servo statistics, the state stream's one-way latency
-and, when it changes, the clock-sync estimate; scan starts and stops. Video frame timestamps
-(``/expert/video_frame``) come with the video tracks: there is no video yet. ``t`` is this
+and, when it changes, the clock-sync estimate; scan starts and stops; every received video
+frame's number and age (``/expert/video_frame``, :mod:`humantele.media.receiver`). ``t`` is this
 daemon's monotonic clock (s), the one its ClockSync uses. A path that cannot be recorded to
 stops the daemon at start (exit code 2); a failure during the session is reported in the stats
 and never stops the haptics or the session.
@@ -61,6 +61,8 @@ from humantele.haptics.ellipsoid import Ellipsoid
 from humantele.haptics.servo import ServoProcess
 from humantele.haptics.servo_config import ServoConfig
 from humantele.haptics.servo_layout import ServoError
+from humantele.media.config import ExpertVideoConfig
+from humantele.media.receiver import VideoReceiver
 from humantele.recording import RecorderConfig
 from humantele.runtime.daemon import (
     Daemon,
@@ -106,6 +108,7 @@ class ExpertConfig(ConfigModel):
     link: LinkConfig = LinkConfig(pose_rate_hz=100.0)
     mapping: MappingConfig = MappingConfig()
     scans: ScanScriptConfig = ScanScriptConfig()
+    video: ExpertVideoConfig = ExpertVideoConfig()
     session: SessionConfig = SessionConfig()
     recording: RecorderConfig = RecorderConfig()
 
@@ -150,7 +153,11 @@ class ExpertDaemon(Daemon):
             on_state=self.on_state,
             on_control=self.on_control,
             on_link_state=self.on_link_state,
+            media=lambda pc, role: self.video.prepare(pc),
         )
+        # The follower's us and pov tracks: the latest decoded frame of each, with its capture
+        # time on this clock (self.video.latest("us")), for the console.
+        self.video = VideoReceiver(config.video, self.link.clock, self.link.now, self.record_any)
         self.pose_seq = 0
         self.poses_sent = 0
         self.pose_send_failures = 0
@@ -325,6 +332,12 @@ class ExpertDaemon(Daemon):
                 "/expert/latency", t, {"name": "state_one_way", "value_s": float(np.median(recent))}
             )
 
+    def record_any(self, topic: str, t: float, payload: dict) -> None:
+        """Record one sample if recording (the recorder only queues)."""
+        rec = self.rec
+        if rec is not None:
+            rec.write(topic, t, payload)
+
     def check_servo(self, t: float) -> None:
         """A dead servo process is restarted (the daemon itself keeps running)."""
         if self.servo.alive:
@@ -399,6 +412,7 @@ class ExpertDaemon(Daemon):
             "scans_started": self.scans_started,
             "step_errors": self.step_errors,
             "recording": recorder_stats(self.rec),
+            "video": self.video.stats() if self.config.video.enabled else None,
         }
 
     def guarded(self, step: Callable[[float], object], t: float) -> None:
@@ -431,6 +445,7 @@ class ExpertDaemon(Daemon):
         finally:
             self.guarded(self.stop_scan, self.clock())  # the scan ends before the bye
             await self.close_link(self.link, link_task)
+            await self.video.close()
             self.servo_cpu_percent()
             self.servo.stop()
             self.finish_run()
