@@ -1,18 +1,20 @@
 """Configuration: pydantic models loaded from TOML or JSON files in ``configs/``.
 
-Every model derives from :class:`ConfigModel`: unknown fields are refused, and every field has a
-default that runs the demo. A bad value fails at start with :class:`ConfigError`, whose message
-names the file, the field and the reason.
+Every model derives from :class:`ConfigModel`: unknown fields are refused, every float (also
+inside tuples, lists and tables) must be finite, and every field has a default that runs the
+demo. Rotations are :data:`Quaternion` fields, refused unless normalisable. A bad value fails at
+start with :class:`ConfigError`, whose message names the file, the field and the reason.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import tomllib
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Annotated, Any, TypeVar
 
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import AfterValidator, BaseModel, ConfigDict, ValidationError
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
 
@@ -24,7 +26,20 @@ class ConfigError(ValueError):
 class ConfigModel(BaseModel):
     """Base of every configuration model: strict about unknown keys, validated on assignment."""
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=False)
+    model_config = ConfigDict(
+        extra="forbid", validate_assignment=True, frozen=False, allow_inf_nan=False
+    )
+
+
+def _normalised(q: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
+    n = math.sqrt(math.fsum(c * c for c in q))
+    if not 1e-6 < n < 1e6:
+        raise ValueError(f"quaternion {q} is not a rotation (norm {n:.3g}); use (0, 0, 0, 1)")
+    return tuple(c / n for c in q)  # type: ignore[return-value]
+
+
+Quaternion = Annotated[tuple[float, float, float, float], AfterValidator(_normalised)]
+"""A rotation (x, y, z, w): finite, normalisable, stored normalised."""
 
 
 M = TypeVar("M", bound=BaseModel)
@@ -47,16 +62,35 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read configuration: {exc.strerror or exc}") from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"{path}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start})"
+        ) from exc
+    kind = "JSON" if path.suffix == ".json" else "TOML"
     try:
-        if path.suffix == ".json":
-            data = json.loads(text)
-        else:
-            data = tomllib.loads(text)
+        data = json.loads(text) if kind == "JSON" else tomllib.loads(text)
     except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
-        raise ConfigError(f"{path}: not valid {path.suffix.lstrip('.') or 'TOML'}: {exc}") from exc
+        raise ConfigError(f"{path}: not valid {kind}: {exc}") from exc
+    except RecursionError as exc:
+        raise ConfigError(f"{path}: not valid {kind}: nested too deeply") from exc
+    if _depth(data) > MAX_DEPTH:
+        raise ConfigError(f"{path}: tables nested deeper than {MAX_DEPTH} levels")
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: the top level must be a table/object")
     return data
+
+
+MAX_DEPTH = 16  # the deepest real config is 4 levels
+
+
+def _depth(value: Any, level: int = 0) -> int:
+    if level > MAX_DEPTH:
+        return level
+    if isinstance(value, dict):
+        return max((_depth(v, level + 1) for v in value.values()), default=level + 1)
+    if isinstance(value, list):
+        return max((_depth(v, level + 1) for v in value), default=level + 1)
+    return level
 
 
 def validate_config(model: type[M], data: dict[str, Any], source: str = "") -> M:

@@ -29,12 +29,12 @@ import signal
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import Field, model_validator
 
-from humantele.config import ConfigModel
+from humantele.config import ConfigModel, Quaternion
 from humantele.geometry import Pose, quat_multiply_tuple
 from humantele.haptics.devices import DeviceConfig, DeviceError, DeviceState, make_device
 from humantele.haptics.devices.sim import ManualClock, SimDeviceConfig, SimTouchX
@@ -66,11 +66,14 @@ def demo_model() -> Ellipsoid:
     return Ellipsoid.from_landmarks(**{k: v for k, v in DEMO_LANDMARKS.items()})
 
 
+Coord = Annotated[float, Field(ge=-10.0, le=10.0)]  # m, a device within 10 m of the world origin
+
+
 class RegistrationConfig(ConfigModel):
     """``T_world_device``: device origin in the world (m) and rotation (x, y, z, w)."""
 
-    position_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    quaternion: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
+    position_m: tuple[Coord, Coord, Coord] = (0.0, 0.0, 0.0)
+    quaternion: Quaternion = (0.0, 0.0, 0.0, 1.0)
 
     def pose(self) -> Pose:
         return Pose(np.array(self.position_m), np.array(self.quaternion))
