@@ -365,8 +365,22 @@ def _status_line(e: dict[str, Any], f: dict[str, Any], elapsed: float) -> str:
         f"force {num(e.get('force_n'), '.2f')} N | "
         f"alignment {num(f.get('alignment_mm_rms'), '.1f')} mm "
         f"{num(f.get('alignment_deg_rms'), '.1f')} deg | "
-        f"servo {num(e.get('servo_rate_hz'), '.0f')} Hz" + _recording_status(e, f)
+        + _servo_status(e)
+        + _recording_status(e, f)
     )
+
+
+def _servo_status(e: dict[str, Any]) -> str:
+    """``servo 1000 Hz``, or the fault / the reason it is down, in capitals (never hidden)."""
+    state = str(e.get("servo_state") or "running")
+    if state.startswith("down"):
+        return f"servo DOWN ({state.partition(': ')[2][:80]})"
+    text = f"servo {format(e['servo_rate_hz'], '.0f') if e.get('servo_rate_hz') else '-'} Hz"
+    if state.startswith("fault"):
+        text += f" FAULT {state.partition(': ')[2]}"
+    if e.get("models_refused"):
+        text += f", {e['models_refused']} model(s) REFUSED"
+    return text
 
 
 def _recording_status(e: dict[str, Any], f: dict[str, Any]) -> str:
@@ -399,6 +413,9 @@ def summarize(
         "servo_rate_hz": e.get("servo_rate_hz"),
         "servo_overruns": e.get("servo_overruns"),
         "servo_period_p99_us": e.get("servo_period_p99_us"),
+        "servo_state": e.get("servo_state"),
+        "servo_restarts": e.get("servo_restarts", 0),
+        "models_refused": e.get("models_refused", 0),
         "calibrated": bool(f.get("calibrated", False)),
         "model_installed": bool(e.get("has_model", False)),
         "alignment_mm_rms": f.get("alignment_mm_rms"),

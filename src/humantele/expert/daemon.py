@@ -43,6 +43,7 @@ import contextlib
 import logging
 import math
 import os
+import sys
 import time
 from collections import deque
 from collections.abc import Callable
@@ -74,7 +75,7 @@ from humantele.expert.mapping import (
 )
 from humantele.geometry import Pose, quat_conjugate, quat_multiply
 from humantele.haptics.ellipsoid import Ellipsoid
-from humantele.haptics.loop import ServoConfig, ServoError, ServoProcess
+from humantele.haptics.loop import ServoConfig, ServoError, ServoProcess, ServoSample
 from humantele.recording import Recorder, RecorderConfig
 from humantele.transport import LinkConfig, PeerLink
 from humantele.wire import (
@@ -167,6 +168,9 @@ class ExpertDaemon:
         self.states_received = 0
         self.state_ages: deque[float] = deque(maxlen=20000)
         self.models_installed = 0
+        self.models_refused = 0
+        self.model_refusal = ""  # why the last refused model was refused
+        self.servo_down = ""  # why the servo is not running ("" while it runs)
         self.calibration_events: list[str] = []
         self.last_pose: Pose | None = None
         self.last_sample_t = -math.inf
@@ -203,7 +207,12 @@ class ExpertDaemon:
 
     def on_control(self, msg: ControlMessage) -> None:
         if isinstance(msg, EllipsoidModel):
-            self.install_model(Ellipsoid.from_dict(msg.model.model_dump()))
+            try:
+                model = Ellipsoid.from_dict(msg.model.model_dump())
+            except ValueError as exc:
+                self.refuse_model(str(exc))
+                return
+            self.install_model(model)
         elif isinstance(msg, CalibrationMsg):
             text = msg.event if not msg.detail else f"{msg.event}: {msg.detail}"
             self.calibration_events.append(text)
@@ -214,8 +223,22 @@ class ExpertDaemon:
 
     # --- the model and the registration ---------------------------------------------------
 
+    def refuse_model(self, why: str) -> None:
+        """A patient model that is not a body: refused, counted, reported; the last good stays."""
+        self.models_refused += 1
+        self.model_refusal = why
+        log.warning(
+            "expert: patient model refused (%s); %s", why,
+            "keeping the last good one" if self.model is not None else "no model yet",
+        )  # fmt: skip
+
     def install_model(self, model: Ellipsoid) -> None:
-        """Render ``model`` (patient frame); a new one moves the workspace over it."""
+        """Render ``model`` (patient frame); a new one moves the workspace over it. A model
+        that is not a body (:meth:`Ellipsoid.problem`) is refused and the last good one kept."""
+        why = model.problem()
+        if why is not None:
+            self.refuse_model(why)
+            return
         if self.model is not None and model == self.model:
             return  # the same model again (the follower rejoined): nothing changes
         self.model = model
@@ -356,13 +379,17 @@ class ExpertDaemon:
             )
 
     def check_servo(self, t: float) -> None:
-        """A dead servo process is restarted (the daemon itself keeps running)."""
+        """A dead servo process is restarted (the daemon itself keeps running); while it is
+        down, ``servo_down`` says why (the status and the JSON show it as a fault)."""
         if self.servo.alive:
             self._servo_dead_since = None
+            self.servo_down = ""
             return
         if self._servo_dead_since is None:
             self._servo_dead_since = t
-            log.error("expert: the servo process died; restarting it")
+            if not self.servo_down:
+                self.servo_down = f"servo process exited with code {self.servo.returncode}"
+            log.error("expert: %s; restarting it", self.servo_down)
         if t - self._servo_dead_since < self.config.servo_restart_s:
             return
         self._servo_dead_since = t
@@ -371,11 +398,21 @@ class ExpertDaemon:
         try:
             self.servo.start()
         except ServoError as exc:
+            self.servo_down = str(exc)
             log.error("expert: %s", exc)
             return
+        self.servo_down = ""
         self.servo_restarts += 1
         self.servo_started = time.monotonic()
         self.push_registration()
+
+    def servo_state(self, latest: ServoSample | None) -> str:
+        """``running``, ``fault: <names>`` (force zeroed by the loop) or ``down: <reason>``."""
+        if self.servo_down or not self.servo.alive:
+            return f"down: {self.servo_down or 'servo process not running'}"
+        if latest is not None and latest.fault:
+            return f"fault: {latest.fault}"
+        return "running" if latest is not None else "starting"
 
     def servo_cpu_percent(self) -> float | None:
         """CPU use (% of one core) of the servo process since it started."""
@@ -397,7 +434,9 @@ class ExpertDaemon:
         except ServoError:
             servo = {}
         latest = self.servo.latest() if self.servo.alive else None
-        force = None if latest is None else round(float(np.linalg.norm(latest.force)), 3)
+        state = self.servo_state(latest)
+        # A servo that is down drives no force: 0, and the state says why (never None).
+        force = 0.0 if latest is None else round(float(np.linalg.norm(latest.force)), 3)
         return {
             "role": "expert",
             "pid": os.getpid(),
@@ -415,7 +454,12 @@ class ExpertDaemon:
             "calibration_events": self.calibration_events[-8:],
             "clutch_reindexes": self.mapping.reindex_count,
             "force_n": force,
-            "servo_fault": "" if latest is None else latest.fault,
+            "servo_state": state,
+            "servo_fault": state if state.startswith("down") else (latest.fault if latest else ""),
+            "models_refused": self.models_refused,
+            "model_refusal": self.model_refusal,
+            "servo_models_refused": servo.get("models_refused"),
+            "servo_tick_errors": servo.get("tick_errors"),
             "servo_rate_hz": servo.get("rate_hz"),
             "servo_overruns": servo.get("overruns"),
             "servo_period_p99_us": servo.get("period_p99_us"),
@@ -460,6 +504,7 @@ class ExpertDaemon:
             await loop.run_in_executor(None, self.servo.start)
         except ServoError as exc:
             log.error("expert: %s", exc)
+            print(f"humantele expert: {exc}", file=sys.stderr)
             self.close_recording()
             return 1
         self.servo_started = time.monotonic()
@@ -486,6 +531,9 @@ class ExpertDaemon:
             self.servo.stop()
             self.close_recording()
             write_stats(self.stats_file, self.stats())
+        if self.servo_down:  # the haptics were off when the session ended: not a clean run
+            print(f"humantele expert: servo not running: {self.servo_down}", file=sys.stderr)
+            return 1
         return 0
 
 

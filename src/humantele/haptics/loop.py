@@ -20,6 +20,7 @@ the force zeroed.
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import logging
 import math
@@ -49,8 +50,9 @@ FAULT_STALE = 1  # device data older than stale_after_s
 FAULT_LATE = 2  # a tick started more than late_after_s after its deadline
 FAULT_DEVICE = 4  # the device raised (disconnect, driver error)
 FAULT_BAD_DATA = 8  # non-finite or implausible (beyond 1 m, 100 m/s) device data
+FAULT_MODEL = 16  # a tick failed on the model (dropped for the last good one)
 FAULT_NAMES = {FAULT_STALE: "stale", FAULT_LATE: "late", FAULT_DEVICE: "device",
-               FAULT_BAD_DATA: "bad_data"}  # fmt: skip
+               FAULT_BAD_DATA: "bad_data", FAULT_MODEL: "model"}  # fmt: skip
 
 # Demo patient (world, m, y up): a torso 0.30 m wide whose xiphoid is 0.22 m above the bed.
 DEMO_LANDMARKS = {
@@ -183,6 +185,8 @@ class ServoStats:
     nonfinite_forces: int
     clamped_forces: int
     realtime: bool
+    models_refused: int = 0  # models/registrations refused on arrival (the last good kept)
+    tick_errors: int = 0  # ticks that raised (force zeroed, the model dropped)
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -233,6 +237,7 @@ class _Setup:
 _ZERO3 = (0.0, 0.0, 0.0)
 MAX_DEVICE_COORD_M = 1.0  # a device reading farther than this from its origin is garbage
 MAX_DEVICE_SPEED = 100.0  # m/s, likewise for a device's own velocity estimate
+MAX_REGISTRATION_M = 10.0  # m, a device origin farther from the world origin is refused
 
 
 def _plausible(state: DeviceState) -> bool:
@@ -266,9 +271,24 @@ class ForceRenderer:
         self._fault_until = -math.inf
         self._faulted = False
         self._flags = 0
+        self._good: Ellipsoid | None = None  # the last model a tick rendered without error
         self.counts = {"stale": 0, "device": 0, "bad_data": 0, "late": 0, "episodes": 0,
-                       "nonfinite": 0, "clamped": 0}  # fmt: skip
+                       "nonfinite": 0, "clamped": 0, "refused": 0, "tick_errors": 0}  # fmt: skip
+        self.last_refusal = ""
         self.sample = None
+
+    @property
+    def model(self) -> Ellipsoid | None:
+        return self._model
+
+    @property
+    def registration(self) -> Pose | None:
+        """``T_world_device`` as commanded (None: automatic)."""
+        return self._reg
+
+    @property
+    def scale(self) -> float:
+        return self._scale
 
     # -- commands ---------------------------------------------------------------------------
     def set_model(self, model: Ellipsoid | None, now: float) -> None:
@@ -378,6 +398,48 @@ class ForceRenderer:
         ramp = 0.0 if self._faulted else alpha
         self.sample = (pw, qw, vw, f_world, f_dev, depth, buttons, self._flags, ramp)
         return f_dev
+
+    def refuse(self, why: str) -> None:
+        """Count and log a refused model or registration command (the last good one stays)."""
+        self.counts["refused"] += 1
+        self.last_refusal = why
+        if self.counts["refused"] <= 10:
+            log.warning("servo: %s; keeping the last good one", why)
+
+    def safe_tick(self, state: DeviceState | None, now: float, extra_flags: int = 0):
+        """:meth:`tick` that never raises: a tick that fails zeroes the force, drops the model
+        for the last good one (or none) and flags FAULT_MODEL; the loop goes on."""
+        try:
+            f = self.tick(state, now, extra_flags)
+        except Exception as exc:  # noqa: BLE001 - the servo must outlive any one tick
+            return self._tick_failed(exc, now)
+        self._good = self._model
+        return f
+
+    def _tick_failed(self, exc: Exception, now: float) -> tuple:
+        self.counts["tick_errors"] += 1
+        if self.counts["tick_errors"] in (1, 10, 100, 1000):
+            log.error(
+                "servo: a tick failed (%d so far): %s: %s; force zeroed, model %s",
+                self.counts["tick_errors"], type(exc).__name__, exc,
+                "dropped" if self._model is not None else "none",
+            )  # fmt: skip
+        bad = self._model
+        self._model = self._good if self._good is not bad else None
+        self._good = self._model
+        self._enter_fault(now)
+        self._flags |= FAULT_MODEL
+        try:
+            self._rebuild(now)
+        except Exception:  # noqa: BLE001 - fall back to free space
+            self._model, self._reg = None, None
+            self._cur = _Setup(None, Pose.identity(), self._scale)
+        self._old, self._fade_t0 = None, None
+        prev = self.sample
+        pw, qw, vw, buttons = (prev[0], prev[1], prev[2], prev[6]) if prev else (
+            _ZERO3, (0.0, 0.0, 0.0, 1.0), _ZERO3, 0)  # fmt: skip
+        self.sample = (pw, qw, vw, _ZERO3, _ZERO3, 0.0, buttons, self._flags, 0.0)
+        return _ZERO3
 
     def _force(self, setup: _Setup, pw: tuple, vw: tuple) -> tuple:
         if setup.model is None:
@@ -624,23 +686,14 @@ def _run(config, device, cmd, out, st, stop, parent_pid, realtime) -> None:
             if c[C_STOP] != 0.0 or os.getppid() != parent_pid:
                 break
             if c[C_MODEL_GEN] != model_gen or c[C_REG_GEN] != reg_gen:
-                model = None
-                if c[C_MODEL_ON]:
-                    try:
-                        model = Ellipsoid.from_array(c[C_MODEL : C_MODEL + 7])
-                    except ValueError as exc:
-                        log.warning("servo: model refused: %s", exc)
-                reg = None
-                if c[C_REG_ON]:
-                    reg = Pose(c[C_REG_P : C_REG_P + 3], c[C_REG_Q : C_REG_Q + 4])
-                r.configure(model, reg, float(c[C_REG_S]) or config.motion_scale, now)
+                apply_commands(r, c, now)
                 model_gen, reg_gen = c[C_MODEL_GEN], c[C_REG_GEN]
             # Device, force, device.
             try:
                 state = device.read()
             except DeviceError:
                 state = None
-            f = r.tick(state, now, flags)
+            f = r.safe_tick(state, now, flags)
             try:
                 device.command_force(f)
             except DeviceError:
@@ -670,6 +723,39 @@ def _run(config, device, cmd, out, st, stop, parent_pid, realtime) -> None:
         st.write(_stats_row(timing, r, realtime))
 
 
+def apply_commands(r: ForceRenderer, c: np.ndarray, now: float) -> None:
+    """Give ``r`` the model and registration of the command block ``c``; never raises. A model
+    that is not a body (``Ellipsoid.problem``), a registration that is not a rigid pose within
+    reach, or a bad scale is refused (counted, logged) and the last good value kept."""
+    model = None
+    if c[C_MODEL_ON]:
+        try:
+            model = Ellipsoid.from_array(c[C_MODEL : C_MODEL + 7])
+            why = model.problem()
+        except Exception as exc:  # noqa: BLE001 - ValueError expected; anything is refused
+            why = str(exc)
+        if why is not None:
+            r.refuse(f"model refused: {why}")
+            model = r.model
+    reg = None
+    if c[C_REG_ON]:
+        p, q = c[C_REG_P : C_REG_P + 3], c[C_REG_Q : C_REG_Q + 4]
+        n = float(np.sqrt(np.sum(q * q))) if np.all(np.isfinite(q)) else 0.0
+        if np.all(np.isfinite(p)) and np.all(np.abs(p) <= MAX_REGISTRATION_M) and 1e-6 < n < 1e6:
+            reg = Pose(p, q / n)
+        else:
+            r.refuse(f"registration refused: position {p.tolist()} m, quaternion {q.tolist()}")
+            reg = r.registration
+    scale = float(c[C_REG_S]) or r.config.motion_scale
+    if not (math.isfinite(scale) and 0.0 < scale <= 10.0):
+        r.refuse(f"motion scale {scale!r} refused")
+        scale = r.scale
+    try:
+        r.configure(model, reg, scale, now)
+    except Exception as exc:  # noqa: BLE001 - keep what ran
+        r.refuse(f"configuration refused: {type(exc).__name__}: {exc}")
+
+
 def _stats_row(timing: _Timing, r: ForceRenderer, realtime: bool) -> list[float]:
     c = r.counts
     vals = {
@@ -689,6 +775,8 @@ def _stats_row(timing: _Timing, r: ForceRenderer, realtime: bool) -> list[float]
         "nonfinite_forces": c["nonfinite"],
         "clamped_forces": c["clamped"],
         "realtime": float(realtime),
+        "models_refused": c["refused"],
+        "tick_errors": c["tick_errors"],
     }
     return [float(vals[k]) for k in STAT_FIELDS]
 
@@ -711,6 +799,7 @@ class ServoProcess:
         self._proc: mp.process.BaseProcess | None = None
         self._blocks: list[SeqlockArray] = []
         self.realtime = False
+        self.exitcode: int | None = None  # of the last process, once stopped
         self.set_model(model)
 
     # -- lifecycle --------------------------------------------------------------------------
@@ -732,7 +821,15 @@ class ServoProcess:
             name="humantele-servo",
             daemon=True,
         )
-        self._proc.start()
+        try:
+            self._proc.start()
+        except BaseException as exc:
+            self._proc = None
+            parent_conn.close()
+            self.stop()  # frees the shared memory
+            if isinstance(exc, Exception):
+                raise ServoError(f"servo did not start: {type(exc).__name__}: {exc}") from exc
+            raise
         child_conn.close()
         msg = None
         if parent_conn.poll(timeout_s):
@@ -750,24 +847,30 @@ class ServoProcess:
     def stop(self, timeout_s: float = 3.0) -> None:
         """Stop the loop (force zeroed by the servo process) and free the shared memory."""
         proc = self._proc
-        if proc is not None:
-            with self._lock:
-                self._cmd_values[C_STOP] = 1.0
-                self._cmd.write(self._cmd_values)
-            proc.join(timeout_s)
-            if proc.is_alive():
-                proc.terminate()  # SIGTERM: the servo zeroes the force and exits
+        try:
+            if proc is not None:
+                with self._lock:
+                    self._cmd_values[C_STOP] = 1.0
+                    self._cmd.write(self._cmd_values)
                 proc.join(timeout_s)
-            if proc.is_alive():
-                proc.kill()
-                proc.join()
-            self._final_stats = self._read_stats()
-            self._proc = None
-        for b in self._blocks:
-            b.close()
-            b.unlink()
-        self._blocks = []
-        self._cmd_values[C_STOP] = 0.0
+                if proc.is_alive():
+                    proc.terminate()  # SIGTERM: the servo zeroes the force and exits
+                    proc.join(timeout_s)
+                if proc.is_alive():
+                    proc.kill()
+                    proc.join()
+                self.exitcode = proc.exitcode
+                self._proc = None
+                with contextlib.suppress(ServoError):
+                    self._final_stats = self._read_stats()
+        finally:  # the shared memory is freed whatever happened above
+            for b in self._blocks:
+                with contextlib.suppress(OSError):
+                    b.close()
+                with contextlib.suppress(OSError):
+                    b.unlink()
+            self._blocks = []
+            self._cmd_values[C_STOP] = 0.0
 
     @property
     def alive(self) -> bool:
@@ -776,6 +879,11 @@ class ServoProcess:
     @property
     def pid(self) -> int | None:
         return self._proc.pid if self._proc is not None else None
+
+    @property
+    def returncode(self) -> int | None:
+        """The servo process's exit code once it ended (None while it runs or before start)."""
+        return self._proc.exitcode if self._proc is not None else self.exitcode
 
     def __enter__(self) -> ServoProcess:
         self.start()
