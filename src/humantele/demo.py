@@ -44,6 +44,7 @@ from typing import Any
 
 from pydantic import Field, field_validator
 
+from humantele.cliargs import duration_s, ignore_stop_signals, log_level
 from humantele.config import ConfigModel
 from humantele.recording.schemas import check_participant_id
 
@@ -311,27 +312,36 @@ def _resolve(path: str | None, base: Path) -> str | None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--duration", type=float, default=20.0, help="seconds (default 20)")
+    parser.add_argument("--duration", type=duration_s, default=20.0, help="seconds (default 20)")
     parser.add_argument("--json", action="store_true", help="print a JSON summary at the end")
     parser.add_argument("--config", help="TOML file with a [demo] section (configs/demo.toml)")
     parser.add_argument("--room", help="session room name (default demo)")
     parser.add_argument("--keep", action="store_true", help="keep the run directory (logs)")
-    parser.add_argument("--log-level", default="WARNING", help="daemons' logging level")
+    parser.add_argument(
+        "--log-level", type=log_level, default="WARNING", help="daemons' logging level"
+    )
     parser.add_argument(
         "--record",
         metavar="FILE",
-        help="record the session: FILE.expert.mcap and FILE.follower.mcap (one per daemon)",
+        help="record the session: FILE.expert.mcap and FILE.follower.mcap (one per daemon); "
+        "a directory: session-<date>-<time>.*.mcap in it",
     )
 
 
 def recording_paths(record: str | Path) -> dict[str, Path]:
     """The files the daemons record to for ``--record FILE``; ConfigError (exit code 2) when
-    one exists (never overwritten) or its directory is missing or not writable. The daemons
-    check again (and the disk space) when they open them."""
+    one exists (never overwritten) or its directory is missing or not writable. ``FILE`` a
+    directory (or ending in ``/``): ``session-<date>-<time>`` files in it. The daemons check
+    again (and the disk space) when they open them."""
     from humantele.config import ConfigError
     from humantele.recording import role_path
 
-    paths = {role: role_path(Path(record).expanduser(), role) for role in ("expert", "follower")}
+    base = Path(record).expanduser()
+    if str(record).endswith(("/", os.sep)) or base.is_dir():  # a directory: a file in it
+        if not base.is_dir():
+            raise ConfigError(f"--record: no directory {base}")
+        base = base / time.strftime("session-%Y%m%d-%H%M%S.mcap")
+    paths = {role: role_path(base, role) for role in ("expert", "follower")}
     for path in paths.values():
         parent = path.parent
         if path.exists():
@@ -568,4 +578,7 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    return asyncio.run(run_demo(args))
+    try:
+        return asyncio.run(run_demo(args))
+    finally:
+        ignore_stop_signals()

@@ -51,6 +51,7 @@ from collections.abc import Callable
 import numpy as np
 from pydantic import Field
 
+from humantele.cliargs import EXIT_REFUSED, duration_s, ignore_stop_signals, log_level
 from humantele.config import ConfigError, ConfigModel, load_config, validate_config
 from humantele.demo import (
     ClockSyncLog,
@@ -78,6 +79,7 @@ from humantele.haptics.ellipsoid import Ellipsoid
 from humantele.haptics.loop import ServoConfig, ServoError, ServoProcess, ServoSample
 from humantele.recording import Recorder, RecorderConfig
 from humantele.transport import LinkConfig, PeerLink
+from humantele.transport.link import link_refusal
 from humantele.wire import (
     Calibration as CalibrationMsg,
 )
@@ -171,6 +173,7 @@ class ExpertDaemon:
         self.models_refused = 0
         self.model_refusal = ""  # why the last refused model was refused
         self.servo_down = ""  # why the servo is not running ("" while it runs)
+        self.servo_stopped = False  # stopped by the daemon (its end)
         self.calibration_events: list[str] = []
         self.last_pose: Pose | None = None
         self.last_sample_t = -math.inf
@@ -407,7 +410,10 @@ class ExpertDaemon:
         self.push_registration()
 
     def servo_state(self, latest: ServoSample | None) -> str:
-        """``running``, ``fault: <names>`` (force zeroed by the loop) or ``down: <reason>``."""
+        """``running``, ``fault: <names>`` (force zeroed by the loop), ``down: <reason>``, or
+        ``stopped`` (by the daemon, at its end)."""
+        if self.servo_stopped and not self.servo_down:
+            return "stopped"
         if self.servo_down or not self.servo.alive:
             return f"down: {self.servo_down or 'servo process not running'}"
         if latest is not None and latest.fault:
@@ -528,9 +534,14 @@ class ExpertDaemon:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await asyncio.wait_for(link_task, 5.0)
             self.servo_cpu_percent()
+            self.servo_stopped = True
             self.servo.stop()
             self.close_recording()
             write_stats(self.stats_file, self.stats())
+        refused = link_refusal(link_task)
+        if refused:
+            print(f"humantele expert: {refused}", file=sys.stderr)
+            return EXIT_REFUSED
         if self.servo_down:  # the haptics were off when the session ended: not a clean run
             print(f"humantele expert: servo not running: {self.servo_down}", file=sys.stderr)
             return 1
@@ -544,9 +555,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", help="TOML file; [expert] and [servo] sections are used")
     parser.add_argument("--signaling-url", help="signaling server, e.g. ws://127.0.0.1:8765/ws")
     parser.add_argument("--room", help="session room name")
-    parser.add_argument("--duration", type=float, help="stop after this many seconds")
+    parser.add_argument("--duration", type=duration_s, help="stop after this many seconds")
     parser.add_argument("--stats-file", help="write running figures (JSON) to this file")
-    parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
+    parser.add_argument(
+        "--log-level", type=log_level, default="WARNING", help="logging level (default WARNING)"
+    )
     add_session_arguments(parser)
 
 
@@ -570,4 +583,7 @@ def run(args: argparse.Namespace) -> int:
     )
     logging.getLogger("aioice").setLevel(logging.WARNING)
     config, servo = configs_from_args(args)
-    return asyncio.run(ExpertDaemon(config, servo, args.stats_file).run(args.duration))
+    try:
+        return asyncio.run(ExpertDaemon(config, servo, args.stats_file).run(args.duration))
+    finally:
+        ignore_stop_signals()

@@ -44,6 +44,7 @@ import contextlib
 import logging
 import math
 import os
+import sys
 import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -55,6 +56,15 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
 
+from humantele.cliargs import (
+    EXIT_FAILED,
+    EXIT_REFUSED,
+    duration_s,
+    ignore_stop_signals,
+    log_level,
+    port,
+    socket_error,
+)
 from humantele.config import ConfigModel, load_config, validate_config
 from humantele.demo import (
     ClockSyncLog,
@@ -91,6 +101,7 @@ from humantele.follower.sim_human import (
 from humantele.geometry import Pose, matrix_to_quat
 from humantele.recording import Recorder, RecorderConfig
 from humantele.transport import LinkConfig, PeerLink
+from humantele.transport.link import link_refusal
 from humantele.wire import (
     Calibration as CalibrationMsg,
 )
@@ -285,6 +296,7 @@ class FollowerDaemon:
         self.late_ticks = 0
         self.last_event: CalibrationEvent | None = None
         self.loaded_calibration = self.calibration is not None
+        self.calibration_save_error = ""  # why the last calibration could not be saved
         self.cpu = CpuMeter()
         self.t_start = time.monotonic()
         self._stop = asyncio.Event()
@@ -426,6 +438,21 @@ class FollowerDaemon:
         self.send_control(CalibrationMsg(event="start"))
         self.publish_calibration()
 
+    def save_calibration(self) -> bool:
+        """Save the calibration for the next start; a failure (read-only or full state dir) is
+        reported (log, stats ``calibration_save_error``) and the session goes on without it."""
+        try:
+            self.calibration.save(self.calibration_path)
+        except OSError as exc:
+            self.calibration_save_error = f"{exc.strerror or exc}: {exc.filename or ''}".strip()
+            log.error(
+                "follower: calibration not saved (%s); it is used now but will be asked for "
+                "again at the next start", self.calibration_save_error,
+            )  # fmt: skip
+            return False
+        self.calibration_save_error = ""
+        return True
+
     def on_calibration_event(self, ev: CalibrationEvent, t: float | None = None) -> None:
         self.last_event = ev
         log.info("calibration: %s", ev.message)
@@ -440,7 +467,7 @@ class FollowerDaemon:
             self.send_control(CalibrationMsg(event="point", index=index, point=point))
         if ev.kind == "done" and self.calibrator.result is not None:
             self.calibration = self.calibrator.result
-            self.calibration.save(self.calibration_path)
+            self.save_calibration()  # best-effort: the model goes to the expert regardless
             self.calibrating = False
             self.script = None
             self.send_control(CalibrationMsg(event="done"))
@@ -638,6 +665,7 @@ class FollowerDaemon:
             "states_sent": self.link.counters.sent.get("state", 0),
             "calibrated": self.calibration is not None,
             "calibration_reused": self.loaded_calibration,
+            "calibration_save_error": self.calibration_save_error,
             "calibration_refusals": self.calibrator.refusals,
             "calibration_step": self.calibrator.step if self.calibrating else None,
             "force_n": round(self.last_force_n, 3),
@@ -663,6 +691,16 @@ class FollowerDaemon:
             "cpu_percent": self.cpu.overall(),
         }
 
+    def feed_error(self, exc: OSError) -> str:
+        """One line for a renderer feed that cannot start."""
+        cfg = self.config.feed
+        if exc.filename is not None:  # the TLS certificate in the state directory
+            return (
+                f"humantele follower: renderer feed: cannot write {exc.filename}: "
+                f"{exc.strerror or exc} (check --state-dir {self.state_dir})"
+            )
+        return socket_error("humantele follower: renderer feed", cfg.host, cfg.port, exc)
+
     def _count_late_tick(self) -> None:
         self.late_ticks += 1
 
@@ -676,7 +714,11 @@ class FollowerDaemon:
         if self.config.feed.enabled:
             try:
                 await self.feed.start()
-            except BaseException:  # e.g. the port is taken: the recording is still closed
+            except OSError as exc:  # port taken, unknown host, unwritable state dir
+                self.close_recording()
+                print(self.feed_error(exc), file=sys.stderr)
+                return EXIT_FAILED
+            except BaseException:  # the recording is still closed
                 self.close_recording()
                 raise
             print(f"humantele follower: {self.feed.banner()}", flush=True)
@@ -713,6 +755,10 @@ class FollowerDaemon:
             self.sensing.close()
             self.close_recording()
             write_stats(self.stats_file, self.stats())
+        refused = link_refusal(link_task)
+        if refused:
+            print(f"humantele follower: {refused}", file=sys.stderr)
+            return EXIT_REFUSED
         return 0
 
 
@@ -730,11 +776,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--signaling-url", help="signaling server, e.g. ws://127.0.0.1:8765/ws")
     parser.add_argument("--room", help="session room name")
     parser.add_argument("--state-dir", help="where the calibration is saved")
-    parser.add_argument("--feed-port", type=int, help="renderer feed port (0 picks one)")
+    parser.add_argument("--feed-port", type=port, help="renderer feed port (0 picks one)")
     parser.add_argument("--recalibrate", action="store_true", help="ignore a saved calibration")
-    parser.add_argument("--duration", type=float, help="stop after this many seconds")
+    parser.add_argument("--duration", type=duration_s, help="stop after this many seconds")
     parser.add_argument("--stats-file", help="write running figures (JSON) to this file")
-    parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
+    parser.add_argument(
+        "--log-level", type=log_level, default="WARNING", help="logging level (default WARNING)"
+    )
     add_session_arguments(parser)
 
 
@@ -773,4 +821,7 @@ def run(args: argparse.Namespace) -> int:
     if args.recalibrate:
         daemon.calibration = None
         daemon.loaded_calibration = False
-    return asyncio.run(daemon.run(args.duration))
+    try:
+        return asyncio.run(daemon.run(args.duration))
+    finally:
+        ignore_stop_signals()

@@ -14,8 +14,9 @@ computed in the world frame and rotated back into the device frame (unscaled).
 Safety: the force crossfades over ``ramp_s`` at start, after a model or registration change and
 after a fault (no kick); stale device data, a device error, non-finite data or a tick later than
 ``late_after_s`` zero the force and set a fault flag the daemon reads; every command is finite
-and within ``force_limit_n``; SIGINT/SIGTERM, ``stop()`` or the parent's death end the loop with
-the force zeroed.
+and within ``force_limit_n``; SIGTERM, ``stop()`` or the parent's death end the loop with the
+force zeroed. SIGINT is ignored: a terminal's Ctrl-C reaches the whole process group, and the
+daemon stops the servo itself (it would otherwise see it die and restart it).
 """
 
 from __future__ import annotations
@@ -616,7 +617,7 @@ def _servo_main(config_json: str, names: tuple[str, str, str], parent_pid: int, 
         stop["flag"] = True
 
     signal.signal(signal.SIGTERM, _on_signal)
-    signal.signal(signal.SIGINT, _on_signal)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the daemon stops us
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     cmd = SeqlockArray(CMD_LEN, names[0])
     out = SeqlockArray(SAMPLE_LEN, names[1])
