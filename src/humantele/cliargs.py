@@ -11,9 +11,7 @@ from __future__ import annotations
 
 import argparse
 import errno
-import logging
 import math
-import signal
 import socket
 
 EXIT_OK = 0
@@ -53,19 +51,6 @@ def port(text: str) -> int:
     if not 0 <= v <= 65535:
         raise argparse.ArgumentTypeError(f"{v}: a port is 0-65535")
     return v
-
-
-def ignore_stop_signals() -> None:
-    """After the asyncio loop closed (its handlers are gone): a late SIGINT/SIGTERM (a
-    terminal's Ctrl-C reaching the process group, a supervisor's SIGTERM) must not turn a
-    clean stop into a KeyboardInterrupt or a death by signal while the process exits."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, signal.SIG_IGN)
-
-
-def setup_logging(level: str, fmt: str) -> None:
-    """``logging.basicConfig`` at ``level`` (already checked by :func:`log_level`)."""
-    logging.basicConfig(level=getattr(logging, level, logging.WARNING), format=fmt)
 
 
 def socket_error(what: str, host: str, port_: int, exc: OSError) -> str:
