@@ -155,7 +155,7 @@ async def test_a_wrong_token_exits_3_with_the_reason():
 
 def test_unwritable_state_dir_saves_best_effort_and_the_model_still_goes(tmp_path):
     from humantele.follower.daemon import FollowerConfig, FollowerDaemon
-    from humantele.wire import Calibration, EllipsoidModel
+    from humantele.wire import CalibrationProgress, EllipsoidModel
 
     blocker = tmp_path / "a-file"
     blocker.write_text("not a directory")
@@ -187,7 +187,7 @@ def test_unwritable_state_dir_saves_best_effort_and_the_model_still_goes(tmp_pat
     assert d.calibration is not None and not d.calibrating
     models = [m for m in d.link.controls if isinstance(m, EllipsoidModel)]
     assert len(models) == 1  # installing the model is not best-effort
-    assert any(isinstance(m, Calibration) and m.event == "done" for m in d.link.controls)
+    assert any(isinstance(m, CalibrationProgress) and m.event == "done" for m in d.link.controls)
     st = d.stats()
     assert st["calibrated"] is True and "Not a directory" in st["calibration_save_error"]
     assert not (blocker / "state").exists()

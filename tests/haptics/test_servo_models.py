@@ -276,8 +276,9 @@ def _servo_blocks(monkeypatch) -> list[str]:
 
 def test_no_shared_memory_leaks_when_the_servo_fails_at_start(monkeypatch):
     names = _servo_blocks(monkeypatch)
+    cfg = ServoConfig(device={"backend": "touchx", "library": "/nonexistent/libHD"})
     for _ in range(3):
-        sp = ServoProcess(ServoConfig(device={"kind": "touchx", "library": "/nonexistent/libHD"}))
+        sp = ServoProcess(cfg)
         with pytest.raises(ServoError, match="libHD"):
             sp.start()
     assert len(names) == 9
@@ -299,7 +300,7 @@ def test_no_shared_memory_leaks_when_the_process_cannot_be_spawned(monkeypatch):
 
 
 def test_a_servo_that_cannot_run_is_a_fault_in_the_status_not_force_none():
-    d = ExpertDaemon(ExpertConfig(), ServoConfig(device={"kind": "touchx", "library": "/x"}))
+    d = ExpertDaemon(ExpertConfig(), ServoConfig(device={"backend": "touchx", "library": "/x"}))
     d.check_servo(0.0)  # not running: noticed
     d.check_servo(10.0)  # restart attempt: fails on the missing driver
     s = d.stats()

@@ -56,7 +56,7 @@ MIN_BODY_SEMI_AXIS = 0.01  # m
 MAX_BODY_SEMI_AXIS = 2.0  # m, vertical and lateral
 MAX_LONGITUDINAL = 100.0  # m
 MAX_BODY_CENTER_M = 5.0  # m, each coordinate
-DEFAULT_FORCE_LIMIT = 7.9  # N, Touch X peak force (CHAI3D device tables, see ANCHORS.md)
+DEFAULT_FORCE_LIMIT = 7.9  # N, Touch X peak force (CHAI3D device tables; docs/references.md)
 METHODS = ("radial", "newton", "exact")
 ARRAY_LENGTH = 7  # as_array(): centre (3), semi_axes (3), heading (1)
 

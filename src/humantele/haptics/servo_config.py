@@ -21,7 +21,7 @@ Coord = Annotated[float, Field(ge=-10.0, le=10.0)]  # m, a device within 10 m of
 
 
 class RegistrationConfig(ConfigModel):
-    """``T_world_device``: device origin in the world (m) and rotation (x, y, z, w)."""
+    """``T_patient_device``: device origin in the patient frame (m) and rotation (x, y, z, w)."""
 
     position_m: tuple[Coord, Coord, Coord] = (0.0, 0.0, 0.0)
     quaternion: Quaternion = (0.0, 0.0, 0.0, 1.0)
@@ -31,7 +31,7 @@ class RegistrationConfig(ConfigModel):
 
 
 class ServoConfig(ConfigModel):
-    """The servo loop (``[servo]`` of configs/expert.toml). Gains in the world frame.
+    """The servo loop (``[servo]`` of configs/expert.toml). Gains in the patient frame.
 
     ``registration`` None: automatic, the device origin ``clearance_m`` above the top of the
     model at the xiphoid, device axes along the patient's (the sonographer at the patient's
