@@ -60,6 +60,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
 
+from humantele.cliargs import EXIT_FAILED, port, socket_error
 from humantele.config import ConfigModel, load_config, validate_config
 from humantele.follower.calibration import (
     CALIBRATION_FILE,
@@ -90,6 +91,7 @@ from humantele.runtime.daemon import (
     daemon_overrides,
     setup_logging,
 )
+from humantele.runtime.process import ignore_stop_signals
 from humantele.runtime.session import SessionConfig, recorder_stats
 from humantele.runtime.stats import percentile_ms
 from humantele.tracking.tool import load_tool
@@ -333,6 +335,7 @@ class FollowerDaemon(Daemon):
         self.late_ticks = 0
         self.last_event: CalibrationEvent | None = None
         self.loaded_calibration = self.calibration is not None
+        self.calibration_save_error = ""  # why the last calibration could not be saved
         # The sensing worker (run() starts it; without it, tick() measures in line).
         self.executor: ThreadPoolExecutor | None = None
         self._sensing: Future | None = None
@@ -479,6 +482,21 @@ class FollowerDaemon(Daemon):
         self.send_control(CalibrationProgress(event="start"))
         self.publish_calibration()
 
+    def save_calibration(self) -> bool:
+        """Save the calibration for the next start; a failure (read-only or full state dir) is
+        reported (log, stats ``calibration_save_error``) and the session goes on without it."""
+        try:
+            self.calibration.save(self.calibration_path)
+        except OSError as exc:
+            self.calibration_save_error = f"{exc.strerror or exc}: {exc.filename or ''}".strip()
+            log.error(
+                "follower: calibration not saved (%s); it is used now but will be asked for "
+                "again at the next start", self.calibration_save_error,
+            )  # fmt: skip
+            return False
+        self.calibration_save_error = ""
+        return True
+
     def on_calibration_event(self, ev: CalibrationEvent, t: float | None = None) -> None:
         self.last_event = ev
         log.info("calibration: %s", ev.message)
@@ -495,7 +513,7 @@ class FollowerDaemon(Daemon):
             self.send_control(CalibrationProgress(event="point", index=index, point=point))
         if ev.kind == "done" and self.calibrator.result is not None:
             self.calibration = self.calibrator.result
-            self.calibration.save(self.calibration_path)
+            self.save_calibration()  # best-effort: the model goes to the expert regardless
             self.calibrating = False
             self.script = None
             self.send_control(CalibrationProgress(event="done"))
@@ -734,6 +752,7 @@ class FollowerDaemon(Daemon):
             "states_sent": self.link.counters.sent.get("state", 0),
             "calibrated": self.calibration is not None,
             "calibration_reused": self.loaded_calibration,
+            "calibration_save_error": self.calibration_save_error,
             "calibration_refusals": self.calibrator.refusals,
             "calibration_step": self.calibrator.step if self.calibrating else None,
             "force_n": round(self.last_force_n, 3),
@@ -766,6 +785,16 @@ class FollowerDaemon(Daemon):
             "cpu_percent": self.cpu.overall(),
             "video": None if self.video is None else self.video.stats(),
         }
+
+    def feed_error(self, exc: OSError) -> str:
+        """One line for a renderer feed that cannot start."""
+        cfg = self.config.feed
+        if exc.filename is not None:  # the TLS certificate in the state directory
+            return (
+                f"humantele follower: renderer feed: cannot write {exc.filename}: "
+                f"{exc.strerror or exc} (check --state-dir {self.state_dir})"
+            )
+        return socket_error("humantele follower: renderer feed", cfg.host, cfg.port, exc)
 
     def check_video(self, t: float) -> None:
         """Once a second, the video's degradation policy (POV first), in a task."""
@@ -811,7 +840,11 @@ class FollowerDaemon(Daemon):
         if self.config.feed.enabled:
             try:
                 await self.feed.start()
-            except BaseException:  # e.g. the port is taken: the recording is still closed
+            except OSError as exc:  # port taken, unknown host, unwritable state dir
+                self.close_recording()
+                print(self.feed_error(exc), file=sys.stderr)
+                return EXIT_FAILED
+            except BaseException:  # the recording is still closed
                 self.close_recording()
                 raise
             print(f"humantele follower: {self.feed.banner()}", flush=True)
@@ -851,7 +884,9 @@ class FollowerDaemon(Daemon):
         if self.sensing_failure is not None:
             print(f"humantele follower: sensing cannot start: {self.sensing_failure}", flush=True)
             return 2
-        return 2 if self.video_error else 0
+        if self.video_error:
+            return 2
+        return self.run_result(link_task)
 
     async def start_video(self) -> None:
         """Open the video sources (in a thread: it blocks) and start them; a source that
@@ -884,7 +919,7 @@ def _rms_scaled(values: list[float], scale: float) -> float | None:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_daemon_arguments(parser, "TOML file; the [follower] section is used")
     parser.add_argument("--state-dir", help="where the calibration is saved")
-    parser.add_argument("--feed-port", type=int, help="renderer feed port (0 picks one)")
+    parser.add_argument("--feed-port", type=port, help="renderer feed port (0 picks one)")
     parser.add_argument("--recalibrate", action="store_true", help="ignore a saved calibration")
 
 
@@ -911,4 +946,7 @@ def run(args: argparse.Namespace) -> int:
     if args.recalibrate:
         daemon.calibration = None
         daemon.loaded_calibration = False
-    return asyncio.run(daemon.run(args.duration))
+    try:
+        return asyncio.run(daemon.run(args.duration))
+    finally:
+        ignore_stop_signals()
