@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import bisect
 import logging
 import math
 import os
@@ -69,7 +70,7 @@ from humantele.runtime.daemon import (
     setup_logging,
 )
 from humantele.runtime.session import SessionConfig, recorder_stats
-from humantele.runtime.stats import percentile_ms, process_cpu_seconds
+from humantele.runtime.stats import SortedWindow, percentile_ms, process_cpu_seconds
 from humantele.transport import LinkConfig, PeerLink
 from humantele.wire import (
     Calibration as CalibrationMsg,
@@ -160,7 +161,7 @@ class ExpertDaemon(Daemon):
         self.pose_times: deque[float] = deque(maxlen=4000)
         self.last_state: StateMessage | None = None
         self.states_received = 0
-        self.state_ages: deque[float] = deque(maxlen=20000)
+        self.state_ages = SortedWindow(20000)  # s; percentiles without sorting on the loop
         self.models_installed = 0
         self.calibration_events: list[str] = []
         self.last_pose: Pose | None = None
@@ -337,7 +338,7 @@ class ExpertDaemon(Daemon):
             rec.write("/expert/servo_stats", t, {"rate_hz": 0.0, "state": "stopped"})
         new = min(len(self.state_ages), self.states_received - self._states_reported)
         self._states_reported = self.states_received
-        recent = list(self.state_ages)[-new:] if new > 0 else []
+        recent = self.state_ages.last(new)
         if recent:  # the follower's state stream, one way: median since the last report
             rec.write(
                 "/expert/latency", t, {"name": "state_one_way", "value_s": float(np.median(recent))}
@@ -377,7 +378,8 @@ class ExpertDaemon(Daemon):
 
     def pose_rate_hz(self, window_s: float = 1.0) -> float:
         now = time.monotonic()
-        return round(sum(1 for t in self.pose_times if now - t <= window_s) / window_s, 1)
+        recent = len(self.pose_times) - bisect.bisect_left(self.pose_times, now - window_s)
+        return round(recent / window_s, 1)
 
     def stats(self) -> dict:
         try:

@@ -53,8 +53,8 @@ def sensing_main(config: Any, sensing_config: Any, conn: Connection, nice: int =
         with contextlib.suppress(OSError):
             conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
-    conn.send(("ready", os.getpid()))
     try:
+        conn.send(("ready", os.getpid()))
         while True:
             try:
                 msg = conn.recv()
@@ -101,6 +101,7 @@ class SensingProcess:
         self.failed = False
         self.error: str | None = None
         self.pid: int | None = None
+        self._started: float | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._proc: mp.process.BaseProcess | None = None
         self._conn: Connection | None = None
@@ -136,12 +137,26 @@ class SensingProcess:
             daemon=True,
         )
         self._proc.start()
+        self._started = time.monotonic()
         child.close()
         self._errors_before = self.child_errors
         self._conn = parent
         self.ready = self.busy = False
         assert self._loop is not None
         self._loop.add_reader(parent.fileno(), self._readable)
+
+    def cpu_percent(self) -> float | None:
+        """The running child's CPU use since it started, % of one core (Linux; else None)."""
+        if self._proc is None or self.pid is None or self._started is None:
+            return None
+        try:
+            with open(f"/proc/{self.pid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+        except OSError:
+            return None
+        ticks = int(fields[11]) + int(fields[12])  # utime + stime
+        wall = time.monotonic() - self._started
+        return round(100.0 * ticks / os.sysconf("SC_CLK_TCK") / max(wall, 1e-3), 1)
 
     def submit(self, job: int, truth: Any) -> bool:
         """Send one frame to measure; False (nothing sent) if one is in flight or no child."""
