@@ -15,9 +15,11 @@ caller skips frames while :attr:`busy`, as it did with the thread. A child that 
 restarted (``max_restarts``, then :attr:`failed` and the caller falls back to its thread); a
 child that cannot build its sensing (a bad config) reports why and is not restarted. The child
 ignores SIGINT (Ctrl-C reaches the whole process group; the daemon stops it) and exits when
-the pipe closes, so it never outlives the daemon. It runs at ``nice`` +10 by default
-(``sensing_nice``): when the daemon's loop and the child both want the CPU, the loop, which
-only needs it briefly to read a pose, wakes first; the child still gets every idle moment.
+the pipe closes, so it never outlives the daemon. Once started it runs at ``nice`` +10 by
+default (``sensing_nice``): when the daemon's loop and the child both want the CPU, the loop,
+which only needs it briefly to read a pose, wakes first; the child still gets every idle
+moment. On an overloaded machine it then measures fewer frames (skipped, counted) rather
+than delay the poses.
 """
 
 from __future__ import annotations
@@ -42,9 +44,6 @@ OnResult = Callable[[int, Any, float], None]  # (job, Measurement, seconds measu
 def sensing_main(config: Any, sensing_config: Any, conn: Connection, nice: int = 0) -> None:
     """The child: build the sensing, then measure each request until the pipe closes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    if nice:
-        with contextlib.suppress(OSError):
-            os.nice(nice)
     try:
         from humantele.follower.daemon import Sensing
 
@@ -53,6 +52,9 @@ def sensing_main(config: Any, sensing_config: Any, conn: Connection, nice: int =
         with contextlib.suppress(OSError):
             conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
+    if nice:  # after starting at the daemon's priority: a niced start can starve for long
+        with contextlib.suppress(OSError):
+            os.nice(nice)
     try:
         conn.send(("ready", os.getpid()))
         while True:
