@@ -19,7 +19,8 @@ the pipe closes, so it never outlives the daemon. Once started it runs at ``nice
 default (``sensing_nice``): when the daemon's loop and the child both want the CPU, the loop,
 which only needs it briefly to read a pose, wakes first; the child still gets every idle
 moment. On an overloaded machine it then measures fewer frames (skipped, counted) rather
-than delay the poses.
+than delay the poses. If the daemon runs with a real-time policy (``chrt``, a systemd unit),
+the child drops to the normal one: 5 ms bursts at 45 Hz must not hold a core against it.
 """
 
 from __future__ import annotations
@@ -52,6 +53,9 @@ def sensing_main(config: Any, sensing_config: Any, conn: Connection, nice: int =
         with contextlib.suppress(OSError):
             conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
+    if hasattr(os, "sched_setscheduler"):  # a batch job: never a real-time daemon's policy
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     if nice:  # after starting at the daemon's priority: a niced start can starve for long
         with contextlib.suppress(OSError):
             os.nice(nice)
