@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import bisect
 import logging
 import math
 import os
@@ -74,7 +75,7 @@ from humantele.runtime.daemon import (
 )
 from humantele.runtime.process import ignore_stop_signals
 from humantele.runtime.session import SessionConfig, recorder_stats
-from humantele.runtime.stats import percentile_ms, process_cpu_seconds
+from humantele.runtime.stats import SortedWindow, percentile_ms, process_cpu_seconds
 from humantele.transport import LinkConfig, PeerLink
 from humantele.wire import (
     CalibrationProgress,
@@ -167,7 +168,7 @@ class ExpertDaemon(Daemon):
         self.pose_times: deque[float] = deque(maxlen=4000)
         self.last_state: StateMessage | None = None
         self.states_received = 0
-        self.state_ages: deque[float] = deque(maxlen=20000)
+        self.state_ages = SortedWindow(20000)  # s; percentiles without sorting on the loop
         self.models_installed = 0
         self.models_refused = 0
         self.model_refusal = ""  # why the last refused model was refused
@@ -352,7 +353,7 @@ class ExpertDaemon(Daemon):
             rec.write("/expert/servo_stats", t, {"rate_hz": 0.0, "state": "stopped"})
         new = min(len(self.state_ages), self.states_received - self._states_reported)
         self._states_reported = self.states_received
-        recent = list(self.state_ages)[-new:] if new > 0 else []
+        recent = self.state_ages.last(new)
         if recent:  # the follower's state stream, one way: median since the last report
             rec.write(
                 "/expert/latency", t, {"name": "state_one_way", "value_s": float(np.median(recent))}
@@ -415,7 +416,8 @@ class ExpertDaemon(Daemon):
 
     def pose_rate_hz(self, window_s: float = 1.0) -> float:
         now = time.monotonic()
-        return round(sum(1 for t in self.pose_times if now - t <= window_s) / window_s, 1)
+        recent = len(self.pose_times) - bisect.bisect_left(self.pose_times, now - window_s)
+        return round(recent / window_s, 1)
 
     def stats(self) -> dict:
         try:

@@ -12,7 +12,8 @@ Every tick (``rate_hz``, asyncio) it:
    (``sensing_worker = "process"``, :mod:`humantele.follower.sensing_process`; ``"thread"``:
    a worker thread), off the asyncio loop and off its GIL, so the pose path is never held
    up; frames are measured in order and never overlap: a frame due while the previous one is
-   still measured (or while the child starts) is skipped (counted in ``sensing_skipped``);
+   still measured is skipped (counted in ``sensing_skipped``; those due while the child
+   starts, in ``sensing_starting``);
 3. with each measurement: feeds the calibration (:mod:`humantele.follower.calibration`) while
    calibrating, streams the probe pose and force to the expert (``state``, patient frame) and
    records them;
@@ -44,6 +45,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import bisect
 import contextlib
 import logging
 import math
@@ -93,7 +95,7 @@ from humantele.runtime.daemon import (
 )
 from humantele.runtime.process import ignore_stop_signals
 from humantele.runtime.session import SessionConfig, recorder_stats
-from humantele.runtime.stats import percentile_ms
+from humantele.runtime.stats import SortedWindow, percentile_ms
 from humantele.tracking.tool import load_tool
 from humantele.transport import LinkConfig, PeerLink
 from humantele.video.base import VideoSourceUnavailable
@@ -113,6 +115,7 @@ from humantele.wire import (
 log = logging.getLogger(__name__)
 
 DEFAULT_STATE_DIR = "~/.local/state/humantele/follower"
+ALIGN_KEPT = 3000  # alignment errors the RMS is over (the last ~65 s of 45 Hz frames)
 REPORT_PERIOD_S = 1.0  # latency figures are recorded this often
 ZERO_POSE = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))  # recorded when the probe is not tracked
 
@@ -292,6 +295,7 @@ class FollowerDaemon(Daemon):
         self._proc_frame: tuple[int, TrackerImage] | None = None  # (job, image) in flight
         self._jobs = 0
         self.sensing_failure: str | None = None
+        self.sensing_starting = 0  # tracker images due before the sensing process was ready
         self.measurement = Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
         self.last_measure_t = -math.inf
         self.measurements = 0
@@ -323,9 +327,9 @@ class FollowerDaemon(Daemon):
         self.script_t0 = 0.0
         self.last_pose: PoseMessage | None = None
         self.last_pose_rx = -math.inf
-        self.pose_ages: deque[float] = deque(maxlen=20000)
-        self.align_pos: deque[float] = deque(maxlen=20000)
-        self.align_ang: deque[float] = deque(maxlen=20000)
+        self.pose_ages = SortedWindow(20000)  # s; percentiles without sorting on the loop
+        self.align_pos: deque[float] = deque(maxlen=ALIGN_KEPT)
+        self.align_ang: deque[float] = deque(maxlen=ALIGN_KEPT)
         self.poses_received = 0
         self.pose_times: deque[float] = deque(maxlen=2000)
         self.state_seq = 0
@@ -340,7 +344,8 @@ class FollowerDaemon(Daemon):
         self.executor: ThreadPoolExecutor | None = None
         self._sensing: Future | None = None
         self.sensing_skipped = 0
-        self.sensing_times: deque[float] = deque(maxlen=2000)  # s per measurement, worker
+        self.sensing_times = SortedWindow(2000)  # s per measurement (worker or child)
+        self.tick_late = SortedWindow(20000)  # s each tick came after its period
         # Scans (from the expert) and what has been recorded.
         self.scan: int | None = None
         self.scans_seen = 0
@@ -598,7 +603,10 @@ class FollowerDaemon(Daemon):
         previous one is measured is skipped and counted."""
         proc = self.sensing_proc
         if proc is not None and proc.running:
-            if not proc.ready or proc.busy:
+            if not proc.ready:  # still starting (importing, calibrating the sim force sensor)
+                self.sensing_starting += 1
+                return
+            if proc.busy:
                 self.sensing_skipped += 1
                 return
             self._jobs += 1
@@ -727,16 +735,17 @@ class FollowerDaemon(Daemon):
         new = min(len(self.pose_ages), self.poses_received - self._poses_reported)
         self._poses_reported = self.poses_received
         if new > 0:
-            value = float(np.median(list(self.pose_ages)[-new:]))
+            value = float(np.median(self.pose_ages.last(new)))
             self.rec.write("/follower/latency", t, {"name": "pose_one_way", "value_s": value})
 
     def pose_rate_hz(self, window_s: float = 1.0) -> float:
         """Poses received per second over the last ``window_s``."""
         now = time.monotonic()
-        return round(sum(1 for t in self.pose_times if now - t <= window_s) / window_s, 1)
+        recent = len(self.pose_times) - bisect.bisect_left(self.pose_times, now - window_s)
+        return round(recent / window_s, 1)
 
     def stats(self) -> dict:
-        ap, aa = list(self.align_pos)[-3000:], list(self.align_ang)[-3000:]
+        ap, aa = self.align_pos, self.align_ang
         wall = time.monotonic() - self.t_start
         return {
             "role": "follower",
@@ -748,7 +757,7 @@ class FollowerDaemon(Daemon):
             "pose_rate_hz": self.pose_rate_hz(),
             "pose_age_p50_ms": percentile_ms(self.pose_ages, 50),
             "pose_age_p99_ms": percentile_ms(self.pose_ages, 99),
-            "pose_age_last_ms": percentile_ms(list(self.pose_ages)[-1:], 50),
+            "pose_age_last_ms": percentile_ms(self.pose_ages.last(1), 50),
             "states_sent": self.link.counters.sent.get("state", 0),
             "calibrated": self.calibration is not None,
             "calibration_reused": self.loaded_calibration,
@@ -769,6 +778,7 @@ class FollowerDaemon(Daemon):
             "sensing_errors": self.sensing.errors
             + (0 if self.sensing_proc is None else self.sensing_proc.child_errors),
             "sensing_skipped": self.sensing_skipped,
+            "sensing_starting": self.sensing_starting,
             "sensing_worker": (
                 "process"
                 if self.sensing_proc is not None and self.sensing_proc.running
@@ -782,6 +792,11 @@ class FollowerDaemon(Daemon):
             "recording": recorder_stats(self.rec),
             "tick_errors": self.tick_errors,
             "late_ticks": self.late_ticks,
+            "tick_late_p99_ms": percentile_ms(self.tick_late, 99),
+            "tick_late_max_ms": percentile_ms(self.tick_late, 100),
+            "cpu_percent_sensing": (
+                None if self.sensing_proc is None else self.sensing_proc.cpu_percent()
+            ),
             "cpu_percent": self.cpu.overall(),
             "video": None if self.video is None else self.video.stats(),
         }
@@ -826,17 +841,7 @@ class FollowerDaemon(Daemon):
                 self._sensing_cannot_start,
                 nice=self.config.sensing_nice,
             )
-            self.sensing_proc.start()
-            # as the in-thread pipeline was built before the daemon ran: measure from the start
-            ready = await self.sensing_proc.wait_ready(cancel=self._stop.is_set)
-            if not ready and not self.sensing_proc.failed and not self._stop.is_set():
-                log.warning("follower: the sensing process is slow to start; going on")
-            if self.sensing_failure is not None:
-                self.sensing_proc.close()
-                self.executor.shutdown(wait=False)
-                self.finish_run()
-                print(f"humantele follower: sensing cannot start: {self.sensing_failure}")
-                return 2
+            self.sensing_proc.start()  # it starts while the link connects
         if self.config.feed.enabled:
             try:
                 await self.feed.start()
@@ -849,6 +854,7 @@ class FollowerDaemon(Daemon):
                 raise
             print(f"humantele follower: {self.feed.banner()}", flush=True)
         link_task = asyncio.create_task(self.link.run())
+        prev_t, period = None, 1.0 / self.config.rate_hz
         if self.calibration is None:
             self.start_calibration()
         else:
@@ -860,6 +866,9 @@ class FollowerDaemon(Daemon):
                 self.config.rate_hz, duration_s, link_task, on_late=self._count_late_tick
             ):
                 self.ticks += 1
+                if prev_t is not None:  # how late this tick came after the previous one
+                    self.tick_late.append(max(0.0, t - prev_t - period))
+                prev_t = t
                 try:
                     self.tick(t)
                     self.record_reports(t)
@@ -907,10 +916,11 @@ def _log_task_error(task: asyncio.Future) -> None:
         log.error("follower: video check failed: %s", task.exception())
 
 
-def _rms_scaled(values: list[float], scale: float) -> float | None:
+def _rms_scaled(values: deque[float], scale: float) -> float | None:
     if not values:
         return None
-    return round(math.sqrt(sum(v * v for v in values) / len(values)) * scale, 3)
+    a = np.fromiter(values, dtype=float, count=len(values))
+    return round(float(np.sqrt(np.mean(a * a))) * scale, 3)
 
 
 # --- command line ---------------------------------------------------------------------------
