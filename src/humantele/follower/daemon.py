@@ -15,7 +15,10 @@ Every tick (``rate_hz``, asyncio) it:
    calibrating, streams the probe pose and force to the expert (``state``, patient frame) and
    records them;
 4. publishes the virtual probe to renderers (:mod:`humantele.follower.feed`, world frame;
-   ``stale`` when no fresh pose came or the link is down).
+   ``stale`` when no fresh pose came or the link is down);
+5. publishes the sim world's snapshot to the video sources, which render and send the ``us``
+   and ``pov`` tracks from their own process (:mod:`humantele.media.sender`, docs/video.md);
+   once a second the degradation policy may lower the POV (never the US).
 
 Frames: the headset's world frame (y up) here; the patient frame of the calibration on the
 wire (``T_world_patient`` from the saved calibration). Poses are of the transducer's tip frame
