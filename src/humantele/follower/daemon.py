@@ -20,6 +20,9 @@ Every tick (``rate_hz``, asyncio) it:
 4. publishes the measured probe to renderers (:mod:`humantele.follower.feed`, world frame),
    and the virtual probe while it is ``stale`` (no fresh pose came or the link is down); a
    fresh virtual probe is published as its pose arrives, not at the next tick.
+5. publishes the sim world's snapshot to the video sources, which render and send the ``us``
+   and ``pov`` tracks from their own process (:mod:`humantele.media.sender`, docs/video.md);
+   once a second the degradation policy may lower the POV (never the US).
 
 Frames: the headset's world frame (y up) here; the patient frame of the calibration on the
 wire (``T_world_patient`` from the saved calibration). Poses are of the transducer's tip frame
