@@ -75,6 +75,8 @@ from humantele.expert.mapping import (
 from humantele.geometry import Pose, quat_conjugate, quat_multiply
 from humantele.haptics.ellipsoid import Ellipsoid
 from humantele.haptics.loop import ServoConfig, ServoError, ServoProcess
+from humantele.interop.igtl import IgtlConfig
+from humantele.interop.sessions import ExpertIgtl
 from humantele.recording import Recorder, RecorderConfig
 from humantele.transport import LinkConfig, PeerLink
 from humantele.wire import (
@@ -117,6 +119,7 @@ class ExpertConfig(ConfigModel):
     scans: ScanScriptConfig = ScanScriptConfig()
     session: SessionConfig = SessionConfig()
     recording: RecorderConfig = RecorderConfig()
+    igtl: IgtlConfig = IgtlConfig()
 
 
 def servo_config_for(mapping: MappingConfig, servo: ServoConfig) -> ServoConfig:
@@ -164,6 +167,8 @@ class ExpertDaemon:
         self.pose_send_failures = 0
         self.pose_times: deque[float] = deque(maxlen=4000)
         self.last_state: StateMessage | None = None
+        self.last_state_t: float | None = None  # its sample time on this clock (s)
+        self.igtl = ExpertIgtl(config.igtl)
         self.states_received = 0
         self.state_ages: deque[float] = deque(maxlen=20000)
         self.models_installed = 0
@@ -200,6 +205,8 @@ class ExpertDaemon:
         age = self.link.age_of(msg.t_sent)
         if age is not None and math.isfinite(age):
             self.state_ages.append(max(0.0, age))
+        ok = age is not None and math.isfinite(age)
+        self.last_state_t = time.monotonic() - (max(0.0, age) if ok else 0.0)
 
     def on_control(self, msg: ControlMessage) -> None:
         if isinstance(msg, EllipsoidModel):
@@ -429,7 +436,12 @@ class ExpertDaemon:
             "scans_started": self.scans_started,
             "step_errors": self.step_errors,
             "recording": recorder_stats(self.rec),
+            "igtl": self.igtl.stats(),
         }
+
+    def publish_igtl(self, t: float) -> None:
+        """The stylus as sent and the follower's probe as received, to OpenIGTLink clients."""
+        self.igtl.tick(t, self.last_pose, self.last_state, self.last_state_t)
 
     def guarded(self, step: Callable[[float], object], t: float) -> None:
         """Run a step that must never end the daemon (scans, recording); failures counted."""
@@ -464,6 +476,9 @@ class ExpertDaemon:
             return 1
         self.servo_started = time.monotonic()
         self.push_registration()
+        await self.igtl.start()
+        if self.igtl.banner():
+            print(f"humantele expert: {self.igtl.banner()}", flush=True)
         link_task = asyncio.create_task(self.link.run())
         try:
             async for t in daemon_ticks(
@@ -475,6 +490,7 @@ class ExpertDaemon:
             ):
                 self.check_servo(t)
                 self.publish_pose(t)
+                self.guarded(self.publish_igtl, t)
                 self.guarded(self.script_scans, t)
                 self.guarded(self.record_reports, t)
         finally:
@@ -484,6 +500,7 @@ class ExpertDaemon:
                 await asyncio.wait_for(link_task, 5.0)
             self.servo_cpu_percent()
             self.servo.stop()
+            await self.igtl.stop()
             self.close_recording()
             write_stats(self.stats_file, self.stats())
         return 0
@@ -499,6 +516,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, help="stop after this many seconds")
     parser.add_argument("--stats-file", help="write running figures (JSON) to this file")
     parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
+    parser.add_argument(
+        "--igtl-port", type=int, help="serve OpenIGTLink on this port (0 picks one; 18944 Slicer's)"
+    )
     add_session_arguments(parser)
 
 
@@ -510,6 +530,8 @@ def configs_from_args(args: argparse.Namespace) -> tuple[ExpertConfig, ServoConf
         data["link"]["signaling_url"] = args.signaling_url
     if args.room:
         data["link"]["room"] = args.room
+    if getattr(args, "igtl_port", None) is not None:
+        data["igtl"].update(enabled=True, port=args.igtl_port)
     session_overrides(args, data)
     config = validate_config(ExpertConfig, data, "command line")
     return config, servo_config_for(config.mapping, servo)

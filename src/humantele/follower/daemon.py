@@ -89,6 +89,8 @@ from humantele.follower.sim_human import (
     SimPatientConfig,
 )
 from humantele.geometry import Pose, matrix_to_quat
+from humantele.interop.igtl import IgtlConfig
+from humantele.interop.sessions import FollowerIgtl
 from humantele.recording import Recorder, RecorderConfig
 from humantele.transport import LinkConfig, PeerLink
 from humantele.wire import (
@@ -135,6 +137,7 @@ class FollowerConfig(ConfigModel):
     sim_head: SimHeadConfig = SimHeadConfig()
     session: SessionConfig = SessionConfig()
     recording: RecorderConfig = RecorderConfig()
+    igtl: IgtlConfig = IgtlConfig()
 
 
 @dataclass
@@ -259,6 +262,7 @@ class FollowerDaemon:
         self.last_measure_t = -math.inf
         self.measurements = 0
         self.feed = RendererFeed(config.feed, self.state_dir)
+        self.igtl = FollowerIgtl(config.igtl, self.patient.ellipsoid())
         self.link = PeerLink(
             "follower",
             config.link,
@@ -492,6 +496,9 @@ class FollowerDaemon:
         # recorded here once the follower has its POV and ultrasound tracks; there is no video
         # yet, so nothing is recorded for it.
         self.publish_feed(t, virtual, self.measurement)
+        v_patient = None if self.last_pose is None else self.last_pose.pose
+        force_n = float(np.linalg.norm(force))
+        self.igtl.tick(t, self.calibration, v_patient, true_tip, force_n)
 
     # --- measurements (sensing worker thread -> loop) -------------------------------------
 
@@ -550,6 +557,7 @@ class FollowerDaemon:
                 self.align_ang.append(da)
         self.send_state(frame.t, m)
         self.record_measurement(frame.t, m)
+        self.igtl.on_measurement(frame.t, self.calibration, m)
 
     # --- recording ------------------------------------------------------------------------
 
@@ -661,6 +669,7 @@ class FollowerDaemon:
             "tick_errors": self.tick_errors,
             "late_ticks": self.late_ticks,
             "cpu_percent": self.cpu.overall(),
+            "igtl": self.igtl.stats(),
         }
 
     def _count_late_tick(self) -> None:
@@ -680,6 +689,9 @@ class FollowerDaemon:
                 self.close_recording()
                 raise
             print(f"humantele follower: {self.feed.banner()}", flush=True)
+        await self.igtl.start()
+        if self.igtl.banner():
+            print(f"humantele follower: {self.igtl.banner()}", flush=True)
         link_task = asyncio.create_task(self.link.run())
         if self.calibration is None:
             self.start_calibration()
@@ -708,6 +720,7 @@ class FollowerDaemon:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await asyncio.wait_for(link_task, 5.0)
             await self.feed.stop()
+            await self.igtl.stop()
             self.executor.shutdown(wait=True)  # the frame being measured ends first
             self.executor = None
             self.sensing.close()
@@ -731,6 +744,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--room", help="session room name")
     parser.add_argument("--state-dir", help="where the calibration is saved")
     parser.add_argument("--feed-port", type=int, help="renderer feed port (0 picks one)")
+    parser.add_argument(
+        "--igtl-port", type=int, help="serve OpenIGTLink on this port (0 picks one; 18944 Slicer's)"
+    )
     parser.add_argument("--recalibrate", action="store_true", help="ignore a saved calibration")
     parser.add_argument("--duration", type=float, help="stop after this many seconds")
     parser.add_argument("--stats-file", help="write running figures (JSON) to this file")
@@ -749,6 +765,8 @@ def config_from_args(args: argparse.Namespace) -> FollowerConfig:
         data["state_dir"] = args.state_dir
     if args.feed_port is not None:
         data["feed"]["port"] = args.feed_port
+    if getattr(args, "igtl_port", None) is not None:
+        data["igtl"].update(enabled=True, port=args.igtl_port)
     session_overrides(args, data)
     return validate_config(FollowerConfig, data, "command line")
 
