@@ -239,12 +239,16 @@ class IgtlServer:
             st.sent[kind] = st.sent.get(kind, 0) + 1
             st.bytes_sent += len(data)
 
-    def _due(self, name: str, rate_hz: float, now: float) -> bool:
+    def _due(self, name: str, rate_hz: float, t: float) -> bool:
+        """A client is there and ``name``'s last message is at least ``1/rate_hz`` older
+        than sample time ``t`` (the samples' own clock, so a burst of late samples is not cut
+        short; a time going back restarts the cap)."""
         if not self._clients:
             return False
-        if now - self._last.get(name, -1e9) < 1.0 / rate_hz:
+        last = self._last.get(name)
+        if last is not None and 0.0 <= t - last < 1.0 / rate_hz * 0.9:
             return False
-        self._last[name] = now
+        self._last[name] = t
         return True
 
     # ------------------------------------------------------------------ publishing
@@ -255,7 +259,7 @@ class IgtlServer:
     def publish_transform(self, name: str, matrix: NDArray, t: float) -> bool:
         """Send TRANSFORM ``name`` (4x4, mm) sampled at monotonic ``t``; False if not sent
         (no client, rate cap, or not finite)."""
-        if not self._due(name, self.config.pose_rate_hz, time.monotonic()):
+        if not self._due(name, self.config.pose_rate_hz, t):
             return False
         m = np.asarray(matrix, dtype=float)
         if m.shape != (4, 4) or not np.all(np.isfinite(m)):
@@ -271,7 +275,7 @@ class IgtlServer:
 
     def publish_string(self, name: str, text: str, t: float, rate_hz: float | None = None) -> bool:
         """Send STRING ``name`` (rate-capped like the poses unless ``rate_hz``)."""
-        if not self._due(name, rate_hz or self.config.pose_rate_hz, time.monotonic()):
+        if not self._due(name, rate_hz or self.config.pose_rate_hz, t):
             return False
         import pyigtl
 
@@ -286,7 +290,7 @@ class IgtlServer:
         sent; the sim and most scanners are grey), pixel size (row, col) mm, captured at
         monotonic ``t``. Packed on the worker thread; dropped (counted) while one is packing."""
         rate = self.config.image_rate_hz
-        if not self.config.image or not self._due(name, rate, time.monotonic()):
+        if not self.config.image or not self._due(name, rate, t):
             return False
         if self._image_busy or self._pool is None:
             self.stats_.dropped["image_busy"] = self.stats_.dropped.get("image_busy", 0) + 1
