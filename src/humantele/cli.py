@@ -27,6 +27,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "tracking": ("humantele.bench.tracking", "IR marker tracking: time against pose error"),
     "analysis": ("humantele.analysis.bench", "analyze a 10-min session; recording CPU cost"),
     "video": ("humantele.bench.video", "video sources: render cost, frame counter after VP8"),
+    "igtl": ("humantele.bench.igtl", "OpenIGTLink: added follower CPU, pose/image latency"),
 }
 
 
