@@ -13,9 +13,11 @@ import time
 import numpy as np
 import pytest
 
+from humantele.haptics.demo_patient import demo_model
 from humantele.haptics.devices import DeviceError, TouchX, TouchXConfig
 from humantele.haptics.devices.touchx import describe_hd_error
-from humantele.haptics.loop import ForceRenderer, ServoConfig, demo_model
+from humantele.haptics.renderer import ForceRenderer
+from humantele.haptics.servo_config import ServoConfig
 
 TICKS, FRAMES, WRITES, FRAME_VIOL, THREAD_VIOL, RATE, PRIO, STATE, UPD_STYLE, CAL = range(10)
 

@@ -67,7 +67,9 @@ async def _client(port: int, seconds: float) -> list[tuple[float, str, float, in
     return out
 
 
-async def _run(seconds: float, igtl: bool, tmp: Path, url: str, env: dict) -> dict:
+async def _run(
+    seconds: float, igtl: bool, tmp: Path, url: str, env: dict, truth: bool = False
+) -> dict:
     from humantele.demo import process_cpu_seconds
 
     stats = {r: tmp / f"{r}-{int(igtl)}.json" for r in ("expert", "follower")}
@@ -77,6 +79,10 @@ async def _run(seconds: float, igtl: bool, tmp: Path, url: str, env: dict) -> di
                 "--room", "bench", "--stats-file", str(stats[role])]  # fmt: skip
         if role == "follower":
             args += ["--state-dir", str(tmp / "state"), "--feed-port", "0"]
+            if truth:
+                cfg = tmp / "follower.toml"
+                cfg.write_text('[follower]\nprobe_source = "truth"\n')
+                args += ["--config", str(cfg)]
         if igtl:
             args += ["--igtl-port", "0"]
         log = open(tmp / f"{role}-{int(igtl)}.log", "wb")  # noqa: SIM115

@@ -3,9 +3,10 @@ once per tick, so the daemons hold one line per hook.
 
 Follower: ``ProbeToPatient`` (measured), ``VirtProbeToPatient`` (the expert's pose),
 ``PatientToWorld``, ``ProbeForce`` and, with ``image``, the ultrasound ``Image`` and
-``ImageToProbe``. Until the follower streams its own ultrasound track the image comes from a
-sim ultrasound source (:class:`humantele.video.sim_ultrasound.SimUltrasound`) run on a thread
-at ``image_rate_hz`` on the follower's simulated scene; ``on_us_frame`` is the entry for a
+``ImageToProbe``. Until the follower streams its own ultrasound track the image comes from the
+sim ultrasound (:class:`humantele.video.sim_ultrasound.SimUltrasound`) on the follower's
+simulated scene, rendered at ``image_rate_hz`` in a separate low-priority process (a frame
+costs ~0.1 s of CPU) and only while a client is connected; ``on_us_frame`` is the entry for a
 daemon that has frames of its own.
 Expert: ``StylusToPatient`` (what it sends), ``ProbeToPatient`` and ``ProbeForce`` (as
 received), and the ultrasound ``Image`` when it receives frames (``on_us_frame``).
@@ -14,8 +15,12 @@ received), and the ultrasound ``Image`` when it receives frames (``on_us_frame``
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
-import threading
+import math
+import multiprocessing
+import os
+from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -95,49 +100,63 @@ class FollowerIgtl(_Served):
 
     def __init__(self, config: IgtlConfig, patient: Any | None = None) -> None:
         super().__init__(config)
-        self._scene = None  # the latest SceneSnapshot for the sim ultrasound
         self._patient = patient  # an Ellipsoid: the true patient the sim ultrasound images
-        self._reader: threading.Thread | None = None
-        self._stop = threading.Event()
-        self._source = None
+        self._pool: ProcessPoolExecutor | None = None
+        self._rendering = False
+        self._last_render = -math.inf
+        self.renders = 0
+        if self.server is not None and config.image and patient is not None:
+            from humantele.video.scan import ScanGeometry
+            from humantele.video.sim_ultrasound import SimUltrasoundConfig
+
+            c = SimUltrasoundConfig(counter=False)
+            g = ScanGeometry(c.probe, c.width, c.height, c.depth_m, c.fov_deg, c.radius_m,
+                             c.aperture_m, c.beams, c.samples)  # fmt: skip
+            self.T_tip_image = image_to_probe(g.origin_m, g.pixel_spacing_mm[0])
+            self._us_config = c.model_dump_json()
 
     async def start(self) -> None:
         await super().start()
-        if isinstance(self.server, IgtlServer) and self.config.image:
-            self._start_sim_ultrasound(asyncio.get_running_loop())
+        if isinstance(self.server, IgtlServer) and self.T_tip_image is not None:
+            self._pool_start()  # spawned now, so the first client gets images at once
+
+    def _pool_start(self) -> None:
+        ctx = multiprocessing.get_context("spawn")
+        self._pool = ProcessPoolExecutor(1, ctx, initializer=_us_init,
+                                         initargs=(self._us_config,))  # fmt: skip
+        self._pool.submit(_us_ping)
 
     async def stop(self) -> None:
-        self._stop.set()
-        if self._reader is not None:
-            await asyncio.to_thread(self._reader.join, 5.0)
+        if self._pool is not None:
+            pool, self._pool = self._pool, None
+            await asyncio.to_thread(pool.shutdown, True, cancel_futures=True)
         await super().stop()
 
-    def _start_sim_ultrasound(self, loop: asyncio.AbstractEventLoop) -> None:
-        from humantele.video.sim_ultrasound import SimUltrasound, SimUltrasoundConfig
+    def _render_us(self, t: float, true_tip: Pose | None, force_n: float) -> None:
+        """Ask the sim ultrasound process for the image at ``t`` (one at a time, at most
+        ``image_rate_hz``): rendering costs ~0.1 s of CPU per frame, so it never runs in the
+        daemon's process; it runs at a lower priority in its own."""
+        if self._rendering or t - self._last_render < 1.0 / self.config.image_rate_hz:
+            return
+        from humantele.video.scene import SceneSnapshot
 
-        src = SimUltrasound(
-            SimUltrasoundConfig(fps=self.config.image_rate_hz, counter=False),
-            scene=lambda: self._scene,
-        )
-        g = src.geometry
-        self.T_tip_image = image_to_probe(g.origin_m, g.pixel_spacing_mm[0])
-        self._source = src
+        if self._pool is None:
+            self._pool_start()
+        snap = SceneSnapshot(t, self._patient, true_tip, float(force_n), None)
+        self._rendering, self._last_render = True, t
+        fut = asyncio.get_running_loop().run_in_executor(self._pool, _us_render, snap, t)
+        fut.add_done_callback(self._rendered)
 
-        def run() -> None:
-            src.open()
-            try:
-                while not self._stop.is_set():
-                    frame = src.read()
-                    if self._scene is None:
-                        continue
-                    loop.call_soon_threadsafe(self.on_us_frame, frame)
-            except RuntimeError:  # the loop closed under us: the daemon is stopping
-                pass
-            finally:
-                src.close()
-
-        self._reader = threading.Thread(target=run, name="humantele-igtl-us", daemon=True)
-        self._reader.start()
+    def _rendered(self, fut: asyncio.Future) -> None:
+        self._rendering = False
+        if fut.cancelled() or fut.exception() is not None:
+            if not fut.cancelled():
+                log.warning("igtl: sim ultrasound failed: %s", fut.exception())
+            return
+        image, spacing, t = fut.result()
+        self.renders += 1
+        if isinstance(self.server, IgtlServer) and spacing is not None:
+            self.server.publish_image(image, spacing, t)
 
     def tick(
         self,
@@ -153,12 +172,10 @@ class FollowerIgtl(_Served):
         srv = self.server
         if srv is None:
             return
-        if self._source is not None and self._patient is not None:
-            from humantele.video.scene import SceneSnapshot
-
-            self._scene = SceneSnapshot(t, self._patient, true_tip, float(force_n), None)
         if not isinstance(srv, IgtlServer) or not srv.clients:
-            return
+            return  # nobody watching: no work
+        if self.T_tip_image is not None:
+            self._render_us(t, true_tip, force_n)
         if calibration is not None:
             srv.publish_transform(PATIENT, world_from_ras(calibration.T_world_patient), t)
         if virtual_patient is not None:
@@ -176,6 +193,27 @@ class FollowerIgtl(_Served):
             T = calibration.T_world_patient.inverse() @ m.T_world_tip
             srv.publish_transform(PROBE, ras_from_patient(T), t)
         srv.publish_string(FORCE, force_text(m.force_tip, m.contact), t)
+
+
+_US_SOURCE = None  # the sim ultrasound of the render process
+
+
+def _us_init(config_json: str) -> None:
+    global _US_SOURCE
+    with contextlib.suppress(OSError):
+        os.nice(10)  # below the daemons
+    from humantele.video.sim_ultrasound import SimUltrasound, SimUltrasoundConfig
+
+    _US_SOURCE = SimUltrasound(SimUltrasoundConfig.model_validate_json(config_json))
+
+
+def _us_ping() -> bool:
+    return _US_SOURCE is not None
+
+
+def _us_render(snapshot: Any, t: float) -> tuple[np.ndarray, tuple[float, float] | None, float]:
+    frame = _US_SOURCE.render(snapshot, t_capture=t)  # type: ignore[union-attr]
+    return frame.image[:, :, 1].copy(), frame.pixel_spacing_mm, t
 
 
 class ExpertIgtl(_Served):
