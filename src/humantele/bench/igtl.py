@@ -24,13 +24,17 @@ from pathlib import Path
 
 import numpy as np
 
-from humantele.bench.report import machine_line, markdown_table, write_section
+from humantele.report import machine_line, markdown_table, write_section
 
 SECTION = "igtl"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seconds", type=float, default=20.0, help="measured window per run (s)")
+    parser.add_argument(
+        "--probe", choices=["truth", "pipeline"], default="truth",
+        help="follower's probe: the sim truth (default) or the IR sensing pipeline",
+    )  # fmt: skip
     parser.add_argument("--json", action="store_true", help="print a JSON summary last")
     parser.add_argument("--no-write", action="store_true", help="do not write benchmarks.md")
 
@@ -70,7 +74,7 @@ async def _client(port: int, seconds: float) -> list[tuple[float, str, float, in
 async def _run(
     seconds: float, igtl: bool, tmp: Path, url: str, env: dict, truth: bool = False
 ) -> dict:
-    from humantele.demo import process_cpu_seconds
+    from humantele.runtime.stats import process_cpu_seconds
 
     stats = {r: tmp / f"{r}-{int(igtl)}.json" for r in ("expert", "follower")}
     procs = {}
@@ -103,10 +107,16 @@ async def _run(
             raise RuntimeError(f"the session did not start following within 180 s; see {tmp}")
         pid = procs["follower"].pid
         port = (_read_json(stats["follower"]).get("igtl") or {}).get("port") if igtl else None
-        c0, t0 = process_cpu_seconds(pid), time.monotonic()
+        if port:  # the first client starts the image stream: let it settle for 3 s
+            await _client(port, 3.0)
+        m0 = _read_json(stats["follower"]).get("measurements", 0)
+        c0, k0, t0 = process_cpu_seconds(pid), _children_cpu(pid), time.monotonic()
         messages = await _client(port, seconds) if port else (await asyncio.sleep(seconds) or [])
-        c1, t1 = process_cpu_seconds(pid), time.monotonic()
-        igtl_stats = _read_json(stats["follower"]).get("igtl")
+        c1, k1, t1 = process_cpu_seconds(pid), _children_cpu(pid), time.monotonic()
+        await asyncio.sleep(1.5)  # the next stats file
+        f_stats = _read_json(stats["follower"])
+        igtl_stats = f_stats.get("igtl")
+        meas_rate = (f_stats.get("measurements", 0) - m0) / (time.monotonic() - t0)
     finally:
         for p in procs.values():
             if p.returncode is None:
@@ -118,7 +128,24 @@ async def _run(
                 p.kill()
                 await p.wait()
     cpu = None if c0 is None or c1 is None else 100.0 * (c1 - c0) / (t1 - t0)
-    return {"cpu_percent": cpu, "messages": messages, "igtl": igtl_stats, "seconds": t1 - t0}
+    return {"cpu_percent": cpu, "children_cpu_percent": 100.0 * (k1 - k0) / (t1 - t0),
+            "messages": messages, "igtl": igtl_stats, "seconds": t1 - t0,
+            "measurement_rate_hz": meas_rate}  # fmt: skip
+
+
+def _children_cpu(pid: int) -> float:
+    """CPU seconds of ``pid``'s child processes (the sim ultrasound renderer)."""
+    from humantele.runtime.stats import process_cpu_seconds
+
+    total = 0.0
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            kids = (task / "children").read_text().split()
+        except OSError:
+            continue
+        for k in kids:
+            total += process_cpu_seconds(int(k)) or 0.0
+    return total
 
 
 def _lat(messages: list, name: str) -> dict:
@@ -129,7 +156,7 @@ def _lat(messages: list, name: str) -> dict:
             "p99_ms": float(np.percentile(ms, 99)), "max_ms": float(ms.max())}  # fmt: skip
 
 
-async def _bench(seconds: float) -> dict:
+async def _bench(seconds: float, truth: bool) -> dict:
     from humantele.signaling.server import SignalConfig, SignalingServer
 
     token = secrets.token_urlsafe(16)
@@ -138,8 +165,8 @@ async def _bench(seconds: float) -> dict:
     env = dict(os.environ, HUMANTELE_TOKEN=token, HUMANTELE_PARENT_PID=str(os.getpid()))
     try:
         with tempfile.TemporaryDirectory(prefix="humantele-bench-igtl-") as d:
-            off = await _run(seconds, False, Path(d), server.url, env)
-            on = await _run(seconds, True, Path(d), server.url, env)
+            off = await _run(seconds, False, Path(d), server.url, env, truth)
+            on = await _run(seconds, True, Path(d), server.url, env, truth)
     finally:
         await server.stop()
     msgs = on["messages"]
@@ -148,6 +175,9 @@ async def _bench(seconds: float) -> dict:
         "seconds": seconds,
         "cpu_off_percent": off["cpu_percent"],
         "cpu_on_percent": on["cpu_percent"],
+        "cpu_renderer_percent": on["children_cpu_percent"],
+        "tracker_rate_off_hz": off["measurement_rate_hz"],
+        "tracker_rate_on_hz": on["measurement_rate_hz"],
         "pose": _lat(msgs, "ProbeToPatient"),
         "image": _lat(msgs, "Image"),
         "pose_rate_hz": sum(n == "ProbeToPatient" for _, n, _, _ in msgs) / dur,
@@ -163,7 +193,7 @@ def _f(v: object, fmt: str = "{:.1f}") -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    r = asyncio.run(_bench(args.seconds))
+    r = asyncio.run(_bench(args.seconds, args.probe == "truth"))
     added = (
         None
         if r["cpu_off_percent"] is None or r["cpu_on_percent"] is None
@@ -172,7 +202,11 @@ def run(args: argparse.Namespace) -> int:
     rows = [
         ["follower CPU, OpenIGTLink off", f"{_f(r['cpu_off_percent'])} %"],
         ["follower CPU, serving one client", f"{_f(r['cpu_on_percent'])} %"],
-        ["added CPU", f"{_f(added)} % of one core"],
+        ["added CPU in the follower", f"{_f(added)} % of one core"],
+        ["sim ultrasound renderer (own process, nice 10)",
+         f"{_f(r['cpu_renderer_percent'])} % of one core"],
+        ["follower tracker frames measured, off / on",
+         f"{r['tracker_rate_off_hz']:.1f} / {r['tracker_rate_on_hz']:.1f} Hz"],
         ["ProbeToPatient latency p50 / p99 / max",
          f"{_f(r['pose'].get('p50_ms'))} / {_f(r['pose'].get('p99_ms'))} / "
          f"{_f(r['pose'].get('max_ms'))} ms ({r['pose']['n']} msgs)"],
@@ -187,9 +221,10 @@ def run(args: argparse.Namespace) -> int:
         "## OpenIGTLink (`humantele bench igtl`)",
         "",
         machine_line(),
-        f"Loopback session (follower + expert daemons, signaling), {args.seconds:.0f} s measured"
-        " per run once following; the follower without OpenIGTLink, then serving one client in"
-        " the bench process that decodes every message (pyigtl), as Slicer would. Latency:"
+        f"Loopback session (follower + expert daemons, signaling; probe: {args.probe}),"
+        f" {args.seconds:.0f} s measured per run once following; the follower without"
+        " OpenIGTLink, then serving one client in the bench process that decodes every"
+        " message (pyigtl), as Slicer would. Latency:"
         " from the tracker frame's / image's capture time to the client holding the decoded"
         " message (same machine, wall clock). Image: 640x480 uint8 at the default 10 Hz.",
         "",

@@ -30,6 +30,7 @@ from humantele.forcesense.sensors import ForceSensorConfig, calibration_path, ma
 from humantele.forcesense.sim import SimForceConfig, SimForceSensor
 from humantele.geometry import Pose, matrix_to_quat
 from humantele.tracking.filter import FilterConfig
+from humantele.tracking.hl2ss_source import Hl2ssFrameConfig
 from humantele.tracking.opencv_source import OpenCVFrameConfig
 from humantele.tracking.pipeline import PipelineConfig, Tracker
 from humantele.tracking.sim import SimFrameConfig, SimFrameSource
@@ -52,9 +53,9 @@ class SensingConfig(ConfigModel):
     """
 
     tool: str = DEFAULT_TOOL
-    camera: Annotated[SimFrameConfig | OpenCVFrameConfig, Field(discriminator="backend")] = Field(
-        default_factory=SimFrameConfig
-    )
+    camera: Annotated[
+        SimFrameConfig | OpenCVFrameConfig | Hl2ssFrameConfig, Field(discriminator="backend")
+    ] = Field(default_factory=SimFrameConfig)
     pipeline: PipelineConfig = Field(default_factory=PipelineConfig)
     filter: FilterConfig = Field(default_factory=FilterConfig)
     force: ForceSensorConfig = Field(default_factory=ForceSensorConfig)
