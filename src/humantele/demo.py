@@ -8,7 +8,9 @@ directory, so its simulated person performs the four-landmark calibration first;
 then gets the patient model and the session runs.
 
 A status line shows the pose rate and age at the follower, the haptic force at the expert, the
-follower's alignment error and the link state. ``--duration S`` ends the run; ``--json`` prints
+follower's alignment error and the link state. ``--duration S`` ends the run S seconds after
+both daemons have started (their first stats; a daemon not started within ``START_TIMEOUT_S``
+fails the demo), so a slow start on a busy machine never cuts the run short; ``--json`` prints
 one summary object, on one line, as the last line of output. Ctrl-C or SIGTERM: the daemons
 say bye, every process ends, exit code 0.
 
@@ -91,7 +93,9 @@ def _resolve(path: str | None, base: Path) -> str | None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--duration", type=float, default=20.0, help="seconds (default 20)")
+    parser.add_argument(
+        "--duration", type=float, default=20.0, help="seconds once both daemons run (default 20)"
+    )
     parser.add_argument("--json", action="store_true", help="print a JSON summary at the end")
     parser.add_argument("--config", help="TOML file with a [demo] section (configs/demo.toml)")
     parser.add_argument("--room", help="session room name (default demo)")
@@ -195,6 +199,9 @@ def summarize(
     }
 
 
+START_TIMEOUT_S = 120.0  # a daemon that has written no stats by then has failed to start
+
+
 async def _stop_child(proc: asyncio.subprocess.Process, timeout_s: float = 10.0) -> int | None:
     if proc.returncode is None:
         with contextlib.suppress(ProcessLookupError):
@@ -263,15 +270,22 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
             )  # fmt: skip
             log_file.close()
         last_print = 0.0
+        t_started: float | None = None  # both daemons up: --duration counts from here
         while not stop.is_set():
             now = time.monotonic()
-            if now - t0 >= args.duration:
+            if t_started is not None and now - t_started >= args.duration:
                 break
             dead = [r for r, p in procs.items() if p.returncode is not None]
             if dead:
                 failed = f"{dead[0]} exited early with code {procs[dead[0]].returncode}"
                 break
             e, f = read_stats(stats["expert"]) or {}, read_stats(stats["follower"]) or {}
+            if t_started is None and e and f:
+                t_started = now
+            elif t_started is None and now - t0 > START_TIMEOUT_S:
+                late = "expert" if not e else "follower"
+                failed = f"{late} did not start within {START_TIMEOUT_S:.0f} s"
+                break
             if tty or now - last_print >= 2.0:
                 last_print = now
                 line = _status_line(e, f, now - t0)

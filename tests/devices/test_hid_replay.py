@@ -96,7 +96,9 @@ def test_spacemouse_random_bytes_never_crash_or_escape_the_workspace(reports):
 def board(monkeypatch, reports):
     hub = FakeHid(0x1209, 0x4854, reports, serial="FS-0042")
     monkeypatch.setitem(sys.modules, "hid", hub)
-    return hub, HidForceSensor(HidForceConfig(serial="FS-0042", read_timeout_ms=0))
+    sensor = HidForceSensor(HidForceConfig(serial="FS-0042", read_timeout_ms=0))
+    sensor.open()  # through hidapi's enumerate and open_path, as with the board
+    return hub, sensor
 
 
 def test_force_board_session_replayed_keeps_every_good_report(monkeypatch):
@@ -126,7 +128,7 @@ def test_force_board_unplugged_and_absent(monkeypatch):
     hub.unplug()
     assert sensor.read() is None and sensor.dropped == {"io": 1}
     with pytest.raises(ForceSensorUnavailable, match="serial 'FS-0042'.*udev"):
-        HidForceSensor(HidForceConfig(serial="FS-0042"))
+        HidForceSensor(HidForceConfig(serial="FS-0042")).open()
 
 
 @settings(max_examples=200, deadline=None)

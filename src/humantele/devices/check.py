@@ -154,6 +154,7 @@ def check_force(config: Any, n: int) -> Check:
     backend = sensor_cfg.backend
     try:
         sensor = make_force_sensor(sensor_cfg)
+        sensor.open()
     except (ForceSensorUnavailable, OSError, ValueError) as exc:
         return Check("force sensor", backend, False, str(exc))
     readings = []
@@ -196,6 +197,17 @@ def _sensing(path: str | None) -> Any:
     return load_config(SensingConfig, path, "sensing" if path else None)
 
 
+def _tool(path: str | None) -> str:
+    """The probe's tool ([follower] tool of the follower's file; the default probe without)."""
+    from humantele.config import read_config_file
+    from humantele.tracking.tool import DEFAULT_TOOL
+
+    if path is None:
+        return DEFAULT_TOOL
+    follower = read_config_file(path).get("follower", {})
+    return str(follower.get("tool", DEFAULT_TOOL)) if isinstance(follower, dict) else DEFAULT_TOOL
+
+
 def run_checks(args: argparse.Namespace) -> tuple[list[Check], dict[str, Any]]:
     only = set(args.only or ["haptic", "tracker", "force", "hid"])
     n = max(1, int(args.samples))
@@ -204,7 +216,7 @@ def run_checks(args: argparse.Namespace) -> tuple[list[Check], dict[str, Any]]:
         checks.append(check_haptic(_expert_device(args.expert_config), n))
     sensing = _sensing(args.follower_config) if {"tracker", "force"} & only else None
     if "tracker" in only:
-        checks.append(check_tracker(sensing.camera, sensing.tool, n))
+        checks.append(check_tracker(sensing.camera, _tool(args.follower_config), n))
     if "force" in only:
         checks.append(check_force(sensing.force, n))
     system: dict[str, Any] = {}

@@ -3,9 +3,10 @@
 It runs the 1 kHz servo process (:class:`humantele.haptics.servo.ServoProcess`, its own OS
 process), and at the link's pose rate:
 
-- reads the servo's latest sample (the stylus already mapped into the patient frame by the
-  registration the daemon gave it), applies the clutch (:mod:`humantele.expert.mapping`) and
-  publishes the virtual transducer pose ``T_patient_probe`` (tip frame) on the ``pose`` channel;
+- reads the servo's latest sample, maps the stylus as the device read it (``T_device_stylus``)
+  once through the registration and clutch (:mod:`humantele.expert.mapping`) and publishes the
+  virtual transducer pose ``T_patient_probe`` (tip frame) on the ``pose`` channel; the servo
+  renders with the same registration (the daemon passes each change on);
 - receives the follower's state (probe pose, force) and control messages; each ellipsoid model
   the follower sends is installed in the servo loop (with the registration placing the device
   workspace over it).
@@ -56,7 +57,6 @@ from humantele.expert.mapping import (
     StylusMapping,
     default_registration,
 )
-from humantele.geometry import Pose, quat_conjugate, quat_multiply
 from humantele.haptics.ellipsoid import Ellipsoid
 from humantele.haptics.servo import ServoProcess
 from humantele.haptics.servo_config import ServoConfig
@@ -74,9 +74,7 @@ from humantele.runtime.session import SessionConfig, recorder_stats
 from humantele.runtime.stats import percentile_ms, process_cpu_seconds
 from humantele.transport import LinkConfig, PeerLink
 from humantele.wire import (
-    Calibration as CalibrationMsg,
-)
-from humantele.wire import (
+    CalibrationProgress,
     ControlMessage,
     EllipsoidModel,
     PoseMessage,
@@ -86,7 +84,6 @@ from humantele.wire import (
 
 log = logging.getLogger(__name__)
 
-REINDEX_SETTLE_S = 0.005  # after a registration change, the servo takes it at its next tick
 REPORT_PERIOD_S = 1.0  # servo statistics and latency figures are recorded this often
 
 
@@ -107,7 +104,7 @@ class ExpertConfig(ConfigModel):
     """The expert daemon (``[expert]`` of configs/expert.toml; the servo has ``[servo]``)."""
 
     servo_restart_s: float = Field(2.0, gt=0, le=60, description="retry a dead servo after")
-    # Poses at 100 Hz, as the published system (ANCHORS); the follower's lag is ~0.35 s.
+    # Poses at 100 Hz, as the published system (C&G 2024, Table 1; docs/references.md).
     link: LinkConfig = LinkConfig(pose_rate_hz=100.0)
     mapping: MappingConfig = MappingConfig()
     scans: ScanScriptConfig = ScanScriptConfig()
@@ -168,9 +165,7 @@ class ExpertDaemon(Daemon):
         self.state_ages: deque[float] = deque(maxlen=20000)
         self.models_installed = 0
         self.calibration_events: list[str] = []
-        self.last_pose: Pose | None = None
         self.last_sample_t = -math.inf
-        self.hold_until = -math.inf
         self.servo_restarts = 0
         self._servo_dead_since: float | None = None
         self.servo_started: float | None = None
@@ -199,7 +194,7 @@ class ExpertDaemon(Daemon):
     def on_control(self, msg: ControlMessage) -> None:
         if isinstance(msg, EllipsoidModel):
             self.install_model(Ellipsoid.from_dict(msg.model.model_dump()))
-        elif isinstance(msg, CalibrationMsg):
+        elif isinstance(msg, CalibrationProgress):
             text = msg.event if not msg.detail else f"{msg.event}: {msg.detail}"
             self.calibration_events.append(text)
             log.info("follower calibration: %s", text)
@@ -227,34 +222,21 @@ class ExpertDaemon(Daemon):
         reg: Registration = self.mapping.registration
         self.mapping.take_changed()
         self.servo.set_registration(reg.T_patient_device, reg.scale)
-        # Hold the published pose until the servo has taken the new registration.
-        self.hold_until = self.clock() + REINDEX_SETTLE_S
 
     # --- outgoing -------------------------------------------------------------------------
-
-    def stylus_in_device(self, pose_patient: Pose) -> tuple[np.ndarray, np.ndarray]:
-        """Undo the registration the servo applied: stylus position and quaternion, device."""
-        reg = self.mapping.registration
-        p = reg.point_to_device(pose_patient.position)
-        q = quat_multiply(quat_conjugate(reg.rotation), pose_patient.quaternion)
-        return p, q
 
     def publish_pose(self, t: float) -> None:
         s = self.servo.latest()
         if s is None or s.t <= self.last_sample_t or not self.link.connected:
             return
         self.last_sample_t = s.t
-        if t < self.hold_until and self.last_pose is not None:
-            pose = self.last_pose  # the servo has not applied the new registration yet
-        else:
-            was_clutched = self.mapping.clutched
-            p_dev, q_dev = self.stylus_in_device(s.pose)
-            pose = self.mapping.update(p_dev, q_dev, s.buttons)
-            if self.mapping.take_changed():
-                self.push_registration()
-            if self.mapping.clutched != was_clutched and self.model is not None:
-                self.servo.set_model(None if self.mapping.clutched else self.model)
-        self.last_pose = pose
+        was_clutched = self.mapping.clutched
+        stylus = s.T_device_stylus  # the mapping is applied once, here
+        pose = self.mapping.update(stylus.position, stylus.quaternion, s.buttons)
+        if self.mapping.take_changed():
+            self.push_registration()
+        if self.mapping.clutched != was_clutched and self.model is not None:
+            self.servo.set_model(None if self.mapping.clutched else self.model)
         self.pose_seq += 1
         msg = PoseMessage.from_pose(
             self.pose_seq, t, pose, s.buttons & 0xFF, clutch=self.mapping.clutched

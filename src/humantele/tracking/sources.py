@@ -1,4 +1,9 @@
-"""Frame source configuration and factory: one config union, one function."""
+"""Frame source configurations and the factory: one config union, one function.
+
+Each backend's configuration has a ``backend`` field that picks it: ``sim`` (rendered AHAT-like
+frames, :mod:`humantele.tracking.sim`) or ``opencv`` (a camera OpenCV can open,
+:mod:`humantele.tracking.opencv_source`).
+"""
 
 from __future__ import annotations
 
@@ -10,16 +15,25 @@ from humantele.tracking.frames import FrameSource
 from humantele.tracking.hl2ss_source import Hl2ssFrameConfig, Hl2ssFrameSource
 from humantele.tracking.opencv_source import OpenCVFrameConfig, OpenCVFrameSource
 from humantele.tracking.sim import SimFrameConfig, SimFrameSource
+from humantele.tracking.tool import ToolDefinition
 
-AnyFrameConfig = SimFrameConfig | OpenCVFrameConfig | Hl2ssFrameConfig
-FrameSourceConfig = Annotated[AnyFrameConfig, Field(discriminator="backend")]
+FrameSourceConfig = Annotated[
+    SimFrameConfig | OpenCVFrameConfig | Hl2ssFrameConfig, Field(discriminator="backend")
+]
+"""A tracking camera's configuration, picked by its ``backend`` field: "sim", "opencv" or
+"hl2ss" (the HoloLens 2 AHAT stream)."""
 
 
-def make_frame_source(config: AnyFrameConfig) -> FrameSource:
-    """The frame source a configuration asks for (``backend`` = "sim", "opencv" or "hl2ss",
-    the HoloLens 2 AHAT stream)."""
+def make_frame_source(
+    config: SimFrameConfig | OpenCVFrameConfig | Hl2ssFrameConfig,
+    tool: ToolDefinition | None = None,
+) -> FrameSource:
+    """The frame source a configuration asks for, not yet opened. ``tool`` is the marker tree
+    the sim backend draws (None: the default probe); the others ignore it."""
     if isinstance(config, SimFrameConfig):
-        return SimFrameSource(config)
+        return SimFrameSource(config, tool)
+    if isinstance(config, OpenCVFrameConfig):
+        return OpenCVFrameSource(config)
     if isinstance(config, Hl2ssFrameConfig):
         return Hl2ssFrameSource(config)
-    return OpenCVFrameSource(config)
+    raise TypeError(f"not a frame source configuration: {type(config).__name__}")

@@ -1,7 +1,7 @@
 """Regenerate the HID byte recordings replayed by tests/devices/test_hid_replay.py.
 
 No SpaceMouse or force board is attached to the build machine, so these "recordings" are
-written in each device's report layout (configs/hid/spacemouse.toml, docs/force_sensor_hid.md)
+written in each device's report layout (the spacemouse HID profile, docs/force_sensor_hid.md)
 from a short scripted session, with the faults seen on real USB links mixed in (short reads,
 unknown report ids, out-of-range axes, bad CRC). One report per line, hex; '#' comments.
 Run: python3 tests/devices/data/make_recordings.py
