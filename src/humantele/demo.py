@@ -195,11 +195,31 @@ def summarize(
         "cpu_percent_follower": f.get("cpu_percent"),
         "scans": e.get("scans_started", 0),
         "recording": recording or None,
+        "video": video_summary(e.get("video"), f.get("video")),
         "exit_codes": codes,
     }
 
 
 START_TIMEOUT_S = 120.0  # a daemon that has written no stats by then has failed to start
+
+
+def video_summary(e: dict[str, Any] | None, f: dict[str, Any] | None) -> dict[str, Any] | None:
+    """Per track at the expert: frames, rate, age (capture to decoded) p50/p95/max; the
+    follower's POV degradation level. None when video is off."""
+    if not e:
+        return None
+    out: dict[str, Any] = {}
+    keys = ("frames", "fps", "fps_mean", "gap_max_ms", "age_p50_ms", "age_p95_ms", "age_max_ms",
+            "unreadable", "no_info")  # fmt: skip
+    for name in ("us", "pov"):
+        t = e.get(name) or {}
+        out[name] = {k: t.get(k) for k in (*keys, "size")}
+    if f:
+        out["pov_level"] = f.get("pov_level")
+        out["pov_level_changes"] = f.get("pov_level_changes")
+        out["process"] = f.get("process")
+        out["follower"] = {n: f.get(n) for n in ("us", "pov")}
+    return out
 
 
 async def _stop_child(proc: asyncio.subprocess.Process, timeout_s: float = 10.0) -> int | None:

@@ -36,12 +36,16 @@ def counts(*wanted: tuple[str, int]):
 async def test_slicer_client_gets_the_session_in_mm_matching_the_recording(session, tmp_path):
     base = tmp_path / "i.mcap"
     rec = ["--record", str(role_path(base, "follower")), "--session-id", "i01"]
-    # The probe measured as the simulated truth: what is checked here is what OpenIGTLink
-    # sends, not the IR tracker (tests/tracking), and it keeps the test quick on 2 cores.
+    # The probe measured as the simulated truth and no WebRTC video: what is checked here is
+    # what OpenIGTLink sends (the image then comes from its own sim ultrasound process; the
+    # video-track path is tested in test_igtl_video.py), not the IR tracker or the video
+    # link, and it keeps the session light on 2 cores.
     cfg = tmp_path / "follower.toml"
-    cfg.write_text('[follower]\nprobe_source = "truth"\n')
+    cfg.write_text('[follower]\nprobe_source = "truth"\n[follower.video]\nenabled = false\n')
+    e_cfg = tmp_path / "expert.toml"
+    e_cfg.write_text("[expert.video]\nenabled = false\n")
     await session.start("follower", "--config", str(cfg), "--igtl-port", "0", *rec)
-    await session.start("expert", "--igtl-port", "0")
+    await session.start("expert", "--config", str(e_cfg), "--igtl-port", "0")
     await session.wait(
         "calibrated, connected, following",
         lambda e, f: f.get("calibrated") and f.get("link_state") == "connected"

@@ -21,8 +21,8 @@ Message handling is one method per kind (``on_state``, ``on_control``, ``on_link
 Recording (``--record FILE`` or ``[expert.session] record``): every published pose
 (``/expert/pose``, the same ``t`` as the PoseMessage) and the rendered force (``/expert/force``,
 patient frame); about once a second the servo statistics, the state stream's one-way latency
-and, when it changes, the clock-sync estimate; scan starts and stops. Video frame timestamps
-(``/expert/video_frame``) come with the video tracks: there is no video yet. ``t`` is this
+and, when it changes, the clock-sync estimate; scan starts and stops; every received video
+frame's number and age (``/expert/video_frame``, :mod:`humantele.media.receiver`). ``t`` is this
 daemon's monotonic clock (s), the one its ClockSync uses. A path that cannot be recorded to
 stops the daemon at start (exit code 2); a failure during the session is reported in the stats
 and never stops the haptics or the session.
@@ -57,12 +57,15 @@ from humantele.expert.mapping import (
     StylusMapping,
     default_registration,
 )
+from humantele.geometry import Pose
 from humantele.haptics.ellipsoid import Ellipsoid
 from humantele.haptics.servo import ServoProcess
 from humantele.haptics.servo_config import ServoConfig
 from humantele.haptics.servo_layout import ServoError
 from humantele.interop.igtl import IgtlConfig
 from humantele.interop.sessions import ExpertIgtl
+from humantele.media.config import ExpertVideoConfig
+from humantele.media.receiver import VideoReceiver
 from humantele.recording import RecorderConfig
 from humantele.runtime.daemon import (
     Daemon,
@@ -108,6 +111,7 @@ class ExpertConfig(ConfigModel):
     link: LinkConfig = LinkConfig(pose_rate_hz=100.0)
     mapping: MappingConfig = MappingConfig()
     scans: ScanScriptConfig = ScanScriptConfig()
+    video: ExpertVideoConfig = ExpertVideoConfig()
     session: SessionConfig = SessionConfig()
     recording: RecorderConfig = RecorderConfig()
     igtl: IgtlConfig = IgtlConfig()
@@ -153,13 +157,18 @@ class ExpertDaemon(Daemon):
             on_state=self.on_state,
             on_control=self.on_control,
             on_link_state=self.on_link_state,
+            media=lambda pc, role: self.video.prepare(pc),
         )
+        # The follower's us and pov tracks: the latest decoded frame of each, with its capture
+        # time on this clock (self.video.latest("us")), for the console.
+        self.video = VideoReceiver(config.video, self.link.clock, self.link.now, self.record_any)
         self.pose_seq = 0
         self.poses_sent = 0
         self.pose_send_failures = 0
         self.pose_times: deque[float] = deque(maxlen=4000)
         self.last_state: StateMessage | None = None
         self.last_state_t: float | None = None  # its sample time on this clock (s)
+        self.last_pose: Pose | None = None
         self.igtl = ExpertIgtl(config.igtl)
         self.states_received = 0
         self.state_ages: deque[float] = deque(maxlen=20000)
@@ -233,6 +242,7 @@ class ExpertDaemon(Daemon):
         was_clutched = self.mapping.clutched
         stylus = s.T_device_stylus  # the mapping is applied once, here
         pose = self.mapping.update(stylus.position, stylus.quaternion, s.buttons)
+        self.last_pose = pose  # T_patient_stylus as sent (OpenIGTLink serves it)
         if self.mapping.take_changed():
             self.push_registration()
         if self.mapping.clutched != was_clutched and self.model is not None:
@@ -332,6 +342,12 @@ class ExpertDaemon(Daemon):
                 "/expert/latency", t, {"name": "state_one_way", "value_s": float(np.median(recent))}
             )
 
+    def record_any(self, topic: str, t: float, payload: dict) -> None:
+        """Record one sample if recording (the recorder only queues)."""
+        rec = self.rec
+        if rec is not None:
+            rec.write(topic, t, payload)
+
     def check_servo(self, t: float) -> None:
         """A dead servo process is restarted (the daemon itself keeps running)."""
         if self.servo.alive:
@@ -407,11 +423,13 @@ class ExpertDaemon(Daemon):
             "step_errors": self.step_errors,
             "recording": recorder_stats(self.rec),
             "igtl": self.igtl.stats(),
+            "video": self.video.stats() if self.config.video.enabled else None,
         }
 
     def publish_igtl(self, t: float) -> None:
         """The stylus as sent and the follower's probe as received, to OpenIGTLink clients."""
-        self.igtl.tick(t, self.last_pose, self.last_state, self.last_state_t)
+        us = self.video.latest("us") if self.config.video.enabled else None
+        self.igtl.tick(t, self.last_pose, self.last_state, self.last_state_t, us)
 
     def guarded(self, step: Callable[[float], object], t: float) -> None:
         """Run a step that must never end the daemon (scans, recording); failures counted."""
@@ -447,6 +465,7 @@ class ExpertDaemon(Daemon):
         finally:
             self.guarded(self.stop_scan, self.clock())  # the scan ends before the bye
             await self.close_link(self.link, link_task)
+            await self.video.close()
             self.servo_cpu_percent()
             self.servo.stop()
             await self.igtl.stop()

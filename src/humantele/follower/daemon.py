@@ -48,6 +48,7 @@ import contextlib
 import logging
 import math
 import os
+import sys
 import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -79,8 +80,11 @@ from humantele.follower.sim_human import (
 )
 from humantele.follower.sim_world import SimWorld, WorldTruth
 from humantele.geometry import Pose, matrix_to_quat
+from humantele.haptics.ellipsoid import Ellipsoid
 from humantele.interop.igtl import IgtlConfig
 from humantele.interop.sessions import FollowerIgtl
+from humantele.media.config import FollowerVideoConfig
+from humantele.media.sender import VideoSender
 from humantele.recording import RecorderConfig
 from humantele.runtime.daemon import (
     Daemon,
@@ -92,6 +96,8 @@ from humantele.runtime.session import SessionConfig, recorder_stats
 from humantele.runtime.stats import percentile_ms
 from humantele.tracking.tool import load_tool
 from humantele.transport import LinkConfig, PeerLink
+from humantele.video.base import VideoSourceUnavailable
+from humantele.video.scene import SceneSnapshot
 from humantele.wire import (
     CalibrationProgress,
     ControlMessage,
@@ -142,6 +148,7 @@ class FollowerConfig(ConfigModel):
     sim_patient: SimPatientConfig = SimPatientConfig()
     sim_human: SimHumanConfig = SimHumanConfig()
     sim_head: SimHeadConfig = SimHeadConfig()
+    video: FollowerVideoConfig = FollowerVideoConfig()
     session: SessionConfig = SessionConfig()
     recording: RecorderConfig = RecorderConfig()
     igtl: IgtlConfig = IgtlConfig()
@@ -274,6 +281,12 @@ class FollowerDaemon(Daemon):
         self.calibration: Calibration | None = Calibration.load(self.calibration_path)
         self.calibrator = Calibrator(config.calibration)
         self.world = SimWorld(config.sim_patient, config.sim_human, config.sim_head)
+        patient = self.world.patient
+        self.patient_ellipsoid = Ellipsoid(
+            tuple(patient.T_world_body.position),
+            tuple(float(v) for v in patient.semi_axes),
+            math.radians(config.sim_patient.yaw_deg),
+        )
         # with a sensing process, the daemon's own pipeline is built only if ever used
         self.sensing = Sensing(config, sensing_config, build=config.sensing_worker == "thread")
         self.sensing_proc: SensingProcess | None = None  # run() starts it
@@ -284,13 +297,27 @@ class FollowerDaemon(Daemon):
         self.last_measure_t = -math.inf
         self.measurements = 0
         self.feed = RendererFeed(config.feed, self.state_dir)
-        self.igtl = FollowerIgtl(config.igtl, self.world.patient.ellipsoid())
+        # Video: the us and pov tracks (humantele.media.sender), fed by the sim world's latest
+        # snapshot (self.scene_snapshot, updated each tick) for the sim sources.
+        self._scene: SceneSnapshot | None = None
+        self._head: Pose | None = None
+        self.video = (
+            VideoSender(config.video, self.scene_snapshot, self.record_any, self.patient_ellipsoid)
+            if config.video.enabled
+            else None
+        )
+        self._video_check_t = -math.inf
+        self.video_error = ""
+        self._video_late_ticks = 0
+        us = (self.video.captures["us"].slot, config.video.us) if self.video else None
+        self.igtl = FollowerIgtl(config.igtl, self.world.patient.ellipsoid(), us)
         self.link = PeerLink(
             "follower",
             config.link,
             on_pose=self.on_pose,
             on_control=self.on_control,
             on_link_state=self.on_link_state,
+            media=None if self.video is None else (lambda pc, role: self.video.attach(pc)),
         )
         self.calibrating = False
         self.following_since: float | None = None
@@ -517,14 +544,41 @@ class FollowerDaemon(Daemon):
             # fraction of the tick rate (45 Hz from 100 Hz ticks, not 33); no catching up.
             late = t - self.last_measure_t >= 2.0 * frame_period
             self.last_measure_t = t if late else self.last_measure_t + frame_period
-            self.start_measurement(TrackerImage(self.world.truth(t), virtual, target))
-        # Video frame timestamps (/follower/video_frame: stream 'pov' or 'us', seq, event) are
-        # recorded here once the follower has its POV and ultrasound tracks; there is no video
-        # yet, so nothing is recorded for it.
+            truth = self.world.truth(t)
+            self._head = truth.T_world_camera
+            self.start_measurement(TrackerImage(truth, virtual, target))
+        # The sim video sources render this snapshot (in the video process); video frame
+        # timestamps (/follower/video_frame) are recorded as each frame is captured and sent.
+        self.publish_scene(t, self.world.T_world_tip, self.world.force_world, virtual)
         self.publish_feed(t, self.measurement)
         v_patient = None if self.last_pose is None else self.last_pose.pose
         force_n = float(np.linalg.norm(self.world.force_world))
         self.igtl.tick(t, self.calibration, v_patient, self.world.T_world_tip, force_n)
+
+    def publish_scene(
+        self, t: float, true_tip: Pose | None, force: NDArray, virtual: Pose | None
+    ) -> None:
+        """The sim world now, for the sim video sources (an immutable snapshot)."""
+        if self.video is None:
+            return
+        force_n = 0.0
+        if true_tip is not None:
+            beam = true_tip.rotate((0.0, 0.0, 1.0))
+            force_n = max(0.0, -float(np.dot(force, beam)))
+        self._scene = SceneSnapshot(t, self.patient_ellipsoid, true_tip, force_n, self._head,
+                                    virtual)  # fmt: skip
+        self.video.publish_scene(self._scene)
+
+    def scene_snapshot(self) -> SceneSnapshot:
+        """The latest snapshot (called from the video threads)."""
+        s = self._scene
+        return s if s is not None else SceneSnapshot(0.0, self.patient_ellipsoid, None, 0.0, None)
+
+    def record_any(self, topic: str, t: float, payload: dict) -> None:
+        """Record from any thread (the recorder only queues)."""
+        rec = self.rec
+        if rec is not None:
+            rec.write(topic, t, payload)
 
     # --- measurements (sensing worker thread -> loop) -------------------------------------
 
@@ -720,7 +774,19 @@ class FollowerDaemon(Daemon):
             "late_ticks": self.late_ticks,
             "cpu_percent": self.cpu.overall(),
             "igtl": self.igtl.stats(),
+            "video": None if self.video is None else self.video.stats(),
         }
+
+    def check_video(self, t: float) -> None:
+        """Once a second, the video's degradation policy (POV first), in a task."""
+        if self.video is None or t - self._video_check_t < 1.0:
+            return
+        dt = 1.0 if self._video_check_t == -math.inf else t - self._video_check_t
+        self._video_check_t = t
+        late = (self.late_ticks - self._video_late_ticks) / dt
+        self._video_late_ticks = self.late_ticks
+        task = asyncio.ensure_future(self.video.check(t, late))
+        task.add_done_callback(_log_task_error)
 
     def _count_late_tick(self) -> None:
         self.late_ticks += 1
@@ -729,6 +795,9 @@ class FollowerDaemon(Daemon):
         if not self.start_run():
             return 2
         self.record_model()  # a saved calibration's model
+        # The video sources open beside the session (the video process takes a few seconds
+        # to start); one that cannot open stops the daemon with a clear message, exit code 2.
+        video_task = None if self.video is None else asyncio.create_task(self.start_video())
         self.executor = ThreadPoolExecutor(1, thread_name_prefix="humantele-sensing")
         if self.config.sensing_worker == "process" and self.sensing.unbuilt:
             self.sensing_proc = SensingProcess(
@@ -774,6 +843,7 @@ class FollowerDaemon(Daemon):
                 try:
                     self.tick(t)
                     self.record_reports(t)
+                    self.check_video(t)
                 except Exception:  # never let one bad tick end the daemon
                     self.tick_errors += 1
                     if self.tick_errors in (1, 10, 100, 1000):
@@ -781,6 +851,10 @@ class FollowerDaemon(Daemon):
         finally:
             await self.close_link(self.link, link_task)
             await self.feed.stop()
+            if video_task is not None:
+                with contextlib.suppress(BaseException):
+                    await video_task  # opening cannot be interrupted: it ends by itself
+                await asyncio.to_thread(self.video.close)
             await self.igtl.stop()
             self.executor.shutdown(wait=True)  # the frame being measured ends first
             self.executor = None
@@ -791,7 +865,25 @@ class FollowerDaemon(Daemon):
         if self.sensing_failure is not None:
             print(f"humantele follower: sensing cannot start: {self.sensing_failure}", flush=True)
             return 2
-        return 0
+        return 2 if self.video_error else 0
+
+    async def start_video(self) -> None:
+        """Open the video sources (in a thread: it blocks) and start them; a source that
+        cannot open is reported on stderr and stops the daemon (exit code 2)."""
+        assert self.video is not None
+        try:
+            await asyncio.to_thread(self.video.open)
+        except VideoSourceUnavailable as exc:
+            self.video_error = str(exc)
+            print(f"humantele follower: {exc}", file=sys.stderr, flush=True)
+            self._stop.set()
+            return
+        self.video.start(asyncio.get_running_loop())
+
+
+def _log_task_error(task: asyncio.Future) -> None:
+    if not task.cancelled() and task.exception() is not None:
+        log.error("follower: video check failed: %s", task.exception())
 
 
 def _rms_scaled(values: list[float], scale: float) -> float | None:

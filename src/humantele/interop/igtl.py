@@ -287,25 +287,27 @@ class IgtlServer:
         self, image: NDArray, spacing_mm: tuple[float, float], t: float, name: str = IMAGE
     ) -> bool:
         """Send IMAGE ``name``: a (H, W) or (H, W, 3) uint8 frame (BGR: its green channel is
-        sent; the sim and most scanners are grey), pixel size (row, col) mm, captured at
-        monotonic ``t``. Packed on the worker thread; dropped (counted) while one is packing."""
+        sent; the sim and most scanners are grey) or a decoded ``av.VideoFrame`` (its luma),
+        pixel size (row, col) mm, captured at monotonic ``t``. Packed on the worker thread;
+        dropped (counted) while one is packing."""
         rate = self.config.image_rate_hz
         if not self.config.image or not self._due(name, rate, t):
             return False
         if self._image_busy or self._pool is None:
             self.stats_.dropped["image_busy"] = self.stats_.dropped.get("image_busy", 0) + 1
             return False
-        img = np.asarray(image)
-        if img.ndim == 3:
-            img = img[:, :, 1]
-        if img.ndim != 2 or img.dtype != np.uint8 or not all(np.isfinite(spacing_mm)):
+        if not all(np.isfinite(spacing_mm)):
             self.stats_.dropped["bad_image"] = self.stats_.dropped.get("bad_image", 0) + 1
             return False
+        if isinstance(image, np.ndarray):
+            img = image[:, :, 1] if image.ndim == 3 else image
+            if img.ndim != 2 or img.dtype != np.uint8:
+                self.stats_.dropped["bad_image"] = self.stats_.dropped.get("bad_image", 0) + 1
+                return False
+            image = np.ascontiguousarray(img)
         self._image_busy = True
         loop = asyncio.get_running_loop()
-        fut = loop.run_in_executor(
-            self._pool, _pack_image, np.ascontiguousarray(img), spacing_mm, self.wall(t), name
-        )
+        fut = loop.run_in_executor(self._pool, _pack_image, image, spacing_mm, self.wall(t), name)
         fut.add_done_callback(self._image_packed)
         return True
 
@@ -337,10 +339,12 @@ class IgtlServer:
         }
 
 
-def _pack_image(img: NDArray, spacing_mm: tuple[float, float], t_wall: float, name: str):
+def _pack_image(img: Any, spacing_mm: tuple[float, float], t_wall: float, name: str):
     import pyigtl
 
     t0 = time.perf_counter()
+    if not isinstance(img, np.ndarray):  # a decoded av.VideoFrame: its luma, here off the loop
+        img = np.ascontiguousarray(img.to_ndarray(format="gray"), dtype=np.uint8)
     ijk = np.diag([float(spacing_mm[1]), float(spacing_mm[0]), 1.0, 1.0])  # i: columns, j: rows
     msg = pyigtl.ImageMessage(
         img[np.newaxis], ijk_to_world_matrix=ijk, world_coordinate_system="ras",

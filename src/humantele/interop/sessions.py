@@ -3,11 +3,11 @@ once per tick, so the daemons hold one line per hook.
 
 Follower: ``ProbeToPatient`` (measured), ``VirtProbeToPatient`` (the expert's pose),
 ``PatientToWorld``, ``ProbeForce`` and, with ``image``, the ultrasound ``Image`` and
-``ImageToProbe``. Until the follower streams its own ultrasound track the image comes from the
-sim ultrasound (:class:`humantele.video.sim_ultrasound.SimUltrasound`) on the follower's
-simulated scene, rendered at ``image_rate_hz`` in a separate low-priority process (a frame
-costs ~0.1 s of CPU) and only while a client is connected; ``on_us_frame`` is the entry for a
-daemon that has frames of its own.
+``ImageToProbe``. The image is the follower's own ultrasound track (the frames it sends the
+expert, :mod:`humantele.media.sender`; pixel size from its sim ultrasound's geometry); with the
+follower's video off, a sim ultrasound (:class:`humantele.video.sim_ultrasound.SimUltrasound`)
+renders it at ``image_rate_hz`` in a separate low-priority process (a frame costs ~0.1 s of
+CPU), only while a client is connected.
 Expert: ``StylusToPatient`` (what it sends), ``ProbeToPatient`` and ``ProbeForce`` (as
 received), and the ultrasound ``Image`` when it receives frames (``on_us_frame``).
 """
@@ -68,14 +68,6 @@ class _Served:
         s = self.server
         return s.banner() if isinstance(s, IgtlServer) and s.port else None
 
-    def on_us_frame(self, frame: Any, T_tip_image: np.ndarray | None = None) -> None:
-        """An ultrasound frame (:class:`humantele.video.base.VideoFrame`), on the loop."""
-        if not isinstance(self.server, IgtlServer) or frame.pixel_spacing_mm is None:
-            return
-        if T_tip_image is not None:
-            self.T_tip_image = T_tip_image
-        self.server.publish_image(frame.image, frame.pixel_spacing_mm, frame.t_capture)
-
     def stats(self) -> dict[str, Any] | None:
         return None if self.server is None else self.server.stats()
 
@@ -98,26 +90,47 @@ class _Failed:
 class FollowerIgtl(_Served):
     """The follower's OpenIGTLink output; ``tick`` is called once per follower tick."""
 
-    def __init__(self, config: IgtlConfig, patient: Any | None = None) -> None:
+    def __init__(
+        self, config: IgtlConfig, patient: Any | None = None, us: tuple[Any, Any] | None = None
+    ) -> None:
+        """``patient``: the true patient (Ellipsoid) for the own sim ultrasound; ``us``: the
+        follower's ultrasound track, (its latest-frame slot of CapturedFrame, its source
+        config), used instead when the follower sends video."""
         super().__init__(config)
-        self._patient = patient  # an Ellipsoid: the true patient the sim ultrasound images
+        self._patient = patient
         self._pool: ProcessPoolExecutor | None = None
         self._rendering = False
         self._last_render = -math.inf
         self.renders = 0
-        if self.server is not None and config.image and patient is not None:
-            from humantele.video.scan import ScanGeometry
-            from humantele.video.sim_ultrasound import SimUltrasoundConfig
+        self._us_slot = None
+        self._us_seen = 0
+        self._us_spacing_mm = 0.0
+        if self.server is None or not config.image:
+            return
+        from humantele.video.sim_ultrasound import SimUltrasoundConfig
 
+        if us is not None:
+            slot, us_config = us
+            if not isinstance(us_config, SimUltrasoundConfig):
+                log.warning("igtl: the ultrasound source does not say its pixel size: no Image")
+                return
+            self._us_slot, c = slot, us_config
+        elif patient is not None:
             c = SimUltrasoundConfig(counter=False)
-            g = ScanGeometry(c.probe, c.width, c.height, c.depth_m, c.fov_deg, c.radius_m,
-                             c.aperture_m, c.beams, c.samples)  # fmt: skip
-            self.T_tip_image = image_to_probe(g.origin_m, g.pixel_spacing_mm[0])
             self._us_config = c.model_dump_json()
+        else:
+            return
+        from humantele.video.scan import ScanGeometry
+
+        g = ScanGeometry(c.probe, c.width, c.height, c.depth_m, c.fov_deg, c.radius_m,
+                         c.aperture_m, c.beams, c.samples)  # fmt: skip
+        self._us_spacing_mm = g.pixel_spacing_mm[0]
+        self.T_tip_image = image_to_probe(g.origin_m, self._us_spacing_mm)
 
     async def start(self) -> None:
         await super().start()
-        if isinstance(self.server, IgtlServer) and self.T_tip_image is not None:
+        own = self._us_slot is None and self.T_tip_image is not None
+        if isinstance(self.server, IgtlServer) and own:
             self._pool_start()  # spawned now, so the first client gets images at once
 
     def _pool_start(self) -> None:
@@ -131,6 +144,15 @@ class FollowerIgtl(_Served):
             pool, self._pool = self._pool, None
             await asyncio.to_thread(pool.shutdown, True, cancel_futures=True)
         await super().stop()
+
+    def _forward_us(self, srv: IgtlServer) -> None:
+        """The follower's newest ultrasound frame (I420; its luma is sent), once."""
+        number, cf = self._us_slot.peek()  # type: ignore[union-attr]
+        if cf is None or number == self._us_seen:
+            return
+        s = self._us_spacing_mm
+        if srv.publish_image(cf.frame, (s, s), cf.t_capture):
+            self._us_seen = number
 
     def _render_us(self, t: float, true_tip: Pose | None, force_n: float) -> None:
         """Ask the sim ultrasound process for the image at ``t`` (one at a time, at most
@@ -174,7 +196,9 @@ class FollowerIgtl(_Served):
             return
         if not isinstance(srv, IgtlServer) or not srv.clients:
             return  # nobody watching: no work
-        if self.T_tip_image is not None:
+        if self._us_slot is not None:
+            self._forward_us(srv)
+        elif self.T_tip_image is not None:
             self._render_us(t, true_tip, force_n)
         if calibration is not None:
             srv.publish_transform(PATIENT, world_from_ras(calibration.T_world_patient), t)
@@ -217,10 +241,35 @@ def _us_render(snapshot: Any, t: float) -> tuple[np.ndarray, tuple[float, float]
 
 
 class ExpertIgtl(_Served):
-    """The expert's OpenIGTLink output; ``tick`` is called once per expert tick."""
+    """The expert's OpenIGTLink output; ``tick`` is called once per expert tick.
+
+    The received ultrasound carries no pixel size: it is taken from the sim ultrasound's
+    default geometry (the follower's default source), scaled by the received width, and so is
+    ``ImageToProbe``. A real scanner's figures belong in the follower's frames (not yet sent).
+    """
+
+    def __init__(self, config: IgtlConfig) -> None:
+        super().__init__(config)
+        self._last_us: Any = None
+        self._us_width = 0
+        self._us_spacing_mm = 0.0
+        if self.server is not None and config.image:
+            from humantele.video.scan import ScanGeometry
+            from humantele.video.sim_ultrasound import SimUltrasoundConfig
+
+            c = SimUltrasoundConfig(counter=False)
+            g = ScanGeometry(c.probe, c.width, c.height, c.depth_m, c.fov_deg, c.radius_m,
+                             c.aperture_m, c.beams, c.samples)  # fmt: skip
+            self._us_width, self._us_spacing_mm = c.width, g.pixel_spacing_mm[0]
+            self._us_origin_m = g.origin_m
 
     def tick(
-        self, t: float, stylus_patient: Pose | None, state: Any | None, state_t: float | None
+        self,
+        t: float,
+        stylus_patient: Pose | None,
+        state: Any | None,
+        state_t: float | None,
+        us: Any | None = None,
     ) -> None:
         """``stylus_patient``: the pose the expert sends (``T_patient_tip``); ``state``: the
         follower's last StateMessage (probe in the patient frame, force in the tip frame),
@@ -234,5 +283,18 @@ class ExpertIgtl(_Served):
             if str(getattr(state.tracking, "name", state.tracking)).lower() == "tracked":
                 srv.publish_transform(PROBE, ras_from_patient(state.pose), state_t or t)
             srv.publish_string(FORCE, force_text(np.asarray(state.force), state.contact), t)
+        if us is not None and us is not self._last_us and self._us_width:
+            self._publish_us(srv, us)
         if self.T_tip_image is not None:
             srv.publish_transform(IMAGE_TO_PROBE, self.T_tip_image, t)
+
+    def _publish_us(self, srv: IgtlServer, us: Any) -> None:
+        """A newly received ultrasound frame (:class:`humantele.media.receiver.ReceivedFrame`)."""
+        width = int(us.width)
+        if width <= 0:
+            return
+        s = self._us_spacing_mm * self._us_width / width  # the follower may send it scaled
+        t = us.t_capture if us.t_capture is not None else us.t_received
+        if srv.publish_image(us.frame, (s, s), t):
+            self._last_us = us
+            self.T_tip_image = image_to_probe(self._us_origin_m, s)
