@@ -193,7 +193,11 @@ def _f(v: object, fmt: str = "{:.1f}") -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    load0 = os.getloadavg()[0]
     r = asyncio.run(_bench(args.seconds, args.probe == "truth"))
+    load = (
+        f"{load0:.1f} at start, {os.getloadavg()[0]:.1f} at the end (2 cores: above 2, other jobs)"
+    )
     added = (
         None
         if r["cpu_off_percent"] is None or r["cpu_on_percent"] is None
@@ -226,7 +230,8 @@ def run(args: argparse.Namespace) -> int:
         " OpenIGTLink, then serving one client in the bench process that decodes every"
         " message (pyigtl), as Slicer would. Latency:"
         " from the tracker frame's / image's capture time to the client holding the decoded"
-        " message (same machine, wall clock). Image: 640x480 uint8 at the default 10 Hz.",
+        " message (same machine, wall clock). Image: the follower's 640x480 US track, sent"
+        f" at most 10 Hz. Machine load average during the runs: {load}.",
         "",
         markdown_table(["figure", "value"], rows),
     ])  # fmt: skip
