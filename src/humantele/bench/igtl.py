@@ -35,6 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--probe", choices=["truth", "pipeline"], default="truth",
         help="follower's probe: the sim truth (default) or the IR sensing pipeline",
     )  # fmt: skip
+    parser.add_argument(
+        "--start-timeout", type=float, default=300.0, help="wait this long for following (s)"
+    )
     parser.add_argument("--json", action="store_true", help="print a JSON summary last")
     parser.add_argument("--no-write", action="store_true", help="do not write benchmarks.md")
 
@@ -72,7 +75,13 @@ async def _client(port: int, seconds: float) -> list[tuple[float, str, float, in
 
 
 async def _run(
-    seconds: float, igtl: bool, tmp: Path, url: str, env: dict, truth: bool = False
+    seconds: float,
+    igtl: bool,
+    tmp: Path,
+    url: str,
+    env: dict,
+    truth: bool = False,
+    start_timeout: float = 300.0,
 ) -> dict:
     from humantele.runtime.stats import process_cpu_seconds
 
@@ -95,7 +104,7 @@ async def _run(
         )
         log.close()
     try:
-        t_end = time.monotonic() + 180.0
+        t_end = time.monotonic() + start_timeout
         while time.monotonic() < t_end:
             f, e = _read_json(stats["follower"]), _read_json(stats["expert"])
             if f.get("calibrated") and e.get("states_received", 0) > 100:
@@ -104,7 +113,10 @@ async def _run(
                 raise RuntimeError(f"a daemon stopped; see {tmp}")
             await asyncio.sleep(0.2)
         else:
-            raise RuntimeError(f"the session did not start following within 180 s; see {tmp}")
+            raise RuntimeError(
+                f"the session did not start following within {start_timeout:.0f} s (machine "
+                f"load {os.getloadavg()[0]:.1f}); logs were in {tmp}"
+            )
         pid = procs["follower"].pid
         port = (_read_json(stats["follower"]).get("igtl") or {}).get("port") if igtl else None
         if port:  # the first client starts the image stream: let it settle for 3 s
@@ -156,7 +168,7 @@ def _lat(messages: list, name: str) -> dict:
             "p99_ms": float(np.percentile(ms, 99)), "max_ms": float(ms.max())}  # fmt: skip
 
 
-async def _bench(seconds: float, truth: bool) -> dict:
+async def _bench(seconds: float, truth: bool, start_timeout: float = 300.0) -> dict:
     from humantele.signaling.server import SignalConfig, SignalingServer
 
     token = secrets.token_urlsafe(16)
@@ -165,8 +177,8 @@ async def _bench(seconds: float, truth: bool) -> dict:
     env = dict(os.environ, HUMANTELE_TOKEN=token, HUMANTELE_PARENT_PID=str(os.getpid()))
     try:
         with tempfile.TemporaryDirectory(prefix="humantele-bench-igtl-") as d:
-            off = await _run(seconds, False, Path(d), server.url, env, truth)
-            on = await _run(seconds, True, Path(d), server.url, env, truth)
+            off = await _run(seconds, False, Path(d), server.url, env, truth, start_timeout)
+            on = await _run(seconds, True, Path(d), server.url, env, truth, start_timeout)
     finally:
         await server.stop()
     msgs = on["messages"]
@@ -194,7 +206,11 @@ def _f(v: object, fmt: str = "{:.1f}") -> str:
 
 def run(args: argparse.Namespace) -> int:
     load0 = os.getloadavg()[0]
-    r = asyncio.run(_bench(args.seconds, args.probe == "truth"))
+    try:
+        r = asyncio.run(_bench(args.seconds, args.probe == "truth", args.start_timeout))
+    except RuntimeError as exc:
+        print(f"humantele bench igtl: {exc}", file=sys.stderr)
+        return 1
     load = (
         f"{load0:.1f} at start, {os.getloadavg()[0]:.1f} at the end (2 cores: above 2, other jobs)"
     )
