@@ -186,3 +186,15 @@ async def test_a_taken_port_is_a_clear_error_not_a_crash(caplog):
     assert "cannot listen on 127.0.0.1" in other.error and "PLUS" in caplog.text
     await other.stop()
     await srv.stop()
+
+
+def test_config_is_off_by_default_and_bad_values_are_refused(tmp_path):
+    from humantele.config import ConfigError, load_config
+    from humantele.follower.daemon import FollowerConfig
+
+    c = FollowerConfig()
+    assert not c.igtl.enabled and (c.igtl.host, c.igtl.port) == ("127.0.0.1", 18944)
+    bad = tmp_path / "f.toml"
+    bad.write_text("[follower.igtl]\nenabled = true\nport = 70000\n")
+    with pytest.raises(ConfigError, match="port"):
+        load_config(FollowerConfig, bad, "follower")
