@@ -9,7 +9,7 @@ follower's video off, a sim ultrasound (:class:`humantele.video.sim_ultrasound.S
 renders it at ``image_rate_hz`` in a separate low-priority process (a frame costs ~0.1 s of
 CPU), only while a client is connected.
 Expert: ``StylusToPatient`` (what it sends), ``ProbeToPatient`` and ``ProbeForce`` (as
-received), and the ultrasound ``Image`` when it receives frames (``on_us_frame``).
+received), and the ultrasound ``Image`` when it receives frames (``tick(..., us)``).
 """
 
 from __future__ import annotations
