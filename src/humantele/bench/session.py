@@ -500,7 +500,16 @@ def _markdown(s: dict, rows: list[list[str]]) -> str:
         "the mean). "
         "750 km of fibre is >= 3.7 ms one way; the study's follower was on WiFi (RTT 5.8 ms "
         "mean), the expert on Ethernet (1.07 ms). Rows may come from different runs (last "
-        "column).\n\n" + markdown_table(HEADER, rows)
+        "column).\n\n"
+        "'load N' rows: N busy-loop processes at normal priority for the run (`--load N`, a "
+        "starved CPU). There aiortc's SCTP stalls: its congestion window fills and, after "
+        "losses, the retransmission timer (T3) fires at its 1 s minimum RTO. 'FIFO sender' "
+        "rows (`--fifo`) are the old sender, which queued every pose behind the stall up to "
+        "2 KB (~28 poses), each then delivered stale. The sender now keeps only the newest "
+        "pose while SCTP still holds an unsent one and sends it first when the buffer drains: "
+        "the replaced poses are dropped at the sender ('dropped' counts them, and 'delivered "
+        "%' counts them as not delivered), so fewer poses arrive but every one is fresh.\n\n"
+        + markdown_table(HEADER, rows)
     )
 
 
