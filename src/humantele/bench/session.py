@@ -502,13 +502,18 @@ def _markdown(s: dict, rows: list[list[str]]) -> str:
         "mean), the expert on Ethernet (1.07 ms). Rows may come from different runs (last "
         "column).\n\n"
         "'load N' rows: N busy-loop processes at normal priority for the run (`--load N`, a "
-        "starved CPU). There aiortc's SCTP stalls: its congestion window fills and, after "
-        "losses, the retransmission timer (T3) fires at its 1 s minimum RTO. 'FIFO sender' "
+        "starved CPU). There aiortc's SCTP stalls: SACKs come late from starved processes, "
+        "its congestion window stays full, and each queued message waits for all before it "
+        "(aiortc has one send queue for all channels, so control messages wait too); now and "
+        "then the retransmission timer (T3) fires at aiortc's 1 s minimum RTO. 'FIFO sender' "
         "rows (`--fifo`) are the old sender, which queued every pose behind the stall up to "
         "2 KB (~28 poses), each then delivered stale. The sender now keeps only the newest "
         "pose while SCTP still holds an unsent one and sends it first when the buffer drains: "
         "the replaced poses are dropped at the sender ('dropped' counts them, and 'delivered "
-        "%' counts them as not delivered), so fewer poses arrive but every one is fresh.\n\n"
+        "%' counts them as not delivered), so fewer poses arrive but none waits behind older "
+        "ones. The tail left comes from the starved processes themselves (the expert's pacer "
+        "skips ticks, the follower reads late, the emulator in the bench's process holds "
+        "packets up to ~150 ms at worst; the column shows the mean).\n\n"
         + markdown_table(HEADER, rows)
     )
 
