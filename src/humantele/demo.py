@@ -223,6 +223,8 @@ def summarize(
         "cpu_percent_expert": e.get("cpu_percent"),
         "cpu_percent_servo": e.get("cpu_percent_servo"),
         "cpu_percent_follower": f.get("cpu_percent"),
+        "cpu_percent_sensing": f.get("cpu_percent_sensing"),
+        "follower_tick_late_p99_ms": f.get("tick_late_p99_ms"),
         "scans": e.get("scans_started", 0),
         "recording": recording or None,
         "video": video_summary(e.get("video"), f.get("video")),

@@ -12,13 +12,17 @@ Every tick (``rate_hz``, asyncio) it:
    (``sensing_worker = "process"``, :mod:`humantele.follower.sensing_process`; ``"thread"``:
    a worker thread), off the asyncio loop and off its GIL, so the pose path is never held
    up; frames are measured in order and never overlap: a frame due while the previous one is
-   still measured (or while the child starts) is skipped (counted in ``sensing_skipped``);
+   still measured is skipped (counted in ``sensing_skipped``; those due while the child
+   starts, in ``sensing_starting``);
 3. with each measurement: feeds the calibration (:mod:`humantele.follower.calibration`) while
    calibrating, streams the probe pose and force to the expert (``state``, patient frame) and
    records them;
 4. publishes the measured probe to renderers (:mod:`humantele.follower.feed`, world frame),
    and the virtual probe while it is ``stale`` (no fresh pose came or the link is down); a
    fresh virtual probe is published as its pose arrives, not at the next tick.
+5. publishes the sim world's snapshot to the video sources, which render and send the ``us``
+   and ``pov`` tracks from their own process (:mod:`humantele.media.sender`, docs/video.md);
+   once a second the degradation policy may lower the POV (never the US).
 
 Frames: the headset's world frame (y up) here; the patient frame of the calibration on the
 wire (``T_world_patient`` from the saved calibration). Poses are of the transducer's tip frame
@@ -44,6 +48,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import bisect
 import contextlib
 import logging
 import math
@@ -82,6 +87,8 @@ from humantele.follower.sim_human import (
 from humantele.follower.sim_world import SimWorld, WorldTruth
 from humantele.geometry import Pose, matrix_to_quat
 from humantele.haptics.ellipsoid import Ellipsoid
+from humantele.interop.igtl import IgtlConfig
+from humantele.interop.sessions import FollowerIgtl
 from humantele.media.config import FollowerVideoConfig
 from humantele.media.sender import VideoSender
 from humantele.recording import RecorderConfig
@@ -93,7 +100,7 @@ from humantele.runtime.daemon import (
 )
 from humantele.runtime.process import ignore_stop_signals
 from humantele.runtime.session import SessionConfig, recorder_stats
-from humantele.runtime.stats import percentile_ms
+from humantele.runtime.stats import SortedWindow, percentile_ms
 from humantele.tracking.tool import load_tool
 from humantele.transport import LinkConfig, PeerLink
 from humantele.video.base import VideoSourceUnavailable
@@ -113,6 +120,7 @@ from humantele.wire import (
 log = logging.getLogger(__name__)
 
 DEFAULT_STATE_DIR = "~/.local/state/humantele/follower"
+ALIGN_KEPT = 3000  # alignment errors the RMS is over (the last ~65 s of 45 Hz frames)
 REPORT_PERIOD_S = 1.0  # latency figures are recorded this often
 ZERO_POSE = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))  # recorded when the probe is not tracked
 
@@ -151,6 +159,7 @@ class FollowerConfig(ConfigModel):
     video: FollowerVideoConfig = FollowerVideoConfig()
     session: SessionConfig = SessionConfig()
     recording: RecorderConfig = RecorderConfig()
+    igtl: IgtlConfig = IgtlConfig()
 
 
 @dataclass
@@ -292,6 +301,7 @@ class FollowerDaemon(Daemon):
         self._proc_frame: tuple[int, TrackerImage] | None = None  # (job, image) in flight
         self._jobs = 0
         self.sensing_failure: str | None = None
+        self.sensing_starting = 0  # tracker images due before the sensing process was ready
         self.measurement = Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
         self.last_measure_t = -math.inf
         self.measurements = 0
@@ -308,6 +318,8 @@ class FollowerDaemon(Daemon):
         self._video_check_t = -math.inf
         self.video_error = ""
         self._video_late_ticks = 0
+        us = (self.video.captures["us"].slot, config.video.us) if self.video else None
+        self.igtl = FollowerIgtl(config.igtl, self.world.patient.ellipsoid(), us)
         self.link = PeerLink(
             "follower",
             config.link,
@@ -323,9 +335,9 @@ class FollowerDaemon(Daemon):
         self.script_t0 = 0.0
         self.last_pose: PoseMessage | None = None
         self.last_pose_rx = -math.inf
-        self.pose_ages: deque[float] = deque(maxlen=20000)
-        self.align_pos: deque[float] = deque(maxlen=20000)
-        self.align_ang: deque[float] = deque(maxlen=20000)
+        self.pose_ages = SortedWindow(20000)  # s; percentiles without sorting on the loop
+        self.align_pos: deque[float] = deque(maxlen=ALIGN_KEPT)
+        self.align_ang: deque[float] = deque(maxlen=ALIGN_KEPT)
         self.poses_received = 0
         self.pose_times: deque[float] = deque(maxlen=2000)
         self.state_seq = 0
@@ -340,7 +352,8 @@ class FollowerDaemon(Daemon):
         self.executor: ThreadPoolExecutor | None = None
         self._sensing: Future | None = None
         self.sensing_skipped = 0
-        self.sensing_times: deque[float] = deque(maxlen=2000)  # s per measurement, worker
+        self.sensing_times = SortedWindow(2000)  # s per measurement (worker or child)
+        self.tick_late = SortedWindow(20000)  # s each tick came after its period
         # Scans (from the expert) and what has been recorded.
         self.scan: int | None = None
         self.scans_seen = 0
@@ -564,6 +577,9 @@ class FollowerDaemon(Daemon):
         # timestamps (/follower/video_frame) are recorded as each frame is captured and sent.
         self.publish_scene(t, self.world.T_world_tip, self.world.force_world, virtual)
         self.publish_feed(t, self.measurement)
+        v_patient = None if self.last_pose is None else self.last_pose.pose
+        force_n = float(np.linalg.norm(self.world.force_world))
+        self.igtl.tick(t, self.calibration, v_patient, self.world.T_world_tip, force_n)
 
     def publish_scene(
         self, t: float, true_tip: Pose | None, force: NDArray, virtual: Pose | None
@@ -598,7 +614,10 @@ class FollowerDaemon(Daemon):
         previous one is measured is skipped and counted."""
         proc = self.sensing_proc
         if proc is not None and proc.running:
-            if not proc.ready or proc.busy:
+            if not proc.ready:  # still starting (importing, calibrating the sim force sensor)
+                self.sensing_starting += 1
+                return
+            if proc.busy:
                 self.sensing_skipped += 1
                 return
             self._jobs += 1
@@ -675,6 +694,7 @@ class FollowerDaemon(Daemon):
                 self.align_ang.append(da)
         self.send_state(frame.t, m)
         self.record_measurement(frame.t, m)
+        self.igtl.on_measurement(frame.t, self.calibration, m)
 
     # --- recording ------------------------------------------------------------------------
 
@@ -727,16 +747,17 @@ class FollowerDaemon(Daemon):
         new = min(len(self.pose_ages), self.poses_received - self._poses_reported)
         self._poses_reported = self.poses_received
         if new > 0:
-            value = float(np.median(list(self.pose_ages)[-new:]))
+            value = float(np.median(self.pose_ages.last(new)))
             self.rec.write("/follower/latency", t, {"name": "pose_one_way", "value_s": value})
 
     def pose_rate_hz(self, window_s: float = 1.0) -> float:
         """Poses received per second over the last ``window_s``."""
         now = time.monotonic()
-        return round(sum(1 for t in self.pose_times if now - t <= window_s) / window_s, 1)
+        recent = len(self.pose_times) - bisect.bisect_left(self.pose_times, now - window_s)
+        return round(recent / window_s, 1)
 
     def stats(self) -> dict:
-        ap, aa = list(self.align_pos)[-3000:], list(self.align_ang)[-3000:]
+        ap, aa = self.align_pos, self.align_ang
         wall = time.monotonic() - self.t_start
         return {
             "role": "follower",
@@ -748,7 +769,7 @@ class FollowerDaemon(Daemon):
             "pose_rate_hz": self.pose_rate_hz(),
             "pose_age_p50_ms": percentile_ms(self.pose_ages, 50),
             "pose_age_p99_ms": percentile_ms(self.pose_ages, 99),
-            "pose_age_last_ms": percentile_ms(list(self.pose_ages)[-1:], 50),
+            "pose_age_last_ms": percentile_ms(self.pose_ages.last(1), 50),
             "states_sent": self.link.counters.sent.get("state", 0),
             "calibrated": self.calibration is not None,
             "calibration_reused": self.loaded_calibration,
@@ -769,6 +790,7 @@ class FollowerDaemon(Daemon):
             "sensing_errors": self.sensing.errors
             + (0 if self.sensing_proc is None else self.sensing_proc.child_errors),
             "sensing_skipped": self.sensing_skipped,
+            "sensing_starting": self.sensing_starting,
             "sensing_worker": (
                 "process"
                 if self.sensing_proc is not None and self.sensing_proc.running
@@ -782,7 +804,13 @@ class FollowerDaemon(Daemon):
             "recording": recorder_stats(self.rec),
             "tick_errors": self.tick_errors,
             "late_ticks": self.late_ticks,
+            "tick_late_p99_ms": percentile_ms(self.tick_late, 99),
+            "tick_late_max_ms": percentile_ms(self.tick_late, 100),
+            "cpu_percent_sensing": (
+                None if self.sensing_proc is None else self.sensing_proc.cpu_percent()
+            ),
             "cpu_percent": self.cpu.overall(),
+            "igtl": self.igtl.stats(),
             "video": None if self.video is None else self.video.stats(),
         }
 
@@ -826,17 +854,7 @@ class FollowerDaemon(Daemon):
                 self._sensing_cannot_start,
                 nice=self.config.sensing_nice,
             )
-            self.sensing_proc.start()
-            # as the in-thread pipeline was built before the daemon ran: measure from the start
-            ready = await self.sensing_proc.wait_ready(cancel=self._stop.is_set)
-            if not ready and not self.sensing_proc.failed and not self._stop.is_set():
-                log.warning("follower: the sensing process is slow to start; going on")
-            if self.sensing_failure is not None:
-                self.sensing_proc.close()
-                self.executor.shutdown(wait=False)
-                self.finish_run()
-                print(f"humantele follower: sensing cannot start: {self.sensing_failure}")
-                return 2
+            self.sensing_proc.start()  # it starts while the link connects
         if self.config.feed.enabled:
             try:
                 await self.feed.start()
@@ -848,7 +866,11 @@ class FollowerDaemon(Daemon):
                 self.close_recording()
                 raise
             print(f"humantele follower: {self.feed.banner()}", flush=True)
+        await self.igtl.start()
+        if self.igtl.banner():
+            print(f"humantele follower: {self.igtl.banner()}", flush=True)
         link_task = asyncio.create_task(self.link.run())
+        prev_t, period = None, 1.0 / self.config.rate_hz
         if self.calibration is None:
             self.start_calibration()
         else:
@@ -860,6 +882,9 @@ class FollowerDaemon(Daemon):
                 self.config.rate_hz, duration_s, link_task, on_late=self._count_late_tick
             ):
                 self.ticks += 1
+                if prev_t is not None:  # how late this tick came after the previous one
+                    self.tick_late.append(max(0.0, t - prev_t - period))
+                prev_t = t
                 try:
                     self.tick(t)
                     self.record_reports(t)
@@ -875,6 +900,7 @@ class FollowerDaemon(Daemon):
                 with contextlib.suppress(BaseException):
                     await video_task  # opening cannot be interrupted: it ends by itself
                 await asyncio.to_thread(self.video.close)
+            await self.igtl.stop()
             self.executor.shutdown(wait=True)  # the frame being measured ends first
             self.executor = None
             if self.sensing_proc is not None:
@@ -907,10 +933,11 @@ def _log_task_error(task: asyncio.Future) -> None:
         log.error("follower: video check failed: %s", task.exception())
 
 
-def _rms_scaled(values: list[float], scale: float) -> float | None:
+def _rms_scaled(values: deque[float], scale: float) -> float | None:
     if not values:
         return None
-    return round(math.sqrt(sum(v * v for v in values) / len(values)) * scale, 3)
+    a = np.fromiter(values, dtype=float, count=len(values))
+    return round(float(np.sqrt(np.mean(a * a))) * scale, 3)
 
 
 # --- command line ---------------------------------------------------------------------------
@@ -920,6 +947,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_daemon_arguments(parser, "TOML file; the [follower] section is used")
     parser.add_argument("--state-dir", help="where the calibration is saved")
     parser.add_argument("--feed-port", type=port, help="renderer feed port (0 picks one)")
+    parser.add_argument(
+        "--igtl-port",
+        type=port,
+        help="serve OpenIGTLink on this port (0 picks one; 18944 Slicer's)",
+    )
     parser.add_argument("--recalibrate", action="store_true", help="ignore a saved calibration")
 
 
@@ -931,6 +963,8 @@ def config_from_args(args: argparse.Namespace) -> FollowerConfig:
         data["state_dir"] = args.state_dir
     if args.feed_port is not None:
         data["feed"]["port"] = args.feed_port
+    if getattr(args, "igtl_port", None) is not None:
+        data["igtl"].update(enabled=True, port=args.igtl_port)
     return validate_config(FollowerConfig, data, "command line")
 
 
