@@ -52,7 +52,7 @@ from collections.abc import Callable
 import numpy as np
 from pydantic import Field
 
-from humantele.cliargs import EXIT_FAILED
+from humantele.cliargs import EXIT_FAILED, port
 from humantele.config import ConfigError, ConfigModel, load_config, validate_config
 from humantele.expert.mapping import (
     MappingConfig,
@@ -60,10 +60,13 @@ from humantele.expert.mapping import (
     StylusMapping,
     default_registration,
 )
+from humantele.geometry import Pose
 from humantele.haptics.ellipsoid import Ellipsoid
 from humantele.haptics.servo import ServoProcess
 from humantele.haptics.servo_config import ServoConfig
 from humantele.haptics.servo_layout import ServoError, ServoSample
+from humantele.interop.igtl import IgtlConfig
+from humantele.interop.sessions import ExpertIgtl
 from humantele.media.config import ExpertVideoConfig
 from humantele.media.receiver import VideoReceiver
 from humantele.recording import RecorderConfig
@@ -115,6 +118,7 @@ class ExpertConfig(ConfigModel):
     video: ExpertVideoConfig = ExpertVideoConfig()
     session: SessionConfig = SessionConfig()
     recording: RecorderConfig = RecorderConfig()
+    igtl: IgtlConfig = IgtlConfig()
 
 
 def servo_config_for(mapping: MappingConfig, servo: ServoConfig) -> ServoConfig:
@@ -167,6 +171,9 @@ class ExpertDaemon(Daemon):
         self.pose_send_failures = 0
         self.pose_times: deque[float] = deque(maxlen=4000)
         self.last_state: StateMessage | None = None
+        self.last_state_t: float | None = None  # its sample time on this clock (s)
+        self.last_pose: Pose | None = None
+        self.igtl = ExpertIgtl(config.igtl)
         self.states_received = 0
         self.state_ages = SortedWindow(20000)  # s; percentiles without sorting on the loop
         self.models_installed = 0
@@ -198,6 +205,8 @@ class ExpertDaemon(Daemon):
         age = self.link.age_of(msg.t_sent)
         if age is not None and math.isfinite(age):
             self.state_ages.append(max(0.0, age))
+        ok = age is not None and math.isfinite(age)
+        self.last_state_t = time.monotonic() - (max(0.0, age) if ok else 0.0)
 
     def on_control(self, msg: ControlMessage) -> None:
         if isinstance(msg, EllipsoidModel):
@@ -260,6 +269,7 @@ class ExpertDaemon(Daemon):
         was_clutched = self.mapping.clutched
         stylus = s.T_device_stylus  # the mapping is applied once, here
         pose = self.mapping.update(stylus.position, stylus.quaternion, s.buttons)
+        self.last_pose = pose  # T_patient_stylus as sent (OpenIGTLink serves it)
         if self.mapping.take_changed():
             self.push_registration()
         if self.mapping.clutched != was_clutched and self.model is not None:
@@ -464,8 +474,14 @@ class ExpertDaemon(Daemon):
             "scans_started": self.scans_started,
             "step_errors": self.step_errors,
             "recording": recorder_stats(self.rec),
+            "igtl": self.igtl.stats(),
             "video": self.video.stats() if self.config.video.enabled else None,
         }
+
+    def publish_igtl(self, t: float) -> None:
+        """The stylus as sent and the follower's probe as received, to OpenIGTLink clients."""
+        us = self.video.latest("us") if self.config.video.enabled else None
+        self.igtl.tick(t, self.last_pose, self.last_state, self.last_state_t, us)
 
     def guarded(self, step: Callable[[float], object], t: float) -> None:
         """Run a step that must never end the daemon (scans, recording); failures counted."""
@@ -488,11 +504,15 @@ class ExpertDaemon(Daemon):
             return 1
         self.servo_started = time.monotonic()
         self.push_registration()
+        await self.igtl.start()
+        if self.igtl.banner():
+            print(f"humantele expert: {self.igtl.banner()}", flush=True)
         link_task = asyncio.create_task(self.link.run())
         try:
             async for t in self.loop_ticks(self.config.link.pose_rate_hz, duration_s, link_task):
                 self.check_servo(t)
                 self.publish_pose(t)
+                self.guarded(self.publish_igtl, t)
                 self.guarded(self.script_scans, t)
                 self.guarded(self.record_reports, t)
         finally:
@@ -502,6 +522,7 @@ class ExpertDaemon(Daemon):
             self.servo_cpu_percent()
             self.servo_stopped = True
             self.servo.stop()
+            await self.igtl.stop()
             self.finish_run()
         code = self.run_result(link_task)
         if code == 0 and self.servo_down:  # the haptics were off at the end: not a clean run
@@ -515,12 +536,19 @@ class ExpertDaemon(Daemon):
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_daemon_arguments(parser, "TOML file; [expert] and [servo] sections are used")
+    parser.add_argument(
+        "--igtl-port",
+        type=port,
+        help="serve OpenIGTLink on this port (0 picks one; 18944 Slicer's)",
+    )
 
 
 def configs_from_args(args: argparse.Namespace) -> tuple[ExpertConfig, ServoConfig]:
     config = load_config(ExpertConfig, args.config, "expert" if args.config else None)
     servo = load_config(ServoConfig, args.config, "servo" if args.config else None)
     data = config.model_dump()
+    if getattr(args, "igtl_port", None) is not None:
+        data["igtl"].update(enabled=True, port=args.igtl_port)
     daemon_overrides(args, data)
     config = validate_config(ExpertConfig, data, "command line")
     return config, servo_config_for(config.mapping, servo)
