@@ -44,6 +44,7 @@ import bisect
 import logging
 import math
 import os
+import sys
 import time
 from collections import deque
 from collections.abc import Callable
@@ -51,6 +52,7 @@ from collections.abc import Callable
 import numpy as np
 from pydantic import Field
 
+from humantele.cliargs import EXIT_FAILED, port
 from humantele.config import ConfigError, ConfigModel, load_config, validate_config
 from humantele.expert.mapping import (
     MappingConfig,
@@ -58,10 +60,13 @@ from humantele.expert.mapping import (
     StylusMapping,
     default_registration,
 )
+from humantele.geometry import Pose
 from humantele.haptics.ellipsoid import Ellipsoid
 from humantele.haptics.servo import ServoProcess
 from humantele.haptics.servo_config import ServoConfig
-from humantele.haptics.servo_layout import ServoError
+from humantele.haptics.servo_layout import ServoError, ServoSample
+from humantele.interop.igtl import IgtlConfig
+from humantele.interop.sessions import ExpertIgtl
 from humantele.media.config import ExpertVideoConfig
 from humantele.media.receiver import VideoReceiver
 from humantele.recording import RecorderConfig
@@ -71,6 +76,7 @@ from humantele.runtime.daemon import (
     daemon_overrides,
     setup_logging,
 )
+from humantele.runtime.process import ignore_stop_signals
 from humantele.runtime.session import SessionConfig, recorder_stats
 from humantele.runtime.stats import SortedWindow, percentile_ms, process_cpu_seconds
 from humantele.transport import LinkConfig, PeerLink
@@ -112,6 +118,7 @@ class ExpertConfig(ConfigModel):
     video: ExpertVideoConfig = ExpertVideoConfig()
     session: SessionConfig = SessionConfig()
     recording: RecorderConfig = RecorderConfig()
+    igtl: IgtlConfig = IgtlConfig()
 
 
 def servo_config_for(mapping: MappingConfig, servo: ServoConfig) -> ServoConfig:
@@ -164,9 +171,16 @@ class ExpertDaemon(Daemon):
         self.pose_send_failures = 0
         self.pose_times: deque[float] = deque(maxlen=4000)
         self.last_state: StateMessage | None = None
+        self.last_state_t: float | None = None  # its sample time on this clock (s)
+        self.last_pose: Pose | None = None
+        self.igtl = ExpertIgtl(config.igtl)
         self.states_received = 0
         self.state_ages = SortedWindow(20000)  # s; percentiles without sorting on the loop
         self.models_installed = 0
+        self.models_refused = 0
+        self.model_refusal = ""  # why the last refused model was refused
+        self.servo_down = ""  # why the servo is not running ("" while it runs)
+        self.servo_stopped = False  # stopped by the daemon (its end)
         self.calibration_events: list[str] = []
         self.last_sample_t = -math.inf
         self.servo_restarts = 0
@@ -191,10 +205,17 @@ class ExpertDaemon(Daemon):
         age = self.link.age_of(msg.t_sent)
         if age is not None and math.isfinite(age):
             self.state_ages.append(max(0.0, age))
+        ok = age is not None and math.isfinite(age)
+        self.last_state_t = time.monotonic() - (max(0.0, age) if ok else 0.0)
 
     def on_control(self, msg: ControlMessage) -> None:
         if isinstance(msg, EllipsoidModel):
-            self.install_model(Ellipsoid.from_dict(msg.model.model_dump()))
+            try:
+                model = Ellipsoid.from_dict(msg.model.model_dump())
+            except ValueError as exc:
+                self.refuse_model(str(exc))
+                return
+            self.install_model(model)
         elif isinstance(msg, CalibrationProgress):
             text = msg.event if not msg.detail else f"{msg.event}: {msg.detail}"
             self.calibration_events.append(text)
@@ -205,8 +226,22 @@ class ExpertDaemon(Daemon):
 
     # --- the model and the registration ---------------------------------------------------
 
+    def refuse_model(self, why: str) -> None:
+        """A patient model that is not a body: refused, counted, reported; the last good stays."""
+        self.models_refused += 1
+        self.model_refusal = why
+        log.warning(
+            "expert: patient model refused (%s); %s", why,
+            "keeping the last good one" if self.model is not None else "no model yet",
+        )  # fmt: skip
+
     def install_model(self, model: Ellipsoid) -> None:
-        """Render ``model`` (patient frame); a new one moves the workspace over it."""
+        """Render ``model`` (patient frame); a new one moves the workspace over it. A model
+        that is not a body (:meth:`Ellipsoid.problem`) is refused and the last good one kept."""
+        why = model.problem()
+        if why is not None:
+            self.refuse_model(why)
+            return
         if self.model is not None and model == self.model:
             return  # the same model again (the follower rejoined): nothing changes
         self.model = model
@@ -234,6 +269,7 @@ class ExpertDaemon(Daemon):
         was_clutched = self.mapping.clutched
         stylus = s.T_device_stylus  # the mapping is applied once, here
         pose = self.mapping.update(stylus.position, stylus.quaternion, s.buttons)
+        self.last_pose = pose  # T_patient_stylus as sent (OpenIGTLink serves it)
         if self.mapping.take_changed():
             self.push_registration()
         if self.mapping.clutched != was_clutched and self.model is not None:
@@ -340,13 +376,17 @@ class ExpertDaemon(Daemon):
             rec.write(topic, t, payload)
 
     def check_servo(self, t: float) -> None:
-        """A dead servo process is restarted (the daemon itself keeps running)."""
+        """A dead servo process is restarted (the daemon itself keeps running); while it is
+        down, ``servo_down`` says why (the status and the JSON show it as a fault)."""
         if self.servo.alive:
             self._servo_dead_since = None
+            self.servo_down = ""
             return
         if self._servo_dead_since is None:
             self._servo_dead_since = t
-            log.error("expert: the servo process died; restarting it")
+            if not self.servo_down:
+                self.servo_down = f"servo process exited with code {self.servo.returncode}"
+            log.error("expert: %s; restarting it", self.servo_down)
         if t - self._servo_dead_since < self.config.servo_restart_s:
             return
         self._servo_dead_since = t
@@ -355,11 +395,24 @@ class ExpertDaemon(Daemon):
         try:
             self.servo.start()
         except ServoError as exc:
+            self.servo_down = str(exc)
             log.error("expert: %s", exc)
             return
+        self.servo_down = ""
         self.servo_restarts += 1
         self.servo_started = time.monotonic()
         self.push_registration()
+
+    def servo_state(self, latest: ServoSample | None) -> str:
+        """``running``, ``fault: <names>`` (force zeroed by the loop), ``down: <reason>``, or
+        ``stopped`` (by the daemon, at its end)."""
+        if self.servo_stopped and not self.servo_down:
+            return "stopped"
+        if self.servo_down or not self.servo.alive:
+            return f"down: {self.servo_down or 'servo process not running'}"
+        if latest is not None and latest.fault:
+            return f"fault: {latest.fault}"
+        return "running" if latest is not None else "starting"
 
     def servo_cpu_percent(self) -> float | None:
         """CPU use (% of one core) of the servo process since it started."""
@@ -382,7 +435,9 @@ class ExpertDaemon(Daemon):
         except ServoError:
             servo = {}
         latest = self.servo.latest() if self.servo.alive else None
-        force = None if latest is None else round(float(np.linalg.norm(latest.force)), 3)
+        state = self.servo_state(latest)
+        # A servo that is down drives no force: 0, and the state says why (never None).
+        force = 0.0 if latest is None else round(float(np.linalg.norm(latest.force)), 3)
         return {
             "role": "expert",
             "pid": os.getpid(),
@@ -400,7 +455,12 @@ class ExpertDaemon(Daemon):
             "calibration_events": self.calibration_events[-8:],
             "clutch_reindexes": self.mapping.reindex_count,
             "force_n": force,
-            "servo_fault": "" if latest is None else latest.fault,
+            "servo_state": state,
+            "servo_fault": state if state.startswith("down") else (latest.fault if latest else ""),
+            "models_refused": self.models_refused,
+            "model_refusal": self.model_refusal,
+            "servo_models_refused": servo.get("models_refused"),
+            "servo_tick_errors": servo.get("tick_errors"),
             "servo_rate_hz": servo.get("rate_hz"),
             "servo_overruns": servo.get("overruns"),
             "servo_period_p99_us": servo.get("period_p99_us"),
@@ -414,8 +474,14 @@ class ExpertDaemon(Daemon):
             "scans_started": self.scans_started,
             "step_errors": self.step_errors,
             "recording": recorder_stats(self.rec),
+            "igtl": self.igtl.stats(),
             "video": self.video.stats() if self.config.video.enabled else None,
         }
+
+    def publish_igtl(self, t: float) -> None:
+        """The stylus as sent and the follower's probe as received, to OpenIGTLink clients."""
+        us = self.video.latest("us") if self.config.video.enabled else None
+        self.igtl.tick(t, self.last_pose, self.last_state, self.last_state_t, us)
 
     def guarded(self, step: Callable[[float], object], t: float) -> None:
         """Run a step that must never end the daemon (scans, recording); failures counted."""
@@ -433,15 +499,20 @@ class ExpertDaemon(Daemon):
             await asyncio.get_running_loop().run_in_executor(None, self.servo.start)
         except ServoError as exc:
             log.error("expert: %s", exc)
+            print(f"humantele expert: {exc}", file=sys.stderr)
             self.close_recording()
             return 1
         self.servo_started = time.monotonic()
         self.push_registration()
+        await self.igtl.start()
+        if self.igtl.banner():
+            print(f"humantele expert: {self.igtl.banner()}", flush=True)
         link_task = asyncio.create_task(self.link.run())
         try:
             async for t in self.loop_ticks(self.config.link.pose_rate_hz, duration_s, link_task):
                 self.check_servo(t)
                 self.publish_pose(t)
+                self.guarded(self.publish_igtl, t)
                 self.guarded(self.script_scans, t)
                 self.guarded(self.record_reports, t)
         finally:
@@ -449,9 +520,15 @@ class ExpertDaemon(Daemon):
             await self.close_link(self.link, link_task)
             await self.video.close()
             self.servo_cpu_percent()
+            self.servo_stopped = True
             self.servo.stop()
+            await self.igtl.stop()
             self.finish_run()
-        return 0
+        code = self.run_result(link_task)
+        if code == 0 and self.servo_down:  # the haptics were off at the end: not a clean run
+            print(f"humantele expert: servo not running: {self.servo_down}", file=sys.stderr)
+            return EXIT_FAILED
+        return code
 
 
 # --- command line ---------------------------------------------------------------------------
@@ -459,12 +536,19 @@ class ExpertDaemon(Daemon):
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_daemon_arguments(parser, "TOML file; [expert] and [servo] sections are used")
+    parser.add_argument(
+        "--igtl-port",
+        type=port,
+        help="serve OpenIGTLink on this port (0 picks one; 18944 Slicer's)",
+    )
 
 
 def configs_from_args(args: argparse.Namespace) -> tuple[ExpertConfig, ServoConfig]:
     config = load_config(ExpertConfig, args.config, "expert" if args.config else None)
     servo = load_config(ServoConfig, args.config, "servo" if args.config else None)
     data = config.model_dump()
+    if getattr(args, "igtl_port", None) is not None:
+        data["igtl"].update(enabled=True, port=args.igtl_port)
     daemon_overrides(args, data)
     config = validate_config(ExpertConfig, data, "command line")
     return config, servo_config_for(config.mapping, servo)
@@ -473,4 +557,7 @@ def configs_from_args(args: argparse.Namespace) -> tuple[ExpertConfig, ServoConf
 def run(args: argparse.Namespace) -> int:
     setup_logging("expert", args.log_level)
     config, servo = configs_from_args(args)
-    return asyncio.run(ExpertDaemon(config, servo, args.stats_file).run(args.duration))
+    try:
+        return asyncio.run(ExpertDaemon(config, servo, args.stats_file).run(args.duration))
+    finally:
+        ignore_stop_signals()

@@ -20,6 +20,9 @@ Every tick (``rate_hz``, asyncio) it:
 4. publishes the measured probe to renderers (:mod:`humantele.follower.feed`, world frame),
    and the virtual probe while it is ``stale`` (no fresh pose came or the link is down); a
    fresh virtual probe is published as its pose arrives, not at the next tick.
+5. publishes the sim world's snapshot to the video sources, which render and send the ``us``
+   and ``pov`` tracks from their own process (:mod:`humantele.media.sender`, docs/video.md);
+   once a second the degradation policy may lower the POV (never the US).
 
 Frames: the headset's world frame (y up) here; the patient frame of the calibration on the
 wire (``T_world_patient`` from the saved calibration). Poses are of the transducer's tip frame
@@ -62,6 +65,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
 
+from humantele.cliargs import EXIT_FAILED, port, socket_error
 from humantele.config import ConfigModel, load_config, validate_config
 from humantele.follower.calibration import (
     CALIBRATION_FILE,
@@ -83,6 +87,8 @@ from humantele.follower.sim_human import (
 from humantele.follower.sim_world import SimWorld, WorldTruth
 from humantele.geometry import Pose, matrix_to_quat
 from humantele.haptics.ellipsoid import Ellipsoid
+from humantele.interop.igtl import IgtlConfig
+from humantele.interop.sessions import FollowerIgtl
 from humantele.media.config import FollowerVideoConfig
 from humantele.media.sender import VideoSender
 from humantele.recording import RecorderConfig
@@ -92,6 +98,7 @@ from humantele.runtime.daemon import (
     daemon_overrides,
     setup_logging,
 )
+from humantele.runtime.process import ignore_stop_signals
 from humantele.runtime.session import SessionConfig, recorder_stats
 from humantele.runtime.stats import SortedWindow, percentile_ms
 from humantele.tracking.tool import load_tool
@@ -152,6 +159,7 @@ class FollowerConfig(ConfigModel):
     video: FollowerVideoConfig = FollowerVideoConfig()
     session: SessionConfig = SessionConfig()
     recording: RecorderConfig = RecorderConfig()
+    igtl: IgtlConfig = IgtlConfig()
 
 
 @dataclass
@@ -310,6 +318,8 @@ class FollowerDaemon(Daemon):
         self._video_check_t = -math.inf
         self.video_error = ""
         self._video_late_ticks = 0
+        us = (self.video.captures["us"].slot, config.video.us) if self.video else None
+        self.igtl = FollowerIgtl(config.igtl, self.world.patient.ellipsoid(), us)
         self.link = PeerLink(
             "follower",
             config.link,
@@ -337,6 +347,7 @@ class FollowerDaemon(Daemon):
         self.late_ticks = 0
         self.last_event: CalibrationEvent | None = None
         self.loaded_calibration = self.calibration is not None
+        self.calibration_save_error = ""  # why the last calibration could not be saved
         # The sensing worker (run() starts it; without it, tick() measures in line).
         self.executor: ThreadPoolExecutor | None = None
         self._sensing: Future | None = None
@@ -484,6 +495,21 @@ class FollowerDaemon(Daemon):
         self.send_control(CalibrationProgress(event="start"))
         self.publish_calibration()
 
+    def save_calibration(self) -> bool:
+        """Save the calibration for the next start; a failure (read-only or full state dir) is
+        reported (log, stats ``calibration_save_error``) and the session goes on without it."""
+        try:
+            self.calibration.save(self.calibration_path)
+        except OSError as exc:
+            self.calibration_save_error = f"{exc.strerror or exc}: {exc.filename or ''}".strip()
+            log.error(
+                "follower: calibration not saved (%s); it is used now but will be asked for "
+                "again at the next start", self.calibration_save_error,
+            )  # fmt: skip
+            return False
+        self.calibration_save_error = ""
+        return True
+
     def on_calibration_event(self, ev: CalibrationEvent, t: float | None = None) -> None:
         self.last_event = ev
         log.info("calibration: %s", ev.message)
@@ -500,7 +526,7 @@ class FollowerDaemon(Daemon):
             self.send_control(CalibrationProgress(event="point", index=index, point=point))
         if ev.kind == "done" and self.calibrator.result is not None:
             self.calibration = self.calibrator.result
-            self.calibration.save(self.calibration_path)
+            self.save_calibration()  # best-effort: the model goes to the expert regardless
             self.calibrating = False
             self.script = None
             self.send_control(CalibrationProgress(event="done"))
@@ -551,6 +577,9 @@ class FollowerDaemon(Daemon):
         # timestamps (/follower/video_frame) are recorded as each frame is captured and sent.
         self.publish_scene(t, self.world.T_world_tip, self.world.force_world, virtual)
         self.publish_feed(t, self.measurement)
+        v_patient = None if self.last_pose is None else self.last_pose.pose
+        force_n = float(np.linalg.norm(self.world.force_world))
+        self.igtl.tick(t, self.calibration, v_patient, self.world.T_world_tip, force_n)
 
     def publish_scene(
         self, t: float, true_tip: Pose | None, force: NDArray, virtual: Pose | None
@@ -665,6 +694,7 @@ class FollowerDaemon(Daemon):
                 self.align_ang.append(da)
         self.send_state(frame.t, m)
         self.record_measurement(frame.t, m)
+        self.igtl.on_measurement(frame.t, self.calibration, m)
 
     # --- recording ------------------------------------------------------------------------
 
@@ -743,6 +773,7 @@ class FollowerDaemon(Daemon):
             "states_sent": self.link.counters.sent.get("state", 0),
             "calibrated": self.calibration is not None,
             "calibration_reused": self.loaded_calibration,
+            "calibration_save_error": self.calibration_save_error,
             "calibration_refusals": self.calibrator.refusals,
             "calibration_step": self.calibrator.step if self.calibrating else None,
             "force_n": round(self.last_force_n, 3),
@@ -779,8 +810,19 @@ class FollowerDaemon(Daemon):
                 None if self.sensing_proc is None else self.sensing_proc.cpu_percent()
             ),
             "cpu_percent": self.cpu.overall(),
+            "igtl": self.igtl.stats(),
             "video": None if self.video is None else self.video.stats(),
         }
+
+    def feed_error(self, exc: OSError) -> str:
+        """One line for a renderer feed that cannot start."""
+        cfg = self.config.feed
+        if exc.filename is not None:  # the TLS certificate in the state directory
+            return (
+                f"humantele follower: renderer feed: cannot write {exc.filename}: "
+                f"{exc.strerror or exc} (check --state-dir {self.state_dir})"
+            )
+        return socket_error("humantele follower: renderer feed", cfg.host, cfg.port, exc)
 
     def check_video(self, t: float) -> None:
         """Once a second, the video's degradation policy (POV first), in a task."""
@@ -816,10 +858,17 @@ class FollowerDaemon(Daemon):
         if self.config.feed.enabled:
             try:
                 await self.feed.start()
-            except BaseException:  # e.g. the port is taken: the recording is still closed
+            except OSError as exc:  # port taken, unknown host, unwritable state dir
+                self.close_recording()
+                print(self.feed_error(exc), file=sys.stderr)
+                return EXIT_FAILED
+            except BaseException:  # the recording is still closed
                 self.close_recording()
                 raise
             print(f"humantele follower: {self.feed.banner()}", flush=True)
+        await self.igtl.start()
+        if self.igtl.banner():
+            print(f"humantele follower: {self.igtl.banner()}", flush=True)
         link_task = asyncio.create_task(self.link.run())
         prev_t, period = None, 1.0 / self.config.rate_hz
         if self.calibration is None:
@@ -851,6 +900,7 @@ class FollowerDaemon(Daemon):
                 with contextlib.suppress(BaseException):
                     await video_task  # opening cannot be interrupted: it ends by itself
                 await asyncio.to_thread(self.video.close)
+            await self.igtl.stop()
             self.executor.shutdown(wait=True)  # the frame being measured ends first
             self.executor = None
             if self.sensing_proc is not None:
@@ -860,7 +910,9 @@ class FollowerDaemon(Daemon):
         if self.sensing_failure is not None:
             print(f"humantele follower: sensing cannot start: {self.sensing_failure}", flush=True)
             return 2
-        return 2 if self.video_error else 0
+        if self.video_error:
+            return 2
+        return self.run_result(link_task)
 
     async def start_video(self) -> None:
         """Open the video sources (in a thread: it blocks) and start them; a source that
@@ -894,7 +946,12 @@ def _rms_scaled(values: deque[float], scale: float) -> float | None:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_daemon_arguments(parser, "TOML file; the [follower] section is used")
     parser.add_argument("--state-dir", help="where the calibration is saved")
-    parser.add_argument("--feed-port", type=int, help="renderer feed port (0 picks one)")
+    parser.add_argument("--feed-port", type=port, help="renderer feed port (0 picks one)")
+    parser.add_argument(
+        "--igtl-port",
+        type=port,
+        help="serve OpenIGTLink on this port (0 picks one; 18944 Slicer's)",
+    )
     parser.add_argument("--recalibrate", action="store_true", help="ignore a saved calibration")
 
 
@@ -906,6 +963,8 @@ def config_from_args(args: argparse.Namespace) -> FollowerConfig:
         data["state_dir"] = args.state_dir
     if args.feed_port is not None:
         data["feed"]["port"] = args.feed_port
+    if getattr(args, "igtl_port", None) is not None:
+        data["igtl"].update(enabled=True, port=args.igtl_port)
     return validate_config(FollowerConfig, data, "command line")
 
 
@@ -921,4 +980,7 @@ def run(args: argparse.Namespace) -> int:
     if args.recalibrate:
         daemon.calibration = None
         daemon.loaded_calibration = False
-    return asyncio.run(daemon.run(args.duration))
+    try:
+        return asyncio.run(daemon.run(args.duration))
+    finally:
+        ignore_stop_signals()
