@@ -56,20 +56,24 @@ def _pose(seq: int) -> PoseMessage:
 def test_a_stalled_channel_holds_one_pose_and_the_newest_goes_first_on_resume():
     pose = StallingChannel()
     link, peer = _link_with({"pose": pose, "state": StallingChannel(), "control": object()})
+    size = len(_pose(1).encode())
+    ahead = link.config.newest_only_above_bytes // size + 1  # taken before the stall shows
     for seq in range(1, 501):  # 0.5 s at 1 kHz with nothing acknowledged
         assert link.send_pose(_pose(seq))
-    # bounded: the one the transport took before it stalled, plus one waiting newest pose
-    assert len(pose.queued) == 1
-    assert PoseMessage.decode(pose.queued[0]).seq == 1
+    # bounded: the few the transport took before it stalled, plus one waiting newest pose
+    assert 1 <= ahead <= 4
+    assert [PoseMessage.decode(d).seq for d in pose.queued] == list(range(1, ahead + 1))
     assert PoseMessage.decode(peer.pending["pose"]).seq == 500
-    assert link.counters.dropped["pose:superseded"] == 498
-    pose.drain()  # the transport resumes: the newest pose goes next, nothing in between
-    pose.drain()
-    assert [PoseMessage.decode(d).seq for d in pose.wire] == [1, 500]
+    assert link.counters.dropped["pose:superseded"] == 500 - ahead - 1
+    pose.drain()  # the transport resumes: the newest pose is next after those already taken
+    assert PoseMessage.decode(pose.queued[-1]).seq == 500
     assert "pose" not in peer.pending
+    while pose.queued:
+        pose.drain()
+    assert [PoseMessage.decode(d).seq for d in pose.wire] == [*range(1, ahead + 1), 500]
     link.send_pose(_pose(501))  # then the stream goes on as usual
     assert PoseMessage.decode(pose.queued[0]).seq == 501
-    assert link.counters.sent["pose"] == 3
+    assert link.counters.sent["pose"] == ahead + 2
 
 
 def test_the_fifo_sender_queues_stale_poses_up_to_its_cap():
@@ -91,9 +95,11 @@ def test_the_fifo_sender_queues_stale_poses_up_to_its_cap():
 def test_a_pending_pose_of_a_replaced_peer_connection_is_not_sent():
     old = StallingChannel()
     link, peer = _link_with({"pose": old, "state": StallingChannel(), "control": object()})
-    link.send_pose(_pose(1))
-    link.send_pose(_pose(2))
+    for seq in range(1, 11):
+        link.send_pose(_pose(seq))
+    assert "pose" in peer.pending
+    taken = len(old.queued)
     link._peer = None  # the link was lost and renegotiated
-    old.drain()
-    assert [PoseMessage.decode(d).seq for d in old.wire] == [1]
-    assert old.queued == []
+    while old.queued:
+        old.drain()
+    assert [PoseMessage.decode(d).seq for d in old.wire] == list(range(1, taken + 1))

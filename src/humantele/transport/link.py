@@ -29,11 +29,12 @@ Behaviour:
 - Heartbeats every ``heartbeat_interval_s`` on ``control``; with no message at all from the
   peer for ``heartbeat_timeout_s`` the link is declared lost, even when ICE has not noticed.
 - Clock sync: ping/pong on ``control`` (``clock``: a :class:`ClockSync`, offset and rtt).
-- Poses and states never queue behind each other: while aiortc still holds an unsent one
-  (SCTP's congestion window is full, e.g. after a loss), the newest waits in a one-message
-  slot and goes out as soon as the buffer drains; the one it replaces is counted as
-  ``"<channel>:superseded"``. A stalled transport therefore delays the stream by at most one
-  message, and when it resumes the freshest pose goes first.
+- Poses and states never queue behind a stall: once aiortc holds more than
+  ``newest_only_above_bytes`` of unsent ones (SCTP's congestion window is full, e.g. after a
+  loss), the newest waits in a one-message slot and goes out as soon as the buffer drains
+  back; the one it replaces is counted as ``"<channel>:superseded"``. A stalled transport
+  therefore delays the stream by at most a couple of messages, and when it resumes the
+  freshest pose goes next.
 - Messages that fail to parse or validate, arrive late (an older sequence than one already
   delivered), or cannot be sent (not connected, send buffer full, NaN) are dropped and
   counted in ``counters.dropped`` under ``"<channel>:<reason>"``; nothing raises into the loop.
@@ -452,7 +453,7 @@ class PeerLink:
     def _watch_binary(self, peer: _Peer, name: str) -> None:
         """Receive on channel ``name`` and send its pending message when its buffer drains."""
         ch = peer.channels[name]
-        ch.bufferedAmountLowThreshold = 0
+        ch.bufferedAmountLowThreshold = self.config.newest_only_above_bytes
         ch.on("message", lambda d: self._on_binary(peer, name, d))
         ch.on("bufferedamountlow", lambda: self._send_pending(peer, name))
 
@@ -527,7 +528,7 @@ class PeerLink:
             self.counters.dropped[f"{name}:invalid_{exc.reason}"] += 1
             return False
         if self.config.send_newest_only:
-            if ch.bufferedAmount > 0:  # an older one is still waiting: this one replaces it
+            if ch.bufferedAmount > self.config.newest_only_above_bytes:  # stalled: replace
                 peer = self._peer
                 if peer.pending.get(name) is not None:
                     self.counters.dropped[f"{name}:superseded"] += 1
