@@ -380,6 +380,16 @@ def _recording_status(e: dict[str, Any], f: dict[str, Any]) -> str:
     return text
 
 
+def _page_urls(e: dict[str, Any], f: dict[str, Any]) -> dict[str, str]:
+    """The pages the daemons serve, once they do: the sonographer's console, the headset's."""
+    urls = {}
+    if (e.get("console") or {}).get("url"):
+        urls["console (sonographer)"] = e["console"]["url"]
+    if (f.get("feed") or {}).get("page_url"):
+        urls["headset page (follower)"] = f["feed"]["page_url"]
+    return urls
+
+
 def summarize(
     e: dict[str, Any], f: dict[str, Any], duration: float, codes: dict[str, int | None]
 ) -> dict[str, Any]:
@@ -460,7 +470,7 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
         "follower": [
             "follower", "--state-dir", str(run_dir / "follower-state"), "--feed-port", "0",
         ],
-        "expert": ["expert"],
+        "expert": ["expert", "--console-port", "0"],
     }  # fmt: skip
     for role, path in child_configs.items():
         if path:
@@ -483,6 +493,7 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
             )  # fmt: skip
             log_file.close()
         last_print = 0.0
+        pages: dict[str, str] = {}
         while not stop.is_set():
             now = time.monotonic()
             if now - t0 >= args.duration:
@@ -492,6 +503,10 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
                 failed = f"{dead[0]} exited early with code {procs[dead[0]].returncode}"
                 break
             e, f = read_stats(stats["expert"]) or {}, read_stats(stats["follower"]) or {}
+            for name, url in _page_urls(e, f).items():
+                if name not in pages:
+                    pages[name] = url
+                    print(f"{name}: {url}", file=status_to, flush=True)
             if tty or now - last_print >= 2.0:
                 last_print = now
                 line = _status_line(e, f, now - t0)

@@ -66,6 +66,8 @@ from humantele.demo import (
     session_overrides,
     write_stats,
 )
+from humantele.expert.console import ConsoleConfig
+from humantele.expert.console.hook import LANDMARKS, PoseHistory, make_console
 from humantele.expert.mapping import (
     MappingConfig,
     Registration,
@@ -117,6 +119,7 @@ class ExpertConfig(ConfigModel):
     scans: ScanScriptConfig = ScanScriptConfig()
     session: SessionConfig = SessionConfig()
     recording: RecorderConfig = RecorderConfig()
+    console: ConsoleConfig = ConsoleConfig()
 
 
 def servo_config_for(mapping: MappingConfig, servo: ServoConfig) -> ServoConfig:
@@ -190,6 +193,17 @@ class ExpertDaemon:
         self._late_ticks_reported = 0
         self._states_reported = 0
         self.step_errors = 0
+        # What the console shows (humantele.expert.console): calibration progress, the poses
+        # of the last seconds (a captured frame gets its pose), the console's clutch.
+        self.calibration_state = "not calibrated"
+        self.calibration_landmark: str | None = None
+        self.last_state_t: float | None = None  # when the last state arrived (clock)
+        self.last_state_age: float | None = None  # its one-way age then (s)
+        self.probe_history = PoseHistory()
+        self.virtual_history = PoseHistory()
+        self.console_clutch = False
+        self.console = None
+        self._console_video = None
 
     # --- incoming messages, one handler per kind ------------------------------------------
 
@@ -198,8 +212,13 @@ class ExpertDaemon:
         self.last_state = msg
         self.states_received += 1
         age = self.link.age_of(msg.t_sent)
-        if age is not None and math.isfinite(age):
+        now = self.clock()
+        self.last_state_t = now
+        self.last_state_age = age if age is not None and math.isfinite(age) else None
+        if self.last_state_age is not None:
             self.state_ages.append(max(0.0, age))
+        if isinstance(msg, StateMessage):
+            self.probe_history.add(now - max(0.0, self.last_state_age or 0.0), msg.pose)
 
     def on_control(self, msg: ControlMessage) -> None:
         if isinstance(msg, EllipsoidModel):
@@ -207,7 +226,26 @@ class ExpertDaemon:
         elif isinstance(msg, CalibrationMsg):
             text = msg.event if not msg.detail else f"{msg.event}: {msg.detail}"
             self.calibration_events.append(text)
+            self.on_calibration(msg)
             log.info("follower calibration: %s", text)
+
+    def on_calibration(self, msg: CalibrationMsg) -> None:
+        """Calibration progress as the follower reports it: which landmark comes next."""
+        nxt = None
+        if msg.event == "start":
+            self.calibration_state, nxt = "calibrating", 0
+        elif msg.event == "point" and msg.index is not None:
+            self.calibration_state, nxt = "calibrating", msg.index + 1
+        elif msg.event == "error":
+            self.calibration_state = "calibrating"
+            nxt = msg.index if msg.index is not None else None
+        elif msg.event == "done":
+            self.calibration_state = "calibrated"
+        elif msg.event == "cancel":
+            self.calibration_state = "calibrated" if self.model is not None else "not calibrated"
+        self.calibration_landmark = (
+            LANDMARKS[nxt] if nxt is not None and nxt < len(LANDMARKS) else None
+        )
 
     def on_link_state(self, state: str) -> None:
         log.info("expert: link %s", state)
@@ -220,6 +258,8 @@ class ExpertDaemon:
             return  # the same model again (the follower rejoined): nothing changes
         self.model = model
         self.models_installed += 1
+        if self.calibration_state != "calibrating":
+            self.calibration_state = "calibrated"
         if self.model_t is None:
             self.model_t = self.clock()
         top = np.array(model.center) + [0.0, float(model.semi_axes[1]), 0.0]
@@ -254,12 +294,16 @@ class ExpertDaemon:
         else:
             was_clutched = self.mapping.clutched
             p_dev, q_dev = self.stylus_in_device(s.pose)
-            pose = self.mapping.update(p_dev, q_dev, s.buttons)
+            buttons = s.buttons
+            if self.console_clutch:  # the console's clutch button holds it as the stylus's
+                buttons |= 1 << self.config.mapping.clutch_button
+            pose = self.mapping.update(p_dev, q_dev, buttons)
             if self.mapping.take_changed():
                 self.push_registration()
             if self.mapping.clutched != was_clutched and self.model is not None:
                 self.servo.set_model(None if self.mapping.clutched else self.model)
         self.last_pose = pose
+        self.virtual_history.add(t, pose)
         self.pose_seq += 1
         msg = PoseMessage.from_pose(
             self.pose_seq, t, pose, s.buttons & 0xFF, clutch=self.mapping.clutched
@@ -429,6 +473,7 @@ class ExpertDaemon:
             "scans_started": self.scans_started,
             "step_errors": self.step_errors,
             "recording": recorder_stats(self.rec),
+            "console": None if self.console is None else self.console.stats(),
         }
 
     def guarded(self, step: Callable[[float], object], t: float) -> None:
@@ -451,6 +496,28 @@ class ExpertDaemon:
     def close_recording(self) -> None:
         close_daemon_recording("expert", self.rec)
 
+    async def start_console(self) -> None:
+        """Serve the console page (``[expert.console]``); a port that cannot be had is logged
+        and the daemon runs without it (the haptics come first)."""
+        if not self.config.console.enabled or self.console is not None:
+            return
+        self.console, self._console_video = make_console(self)
+        try:
+            await self.console.start()
+        except OSError as exc:
+            log.error("expert: console not served: %s", exc)
+            print(f"humantele expert: console not served: {exc}", flush=True)
+            self.console = None
+            return
+        print(f"humantele expert: {self.console.banner()}", flush=True)
+
+    async def stop_console(self) -> None:
+        if self._console_video is not None:
+            await asyncio.to_thread(self._console_video.stop)
+            self._console_video = None
+        if self.console is not None:
+            await self.console.stop()
+
     async def run(self, duration_s: float | None = None) -> int:
         loop = asyncio.get_running_loop()
         on_stop_signals(loop, self._stop.set)
@@ -464,6 +531,7 @@ class ExpertDaemon:
             return 1
         self.servo_started = time.monotonic()
         self.push_registration()
+        await self.start_console()
         link_task = asyncio.create_task(self.link.run())
         try:
             async for t in daemon_ticks(
@@ -482,6 +550,7 @@ class ExpertDaemon:
             await self.link.close("expert stopping")
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await asyncio.wait_for(link_task, 5.0)
+            await self.stop_console()
             self.servo_cpu_percent()
             self.servo.stop()
             self.close_recording()
@@ -499,6 +568,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, help="stop after this many seconds")
     parser.add_argument("--stats-file", help="write running figures (JSON) to this file")
     parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
+    parser.add_argument("--console-port", type=int, help="console page port (0 picks one)")
+    parser.add_argument("--no-console", action="store_true", help="do not serve the console page")
     add_session_arguments(parser)
 
 
@@ -510,6 +581,10 @@ def configs_from_args(args: argparse.Namespace) -> tuple[ExpertConfig, ServoConf
         data["link"]["signaling_url"] = args.signaling_url
     if args.room:
         data["link"]["room"] = args.room
+    if getattr(args, "console_port", None) is not None:
+        data["console"]["port"] = args.console_port
+    if getattr(args, "no_console", False):
+        data["console"]["enabled"] = False
     session_overrides(args, data)
     config = validate_config(ExpertConfig, data, "command line")
     return config, servo_config_for(config.mapping, servo)
