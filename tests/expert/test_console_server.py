@@ -189,9 +189,11 @@ async def test_freeze_cine_calipers_annotation_and_capture_are_measured_saved_re
     server = await serve(frames, session, tmp_path, clock=clock)
     try:
         async with aiohttp.ClientSession() as http, http.ws_connect(f"{server.url}ws") as ws:
-            for _ in range(5):  # five ultrasound frames, 50 ms apart
+            for _ in range(5):  # five ultrasound frames, 50 ms apart, each drawn by the page
                 f = frames.next("us")
                 await next_message(ws, lambda k, d, s=f.seq: k == "frame" and d[0]["seq"] == s)
+                await ws.send_json({"type": "drawn", "track": "us", "seq": f.seq,
+                                    "draw_to_send_ms": 0.5})  # fmt: skip
                 clock.t += 0.05
             spacing = f.pixel_spacing_mm
             await ws.send_json({"type": "freeze", "on": True})
@@ -297,6 +299,37 @@ async def test_bad_pages_are_refused_and_counted_and_the_server_goes_on(tmp_path
     r = server.refused
     assert r["origin"] == 1 and r["host"] == 1 and r["second_console"] == 1
     assert r["malformed"] >= 5 and r["unknown_frame"] == 1 and r["flood"] > 0
+
+
+async def test_a_slow_page_gets_the_newest_frame_not_a_queue(tmp_path):
+    """At most two frames of a track go to a page before it says it drew one; the others
+    wait, newest wins, so a slow page is never behind by a socket full of frames."""
+    clock = FakeClock()
+    frames = ManualFrames(clock)
+    server = await serve(frames, Session(), tmp_path, clock=clock)
+    server.in_flight_timeout_s = 60.0  # a page that echoes nothing: not within this test
+    rendered = [frames.next("us") for _ in range(6)]
+    frames.frames.clear()
+    try:
+        async with aiohttp.ClientSession() as http, http.ws_connect(f"{server.url}ws") as ws:
+            got = []
+            for f in rendered:
+                frames.frames["us"] = f
+                while server.tracks["us"].seq != f.seq:  # the server has taken it
+                    await asyncio.sleep(0.005)
+            while len(got) < 2:
+                h, _ = await next_message(ws, lambda k, d: k == "frame")
+                got.append(h["seq"])
+            assert got == [1, 2]  # then nothing until the page draws
+            with pytest.raises(asyncio.TimeoutError):
+                await next_message(ws, lambda k, d: k == "frame", timeout=0.2)
+            await ws.send_json({"type": "drawn", "track": "us", "seq": 2, "draw_to_send_ms": 0})
+            h, _ = await next_message(ws, lambda k, d: k == "frame")
+            assert h["seq"] == 6  # the newest, frames 3-5 skipped
+        assert server.coalesced >= 3
+        assert server.tracks["us"].drawn == 1
+    finally:
+        await server.stop()
 
 
 def test_console_is_served_on_loopback_only():

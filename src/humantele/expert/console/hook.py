@@ -21,13 +21,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from humantele.expert.console.frames import FrameProvider, SourceFrames
+from humantele.expert.console.frames import FrameProvider, ProcessFrames
 from humantele.expert.console.server import ConsoleServer
 from humantele.geometry import Pose
 from humantele.recording import Recorder
 from humantele.video.scene import SceneSnapshot, look_at
-from humantele.video.sim_pov import SimPov, SimPovConfig
-from humantele.video.sim_ultrasound import SimUltrasound, SimUltrasoundConfig
+from humantele.video.sim_pov import SimPovConfig
+from humantele.video.sim_ultrasound import SimUltrasoundConfig
 
 if TYPE_CHECKING:
     from humantele.expert.daemon import ExpertDaemon
@@ -158,19 +158,19 @@ class SessionScene:
         return SceneSnapshot(d.clock(), model, tip, force, head, d.last_pose)
 
 
-def sim_frames(daemon: ExpertDaemon) -> SourceFrames:
-    """Sim ultrasound and POV of the session (lighter than the follower's: 15 fps, POV
-    640 x 360), for ``video = "sim"``."""
-    scene = SessionScene(daemon)
-    return SourceFrames(
+def sim_frames(daemon: ExpertDaemon) -> ProcessFrames:
+    """Sim ultrasound and POV of the session, rendered in a child process (lighter than the
+    follower's: 15 fps, POV 640 x 360), for ``video = "sim"``."""
+    return ProcessFrames(
         {
-            "us": SimUltrasound(SimUltrasoundConfig(fps=15.0), scene, clock=daemon.clock),
-            "pov": SimPov(SimPovConfig(fps=15.0, width=640, height=360), scene, clock=daemon.clock),
-        }
+            "us": SimUltrasoundConfig(fps=15.0),
+            "pov": SimPovConfig(fps=15.0, width=640, height=360),
+        },
+        SessionScene(daemon),
     )
 
 
-def make_console(daemon: ExpertDaemon) -> tuple[ConsoleServer, SourceFrames | None]:
+def make_console(daemon: ExpertDaemon) -> tuple[ConsoleServer, ProcessFrames | None]:
     """The console server for ``daemon`` and, for sim video, its sources (they run while a
     console page is open; the daemon stops them at the end)."""
     cfg = daemon.config.console

@@ -65,6 +65,8 @@ log = logging.getLogger(__name__)
 
 WEB_DIR = Path(str(resources.files("humantele.expert.console") / "web"))
 LATENCIES_KEPT = 20000
+IN_FLIGHT = 2  # frames of a track sent to a page and not yet drawn; more wait (latest wins)
+IN_FLIGHT_TIMEOUT_S = 0.5  # a page that echoes nothing for this long gets the next frame
 SEQS_KEPT = 256  # frames per track whose times are kept for the page's echoes
 FLOOD_CLOSE = 600
 
@@ -111,6 +113,20 @@ class _Client:
         self.wake = asyncio.Event()
         self.flooding = 0
         self.last_drawn: dict[str, int] = {}
+        # Frames sent and not yet drawn, per track (seq, when sent): a page that draws slower
+        # than frames come gets the newest when it is ready, not a queue in the socket.
+        self.in_flight: dict[str, deque[tuple[int, float]]] = {t: deque() for t in TRACKS}
+
+    def can_take(self, track: str, now: float, timeout_s: float) -> bool:
+        q = self.in_flight[track]
+        while q and now - q[0][1] > timeout_s:
+            q.popleft()
+        return len(q) < IN_FLIGHT
+
+    def drawn(self, track: str, seq: int) -> None:
+        q = self.in_flight[track]
+        while q and q[0][0] <= seq:
+            q.popleft()
 
 
 class _Track:
@@ -168,6 +184,8 @@ class ConsoleServer:
         self.captures: list[str] = []
         self._runner: web.AppRunner | None = None
         self._tasks: list[asyncio.Task] = []
+        self._closing = False
+        self.in_flight_timeout_s = IN_FLIGHT_TIMEOUT_S
         self._index = (WEB_DIR / "index.html").read_bytes()
 
     @property
@@ -197,6 +215,7 @@ class ConsoleServer:
         self._tasks.append(asyncio.create_task(self._pump_state()))
 
     async def stop(self) -> None:
+        self._closing = True  # a page reconnecting now is turned away (cleanup waits for pages)
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
@@ -246,10 +265,21 @@ class ConsoleServer:
     async def _send_loop(self, client: _Client) -> None:
         try:
             while not client.ws.closed:
-                await client.wake.wait()
+                try:
+                    await asyncio.wait_for(client.wake.wait(), self.in_flight_timeout_s)
+                except TimeoutError:
+                    pass
                 client.wake.clear()
+                now = time.monotonic()
                 batch, client.pending = client.pending, {}
-                for data in batch.values():
+                for key, data in batch.items():
+                    track = key[6:] if key.startswith("frame:") else None
+                    if track in TRACKS:
+                        if not client.can_take(track, now, self.in_flight_timeout_s):
+                            client.pending[key] = data  # held until the page draws one
+                            continue
+                        seq = int.from_bytes(data[4:8], "little")
+                        client.in_flight[track].append((seq, now))
                     if isinstance(data, bytes):
                         await client.ws.send_bytes(data)
                     else:
@@ -341,6 +371,9 @@ class ConsoleServer:
         pose_age = link.get("pose_age_ms")
         link["stale"] = link.get("state") != "connected" or pose_age is None or pose_age > stale_ms
         snap["link"] = link
+        if self.video == "sim" and link["stale"]:  # rendered from the follower's pose: no
+            for v in video.values():  # fresh pose, no live picture
+                v["stale"] = True
         snap.update(
             type="state",
             video=video,
@@ -355,6 +388,8 @@ class ConsoleServer:
         if not origin_allowed(request):
             self.refused["origin"] += 1
             return web.Response(status=403, text="wrong origin\n")
+        if self._closing:
+            return web.Response(status=503, text="the expert daemon is stopping\n")
         if len(self.clients) >= self.config.max_clients:
             self.refused["second_console"] += 1
             return web.Response(status=409, text="the console is open in another window\n")
@@ -433,6 +468,8 @@ class ConsoleServer:
             self._on_tool(client, m)
 
     def _on_drawn(self, client: _Client, m: Drawn, arrival: float) -> None:
+        client.drawn(m.track, m.seq)
+        client.wake.set()
         st = self.tracks[m.track]
         times = st.times.get(m.seq)
         if times is None:

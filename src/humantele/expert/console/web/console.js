@@ -51,9 +51,17 @@ function send(msg) {
 
 function onText(m) {
   if (m.type === "state") { app.state = m; app.stateAt = performance.now(); renderState(); }
-  else if (m.type === "hello") app.hello = m;
+  else if (m.type === "hello") onHello(m);
   else if (m.type === "cine") onCineIndex(m);
   else if (m.type === "result") onResult(m);
+}
+
+function onHello(m) {
+  app.hello = m;
+  const sim = m.video === "sim" ? " (simulated here from the follower's pose)" : "";
+  document.querySelector("#us-panel .name").textContent = `Ultrasound${sim}`;
+  document.querySelector("#pov-panel .name").textContent = `Follower's view${m.video === "sim" ? " (simulated)" : ""}`;
+  if (m.video === "none") for (const t of TRACKS) $(`${t}-stale`).querySelector("b").textContent = "No video on this console";
 }
 
 // --- video ----------------------------------------------------------------------------------
@@ -132,6 +140,8 @@ function fit() {
   }
 }
 window.addEventListener("resize", fit);
+const boxWatch = new ResizeObserver(() => fit());
+for (const id of TRACKS) boxWatch.observe($(`${id}-box`));
 
 // --- freeze and cine ------------------------------------------------------------------------
 
@@ -312,10 +322,10 @@ function renderState() {
   $("n-fr").textContent = fmt(f.rendered_n, 2, " N");
   $("n-servo").textContent = servo.alive ? fmt(servo.rate_hz, 0, " Hz") : "stopped";
   plot.add(performance.now(), link.stale ? null : f.measured_n ?? null, servo.alive ? f.rendered_n ?? null : null);
-  const bar = $("bar");
+  const bar = $("fbar");
   bar.dataset.stale = String(Boolean(link.stale) || f.measured_n == null);
-  $("bar-fill").style.width = `${Math.min(100, (100 * (f.measured_n || 0)) / FORCE_BAR_MAX_N)}%`;
-  $("bar-value").textContent = link.stale || f.measured_n == null ? "–" : fmt(f.measured_n, 1, " N");
+  $("fbar-fill").style.width = `${Math.min(100, (100 * (f.measured_n || 0)) / FORCE_BAR_MAX_N)}%`;
+  $("fbar-value").textContent = link.stale || f.measured_n == null ? "–" : fmt(f.measured_n, 1, " N");
 }
 
 // Per display frame: staleness of the video and of the page's own link, the plot.

@@ -1,0 +1,101 @@
+"""``humantele demo --record`` with the sonographer's console open: both videos play, the
+state and the force plot are live, the scan button stops and starts scans, freeze + cine +
+calipers + annotation + capture work and are recorded, a second console is refused, and the
+page shows everything as not live once the daemons are gone. Screenshots for the README."""
+
+from __future__ import annotations
+
+import asyncio
+
+from console_views import image_point, measure, pixels, result, scroll_cine
+
+from humantele.recording import role_path
+from humantele.recording.reader import read_recording
+
+
+def expert_console(demo) -> dict:
+    return demo.stats("expert").get("console") or {}
+
+
+async def state(page, expr: str):
+    return await page.evaluate(f"(() => {{ const s = consoleApp.state; return {expr}; }})()")
+
+
+async def run(ctx) -> dict:
+    record = ctx.out / "rec"
+    demo = await ctx.demo("--duration", "900", "--record", str(record))
+    await demo.wait("the console", lambda e, f: expert_console(demo).get("url"), timeout=90)
+    url = expert_console(demo)["url"]
+    page = await ctx.page(url, width=1440, height=900)
+    data: dict = {"url": url}
+
+    # 1. Both videos play: frames drawn, pictures change, not black.
+    await ctx.until(page, "consoleApp.frames.us > 10 && consoleApp.frames.pov > 10", 60)
+    a = {t: await pixels(page, t) for t in ("us", "pov")}
+    await asyncio.sleep(1.0)
+    b = {t: await pixels(page, t) for t in ("us", "pov")}
+    data["pixels"] = {"before": a, "after": b}
+    f0 = await page.evaluate("({...consoleApp.frames})")
+    await asyncio.sleep(2.0)
+    f1 = await page.evaluate("({...consoleApp.frames})")
+    data["page_fps"] = {t: round((f1[t] - f0[t]) / 2.0, 1) for t in f0}
+
+    # 2. Following: calibrated, a scan (scripted), force on the plot.
+    await demo.wait("calibrated and following", lambda e, f: f.get("calibrated")
+                    and e.get("has_model") and e.get("scan"), timeout=120)  # fmt: skip
+    await ctx.until(page, "consoleApp.state && consoleApp.state.scan === 1", 20)
+    await ctx.until(page, "consoleApp.state.force.measured_n > 1", 60)
+    await asyncio.sleep(3.0)  # a few seconds of force on the plot
+    data["force_samples"] = await page.evaluate(
+        "consoleApp.plot.samples.filter(s => s[1] !== null).map(s => s[1])"
+    )
+    data["plot_draws"] = await page.evaluate("consoleApp.plot.draws")
+    data["state_live"] = await page.evaluate("consoleApp.state")
+    await ctx.shot(page, "console_live")
+
+    # 3. The scan button: stop scan 1, start scan 2.
+    await page.click("#scan")
+    await ctx.until(page, "consoleApp.state.scan === null", 10)
+    await page.click("#scan")
+    await ctx.until(page, "consoleApp.state.scan === 2", 10)
+    data["scan_button"] = await page.text_content("#scan")
+
+    # 4. Freeze, scroll back, caliper, annotation, capture.
+    await page.click("#freeze")
+    await ctx.until(page, "consoleApp.cine.length > 20", 10)
+    n = await page.evaluate("consoleApp.cine.length")
+    seq = await scroll_cine(ctx, page, n // 2)
+    data["cine"] = {"frames": n, "shown": seq, "time": await page.text_content("#cine-time")}
+    shown = await page.evaluate("consoleApp.shown")
+    w, h = shown["width"], shown["height"]
+    await page.click("#tool-caliper")
+    data["caliper"] = await measure(ctx, page, (0.45 * w, 0.25 * h), (0.45 * w, 0.85 * h))
+    await page.click("#tool-note")
+    x, y = await image_point(page, 0.6 * w, 0.45 * h)
+    await page.mouse.click(x, y)
+    await page.keyboard.type("lower pole, R kidney")
+    await page.keyboard.press("Enter")
+    data["annotation"] = await result(ctx, page, "annotation", 1)
+    await page.click("#capture")
+    data["capture"] = await result(ctx, page, "capture", 1)
+    await ctx.shot(page, "console_frozen")
+    await page.click("#freeze")  # live again
+    await ctx.until(page, "!consoleApp.frozen && consoleApp.frames.us > 0", 5)
+
+    # 5. A second console is refused (and counted); the first one goes on.
+    second = await ctx.page(url, width=800, height=600)
+    await asyncio.sleep(2.0)
+    data["second_state"] = await second.evaluate("consoleApp.state === null")
+    await ctx.close_page(second)
+    data["console_stats"] = expert_console(demo)
+
+    # 6. The daemons gone: nothing on the page is live.
+    await demo.stop()
+    await ctx.until(page, "document.body.dataset.conn === 'lost'", 15)
+    await asyncio.sleep(0.5)
+    data["lost_overlay"] = await page.evaluate("!document.getElementById('us-stale').hidden")
+    await ctx.shot(page, "console_lost")
+    rec = read_recording(role_path(record, "expert"))
+    data["recorded_scans"] = rec.samples("/expert/scan")
+    data["recorded_console"] = rec.samples("/expert/console")
+    return data

@@ -1,0 +1,52 @@
+"""``humantele demo`` with the sonographer's console open in headless Chromium (see
+scenarios/console_demo.py): videos play, force plot moves, the scan button records scans,
+freeze + calipers measure right, tools are recorded, a second console is refused, and the
+page shows the daemons' end as not live."""
+
+import json
+import math
+
+import pytest
+
+
+@pytest.mark.slow
+def test_console_in_the_demo(browser_scenario):
+    run = browser_scenario("console_demo", timeout_s=400.0)
+    d = run.data
+    # The two videos play: frames drawn, the picture changes, not black.
+    for t in ("us", "pov"):
+        before, after = d["pixels"]["before"][t], d["pixels"]["after"][t]
+        assert after["mean"] > 10 and before["hash"] != after["hash"], (t, before, after)
+        assert d["page_fps"][t] > 3
+    # The force plot moves: measured force samples, changing, and the plot redrawn.
+    forces = d["force_samples"]
+    assert len(forces) > 20 and max(forces) - min(forces) > 0.05 and d["plot_draws"] > 50
+    live = d["state_live"]
+    assert live["link"]["state"] == "connected" and not live["link"]["stale"]
+    assert live["calibration"]["state"] == "calibrated" and live["servo"]["alive"]
+    assert live["recording"]["on"] and live["alignment"]["mm"] >= 0
+    # The scan button stopped scan 1 and started scan 2, and both are recorded.
+    assert d["scan_button"].startswith("Stop scan 2")
+    events = [(s["event"], s["scan"]) for s in d["recorded_scans"]]
+    assert events[:3] == [("start", 1), ("stop", 1), ("start", 2)]
+    # Freeze, cine, calipers: the distance is the pixel distance times the pixel spacing.
+    assert d["cine"]["frames"] > 20 and d["cine"]["time"].startswith("-")
+    c = d["caliper"]
+    assert c["server_mm"] == pytest.approx(c["page_mm"], rel=1e-6)  # f32 on the wire
+    assert c["server_mm"] == pytest.approx(c["asked_mm"], rel=0.01)
+    assert d["annotation"]["ok"] and d["capture"]["ok"]
+    rec = [e["event"] for e in d["recorded_console"]]
+    assert rec[:5] == ["freeze", "caliper", "annotation", "capture", "live"]
+    # A second console was refused and counted; the first went on.
+    assert d["second_state"] is True
+    stats = d["console_stats"]
+    assert stats["refused"].get("second_console", 0) >= 1
+    assert d["lost_overlay"] is True
+    us = stats["us"]
+    figure = {k: us[k] for k in ("seen_to_draw_p50_ms", "seen_to_draw_p95_ms",
+                                 "capture_to_draw_p50_ms", "capture_to_draw_p95_ms")}  # fmt: skip
+    figure["page_fps"] = d["page_fps"]
+    (run.out_dir / "console_latency.json").write_text(json.dumps(figure))
+    print(f"console: {figure}")
+    assert all(math.isfinite(v) for v in figure.values() if isinstance(v, float))
+    assert d["console_errors"] == []
