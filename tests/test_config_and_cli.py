@@ -1,9 +1,9 @@
 import pytest
 from pydantic import Field
 
-from humantele.bench.report import write_section
 from humantele.cli import main
 from humantele.config import ConfigError, ConfigModel, load_config
+from humantele.report import write_section
 
 
 class _Demo(ConfigModel):

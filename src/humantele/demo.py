@@ -19,8 +19,8 @@ the patient model arrives until the demo stops (``[expert.scans]``). The ids are
 participants' pseudonyms (``[demo]``). At the end the demo prints the ``humantele analyze``
 command for the files.
 
-The children report to the demo through JSON stats files (the helpers below are shared with
-the daemons). The signaling token is random per run and reaches the children through the
+The children report to the demo through JSON stats files (:mod:`humantele.runtime.stats`, the
+daemons' runtime). The signaling token is random per run and reaches the children through the
 environment; it is never printed.
 """
 
@@ -38,237 +38,17 @@ import signal
 import sys
 import tempfile
 import time
-from collections.abc import AsyncIterator, Callable, Iterable
 from pathlib import Path
 from typing import Any
 
-from pydantic import Field, field_validator
+from pydantic import field_validator
 
-from humantele.config import ConfigModel
 from humantele.recording.schemas import check_participant_id
+from humantele.runtime.process import PARENT_PID_ENV, on_stop_signals
+from humantele.runtime.stats import read_stats
+from humantele.signaling.messages import TOKEN_ENV
 
 log = logging.getLogger(__name__)
-
-PARENT_PID_ENV = "HUMANTELE_PARENT_PID"
-TOKEN_ENV = "HUMANTELE_TOKEN"
-
-
-def percentile_ms(values_s: Iterable[float], q: float) -> float | None:
-    """The ``q`` percentile (0-100) of durations in seconds, in ms; None when there are none."""
-    v = sorted(values_s)
-    if not v:
-        return None
-    k = min(len(v) - 1, max(0, round(q / 100.0 * (len(v) - 1))))
-    return round(v[k] * 1000.0, 3)
-
-
-class CpuMeter:
-    """CPU use of this process (all threads) in percent of one core since the last call."""
-
-    def __init__(self) -> None:
-        self._wall = time.monotonic()
-        self._cpu = time.process_time()
-        self._start_wall, self._start_cpu = self._wall, self._cpu
-
-    def overall(self) -> float:
-        wall = time.monotonic() - self._start_wall
-        return round(100.0 * (time.process_time() - self._start_cpu) / wall, 1) if wall > 0 else 0.0
-
-
-def write_stats(path: str | Path | None, stats: dict[str, Any]) -> None:
-    """Atomically replace the JSON stats file a daemon shares with its parent (if any)."""
-    if not path:
-        return
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(stats, separators=(",", ":")), encoding="utf-8")
-    os.replace(tmp, path)
-
-
-def read_stats(path: str | Path) -> dict[str, Any] | None:
-    try:
-        data = json.loads(Path(path).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    return data if isinstance(data, dict) else None
-
-
-def on_stop_signals(loop: Any, callback: Callable[[], None]) -> None:
-    """Call ``callback`` on SIGINT or SIGTERM (asyncio loop)."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, callback)
-
-
-def parent_gone() -> bool:
-    """True when this process was started by a demo (``HUMANTELE_PARENT_PID``) that is gone."""
-    want = os.environ.get(PARENT_PID_ENV)
-    return bool(want) and str(os.getppid()) != want
-
-
-async def daemon_ticks(
-    rate_hz: float,
-    duration_s: float | None,
-    running: Callable[[], bool],
-    report: Callable[[], None],
-    clock: Callable[[], float] = time.monotonic,
-    on_late: Callable[[], None] | None = None,
-) -> AsyncIterator[float]:
-    """A daemon's main-loop ticks at ``rate_hz`` on the asyncio loop: yields ``clock()`` (s).
-
-    Ends when ``running()`` turns false, after ``duration_s`` (None: never), or when the demo
-    that started this daemon is gone (checked with ``report()`` every 0.5 s). A tick late by
-    more than a period is not caught up: the schedule restarts and ``on_late()`` is called.
-    """
-    period = 1.0 / rate_hz
-    t_end = None if duration_s is None else time.monotonic() + duration_s
-    next_t = time.monotonic()
-    last_stats = 0.0
-    while running():
-        t = clock()
-        yield t
-        if t - last_stats > 0.5:
-            last_stats = t
-            report()
-            if parent_gone():
-                log.warning("the demo that started this daemon is gone; stopping")
-                return
-        if t_end is not None and t >= t_end:
-            return
-        next_t += period
-        delay = next_t - time.monotonic()
-        if delay < -period:  # late by more than a tick: do not try to catch up
-            if on_late is not None:
-                on_late()
-            next_t = time.monotonic()
-            delay = 0.0
-        await asyncio.sleep(max(0.0, delay))
-
-
-def process_cpu_seconds(pid: int | None) -> float | None:
-    """CPU time (s) used so far by process ``pid`` (Linux /proc), or None."""
-    if pid is None:
-        return None
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, ValueError, IndexError):
-        return None
-
-
-# --- recording a daemon's session (shared by both daemons) -----------------------------------
-
-
-class SessionConfig(ConfigModel):
-    """The session a daemon records (``[expert.session]``, ``[follower.session]``).
-
-    ``record``: the MCAP file (None: no recording; an existing file is never overwritten).
-    The ids are pseudonyms ('F03', 'S1'): a name or an e-mail address is refused, and no
-    patient identity is stored anywhere. Both daemons of a session use the same ``session_id``
-    (None: a random one) so ``humantele analyze`` joins their files.
-    """
-
-    record: str | None = Field(None, description="MCAP file to record to; None: no recording")
-    session_id: str | None = Field(
-        None, pattern=r"^[A-Za-z0-9_-]{1,64}$", description="None: a random id per run"
-    )
-    follower_id: str | None = Field(None, description="pseudonym of the follower, e.g. 'F03'")
-    sonographer_id: str | None = Field(None, description="pseudonym of the sonographer, e.g. 'S1'")
-
-    @field_validator("follower_id", "sonographer_id")
-    @classmethod
-    def _pseudonym(cls, v: str | None, info: Any) -> str | None:
-        return None if v is None else check_participant_id(v, info.field_name)
-
-
-def add_session_arguments(parser: argparse.ArgumentParser) -> None:
-    """The daemons' recording options (they override ``[<role>.session]``)."""
-    parser.add_argument("--record", metavar="FILE", help="record the session to this MCAP file")
-    parser.add_argument("--session-id", help="session id shared by both daemons' recordings")
-    parser.add_argument("--follower-id", help="follower's pseudonym, e.g. F03 (never a name)")
-    parser.add_argument("--sonographer-id", help="sonographer's pseudonym, e.g. S1")
-
-
-def session_overrides(args: argparse.Namespace, data: dict[str, Any]) -> None:
-    """Put the command line's recording options into a daemon config's ``data`` (a dict)."""
-    for key in ("record", "session_id", "follower_id", "sonographer_id"):
-        value = getattr(args, key, None)
-        if value is not None:
-            data["session"][key] = value
-
-
-def open_recorder(role: str, session: SessionConfig, config: Any) -> Any:
-    """The daemon's :class:`humantele.recording.Recorder`, or None when it does not record.
-    Raises :class:`humantele.recording.RecordingError` (unwritable path, existing file, disk
-    full) at start, so a daemon can refuse to run with a clear message."""
-    if not session.record:
-        return None
-    from humantele.recording import Recorder
-
-    return Recorder(
-        Path(session.record).expanduser(),
-        role,
-        session_id=session.session_id,
-        follower_id=session.follower_id,
-        sonographer_id=session.sonographer_id,
-        config=config,
-    )
-
-
-def open_daemon_recording(role: str, session: SessionConfig, config: Any) -> tuple[bool, Any]:
-    """``(ok, recorder)`` for daemon ``role``: the recorder (None when it does not record), or
-    ok False, with one clear line on stderr, when the path cannot be recorded to."""
-    from humantele.recording import RecordingError
-
-    try:
-        rec = open_recorder(role, session, config)
-    except RecordingError as exc:
-        print(f"humantele {role}: {exc}", file=sys.stderr)
-        return False, None
-    if rec is not None:
-        log.info("%s: recording to %s", role, rec.path)
-    return True, rec
-
-
-def close_daemon_recording(role: str, rec: Any) -> None:
-    """Close ``rec`` (if any); a failure during the session is logged, never raised."""
-    if rec is None:
-        return
-    stats = rec.close()
-    if stats.error:
-        log.error("%s: the recording failed during the session: %s", role, stats.error)
-
-
-class ClockSyncLog:
-    """Records a link's clock-sync estimate (``offset_s``: peer clock minus ours, ``rtt_s``)
-    each time it changes, at the local time of the exchange it comes from."""
-
-    def __init__(self, topic: str) -> None:
-        self.topic = topic
-        self._last: object = None
-
-    def update(self, rec: Any, clock: Any) -> None:
-        best = clock.best
-        if rec is None or best is None or best is self._last:
-            return
-        self._last = best
-        rec.write(self.topic, best.t_local, {"offset_s": best.offset, "rtt_s": best.rtt})
-
-
-def recorder_stats(rec: Any) -> dict[str, Any] | None:
-    """A recorder's counters for a daemon's stats (None when it does not record)."""
-    if rec is None:
-        return None
-    st = rec.stats
-    return {
-        "path": str(rec.path),
-        "session_id": rec.metadata["session_id"],
-        "queued": st.queued,
-        "written": st.written,
-        "dropped": st.dropped_overflow + st.dropped_invalid + st.dropped_failed,
-        "dropped_invalid": st.dropped_invalid,
-        "last_invalid": st.last_invalid,
-        "error": st.error,
-    }
 
 
 # --- the demo ---------------------------------------------------------------------------------

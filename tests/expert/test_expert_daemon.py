@@ -7,7 +7,7 @@ import numpy as np
 from humantele.expert.daemon import ExpertConfig, ExpertDaemon
 from humantele.geometry import Pose
 from humantele.haptics.ellipsoid import Ellipsoid
-from humantele.haptics.loop import ServoSample
+from humantele.haptics.servo_layout import ServoSample
 from humantele.wire import EllipsoidModel, EllipsoidParams
 
 

@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from humantele.config import ConfigError
-from humantele.demo import SessionConfig
 from humantele.expert.daemon import (
     ExpertConfig,
     ExpertDaemon,
@@ -22,8 +21,10 @@ from humantele.expert.daemon import (
 from humantele.expert.mapping import MappingConfig
 from humantele.geometry import Pose
 from humantele.haptics.ellipsoid import Ellipsoid
-from humantele.haptics.loop import ServoConfig, ServoSample
+from humantele.haptics.servo_config import ServoConfig
+from humantele.haptics.servo_layout import ServoSample
 from humantele.recording import Recorder, RecorderConfig, read_recording
+from humantele.runtime.session import SessionConfig
 from humantele.transport.clocksync import SyncSample
 from humantele.wire import EllipsoidModel, EllipsoidParams, Scan
 

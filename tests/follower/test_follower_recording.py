@@ -82,7 +82,7 @@ def test_calibration_model_probe_pose_and_force_are_recorded(tmp_path):
     cal = rec.samples("/follower/calibration")
     assert [c["event"] for c in cal] == ["reset", "point", "point", "point", "point", "fit"]
     assert [c["landmark"] for c in cal[1:5]] == ["xiphoid", "left", "right", "bed"]
-    truth = d.patient.landmarks()
+    truth = d.world.patient.landmarks()
     for c in cal[1:5]:  # pressed on the true landmark (within the press depth)
         assert np.linalg.norm(np.array(c["position"]) - truth[c["landmark"]]) < 0.03
     (model,) = rec.samples("/follower/ellipsoid")
@@ -178,7 +178,7 @@ async def test_sensing_runs_off_the_loop_in_order_without_overlap(tmp_path):
                 busy.release()
 
     d.sensing.pipeline = SlowPipeline()
-    d.human.hand = Pose([0.35, 1.0, -0.15], probe_down_quat([0.0, 1.0, 0.0]))  # probe in hand
+    d.world.human.hand = Pose([0.35, 1.0, -0.15], probe_down_quat([0.0, 1.0, 0.0]))  # probe in hand
     d.executor = ThreadPoolExecutor(1)
     loop_thread = threading.get_ident()
     try:

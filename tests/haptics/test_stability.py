@@ -4,9 +4,11 @@ import numpy as np
 import pytest
 
 from humantele.config import ConfigError, validate_config
+from humantele.haptics.demo_patient import demo_model
 from humantele.haptics.devices import SimDeviceConfig
 from humantele.haptics.devices.sim import SimHandConfig
-from humantele.haptics.loop import ServoConfig, demo_model, run_lockstep
+from humantele.haptics.renderer import run_lockstep
+from humantele.haptics.servo_config import ServoConfig
 from humantele.haptics.stability import DEFAULT_MIN_MARGIN, check_passivity
 
 PRESS_N = 2.0

@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 from session_helpers import pid_alive
 
-from humantele.demo import percentile_ms, summarize
+from humantele.demo import summarize
+from humantele.runtime.stats import percentile_ms
 
 
 def descendants(pid: int) -> set[int]:

@@ -9,7 +9,7 @@ import subprocess
 import sys
 import time
 
-from humantele.demo import PARENT_PID_ENV
+from humantele.runtime.process import PARENT_PID_ENV
 
 
 def _stats(path) -> dict:

@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
@@ -43,7 +44,13 @@ def test_any_order_outliers_and_one_missing_give_the_right_pose_or_none(
         for marker, idx in enumerate(est.matched):
             if idx >= 0:
                 assert keep[perm[idx]] == marker if perm[idx] < len(keep) else False
-    if n_outliers == 0:  # nothing to confuse it: must track
+    all_pts = T.apply(TOOL.markers)
+    overlap = False
+    if drop is not None:  # the dropped marker's image on another's: hidden, lost on purpose
+        ray = all_pts[drop] / np.linalg.norm(all_pts[drop])
+        across = np.linalg.norm(np.cross(np.delete(all_pts, drop, axis=0), ray), axis=1)
+        overlap = bool(np.any(across < 2 * TOOL.sphere_radius))
+    if n_outliers == 0 and not overlap:  # nothing to confuse it: must track
         assert est is not None and est.n_matched == len(keep)
 
 
@@ -96,3 +103,56 @@ def test_refinement_trusts_bearing_over_range():
         e_k.append(T.distance_to(est.T_camera_probe)[1])
         e_r.append(T.distance_to(ref)[1])
     assert np.sqrt(np.mean(np.square(e_r))) < 0.6 * np.sqrt(np.mean(np.square(e_k)))
+
+
+@pytest.mark.parametrize("shape", [(2, 6), (12,), (3, 4), (4, 3, 1), ()])
+def test_wrong_shapes_are_refused_with_a_clear_error(shape):
+    pts = np.zeros(shape)
+    with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
+        estimate_pose(pts, TOOL)
+    with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
+        match_markers(pts, TOOL)
+    with pytest.raises(ValueError, match="numbers"):
+        estimate_pose([["a", "b", "c"]], TOOL)
+
+
+def test_no_points_is_lost_and_nan_rows_are_counted():
+    assert match_markers(np.zeros((0, 3)), TOOL).status == "lost"
+    T = _pose(9)
+    pts = np.vstack([[[np.nan, 0, 0]], T.apply(TOOL.markers), [[0, np.inf, 0]]])
+    res = match_markers(pts, TOOL)
+    assert res.status == "tracked" and res.n_nonfinite == 2
+    assert res.estimate.matched == (1, 2, 3, 4)  # indices of the rows as given
+
+
+def test_three_marker_fit_is_refused_when_the_fourth_was_seen_and_did_not_fit():
+    T = _pose(4)
+    pts = T.apply(TOOL.markers)
+    assert estimate_pose(pts[:3], TOOL).n_matched == 3
+    bad = pts.copy()
+    bad[3] += 0.012 * pts[3] / np.linalg.norm(pts[3])  # its range 12 mm off: no 4-marker fit
+    res = match_markers(bad, TOOL)
+    assert res.status == "lost" and res.n_refuted >= 1
+
+
+def test_explain_missing_refutes_two_markers_and_a_stray():
+    T = _pose(11)
+    pts = T.apply(TOOL.markers)
+    # a stray placed where marker 2 lands when the tool turns 40 deg about the 0-1 axis
+    axis = (pts[1] - pts[0]) / np.linalg.norm(pts[1] - pts[0])
+    rot = Rotation.from_rotvec(np.radians(40.0) * axis)
+    stray = rot.apply(pts[2] - pts[0]) + pts[0]
+    three = np.vstack([pts[:2], stray])
+    wrong = estimate_pose(three, TOOL)
+    assert wrong is not None and np.degrees(T.distance_to(wrong.T_camera_probe)[1]) > 20
+    seen: list[np.ndarray] = []
+
+    def clear_view(centres):
+        seen.append(centres)
+        return np.zeros(len(centres), dtype=bool)
+
+    res = match_markers(three, TOOL, explain_missing=clear_view)
+    assert res.status == "lost" and res.n_refuted == 1
+    np.testing.assert_allclose(seen[0], wrong.T_camera_probe.apply(TOOL.markers[3:]), atol=1e-9)
+    hidden = match_markers(three, TOOL, explain_missing=lambda c: np.ones(len(c), bool))
+    assert hidden.status == "tracked"

@@ -14,9 +14,9 @@ from typing import Any
 import numpy as np
 
 from humantele.analysis.sessions import ScanResult, Session, analyze_scans, load_sessions
-from humantele.bench.report import markdown_table
 from humantele.config import ConfigError
 from humantele.recording.reader import RecordingReadError
+from humantele.report import markdown_table
 
 METRICS = (
     ("position_rmse_mm", "Position RMSE (mm)"),

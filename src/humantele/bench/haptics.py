@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from humantele.bench.report import DOCS_DIR, machine_line, markdown_table, write_section
 from humantele.haptics.ellipsoid import METHODS, Ellipsoid
+from humantele.report import DOCS_DIR, machine_line, markdown_table, write_section
 
 # name -> semi-axes (m) along patient (x, y, z)
 SCENES: dict[str, tuple[float, float, float]] = {

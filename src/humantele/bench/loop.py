@@ -1,6 +1,6 @@
 """``humantele bench loop``: the servo loop's rate and jitter on the sim device.
 
-Runs :class:`humantele.haptics.loop.ServoProcess` (sim Touch X, scripted sonographer, the demo
+Runs :class:`humantele.haptics.servo.ServoProcess` (sim Touch X, scripted sonographer, the demo
 patient model) for ``--seconds``; ``--load`` starts another process that keeps one core fully
 busy meanwhile. Prints a summary and, as the last line, one JSON object; writes the "loop"
 section of docs/benchmarks.md (one row per load condition, the other row kept).
@@ -21,9 +21,12 @@ import re
 import time
 from typing import Any
 
-from humantele.bench.report import BENCHMARKS_MD, machine_line, markdown_table, write_section
+from humantele.haptics.demo_patient import demo_model
 from humantele.haptics.devices import SimDeviceConfig
-from humantele.haptics.loop import ServoConfig, ServoProcess, _try_realtime, demo_model
+from humantele.haptics.servo import ServoProcess
+from humantele.haptics.servo_child import try_realtime
+from humantele.haptics.servo_config import ServoConfig
+from humantele.report import BENCHMARKS_MD, machine_line, markdown_table, write_section
 
 HEADER = ["load", "s", "rate Hz", "p50 us", "p99 us", "max us", "> 2 ms", "overruns", "late",
           "CPU %", "SCHED_FIFO", "targets", "bare loop: max us", "bare loop: > 2 ms"]  # fmt: skip
@@ -52,7 +55,7 @@ def _bare_loop(config_json: str, seconds: float, conn) -> None:
     import gc
 
     config = ServoConfig.model_validate_json(config_json)
-    realtime = _try_realtime(config)
+    realtime = try_realtime(config)
     period, spin, clock = 1.0 / config.rate_hz, config.spin_s, time.monotonic
     n = int(seconds * config.rate_hz)
     stamps = [0.0] * n

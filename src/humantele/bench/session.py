@@ -42,8 +42,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from humantele.bench import report
-from humantele.bench.report import machine_line, markdown_table, write_section
+from humantele import report
+from humantele.report import machine_line, markdown_table, write_section
 
 ROOM = "bench"
 Q_IDENTITY = (0.0, 0.0, 0.0, 1.0)
@@ -135,8 +135,8 @@ def _stats_ms(ages_s: list[float]) -> dict[str, float | int]:
 
 
 async def _expert(args: argparse.Namespace) -> dict:
+    from humantele.runtime.pacing import Pacer
     from humantele.transport import PeerLink
-    from humantele.transport.pacing import Pacer
     from humantele.wire import PoseMessage, Scan
 
     state_ages: list[float] = []
@@ -180,8 +180,8 @@ async def _expert(args: argparse.Namespace) -> dict:
 
 
 async def _follower(args: argparse.Namespace) -> dict:
+    from humantele.runtime.pacing import Pacer
     from humantele.transport import PeerLink
-    from humantele.transport.pacing import Pacer
     from humantele.wire import PoseMessage, Scan, StateMessage
 
     ages: list[float] = []

@@ -16,8 +16,8 @@ import time
 
 import numpy as np
 
-from humantele.bench.report import DOCS_DIR, machine_line, markdown_table, write_section
 from humantele.geometry import Pose, quat_from_axis_angle, quat_multiply
+from humantele.report import DOCS_DIR, machine_line, markdown_table, write_section
 from humantele.tracking.filter import FilterConfig
 from humantele.tracking.pipeline import PipelineConfig, Tracker
 from humantele.tracking.psf import estimate_psf_sigma
@@ -26,6 +26,22 @@ from humantele.tracking.sim import SimFrameConfig, SimFrameSource, default_sim_p
 WRONG_M, WRONG_RAD = 0.005, np.radians(5.0)
 BEFORE = "before: core median + 0.47 R depth"
 FILTER = {"enabled": True, "alpha": 0.4, "beta": 0.05}
+# the matcher before the missing-marker checks (issue 9): any 3-marker fit within tolerance
+NO_CHECKS = {"verify_missing": False, "max_rms_partial_mm": 1.5}
+
+# sphere-shaped strays (same size as the markers, within 7 cm of the probe) and a second tool
+STRAY_SCENES: dict[str, dict] = {
+    "3 sphere strays": {"stray_spheres": 3},
+    "one marker hidden + 1 sphere stray": {"occluded_markers": [1], "stray_spheres": 1},
+    "two markers hidden + 1 sphere stray": {"occluded_markers": [0, 2], "stray_spheres": 1},
+    "two markers hidden + 3 sphere strays": {"occluded_markers": [0, 2], "stray_spheres": 3},
+    "second tool in view": {"second_tool": "reference_frame"},
+    "second tool, one marker hidden": {"second_tool": "reference_frame", "occluded_markers": [3]},
+    "second tool, two markers hidden": {
+        "second_tool": "reference_frame",
+        "occluded_markers": [1, 3],
+    },
+}
 
 VARIANTS: dict[str, tuple[dict, dict]] = {
     "default (weighted, sphere model depth, refine)": ({}, {}),
@@ -229,18 +245,28 @@ def run(args: argparse.Namespace) -> int:
         ),
         "camera blur 1.0 px, model expects 0.7": (blur_wide, {}),
         f"camera blur 1.0 px, calibrated ({psf_wide:.2f})": (blur_wide, {"psf_sigma_px": psf_wide}),
+        "noise x4": (SimFrameConfig(seed=seed, noise_scale=4.0), {}),
     }
+    for name, kw in STRAY_SCENES.items():
+        scenarios[name] = (SimFrameConfig(seed=seed, **kw), {})
+
+    def before(cfg: SimFrameConfig, pipe: dict) -> list:
+        r0 = run_case(cfg, poses, {**pipe, **NO_CHECKS}, {})
+        return [f"{r0['tracked_pct']:.0f}", r0["wrong"]]
+
     for name, (cfg, pipe) in scenarios.items():
         r = run_case(cfg, poses, pipe, {})
         summary["scenarios"][name] = r
-        scen_rows.append([name, *fmt(r)])
-        print(f"{name:45s} {fmt(r)}", flush=True)
+        b = before(cfg, pipe)
+        r["before_checks"] = {"tracked_pct": float(b[0]), "wrong": b[1]}
+        scen_rows.append([name, *fmt(r), *b])
+        print(f"{name:45s} {fmt(r)} before {b}", flush=True)
     for dist in (0.3, 0.45, 0.6, 0.7, 0.9, 1.1):
         cfg = SimFrameConfig(seed=seed, background_depth_m=dist + 0.15)
         r = run_case(cfg, random_poses(max(n // 2, 10), seed + 2, (dist, dist)), {}, {})
         name = f"at {dist:.2f} m" + (" (depth wraps)" if dist + 0.0055 > 1.0 else "")
         summary["scenarios"][name] = r
-        scen_rows.append([name, *fmt(r)])
+        scen_rows.append([name, *fmt(r), "", ""])
         print(f"{name:45s} {fmt(r)}", flush=True)
     lag_off = filter_lag(max(n, 90), seed, {})
     lag_on = filter_lag(max(n, 90), seed, FILTER)
@@ -293,8 +319,28 @@ def run(args: argparse.Namespace) -> int:
                 "comes from the other markers or is lost, never wrong. The model's one sensor "
                 "parameter, the camera blur, is calibrated from IR frames alone "
                 "(`humantele.tracking.psf.estimate_psf_sigma`, 10 frames).",
-                "Where the default pipeline fails:",
-                markdown_table(["scenario", *head[2:]], scen_rows),
+                "Where the default pipeline fails (hidden markers have a finger in front; sphere "
+                "strays are drawn by the sim's marker renderer, never intersecting a marker; the "
+                "second tool is `configs/tools/reference_frame.toml` 7-14 cm from the probe). "
+                "*Before checks*: the same scene with the matcher as it was before issue 9 "
+                "(any three-marker fit within the distance tolerances).",
+                markdown_table(
+                    ["scenario", *head[2:], "tracked % before checks", "wrong before checks"],
+                    scen_rows,
+                ),
+                "Lost, never wrong: a fit that leaves a marker unmatched (three of four) is kept "
+                "only if (1) its RMS residual is <= 0.6 mm (1.5 mm for four), (2) no candidate "
+                "point lies on that marker's ray or within the tool's marker spacing of its "
+                "fitted place (it was seen and did not fit), and (3) the depth image shows a "
+                "reason not to see it: at its fitted place the depth reads no farther than its "
+                "front surface + 10 mm (a finger in front, or its own refused image). If the ray "
+                "is clear, the background visible through where the marker would be, the fit is "
+                "refuted (`humantele.tracking.evidence`). Without depth, or outside the image, "
+                "only four-marker fits are trusted. The cost is the drop in tracked % in the "
+                "rows above; the same seeded scenes with 400 frames and another seed still gave "
+                "1 wrong pose in 400 in two cases (two markers hidden + 3 strays, and noise x4), "
+                "so the residual risk is about 1 in 400 frames in those scenes, where every "
+                "tracked frame was wrong before.",
                 f"Alpha-beta filter (alpha {FILTER['alpha']}, beta {FILTER['beta']}) on a 0.1 m/s "
                 f"ramp: it adds {lag_on['lag_ms'] - lag_off['lag_ms']:.1f} ms of lag and takes "
                 f"the along-track jitter from {lag_off['jitter_mm']:.2f} to "

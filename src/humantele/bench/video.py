@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from humantele.bench.report import BENCHMARKS_MD, machine_line, markdown_table, write_section
+from humantele.report import BENCHMARKS_MD, machine_line, markdown_table, write_section
 from humantele.video.counter import patch_size, read_counter
 from humantele.video.fidelity import psnr, ssim
 from humantele.video.roundtrip import codec_round_trip

@@ -1,6 +1,6 @@
 """``humantele expert``: the expert daemon (the sonographer's side).
 
-It runs the 1 kHz servo process (:class:`humantele.haptics.loop.ServoProcess`, its own OS
+It runs the 1 kHz servo process (:class:`humantele.haptics.servo.ServoProcess`, its own OS
 process), and at the link's pose rate:
 
 - reads the servo's latest sample (the stylus already mapped into the patient frame by the
@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import logging
 import math
 import os
@@ -51,21 +50,6 @@ import numpy as np
 from pydantic import Field
 
 from humantele.config import ConfigError, ConfigModel, load_config, validate_config
-from humantele.demo import (
-    ClockSyncLog,
-    CpuMeter,
-    SessionConfig,
-    add_session_arguments,
-    close_daemon_recording,
-    daemon_ticks,
-    on_stop_signals,
-    open_daemon_recording,
-    percentile_ms,
-    process_cpu_seconds,
-    recorder_stats,
-    session_overrides,
-    write_stats,
-)
 from humantele.expert.console import ConsoleConfig
 from humantele.expert.console.hook import LANDMARKS, PoseHistory, make_console
 from humantele.expert.mapping import (
@@ -76,8 +60,18 @@ from humantele.expert.mapping import (
 )
 from humantele.geometry import Pose, quat_conjugate, quat_multiply
 from humantele.haptics.ellipsoid import Ellipsoid
-from humantele.haptics.loop import ServoConfig, ServoError, ServoProcess
-from humantele.recording import Recorder, RecorderConfig
+from humantele.haptics.servo import ServoProcess
+from humantele.haptics.servo_config import ServoConfig
+from humantele.haptics.servo_layout import ServoError
+from humantele.recording import RecorderConfig
+from humantele.runtime.daemon import (
+    Daemon,
+    add_daemon_arguments,
+    daemon_overrides,
+    setup_logging,
+)
+from humantele.runtime.session import SessionConfig, recorder_stats
+from humantele.runtime.stats import percentile_ms, process_cpu_seconds
 from humantele.transport import LinkConfig, PeerLink
 from humantele.wire import (
     Calibration as CalibrationMsg,
@@ -138,8 +132,10 @@ def servo_config_for(mapping: MappingConfig, servo: ServoConfig) -> ServoConfig:
     return validate_config(ServoConfig, data, "[servo] with [expert.mapping] scale")
 
 
-class ExpertDaemon:
+class ExpertDaemon(Daemon):
     """The expert's state and message handlers; :meth:`run` is the daemon."""
+
+    role = "expert"
 
     def __init__(
         self,
@@ -147,9 +143,8 @@ class ExpertDaemon:
         servo_config: ServoConfig | None = None,
         stats_file: str | None = None,
     ) -> None:
-        self.config = config
+        super().__init__(config, stats_file)
         self.servo_config = servo_config_for(config.mapping, servo_config or ServoConfig())
-        self.stats_file = stats_file
         self.servo = ServoProcess(self.servo_config)
         self.model: Ellipsoid | None = None
         self.mapping = StylusMapping(
@@ -174,22 +169,15 @@ class ExpertDaemon:
         self.last_pose: Pose | None = None
         self.last_sample_t = -math.inf
         self.hold_until = -math.inf
-        self.clock = time.monotonic  # the loop's clock (s); tests may replace it
         self.servo_restarts = 0
-        self.cpu = CpuMeter()
-        self.t_start = time.monotonic()
         self._servo_dead_since: float | None = None
         self.servo_started: float | None = None
         self._servo_cpu_last: float | None = None
-        self._stop = asyncio.Event()
-        # Recording (opened by run(), or set by a caller) and scans.
-        self.rec: Recorder | None = None
-        self.clock_log = ClockSyncLog("/expert/clock_sync")
+        # Scans.
         self.scan: int | None = None  # the scan in progress
         self.scans_started = 0
         self.scan_changed_t = -math.inf  # when the last scan started or stopped
         self.model_t: float | None = None  # when the first patient model arrived
-        self._last_report = -math.inf
         self._late_ticks_reported = 0
         self._states_reported = 0
         self.step_errors = 0
@@ -485,17 +473,6 @@ class ExpertDaemon:
             if self.step_errors in (1, 10, 100, 1000):
                 log.exception("expert: %s failed (%d so far)", step.__name__, self.step_errors)
 
-    def open_recording(self) -> bool:
-        """Open the recording of ``[expert.session]`` (if any); False, with a clear message on
-        stderr, if it cannot be recorded to."""
-        if self.rec is not None:
-            return True
-        ok, self.rec = open_daemon_recording("expert", self.config.session, self.config.recording)
-        return ok
-
-    def close_recording(self) -> None:
-        close_daemon_recording("expert", self.rec)
-
     async def start_console(self) -> None:
         """Serve the console page (``[expert.console]``); a port that cannot be had is logged
         and the daemon runs without it (the haptics come first)."""
@@ -519,12 +496,10 @@ class ExpertDaemon:
             await self.console.stop()
 
     async def run(self, duration_s: float | None = None) -> int:
-        loop = asyncio.get_running_loop()
-        on_stop_signals(loop, self._stop.set)
-        if not self.open_recording():
+        if not self.start_run():
             return 2
         try:
-            await loop.run_in_executor(None, self.servo.start)
+            await asyncio.get_running_loop().run_in_executor(None, self.servo.start)
         except ServoError as exc:
             log.error("expert: %s", exc)
             self.close_recording()
@@ -534,27 +509,18 @@ class ExpertDaemon:
         await self.start_console()
         link_task = asyncio.create_task(self.link.run())
         try:
-            async for t in daemon_ticks(
-                self.config.link.pose_rate_hz,
-                duration_s,
-                running=lambda: not self._stop.is_set() and not link_task.done(),
-                report=lambda: write_stats(self.stats_file, self.stats()),
-                clock=self.clock,
-            ):
+            async for t in self.loop_ticks(self.config.link.pose_rate_hz, duration_s, link_task):
                 self.check_servo(t)
                 self.publish_pose(t)
                 self.guarded(self.script_scans, t)
                 self.guarded(self.record_reports, t)
         finally:
             self.guarded(self.stop_scan, self.clock())  # the scan ends before the bye
-            await self.link.close("expert stopping")
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await asyncio.wait_for(link_task, 5.0)
+            await self.close_link(self.link, link_task)
             await self.stop_console()
             self.servo_cpu_percent()
             self.servo.stop()
-            self.close_recording()
-            write_stats(self.stats_file, self.stats())
+            self.finish_run()
         return 0
 
 
@@ -562,39 +528,25 @@ class ExpertDaemon:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", help="TOML file; [expert] and [servo] sections are used")
-    parser.add_argument("--signaling-url", help="signaling server, e.g. ws://127.0.0.1:8765/ws")
-    parser.add_argument("--room", help="session room name")
-    parser.add_argument("--duration", type=float, help="stop after this many seconds")
-    parser.add_argument("--stats-file", help="write running figures (JSON) to this file")
-    parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
+    add_daemon_arguments(parser, "TOML file; [expert] and [servo] sections are used")
     parser.add_argument("--console-port", type=int, help="console page port (0 picks one)")
     parser.add_argument("--no-console", action="store_true", help="do not serve the console page")
-    add_session_arguments(parser)
 
 
 def configs_from_args(args: argparse.Namespace) -> tuple[ExpertConfig, ServoConfig]:
     config = load_config(ExpertConfig, args.config, "expert" if args.config else None)
     servo = load_config(ServoConfig, args.config, "servo" if args.config else None)
     data = config.model_dump()
-    if args.signaling_url:
-        data["link"]["signaling_url"] = args.signaling_url
-    if args.room:
-        data["link"]["room"] = args.room
     if getattr(args, "console_port", None) is not None:
         data["console"]["port"] = args.console_port
     if getattr(args, "no_console", False):
         data["console"]["enabled"] = False
-    session_overrides(args, data)
+    daemon_overrides(args, data)
     config = validate_config(ExpertConfig, data, "command line")
     return config, servo_config_for(config.mapping, servo)
 
 
 def run(args: argparse.Namespace) -> int:
-    logging.basicConfig(
-        level=getattr(logging, str(args.log_level).upper(), logging.WARNING),
-        format="%(asctime)s expert %(name)s: %(message)s",
-    )
-    logging.getLogger("aioice").setLevel(logging.WARNING)
+    setup_logging("expert", args.log_level)
     config, servo = configs_from_args(args)
     return asyncio.run(ExpertDaemon(config, servo, args.stats_file).run(args.duration))

@@ -2,8 +2,9 @@
 
 Every tick (``rate_hz``, asyncio) it:
 
-1. moves the probe: the simulated person (:mod:`humantele.follower.sim_human`) follows the
-   virtual probe, or performs the calibration presses when calibrating;
+1. moves the probe: the simulated world (:mod:`humantele.follower.sim_world`: patient,
+   person, head) advances; its person follows the virtual probe, or performs the calibration
+   presses when calibrating;
 2. at the tracker's rate (``sensing_rate_hz``) measures it through the sensing pipeline
    (:mod:`humantele.follower.sensing` when present, else the truth behind the same small
    interface), so what it streams is what a real tracker and force sensor would give. The
@@ -56,20 +57,6 @@ from numpy.typing import NDArray
 from pydantic import Field
 
 from humantele.config import ConfigModel, load_config, validate_config
-from humantele.demo import (
-    ClockSyncLog,
-    CpuMeter,
-    SessionConfig,
-    add_session_arguments,
-    close_daemon_recording,
-    daemon_ticks,
-    on_stop_signals,
-    open_daemon_recording,
-    percentile_ms,
-    recorder_stats,
-    session_overrides,
-    write_stats,
-)
 from humantele.follower.calibration import (
     CALIBRATION_FILE,
     LANDMARKS,
@@ -81,15 +68,21 @@ from humantele.follower.calibration import (
 from humantele.follower.feed import FeedConfig, RendererFeed, model_fields
 from humantele.follower.sim_human import (
     CalibrationScript,
-    SimHead,
     SimHeadConfig,
-    SimHuman,
     SimHumanConfig,
-    SimPatient,
     SimPatientConfig,
 )
+from humantele.follower.sim_world import SimWorld, WorldTruth
 from humantele.geometry import Pose, matrix_to_quat
-from humantele.recording import Recorder, RecorderConfig
+from humantele.recording import RecorderConfig
+from humantele.runtime.daemon import (
+    Daemon,
+    add_daemon_arguments,
+    daemon_overrides,
+    setup_logging,
+)
+from humantele.runtime.session import SessionConfig, recorder_stats
+from humantele.runtime.stats import percentile_ms
 from humantele.transport import LinkConfig, PeerLink
 from humantele.wire import (
     Calibration as CalibrationMsg,
@@ -150,16 +143,18 @@ class Measurement:
 
 
 @dataclass
-class Frame:
-    """One tracker frame's inputs: the tick time (s), the truths driving the sim sensors, the
-    head camera, and the virtual probe and target the tick had (for the alignment figure)."""
+class TrackerImage:
+    """One tracker image to measure: the simulated world at its time (what the sim sensors
+    see; ``truth.t`` is the tick time, s), and the virtual probe and target the tick had
+    (world frame, for the alignment figure)."""
 
-    t: float
-    true_tip: Pose | None
-    force: NDArray[np.float64]
-    camera: Pose | None
+    truth: WorldTruth
     virtual: Pose | None
     target: Pose | None
+
+    @property
+    def t(self) -> float:
+        return self.truth.t
 
 
 def _tip_transform(tool_name: str) -> Pose:
@@ -180,7 +175,7 @@ def _tip_transform(tool_name: str) -> Pose:
 
 class Sensing:
     """Measure the probe: the sensing pipeline (sim IR tracker and force sensor) by default,
-    else the truth. ``measure(t, T_world_tip_true, force_true_world)`` gives a
+    else the truth. ``measure(truth)`` (the simulated world at a tracker image) gives a
     :class:`Measurement`; a pipeline error gives a LOST measurement (counted), never a crash.
     """
 
@@ -198,13 +193,9 @@ class Sensing:
             else:
                 self.pipeline = ProbeSensing(sensing_config)
 
-    def measure(
-        self,
-        t: float,
-        T_world_tip: Pose | None,
-        force_world: NDArray,
-        T_world_camera: Pose | None = None,
-    ) -> Measurement:
+    def measure(self, truth: WorldTruth) -> Measurement:
+        t, T_world_tip, force_world = truth.t, truth.T_world_tip, truth.force_world
+        T_world_camera = truth.T_world_camera
         lost = Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
         if T_world_tip is None:
             return lost
@@ -236,8 +227,10 @@ class Sensing:
                 self.pipeline.close()
 
 
-class FollowerDaemon:
+class FollowerDaemon(Daemon):
     """The follower's state and its message handlers; :meth:`run` is the daemon."""
+
+    role = "follower"
 
     def __init__(
         self,
@@ -245,15 +238,12 @@ class FollowerDaemon:
         stats_file: str | None = None,
         sensing_config: object | None = None,
     ) -> None:
-        self.config = config
-        self.stats_file = stats_file
+        super().__init__(config, stats_file)
         self.state_dir = Path(config.state_dir).expanduser()
         self.calibration_path = self.state_dir / CALIBRATION_FILE
         self.calibration: Calibration | None = Calibration.load(self.calibration_path)
         self.calibrator = Calibrator(config.calibration)
-        self.patient = SimPatient(config.sim_patient)
-        self.human = SimHuman(config.sim_human, self.patient)
-        self.head = SimHead(config.sim_head)
+        self.world = SimWorld(config.sim_patient, config.sim_human, config.sim_head)
         self.sensing = Sensing(config, sensing_config)
         self.measurement = Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
         self.last_measure_t = -math.inf
@@ -285,20 +275,14 @@ class FollowerDaemon:
         self.late_ticks = 0
         self.last_event: CalibrationEvent | None = None
         self.loaded_calibration = self.calibration is not None
-        self.cpu = CpuMeter()
-        self.t_start = time.monotonic()
-        self._stop = asyncio.Event()
         # The sensing worker (run() starts it; without it, tick() measures in line).
         self.executor: ThreadPoolExecutor | None = None
         self._sensing: Future | None = None
         self.sensing_skipped = 0
         self.sensing_times: deque[float] = deque(maxlen=2000)  # s per measurement, worker
-        # Scans (from the expert) and recording (opened by run(), or set by a caller).
+        # Scans (from the expert) and what has been recorded.
         self.scan: int | None = None
         self.scans_seen = 0
-        self.rec: Recorder | None = None
-        self.clock_log = ClockSyncLog("/follower/clock_sync")
-        self._last_report = -math.inf
         self._poses_reported = 0
         self._model_recorded: Calibration | None = None
 
@@ -421,7 +405,7 @@ class FollowerDaemon:
         self.calibrating = True
         self.calibrator.reset()
         self.record("/follower/calibration", time.monotonic(), {"event": "reset"})
-        self.script = CalibrationScript(self.patient) if self.config.auto_calibrate else None
+        self.script = self.world.calibration_script() if self.config.auto_calibrate else None
         self.script_t0 = time.monotonic()
         self.send_control(CalibrationMsg(event="start"))
         self.publish_calibration()
@@ -473,8 +457,7 @@ class FollowerDaemon:
             target = virtual if fresh else None
             if target is not None and self.last_pose.clutch:
                 target = None  # the expert is re-indexing: hold still
-        true_tip = self.human.step(t, target)
-        force = np.zeros(3) if true_tip is None else self.patient.force(true_tip.position)
+        self.world.step(t, target)
         if self.calibrating or target is None:
             self.following_since = None
         elif self.following_since is None:
@@ -485,9 +468,7 @@ class FollowerDaemon:
             # fraction of the tick rate (45 Hz from 100 Hz ticks, not 33); no catching up.
             late = t - self.last_measure_t >= 2.0 * frame_period
             self.last_measure_t = t if late else self.last_measure_t + frame_period
-            tip_pos = None if true_tip is None else true_tip.position
-            camera = self.head.step(t, tip_pos)
-            self.start_measurement(Frame(t, true_tip, force, camera, virtual, target))
+            self.start_measurement(TrackerImage(self.world.truth(t), virtual, target))
         # Video frame timestamps (/follower/video_frame: stream 'pov' or 'us', seq, event) are
         # recorded here once the follower has its POV and ultrasound tracks; there is no video
         # yet, so nothing is recorded for it.
@@ -495,13 +476,12 @@ class FollowerDaemon:
 
     # --- measurements (sensing worker thread -> loop) -------------------------------------
 
-    def start_measurement(self, frame: Frame) -> None:
-        """Measure one tracker frame: on the sensing worker when the daemon runs (the result
-        is taken on the loop), else in line. Never two at once: a frame due while the previous
-        one is measured is skipped and counted."""
+    def start_measurement(self, frame: TrackerImage) -> None:
+        """Measure one tracker image: on the sensing worker when the daemon runs (the result
+        is taken on the loop), else in line. Never two at once: an image due while the
+        previous one is measured is skipped and counted."""
         if self.executor is None:
-            m = self.sensing.measure(frame.t, frame.true_tip, frame.force, frame.camera)
-            self.take_measurement(frame, m)
+            self.take_measurement(frame, self.sensing.measure(frame.truth))
             return
         if self._sensing is not None:
             self.sensing_skipped += 1
@@ -510,14 +490,14 @@ class FollowerDaemon:
         self._sensing = fut
         fut.add_done_callback(lambda f: self._measured(frame, f))
 
-    def _measure(self, frame: Frame) -> Measurement:
+    def _measure(self, frame: TrackerImage) -> Measurement:
         """On the sensing worker: measure, and time it."""
         t0 = time.perf_counter()
-        m = self.sensing.measure(frame.t, frame.true_tip, frame.force, frame.camera)
+        m = self.sensing.measure(frame.truth)
         self.sensing_times.append(time.perf_counter() - t0)
         return m
 
-    def _measured(self, frame: Frame, fut: Future) -> None:
+    def _measured(self, frame: TrackerImage, fut: Future) -> None:
         self._sensing = None
         if fut.cancelled():
             return
@@ -531,7 +511,7 @@ class FollowerDaemon:
             if self.tick_errors in (1, 10, 100, 1000):
                 log.exception("follower: measurement failed (%d so far)", self.tick_errors)
 
-    def take_measurement(self, frame: Frame, m: Measurement) -> None:
+    def take_measurement(self, frame: TrackerImage, m: Measurement) -> None:
         """One tracker frame measured: calibration, alignment, the state stream, recording."""
         self.measurement = m
         self.measurements += 1
@@ -605,17 +585,6 @@ class FollowerDaemon:
             value = float(np.median(list(self.pose_ages)[-new:]))
             self.rec.write("/follower/latency", t, {"name": "pose_one_way", "value_s": value})
 
-    def open_recording(self) -> bool:
-        """Open the recording of ``[follower.session]`` (if any); False, with a clear message
-        on stderr, if it cannot be recorded to."""
-        if self.rec is not None:
-            return True
-        ok, self.rec = open_daemon_recording("follower", self.config.session, self.config.recording)
-        return ok
-
-    def close_recording(self) -> None:
-        close_daemon_recording("follower", self.rec)
-
     def pose_rate_hz(self, window_s: float = 1.0) -> float:
         """Poses received per second over the last ``window_s``."""
         now = time.monotonic()
@@ -667,9 +636,7 @@ class FollowerDaemon:
         self.late_ticks += 1
 
     async def run(self, duration_s: float | None = None) -> int:
-        loop = asyncio.get_running_loop()
-        on_stop_signals(loop, self._stop.set)
-        if not self.open_recording():
+        if not self.start_run():
             return 2
         self.record_model()  # a saved calibration's model
         self.executor = ThreadPoolExecutor(1, thread_name_prefix="humantele-sensing")
@@ -688,12 +655,8 @@ class FollowerDaemon:
         self.publish_calibration()
         self.publish_model()
         try:
-            async for t in daemon_ticks(
-                self.config.rate_hz,
-                duration_s,
-                running=lambda: not self._stop.is_set() and not link_task.done(),
-                report=lambda: write_stats(self.stats_file, self.stats()),
-                on_late=self._count_late_tick,
+            async for t in self.loop_ticks(
+                self.config.rate_hz, duration_s, link_task, on_late=self._count_late_tick
             ):
                 self.ticks += 1
                 try:
@@ -704,15 +667,12 @@ class FollowerDaemon:
                     if self.tick_errors in (1, 10, 100, 1000):
                         log.exception("follower: tick failed (%d so far)", self.tick_errors)
         finally:
-            await self.link.close("follower stopping")
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await asyncio.wait_for(link_task, 5.0)
+            await self.close_link(self.link, link_task)
             await self.feed.stop()
             self.executor.shutdown(wait=True)  # the frame being measured ends first
             self.executor = None
             self.sensing.close()
-            self.close_recording()
-            write_stats(self.stats_file, self.stats())
+            self.finish_run()
         return 0
 
 
@@ -726,30 +686,20 @@ def _rms_scaled(values: list[float], scale: float) -> float | None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", help="TOML file; the [follower] section is used")
-    parser.add_argument("--signaling-url", help="signaling server, e.g. ws://127.0.0.1:8765/ws")
-    parser.add_argument("--room", help="session room name")
+    add_daemon_arguments(parser, "TOML file; the [follower] section is used")
     parser.add_argument("--state-dir", help="where the calibration is saved")
     parser.add_argument("--feed-port", type=int, help="renderer feed port (0 picks one)")
     parser.add_argument("--recalibrate", action="store_true", help="ignore a saved calibration")
-    parser.add_argument("--duration", type=float, help="stop after this many seconds")
-    parser.add_argument("--stats-file", help="write running figures (JSON) to this file")
-    parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
-    add_session_arguments(parser)
 
 
 def config_from_args(args: argparse.Namespace) -> FollowerConfig:
     config = load_config(FollowerConfig, args.config, "follower" if args.config else None)
     data = config.model_dump()
-    if args.signaling_url:
-        data["link"]["signaling_url"] = args.signaling_url
-    if args.room:
-        data["link"]["room"] = args.room
+    daemon_overrides(args, data)
     if args.state_dir:
         data["state_dir"] = args.state_dir
     if args.feed_port is not None:
         data["feed"]["port"] = args.feed_port
-    session_overrides(args, data)
     return validate_config(FollowerConfig, data, "command line")
 
 
@@ -763,11 +713,7 @@ def sensing_config_from_args(args: argparse.Namespace) -> object | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    logging.basicConfig(
-        level=getattr(logging, str(args.log_level).upper(), logging.WARNING),
-        format="%(asctime)s follower %(name)s: %(message)s",
-    )
-    logging.getLogger("aioice").setLevel(logging.WARNING)
+    setup_logging("follower", args.log_level)
     config = config_from_args(args)
     daemon = FollowerDaemon(config, args.stats_file, sensing_config_from_args(args))
     if args.recalibrate:

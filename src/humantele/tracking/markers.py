@@ -5,12 +5,22 @@ the tool's markers whose pairwise distances agree with the tool geometry (so ext
 up to ``M - min_visible`` missing markers are tolerated), fits each by SVD (Kabsch), and keeps
 the one with the most markers and then the smallest residual. It refuses (returns None) when
 the best fit's residual is too large, or when another assignment with as many markers gives a
-different pose just as well (ambiguous): never a wrong pose given silently.
+different pose just as well (ambiguous): never a wrong pose given silently. A fit that leaves
+a marker unmatched while a candidate lies on that marker's ray is refused too: the marker
+was seen and did not fit, so the three that did are not to be trusted alone.
+
+A fit that leaves markers unmatched (three of four) is weak evidence: two real markers and a
+stray sphere (a second tool, a ring, a button) can fit within the tolerances. The caller can
+pass ``explain_missing``: it is given the fitted places of the unmatched markers and says
+whether the sensor shows a reason not to see each (something in front of it, or a marker
+image the detector refused). Fits whose missing markers would have been in plain view are
+refuted (:mod:`humantele.tracking.evidence` does this with the depth image).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -22,6 +32,11 @@ from humantele.tracking.tool import ToolDefinition, kabsch
 
 Status = Literal["tracked", "lost", "ambiguous"]
 
+LATERAL_SEEN = 0.004  # a candidate this close (m) to a missing marker's ray is that marker
+
+# fitted centres (K, 3) of unmatched markers, camera frame, m -> (K,) bool: absence explained
+ExplainMissing = Callable[[NDArray[np.float64]], NDArray[np.bool_]]
+
 
 @dataclass(frozen=True)
 class MatchParams:
@@ -30,6 +45,8 @@ class MatchParams:
     distance_tol: float = 0.004  # |measured - model| pairwise distance allowed, m
     max_rms: float = 0.0015  # largest accepted RMS residual of the fit, m
     max_marker_error: float = 0.003  # largest accepted single-marker residual, m
+    max_rms_partial: float = 0.0006  # ... RMS residual when markers are left unmatched, m
+    refuse_seen_missing: bool = True  # refuse a fit whose unmatched marker has a candidate
     distinct_pose: float = 0.003  # two fits differ if some marker moves more than this, m
     max_candidates: int = 24  # more candidate points than this: keep the first ones
 
@@ -54,11 +71,26 @@ class PoseEstimate:
 
 @dataclass(frozen=True)
 class MatchResult:
-    """Outcome of a match: status, the estimate when tracked, and the number of fits tried."""
+    """Outcome of a match: status, the estimate when tracked, the number of fits tried,
+    input rows dropped for not being finite, and fits refuted because a marker they leave
+    unmatched would have been seen (``explain_missing``)."""
 
     status: Status
     estimate: PoseEstimate | None
     n_hypotheses: int
+    n_nonfinite: int = 0
+    n_refuted: int = 0
+
+
+def as_points(points: ArrayLike) -> NDArray[np.float64]:
+    """Candidate points as an (N, 3) float array; anything else raises ValueError."""
+    try:
+        pts = np.asarray(points, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"points must be numbers shaped (N, 3), m: {exc}") from None
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3) (x, y, z in m), got {pts.shape}")
+    return pts
 
 
 def _assignments(
@@ -94,20 +126,31 @@ def _assignments(
 
 
 def match_markers(
-    points: ArrayLike, tool: ToolDefinition, params: MatchParams | None = None
+    points: ArrayLike,
+    tool: ToolDefinition,
+    params: MatchParams | None = None,
+    explain_missing: ExplainMissing | None = None,
 ) -> MatchResult:
-    """Match candidate marker centres (N, 3) in the camera frame (m) to ``tool``."""
+    """Match candidate marker centres (N, 3) in the camera frame (m) to ``tool``.
+
+    Rows with a NaN or infinite coordinate are dropped and counted (``n_nonfinite``); a
+    shape other than (N, 3) raises ValueError. ``explain_missing``: see the module doc.
+    ``matched`` indices refer to the rows as given (dropped rows included).
+    """
     p = params or MatchParams()
-    pts = np.asarray(points, dtype=float).reshape(-1, 3)
-    pts = pts[np.all(np.isfinite(pts), axis=1)][: p.max_candidates]
+    pts_in = as_points(points)
+    finite = np.flatnonzero(np.all(np.isfinite(pts_in), axis=1))[: p.max_candidates]
+    n_bad = len(pts_in) - int(np.all(np.isfinite(pts_in), axis=1).sum())
+    pts = pts_in[finite]
     model = tool.markers
     if len(pts) < tool.min_visible:
-        return MatchResult("lost", None, 0)
+        return MatchResult("lost", None, 0, n_bad)
     d_meas = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
     d_model = np.linalg.norm(model[:, None] - model[None], axis=-1)
     hyps = _assignments(d_meas, d_model, p.distance_tol, tool.min_visible)
     if not hyps:
-        return MatchResult("lost", None, 0)
+        return MatchResult("lost", None, 0, n_bad)
+    n_refuted = 0
     hyp = np.array(hyps, dtype=np.intp)  # (H, M): candidate index per marker, -1 missing
     present = hyp >= 0
     counts = present.sum(axis=1)
@@ -120,32 +163,86 @@ def match_markers(
         dst = pts[np.take_along_axis(h, marker, axis=1)]
         r, t, rms = kabsch(src, dst)
         err = np.linalg.norm(np.einsum("gij,gnj->gni", r, src) + t[:, None] - dst, axis=-1)
-        good = np.flatnonzero((rms <= p.max_rms) & (err.max(axis=1) <= p.max_marker_error))
+        max_rms = p.max_rms if k == len(model) else min(p.max_rms, p.max_rms_partial)
+        good = np.flatnonzero((rms <= max_rms) & (err.max(axis=1) <= p.max_marker_error))
         if good.size == 0:
             continue
-        best = good[np.argmin(rms[good])]
-        # ambiguous: another assignment with as many markers fits as well but moves the tool
         placed = model @ r[good].transpose(0, 2, 1) + t[good][:, None, :]  # (g, M, 3)
-        moved = np.linalg.norm(placed - placed[good == best], axis=-1).max(axis=1)
+        if k < len(model):
+            # a fit whose unmatched marker would be in plain view is no fit at all, nor one
+            # whose unmatched marker was seen (a candidate on its ray) but did not fit
+            ok = np.array(
+                [
+                    not (p.refuse_seen_missing and _missing_contradicted(pl, pr, pts, h_row, tool))
+                    and (explain_missing is None or bool(np.all(explain_missing(pl[~pr]))))
+                    for pl, pr, h_row in zip(placed, present[rows[good]], h[good], strict=True)
+                ]
+            )
+            n_refuted += int(np.count_nonzero(~ok))
+            good, placed = good[ok], placed[ok]
+            if good.size == 0:
+                continue
+        j = int(np.argmin(rms[good]))
+        best = good[j]
+        # ambiguous: another assignment with as many markers fits as well but moves the tool
+        moved = np.linalg.norm(placed - placed[j], axis=-1).max(axis=1)
         if np.any(moved > p.distinct_pose):
-            return MatchResult("ambiguous", None, len(hyps))
+            return MatchResult("ambiguous", None, len(hyps), n_bad, n_refuted)
         pose = Pose(t[best], matrix_to_quat(r[best]))
-        matched = tuple(int(i) for i in hyp[rows[best]])
+        matched = tuple(int(finite[i]) if i >= 0 else -1 for i in hyp[rows[best]])
         est = PoseEstimate(pose, float(rms[best]), matched, r[best])
-        return MatchResult("tracked", est, len(hyps))
-    return MatchResult("lost", None, len(hyps))
+        return MatchResult("tracked", est, len(hyps), n_bad, n_refuted)
+    return MatchResult("lost", None, len(hyps), n_bad, n_refuted)
+
+
+def _missing_contradicted(
+    placed: NDArray[np.float64],
+    present: NDArray[np.bool_],
+    pts: NDArray[np.float64],
+    used: NDArray[np.intp],
+    tool: ToolDefinition,
+) -> bool:
+    """Whether the fit's own evidence contradicts a marker it leaves unmatched.
+
+    ``placed`` (M, 3) the fitted marker centres, ``present`` (M,) which were matched,
+    ``pts`` the candidates, ``used`` (M,) candidate index per marker (-1 missing). True when
+    a candidate left out of the fit lies on a missing marker's ray (within ``LATERAL_SEEN``
+    m) or within the tool's marker spacing of its fitted place (seen, did not fit), or when
+    the fit puts a missing marker's image onto one of its matched markers' (it would have
+    merged with it: the detector would not have seen that marker whole).
+    """
+    missing = placed[~present]
+    ray = missing / np.linalg.norm(missing, axis=1, keepdims=True)  # (K, 3)
+    own = placed[present]
+    if np.any(
+        np.linalg.norm(np.cross(own[None], ray[:, None]), axis=-1) < 2.0 * tool.sphere_radius
+    ):
+        return True
+    rest = np.delete(pts, used[used >= 0], axis=0)
+    if len(rest) == 0:
+        return False
+    across = np.linalg.norm(np.cross(rest[None, :, :], ray[:, None, :]), axis=-1)
+    near = np.linalg.norm(rest[None, :, :] - missing[:, None, :], axis=-1)
+    return bool(np.any(across < LATERAL_SEEN) or np.any(near < tool.min_separation_mm / 1000.0))
 
 
 def estimate_pose(
-    points: ArrayLike, tool: ToolDefinition, params: MatchParams | None = None
+    points: ArrayLike,
+    tool: ToolDefinition,
+    params: MatchParams | None = None,
+    explain_missing: ExplainMissing | None = None,
 ) -> PoseEstimate | None:
     """Pose of the probe in the camera frame from candidate marker centres (N, 3), m.
 
     Points may be in any order, include outliers and miss up to ``M - tool.min_visible``
-    markers. Returns None when no fit is trustworthy (too few markers, residual too large,
-    or ambiguous).
+    markers. Rows with a NaN or infinite coordinate are dropped (a detector's "no depth"
+    rows); :func:`match_markers` counts them. Any shape but (N, 3) (N may be 0) raises
+    ValueError. Returns None when no fit is trustworthy (too few markers, residual too large,
+    ambiguous, or every fit refuted by ``explain_missing``). Without ``explain_missing`` a
+    fit that leaves markers unmatched is not checked against the image: give it one whenever
+    a depth image is at hand (the tracking pipeline does).
     """
-    return match_markers(points, tool, params).estimate
+    return match_markers(points, tool, params, explain_missing).estimate
 
 
 def refine_pose(

@@ -5,7 +5,9 @@ the sphere's surface to its centre (:mod:`humantele.tracking.blobs`); matching t
 an SVD fit with residual and ambiguity checks (:mod:`humantele.tracking.markers`); optionally
 a maximum-likelihood refinement that trusts bearings more than ToF range; optionally the
 alpha-beta filter. The status is explicit: ``tracked``, ``lost`` or ``ambiguous``; a pose is
-given only when tracked.
+given only when tracked. A fit that leaves a marker unmatched is kept only if the depth image
+shows why that marker is unseen (:mod:`humantele.tracking.evidence`); frames without depth
+then track only with every marker matched.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from pydantic import Field
 from humantele.config import ConfigModel
 from humantele.geometry import Pose, matrix_to_quat
 from humantele.tracking.blobs import BlobParams, CentroidMethod, DepthMethod, detect_blobs
+from humantele.tracking.evidence import FreeSpaceCheck
 from humantele.tracking.filter import FilterConfig, PoseFilter
 from humantele.tracking.frames import TrackingFrame
 from humantele.tracking.markers import MatchParams, Status, match_markers, refine_rt
@@ -59,6 +62,17 @@ class PipelineConfig(ConfigModel):
     distance_tol_mm: float = Field(4.0, gt=0)
     max_rms_mm: float = Field(1.5, gt=0)
     max_marker_error_mm: float = Field(3.0, gt=0)
+    max_rms_partial_mm: float = Field(
+        0.6, gt=0, description="max_rms for fits that leave a marker unmatched (3 points)"
+    )
+    verify_missing: bool = Field(
+        True,
+        description="refute fits whose unmatched marker is seen but does not fit, or which the "
+        "depth image shows is not there",
+    )
+    free_space_margin_mm: float = Field(
+        10.0, gt=0, description="depth farther than a missing marker's surface by this: clear"
+    )
 
 
 @dataclass(frozen=True)
@@ -111,10 +125,13 @@ class Tracker:
             distance_tol=c.distance_tol_mm / 1000.0,
             max_rms=c.max_rms_mm / 1000.0,
             max_marker_error=c.max_marker_error_mm / 1000.0,
+            max_rms_partial=c.max_rms_partial_mm / 1000.0,
+            refuse_seen_missing=c.verify_missing,
         )
         fc = filter_config or FilterConfig()
         self.filter = PoseFilter(fc) if fc.enabled else None
         self.counts = {"tracked": 0, "lost": 0, "ambiguous": 0}
+        self.refuted = 0  # fits refuted because a marker they leave unmatched was not there
 
     def process(self, frame: TrackingFrame) -> TrackingResult:
         """Track the tool in one frame."""
@@ -122,8 +139,22 @@ class Tracker:
         blobs = detect_blobs(
             frame.ir, frame.depth_mm, frame.intrinsics, self.tool.sphere_radius, self.blob_params
         )
-        res = match_markers(blobs.points, self.tool, self.match_params)
+        explain = None
+        if c.verify_missing:
+            if frame.depth_mm is None:
+                explain = _never  # nothing to check a missing marker against
+            else:
+                explain = FreeSpaceCheck(
+                    frame.depth_mm,
+                    frame.intrinsics,
+                    self.tool.sphere_radius,
+                    margin_m=c.free_space_margin_mm / 1000.0,
+                    wrap_m=c.depth_wrap_m,
+                    min_range_m=c.min_range_m,
+                )
+        res = match_markers(blobs.points, self.tool, self.match_params, explain)
         self.counts[res.status] += 1
+        self.refuted += res.n_refuted
         n = len(blobs.points)
         if res.estimate is None:
             return TrackingResult(frame.t, res.status, None, float("nan"), (), n)
@@ -144,3 +175,7 @@ class Tracker:
         if self.filter is not None:
             pose = self.filter.update(frame.t, pose)
         return TrackingResult(frame.t, "tracked", pose, est.residual_m, est.matched, n)
+
+
+def _never(centres: np.ndarray) -> np.ndarray:
+    return np.zeros(len(centres), dtype=bool)

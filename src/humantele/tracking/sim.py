@@ -11,7 +11,11 @@ What is modelled (each term scaled by ``noise_scale``):
   ``depth_wrap_m``;
 - the scene: a tilted patient/bed plane with IR texture, static bright clutter (bed rails,
   cables), spurious reflections (gel glints, the probe's shell) near the probe and anywhere,
-  partial occlusion of a sphere by a finger, markers fully hidden on request.
+  partial occlusion of a sphere by a finger, markers fully hidden on request (a finger in
+  front of them);
+- retro-reflective strays shaped like the markers (a ring, a button, a loose sphere) and a
+  second marker tool in view, drawn by the same sphere renderer: the scenes where two real
+  markers and a stray can look like a three-marker fit.
 
 Only small regions around each sphere and glint are rendered per frame; the background is
 drawn once (a few noisy variants) and copied, so a frame costs well under a millisecond or
@@ -67,7 +71,27 @@ class SimFrameConfig(ConfigModel):
     clutter_patches: int = Field(2, ge=0, le=50)
     spurious_rate: float = Field(1.0, ge=0, le=50, description="mean glints per frame")
     partial_occlusion_prob: float = Field(0.0, ge=0, le=1, description="per marker, frame")
-    occluded_markers: list[int] = Field(default_factory=list, description="hidden markers")
+    occluded_markers: list[int] = Field(
+        default_factory=list, description="hidden markers (a finger in front of each)"
+    )
+    finger_brightness: float = Field(
+        400.0, ge=0, description="IR counts of skin at 0.5 m (fingers over markers)"
+    )
+    stray_spheres: int = Field(
+        0, ge=0, le=20, description="sphere-shaped strays per frame near the probe"
+    )
+    stray_radius_mm: float | None = Field(
+        None, gt=0.5, le=30, description="their radius; None: the tool's marker radius"
+    )
+    stray_spread_m: float = Field(
+        0.07, gt=0, le=0.5, description="strays lie within this of the probe's origin, per axis"
+    )
+    second_tool: str | None = Field(
+        None, description="another marker tool in view (name in configs/tools or a path)"
+    )
+    second_tool_distance_m: tuple[float, float] = Field(
+        (0.07, 0.14), description="its origin's distance from the probe's, sideways, m"
+    )
 
 
 class SimFrameSource:
@@ -79,6 +103,12 @@ class SimFrameSource:
         self.intrinsics = self.config.intrinsics
         self.pose = default_sim_pose()
         self._rng = np.random.default_rng(self.config.seed)
+        c = self.config
+        self.second_tool = None if c.second_tool is None else load_tool(c.second_tool)
+        self._stray_rng = np.random.default_rng(c.seed + 4241)  # strays do not shift the rest
+        self._stray_radius = (
+            self.tool.sphere_radius if c.stray_radius_mm is None else c.stray_radius_mm / 1000.0
+        )
         self._seq = 0
         self._make_background()
 
@@ -152,12 +182,27 @@ class SimFrameSource:
         ir = self._bg_ir[j].copy()
         depth = self._bg_depth[j].copy()
         centres = T_camera_probe.apply(self.tool.markers)
-        visible = []
-        order = np.argsort(-np.linalg.norm(centres, axis=1))  # far first, near drawn over
-        vis = {}
-        for i in order:
-            hidden = i in c.occluded_markers
-            vis[i] = (not hidden) and self._draw_sphere(ir, depth, centres[i], rng)
+        rad = self.tool.sphere_radius
+        # every object (range, kind, data), drawn far first so nearer ones cover farther ones
+        objects: list[tuple[float, str, object]] = []
+        for i, ctr in enumerate(centres):
+            if i in c.occluded_markers:
+                finger = self._finger_in_front(ctr, rad)
+                if finger is not None:
+                    objects.append((float(np.linalg.norm(finger[0])), "finger", finger))
+            else:
+                objects.append((float(np.linalg.norm(ctr)), "marker", (i, ctr, rad)))
+        for ctr, r in self._strays(T_camera_probe):
+            objects.append((float(np.linalg.norm(ctr)), "stray", (-1, ctr, r)))
+        vis = dict.fromkeys(range(len(centres)), False)
+        for _d, kind, data in sorted(objects, key=lambda o: -o[0]):
+            if kind == "finger":
+                self._draw_finger(ir, depth, *data, rng)
+            else:
+                i, ctr, r = data
+                shown = self._draw_sphere(ir, depth, ctr, rng, r)
+                if i >= 0:
+                    vis[i] = shown
         visible = tuple(bool(vis[i]) for i in range(len(centres)))
         n_glints = int(rng.poisson(c.spurious_rate))
         centre_px = k.project(T_camera_probe.position) if T_camera_probe.position[2] > 0 else None
@@ -203,11 +248,79 @@ class SimFrameSource:
         ir[y0:y1, x0:x1][lit] = i_n[lit]
         depth[y0:y1, x0:x1][lit] = d_n[lit]
 
+    def _strays(self, T_camera_probe: Pose) -> list[tuple[NDArray, float]]:
+        """Sphere centres (camera frame, m) and radii of this frame's strays and second tool."""
+        c, rng = self.config, self._stray_rng
+        out = []
+        markers = T_camera_probe.apply(self.tool.markers)
+        gap = self.tool.sphere_radius + self._stray_radius + 0.001  # solid spheres never meet
+        for _ in range(c.stray_spheres):
+            for _try in range(20):
+                p = T_camera_probe.position + rng.uniform(-1.0, 1.0, 3) * c.stray_spread_m
+                if np.linalg.norm(markers - p, axis=1).min() > gap:
+                    out.append((p, self._stray_radius))
+                    break
+        if self.second_tool is not None:
+            a = rng.uniform(0.0, 2.0 * math.pi)
+            d = rng.uniform(*c.second_tool_distance_m)
+            pos = T_camera_probe.position + [
+                d * math.cos(a),
+                d * math.sin(a),
+                rng.uniform(-0.03, 0.03),
+            ]
+            tilt = quat_from_axis_angle(rng.normal(size=3), math.radians(rng.uniform(0.0, 40.0)))
+            pose = Pose(pos, quat_multiply(tilt, default_sim_pose().quaternion))
+            for m in pose.apply(self.second_tool.markers):
+                out.append((m, self.second_tool.sphere_radius))
+        return [(p, r) for p, r in out if p[2] > 0.1]
+
+    def _finger_in_front(self, centre: NDArray, rad: float) -> tuple[NDArray, float] | None:
+        """A fingertip (centre m, radius m) 15-25 mm in front of a hidden sphere."""
+        dist = float(np.linalg.norm(centre))
+        if centre[2] < 0.1:
+            return None
+        gap = self._stray_rng.uniform(0.015, 0.025)
+        return centre * (dist - rad - gap) / dist, 0.009
+
+    def _draw_finger(
+        self,
+        ir: NDArray,
+        depth: NDArray,
+        centre: NDArray,
+        radius: float,
+        rng: np.random.Generator,
+        cut: tuple[float, float, float] | None = None,
+    ) -> None:
+        """Skin (dim in IR, a valid range) as a blurred disc of ``radius`` (m) at ``centre``;
+        with ``cut`` = (u, v, r_px) a disc in pixels instead."""
+        c, k = self.config, self.intrinsics
+        if cut is None:
+            u0, v0 = k.project(centre)
+            r_px = k.fx * radius / centre[2]
+        else:
+            u0, v0, r_px = cut
+        box = self._roi(u0, v0, int(math.ceil(r_px + 3.0 * c.psf_sigma_px + 2.0)))
+        if box is None:
+            return
+        x0, y0, x1, y1 = box
+        xx, yy = np.meshgrid(np.arange(x0, x1) - u0, np.arange(y0, y1) - v0)
+        cov = np.clip(r_px + 0.5 - np.hypot(xx, yy), 0.0, 1.0).astype(np.float32)
+        if c.psf_sigma_px > 0:
+            cov = cv2.GaussianBlur(cov, (0, 0), c.psf_sigma_px)
+        dist = float(np.linalg.norm(centre))
+        i_m = (c.finger_brightness * (0.5 / dist) ** 2 * cov).astype(np.float32)
+        r_m = np.full(cov.shape, dist, dtype=np.float32)
+        self._composite(ir, depth, box, i_m, r_m, cov, rng)
+
     def _draw_sphere(
-        self, ir: NDArray, depth: NDArray, centre: NDArray, rng: np.random.Generator
+        self,
+        ir: NDArray,
+        depth: NDArray,
+        centre: NDArray,
+        rng: np.random.Generator,
+        rad: float,
     ) -> bool:
         c, k = self.config, self.intrinsics
-        rad = self.tool.sphere_radius
         if centre[2] < 0.05:
             return False
         dist = float(np.linalg.norm(centre))
@@ -226,10 +339,14 @@ class SimFrameSource:
         proj = (xs[None, :] * centre[0] + ys[:, None] * centre[1] + centre[2]) * inv_n
         rho2 = dist * dist - proj * proj
         hit = rho2 <= rad * rad
-        if rng.random() < c.partial_occlusion_prob:  # a finger edge across the sphere
+        finger = None
+        if rng.random() < c.partial_occlusion_prob:  # a fingertip's edge across the sphere
             a = rng.uniform(0, 2 * math.pi)
-            cut = rng.uniform(-0.3, 0.5) * r_px
-            hit &= (np.cos(a) * (us[None, :] - u0) + np.sin(a) * (vs[:, None] - v0)) < cut
+            f_px = max(2.0 * r_px, k.fx * 0.009 / centre[2])  # fingertip radius, px
+            off = rng.uniform(-0.3, 0.5) * r_px + f_px  # its edge cuts the disc at -0.3..0.5 r
+            fu, fv = u0 + off * math.cos(a), v0 + off * math.sin(a)
+            hit &= np.hypot(us[None, :] - fu, vs[:, None] - fv) > f_px
+            finger = (fu, fv, f_px)
         if not hit.any():
             return False
         t_surf = np.where(hit, proj - np.sqrt(np.maximum(rad * rad - rho2, 0.0)), 0.0)
@@ -244,6 +361,9 @@ class SimFrameSource:
             ir_range = cv2.GaussianBlur(ir_range, (0, 0), c.psf_sigma_px)
             cov = cv2.GaussianBlur(cov, (0, 0), c.psf_sigma_px)
         r_m = ir_range / np.maximum(i_m, 1e-6)
+        if finger is not None:  # under the sphere's own light: it keeps its image intact
+            d_f = dist - rad - 0.015
+            self._draw_finger(ir, depth, centre * d_f / dist, 0.0, rng, finger)
         self._composite(ir, depth, box, i_m, r_m, cov, rng)
         return True
 

@@ -15,20 +15,20 @@ from hypothesis import strategies as st
 
 from humantele.config import ConfigError, validate_config
 from humantele.geometry import Pose, quat_from_axis_angle
+from humantele.haptics.demo_patient import demo_model
 from humantele.haptics.devices import DeviceState, SimDeviceConfig
 from humantele.haptics.devices.sim import SimFault, SimHandConfig
 from humantele.haptics.ellipsoid import Ellipsoid
-from humantele.haptics.loop import (
+from humantele.haptics.renderer import (
     FAULT_BAD_DATA,
     FAULT_DEVICE,
     FAULT_STALE,
     ForceRenderer,
-    ServoConfig,
-    ServoError,
-    ServoProcess,
     auto_registration,
-    demo_model,
 )
+from humantele.haptics.servo import ServoProcess
+from humantele.haptics.servo_config import ServoConfig
+from humantele.haptics.servo_layout import ServoError
 
 MODEL = demo_model()
 INSIDE = (0.0, -0.035, 0.0)  # device frame: 5 mm into the model with the auto registration
@@ -222,7 +222,9 @@ def test_parent_death_stops_the_servo(tmp_path):
     script = textwrap.dedent(
         """
         import time
-        from humantele.haptics.loop import ServoConfig, ServoProcess, demo_model
+        from humantele.haptics.servo_config import ServoConfig
+        from humantele.haptics.servo import ServoProcess
+        from humantele.haptics.demo_patient import demo_model
         if __name__ == "__main__":
             sp = ServoProcess(ServoConfig(realtime_priority=0), demo_model())
             sp.start()

@@ -63,7 +63,7 @@ def _row(label: str, value: str) -> list[str]:
 
 
 def test_a_run_replaces_its_own_row_and_keeps_the_others(tmp_path):
-    from humantele.bench.report import markdown_table, write_section
+    from humantele.report import markdown_table, write_section
 
     path = tmp_path / "benchmarks.md"
     old = [_row("loopback", "1"), _row("TURN (coturn)", "2")]
@@ -79,7 +79,7 @@ def test_a_run_replaces_its_own_row_and_keeps_the_others(tmp_path):
 
 
 def test_rows_of_an_older_table_layout_are_not_kept(tmp_path):
-    from humantele.bench.report import markdown_table, write_section
+    from humantele.report import markdown_table, write_section
 
     path = tmp_path / "benchmarks.md"
     write_section("session", markdown_table(["link", "a"], [["loopback", "1"]]), path)

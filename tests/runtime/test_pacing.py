@@ -1,6 +1,6 @@
 import asyncio
 
-from humantele.transport.pacing import Pacer
+from humantele.runtime.pacing import Pacer
 
 
 class StepClock:

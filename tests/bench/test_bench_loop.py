@@ -30,9 +30,9 @@ def test_bench_loop_prints_json_last_and_keeps_the_other_row(tmp_path, monkeypat
 
 
 def test_periods_over_two_ticks_are_counted():
-    from humantele.haptics.loop import _Timing
+    from humantele.haptics.servo_child import PeriodTiming
 
-    timing = _Timing(0.001)
+    timing = PeriodTiming(0.001)
     t = 0.0
     for period in (0.001, 0.001, 0.0025, 0.001, 0.005, 0.0019):
         timing.add(t)
@@ -46,9 +46,9 @@ def test_periods_over_two_ticks_are_counted():
 @settings(max_examples=200, deadline=None)
 @given(st.lists(st.floats(1e-6, 0.019), min_size=1, max_size=50), st.floats(0.0, 1.0))
 def test_period_percentiles_stay_within_the_measured_min_and_max(periods, q):
-    from humantele.haptics.loop import _Timing
+    from humantele.haptics.servo_child import PeriodTiming
 
-    timing = _Timing(0.001)
+    timing = PeriodTiming(0.001)
     t = 0.0
     for period in periods:
         timing.add(t)

@@ -14,10 +14,10 @@ import time
 from pathlib import Path
 
 from humantele.analysis.sessions import TOPICS, analyze_scans, build_session
-from humantele.bench.report import machine_line, markdown_table, write_section
 from humantele.recording.reader import read_recording
 from humantele.recording.synthetic import SyntheticSession, write_synthetic
 from humantele.recording.writer import Recorder
+from humantele.report import machine_line, markdown_table, write_section
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -1,7 +1,8 @@
-"""Writing benchmark results into ``docs/benchmarks.md``, one section per benchmark.
+"""Markdown reports: tables, and named sections of a file (``docs/benchmarks.md``).
 
-Each benchmark owns the text between ``<!-- bench:NAME -->`` and ``<!-- /bench:NAME -->``;
-rerunning one benchmark replaces only its own section, so the file keeps every other figure.
+Used by the benchmarks and the analysis. Each benchmark owns the text between
+``<!-- bench:NAME -->`` and ``<!-- /bench:NAME -->``; rerunning one benchmark replaces only
+its own section, so the file keeps every other figure.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import re
 import time
 from pathlib import Path
 
-DOCS_DIR = Path(__file__).resolve().parents[3] / "docs"
+DOCS_DIR = Path(__file__).resolve().parents[2] / "docs"
 BENCHMARKS_MD = DOCS_DIR / "benchmarks.md"
 
 _HEADER = """# Benchmarks

@@ -1,0 +1,271 @@
+"""The servo process: the 1 kHz loop on the device, fed and read through shared memory.
+
+It asks for SCHED_FIFO and a CPU (falls back, logged once, when refused), sleeps to a deadline
+and spins the last ``spin_s``; each tick is a :class:`~humantele.haptics.renderer.ForceRenderer`
+tick. It reads commands (model, registration, stop) and writes the latest sample and the
+statistics (:mod:`humantele.haptics.servo_layout`); it never waits on the daemon. SIGINT,
+SIGTERM, the stop command or the parent's death end the loop with the force zeroed.
+"""
+
+from __future__ import annotations
+
+import gc
+import logging
+import os
+import signal
+import time
+
+import numpy as np
+
+from humantele.geometry import Pose
+from humantele.haptics.devices import DeviceError, make_device
+from humantele.haptics.ellipsoid import Ellipsoid
+from humantele.haptics.renderer import FAULT_DEVICE, FAULT_LATE, ForceRenderer
+from humantele.haptics.servo_config import ServoConfig
+from humantele.haptics.servo_layout import (
+    C_MODEL,
+    C_MODEL_GEN,
+    C_MODEL_ON,
+    C_REG_GEN,
+    C_REG_ON,
+    C_REG_P,
+    C_REG_Q,
+    C_REG_S,
+    C_STOP,
+    CMD_LEN,
+    S_BUTTONS,
+    S_DEPTH,
+    S_F,
+    S_FAULT,
+    S_FD,
+    S_P,
+    S_Q,
+    S_RAMP,
+    S_T,
+    S_TICK,
+    S_V,
+    SAMPLE_LEN,
+    STAT_FIELDS,
+    STATS_LEN,
+)
+from humantele.haptics.shm import SeqlockArray
+
+log = logging.getLogger(__name__)
+
+
+class PeriodTiming:
+    """Period statistics with O(1) work per tick (1 us histogram bins)."""
+
+    BINS = 20000
+
+    def __init__(self, period: float) -> None:
+        self.period = period
+        self.hist = np.zeros(self.BINS, dtype=np.int64)
+        self.min_us = float("inf")
+        self.max_us = 0.0
+        self.max_at = 0
+        self.ticks = 0
+        self.overruns = 0
+        self.t_first = None
+        self.t_last = None
+
+    def add(self, t: float) -> None:
+        if self.t_last is not None:
+            p_us = (t - self.t_last) * 1e6
+            self.hist[min(int(p_us), self.BINS - 1)] += 1
+            self.min_us = min(self.min_us, p_us)
+            if p_us > self.max_us:
+                self.max_us = p_us
+                self.max_at = self.ticks
+            if p_us > 1.5e6 * self.period:
+                self.overruns += 1
+        else:
+            self.t_first = t
+        self.t_last = t
+        self.ticks += 1
+
+    def count_over(self, seconds: float) -> int:
+        """Periods longer than ``seconds``."""
+        return int(self.hist[int(seconds * 1e6) :].sum())
+
+    def percentile(self, q: float) -> float:
+        """The ``q`` quantile of the periods, us: a bin's middle, kept within [min, max]."""
+        total = int(self.hist.sum())
+        if total == 0:
+            return 0.0
+        idx = int(np.searchsorted(np.cumsum(self.hist), q * total))
+        return min(max(idx + 0.5, self.min_us), self.max_us)
+
+    def rate(self) -> float:
+        if self.ticks < 2:
+            return 0.0
+        return (self.ticks - 1) / (self.t_last - self.t_first)
+
+
+def try_realtime(config: ServoConfig) -> bool:
+    ok = False
+    if config.realtime_priority > 0:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(config.realtime_priority))
+            ok = True
+        except (OSError, AttributeError) as exc:
+            log.warning("servo: SCHED_FIFO refused (%s); running with normal priority", exc)
+    if config.cpu_affinity:
+        try:
+            os.sched_setaffinity(0, config.cpu_affinity)
+        except (OSError, ValueError) as exc:
+            log.warning("servo: CPU affinity %s refused (%s)", config.cpu_affinity, exc)
+    try:  # 1 ns timer slack: sleeps end on time (Linux prctl PR_SET_TIMERSLACK)
+        import ctypes
+
+        ctypes.CDLL(None).prctl(29, 1, 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+    return ok
+
+
+def servo_main(config_json: str, names: tuple[str, str, str], parent_pid: int, conn) -> None:
+    """Entry point of the servo process."""
+    stop = {"flag": False}
+
+    def _on_signal(signum, frame):  # noqa: ARG001
+        stop["flag"] = True
+
+    signal.signal(signal.SIGTERM, _on_signal)
+    signal.signal(signal.SIGINT, _on_signal)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    cmd = SeqlockArray(CMD_LEN, names[0])
+    out = SeqlockArray(SAMPLE_LEN, names[1])
+    st = SeqlockArray(STATS_LEN, names[2])
+    device = None
+    try:
+        config = ServoConfig.model_validate_json(config_json)
+        device = make_device(config.device)
+        device.open()
+    except Exception as exc:  # noqa: BLE001 - reported to the parent, which raises it
+        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        for b in (cmd, out, st):
+            b.close()
+        return
+    realtime = try_realtime(config)
+    conn.send(("ready", {"realtime": realtime, "pid": os.getpid()}))
+    try:
+        _run(config, device, cmd, out, st, stop, parent_pid, realtime)
+    finally:
+        try:
+            device.command_force((0.0, 0.0, 0.0))
+        except Exception:  # noqa: BLE001 - closing anyway
+            pass
+        device.close()
+        last = out.read()  # the daemon sees the zeroed force of the stopped loop
+        last[S_F : S_F + 3] = 0.0
+        last[S_FD : S_FD + 3] = 0.0
+        last[S_RAMP] = 0.0
+        out.write(last)
+        for b in (cmd, out, st):
+            b.close()
+
+
+def _run(config, device, cmd, out, st, stop, parent_pid, realtime) -> None:
+    r = ForceRenderer(config)
+    period = 1.0 / config.rate_hz
+    timing = PeriodTiming(period)
+    model_gen = reg_gen = -1.0
+    spin = config.spin_s
+    sample = np.zeros(SAMPLE_LEN)
+    gc.collect()
+    gc.disable()  # the loop makes no reference cycles; a GC pause would be a late tick
+    clock = time.monotonic
+    next_t = clock() + period
+    next_stats = next_t
+    # Until the first consistent read: no stop, and generations equal to "nothing applied yet"
+    # (the renderer starts with no model: zero force).
+    c = np.zeros(CMD_LEN)
+    c[C_MODEL_GEN] = c[C_REG_GEN] = -1.0
+    try:
+        while not stop["flag"]:
+            # Wait for the deadline: sleep, then spin the last `spin` seconds.
+            delay = next_t - clock() - spin
+            if delay > 0.0:
+                time.sleep(delay)
+            while clock() < next_t:
+                pass
+            now = clock()
+            timing.add(now)
+            flags = FAULT_LATE if now - next_t > config.late_after_s else 0
+            if flags:
+                r.fault(flags, now)
+            # Commands from the daemon; mid-write (the daemon preempted): last tick's copy.
+            c_new = cmd.try_read()
+            if c_new is not None:
+                c = c_new
+            if c[C_STOP] != 0.0 or os.getppid() != parent_pid:
+                break
+            if c[C_MODEL_GEN] != model_gen or c[C_REG_GEN] != reg_gen:
+                model = None
+                if c[C_MODEL_ON]:
+                    try:
+                        model = Ellipsoid.from_array(c[C_MODEL : C_MODEL + 7])
+                    except ValueError as exc:
+                        log.warning("servo: model refused: %s", exc)
+                reg = None
+                if c[C_REG_ON]:
+                    reg = Pose(c[C_REG_P : C_REG_P + 3], c[C_REG_Q : C_REG_Q + 4])
+                r.configure(model, reg, float(c[C_REG_S]) or config.motion_scale, now)
+                model_gen, reg_gen = c[C_MODEL_GEN], c[C_REG_GEN]
+            # Device, force, device.
+            try:
+                state = device.read()
+            except DeviceError:
+                state = None
+            f = r.tick(state, now, flags)
+            try:
+                device.command_force(f)
+            except DeviceError:
+                r.fault(FAULT_DEVICE, now)
+            pw, qw, vw, fw, fd, depth, buttons, fflags, ramp = r.sample
+            sample[S_T] = now
+            sample[S_P : S_P + 3] = pw
+            sample[S_Q : S_Q + 4] = qw
+            sample[S_V : S_V + 3] = vw
+            sample[S_F : S_F + 3] = fw
+            sample[S_FD : S_FD + 3] = fd
+            sample[S_DEPTH] = depth
+            sample[S_BUTTONS] = buttons
+            sample[S_FAULT] = fflags
+            sample[S_TICK] = timing.ticks
+            sample[S_RAMP] = ramp
+            out.write(sample)
+            if now >= next_stats:
+                st.write(_stats_row(timing, r, realtime))
+                next_stats = now + 0.25
+            # Next deadline; after a long stall restart the schedule instead of bursting.
+            next_t += period
+            if clock() > next_t + period:
+                next_t = clock() + period
+    finally:
+        gc.enable()
+        st.write(_stats_row(timing, r, realtime))
+
+
+def _stats_row(timing: PeriodTiming, r: ForceRenderer, realtime: bool) -> list[float]:
+    c = r.counts
+    vals = {
+        "ticks": timing.ticks,
+        "elapsed_s": (timing.t_last - timing.t_first) if timing.ticks > 1 else 0.0,
+        "rate_hz": timing.rate(),
+        "period_p50_us": timing.percentile(0.5),
+        "period_p99_us": timing.percentile(0.99),
+        "period_max_us": timing.max_us,
+        "overruns": timing.overruns,
+        "periods_over_2t": timing.count_over(2.0 * timing.period),
+        "late_ticks": c["late"],
+        "stale_ticks": c["stale"],
+        "device_errors": c["device"],
+        "bad_data": c["bad_data"],
+        "fault_episodes": c["episodes"],
+        "nonfinite_forces": c["nonfinite"],
+        "clamped_forces": c["clamped"],
+        "realtime": float(realtime),
+    }
+    return [float(vals[k]) for k in STAT_FIELDS]

@@ -1,0 +1,77 @@
+"""What the servo process and the daemon share: the tick's sample, the loop statistics, and
+the layout of the three shared-memory blocks (commands in; sample and statistics out)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from humantele.geometry import Pose
+from humantele.haptics.renderer import FAULT_NAMES
+
+
+@dataclass(frozen=True)
+class ServoSample:
+    """The latest tick. ``t`` monotonic s; ``pose`` T_world_stylus (m); ``velocity`` m/s and
+    ``force`` N in the world frame (``force_device``: what went to the device); ``depth`` m
+    (> 0 in contact); ``fault`` names of the active faults, '' when none."""
+
+    t: float
+    pose: Pose
+    velocity: tuple[float, float, float]
+    force: tuple[float, float, float]
+    force_device: tuple[float, float, float]
+    depth: float
+    buttons: int
+    fault_flags: int
+    tick: int
+    ramp: float
+
+    @property
+    def fault(self) -> str:
+        return ",".join(name for bit, name in FAULT_NAMES.items() if self.fault_flags & bit)
+
+
+@dataclass(frozen=True)
+class ServoStats:
+    """Loop statistics since start. Periods are between tick starts (us); ``overruns``: periods
+    over 1.5 T (a tick slipped); ``periods_over_2t``: periods over 2 T (2 ms at 1 kHz);
+    ``late_ticks``: later than late_after_s (fault)."""
+
+    ticks: int
+    elapsed_s: float
+    rate_hz: float
+    period_p50_us: float
+    period_p99_us: float
+    period_max_us: float
+    overruns: int
+    periods_over_2t: int
+    late_ticks: int
+    stale_ticks: int
+    device_errors: int
+    bad_data: int
+    fault_episodes: int
+    nonfinite_forces: int
+    clamped_forces: int
+    realtime: bool
+
+    def as_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+# ------------------------------------------------------------------------------- shared layout
+# Commands (daemon -> servo).
+C_MODEL_GEN, C_MODEL_ON, C_MODEL = 0, 1, 2  # model: 7 floats (Ellipsoid.as_array)
+C_REG_GEN, C_REG_ON, C_REG_P, C_REG_Q, C_REG_S = 9, 10, 11, 14, 18
+C_STOP = 19
+CMD_LEN = 20
+# Sample (servo -> daemon), written every tick.
+S_T, S_P, S_Q, S_V, S_F, S_FD, S_DEPTH, S_BUTTONS, S_FAULT, S_TICK, S_RAMP = (
+    0, 1, 4, 8, 11, 14, 17, 18, 19, 20, 21)  # fmt: skip
+SAMPLE_LEN = 22
+STAT_FIELDS = [f for f in ServoStats.__dataclass_fields__]
+STATS_LEN = len(STAT_FIELDS)
+
+
+class ServoError(RuntimeError):
+    """The servo process could not start (the message carries the child's reason)."""

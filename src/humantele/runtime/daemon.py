@@ -1,0 +1,134 @@
+"""What the expert and follower daemons share: set-up, the recording's open and close, the
+main loop's ticks, the teardown of :meth:`run`, and the command line common to both."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import math
+import time
+from collections.abc import AsyncIterator, Callable
+from typing import Any
+
+from humantele.recording import Recorder
+from humantele.runtime.pacing import daemon_ticks
+from humantele.runtime.process import on_stop_signals
+from humantele.runtime.session import (
+    ClockSyncLog,
+    add_session_arguments,
+    close_daemon_recording,
+    open_daemon_recording,
+    session_overrides,
+)
+from humantele.runtime.stats import CpuMeter, write_stats
+
+log = logging.getLogger(__name__)
+
+
+class Daemon:
+    """The runtime of one daemon (``role`` 'expert' or 'follower'). ``config`` has the
+    ``session`` (:class:`~humantele.runtime.session.SessionConfig`) and ``recording``
+    sections; ``stats_file``: where :meth:`stats` is written every 0.5 s and at the end."""
+
+    role = "daemon"
+
+    def __init__(self, config: Any, stats_file: str | None = None) -> None:
+        self.config = config
+        self.stats_file = stats_file
+        self.cpu = CpuMeter()
+        self.t_start = time.monotonic()
+        self.clock: Callable[[], float] = time.monotonic  # the loop's clock (s); tests replace it
+        self._stop = asyncio.Event()
+        # Recording (opened by run(), or set by a caller).
+        self.rec: Recorder | None = None
+        self.clock_log = ClockSyncLog(f"/{self.role}/clock_sync")
+        self._last_report = -math.inf
+
+    def stats(self) -> dict:
+        raise NotImplementedError
+
+    def write_stats(self) -> None:
+        write_stats(self.stats_file, self.stats())
+
+    def stop(self) -> None:
+        """End :meth:`run` at its next tick (as SIGINT or SIGTERM do)."""
+        self._stop.set()
+
+    def open_recording(self) -> bool:
+        """Open the recording of ``[<role>.session]`` (if any); False, with a clear message on
+        stderr, if it cannot be recorded to."""
+        if self.rec is not None:
+            return True
+        ok, self.rec = open_daemon_recording(self.role, self.config.session, self.config.recording)
+        return ok
+
+    def close_recording(self) -> None:
+        close_daemon_recording(self.role, self.rec)
+
+    def start_run(self) -> bool:
+        """The start of :meth:`run`: stop signals, then the recording (False: cannot record)."""
+        on_stop_signals(asyncio.get_running_loop(), self._stop.set)
+        return self.open_recording()
+
+    def loop_ticks(
+        self,
+        rate_hz: float,
+        duration_s: float | None,
+        link_task: asyncio.Task,
+        on_late: Callable[[], None] | None = None,
+    ) -> AsyncIterator[float]:
+        """The main loop's ticks (s, :attr:`clock`) until stopped, the link task ends, or
+        ``duration_s`` has passed; the stats file is written every 0.5 s."""
+        return daemon_ticks(
+            rate_hz,
+            duration_s,
+            running=lambda: not self._stop.is_set() and not link_task.done(),
+            report=self.write_stats,
+            clock=self.clock,
+            on_late=on_late,
+        )
+
+    async def close_link(self, link: Any, link_task: asyncio.Task) -> None:
+        """Say bye on the link and wait (at most 5 s) for its task to end."""
+        await link.close(f"{self.role} stopping")
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            await asyncio.wait_for(link_task, 5.0)
+
+    def finish_run(self) -> None:
+        """The end of :meth:`run`: the recording closed, the final stats written."""
+        self.close_recording()
+        self.write_stats()
+
+
+# --- command line ---------------------------------------------------------------------------
+
+
+def add_daemon_arguments(parser: argparse.ArgumentParser, config_help: str) -> None:
+    """The options both daemons take (then each adds its own)."""
+    parser.add_argument("--config", help=config_help)
+    parser.add_argument("--signaling-url", help="signaling server, e.g. ws://127.0.0.1:8765/ws")
+    parser.add_argument("--room", help="session room name")
+    parser.add_argument("--duration", type=float, help="stop after this many seconds")
+    parser.add_argument("--stats-file", help="write running figures (JSON) to this file")
+    parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
+    add_session_arguments(parser)
+
+
+def daemon_overrides(args: argparse.Namespace, data: dict[str, Any]) -> None:
+    """Put the common options (signaling, room, recording) into a daemon config's ``data``."""
+    if args.signaling_url:
+        data["link"]["signaling_url"] = args.signaling_url
+    if args.room:
+        data["link"]["room"] = args.room
+    session_overrides(args, data)
+
+
+def setup_logging(role: str, level: str) -> None:
+    """A daemon's log lines, prefixed with its role; aioice's chatter at WARNING."""
+    logging.basicConfig(
+        level=getattr(logging, str(level).upper(), logging.WARNING),
+        format=f"%(asctime)s {role} %(name)s: %(message)s",
+    )
+    logging.getLogger("aioice").setLevel(logging.WARNING)
