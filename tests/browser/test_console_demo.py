@@ -11,7 +11,7 @@ import pytest
 
 @pytest.mark.slow
 def test_console_in_the_demo(browser_scenario):
-    run = browser_scenario("console_demo", timeout_s=400.0)
+    run = browser_scenario("console_demo", timeout_s=900.0)
     d = run.data
     # The two videos play: frames drawn, the picture changes, not black.
     for t in ("us", "pov"):

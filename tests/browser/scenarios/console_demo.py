@@ -42,7 +42,7 @@ async def run(ctx) -> dict:
 
     # 2. Following: calibrated, a scan (scripted), force on the plot.
     await demo.wait("calibrated and following", lambda e, f: f.get("calibrated")
-                    and e.get("has_model") and e.get("scan"), timeout=120)  # fmt: skip
+                    and e.get("has_model") and e.get("scan"), timeout=400)  # fmt: skip
     await ctx.until(page, "consoleApp.state && consoleApp.state.scan === 1", 20)
     await ctx.until(page, "consoleApp.state.force.measured_n > 1", 60)
     await asyncio.sleep(3.0)  # a few seconds of force on the plot

@@ -26,6 +26,7 @@ const app = {
   cineInFlight: false,
   results: [],
   closedReason: null,
+  rxToDraw: [], // ms from a frame's arrival at the page to its draw call (last 500)
 };
 window.consoleApp = app;
 
@@ -81,9 +82,10 @@ const waiting = { us: null, pov: null, cine: null };
 
 function onFrame(buf) {
   const h = parseHeader(buf);
+  h.rx = performance.now();
   if (h.version !== 1 || !h.track) return;
   const lane = h.cine ? "cine" : h.track;
-  if (decoding[lane]) { waiting[lane] = buf; return; } // latest wins while one decodes
+  if (decoding[lane]) { waiting[lane] = { buf, h }; return; } // latest wins while one decodes
   decode(lane, buf, h);
 }
 
@@ -100,7 +102,7 @@ async function decode(lane, buf, h) {
   decoding[lane] = false;
   const next = waiting[lane];
   waiting[lane] = null;
-  if (next) decode(lane, next, parseHeader(next));
+  if (next) decode(lane, next.buf, next.h);
 }
 
 function draw(h, bitmap) {
@@ -109,7 +111,11 @@ function draw(h, bitmap) {
     canvas.width = h.width; canvas.height = h.height; fit();
   }
   const t0 = performance.now();
-  canvas.getContext("2d").drawImage(bitmap, 0, 0);
+  // A CPU canvas: drawing a decoded frame is a copy, with no GPU upload and read-back (on a
+  // software GPU, as in the headless tests, a GPU canvas halved the frame rate).
+  canvas.getContext("2d", { willReadFrequently: true }).drawImage(bitmap, 0, 0);
+  if (h.rx !== undefined) app.rxToDraw.push(t0 - h.rx);
+  if (app.rxToDraw.length > 500) app.rxToDraw.shift();
   if (!h.cine) {
     app.frames[h.track] += 1;
     app.lastFrame[h.track] = { seq: h.seq, at: t0, ...h };
