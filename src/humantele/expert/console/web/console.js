@@ -12,6 +12,8 @@ const TRACKS = ["us", "pov"];
 const LOST_AFTER_MS = 1500; // no state message for this long: the daemon is out of reach
 const FORCE_BAR_MAX_N = 20;
 
+const plot = new ForcePlot($("plot"), 10);
+
 const app = {
   ws: null,
   hello: null,
@@ -29,6 +31,7 @@ const app = {
   rxToDraw: [], // ms from a frame's arrival at the page to its draw call (last 500)
 };
 window.consoleApp = app;
+app.plot = plot;
 
 // --- the connection -------------------------------------------------------------------------
 
@@ -289,12 +292,18 @@ $("clutch").onclick = () => {
 
 // --- the session at a glance ----------------------------------------------------------------
 
+// DOM writes only when a value changes: each write costs the page a style and layout pass
+// (and, on a software GPU, a repaint), which at display rate slowed the video.
+function setText(el, text) { if (el.textContent !== text) el.textContent = text; }
+function setData(el, key, value) { if (el.dataset[key] !== value) el.dataset[key] = value; }
+function setHidden(el, hidden) { if (el.hidden !== hidden) el.hidden = hidden; }
+
 const fmt = (v, digits = 1, unit = "") => (v === null || v === undefined ? "–" : `${Number(v).toFixed(digits)}${unit}`);
 
 function chip(id, level, text) {
   const el = $(id);
-  el.dataset.level = level;
-  el.querySelector(".v").textContent = text;
+  setData(el, "level", level);
+  setText(el.querySelector(".v"), text);
 }
 
 function renderState() {
@@ -317,26 +326,26 @@ function renderState() {
   const rec = s.recording || {};
   chip("chip-rec", rec.error ? "bad" : rec.on ? "rec" : "off", rec.error ? "FAILED" : rec.on ? "recording" : "off");
   chip("chip-scan", s.scan ? "ok" : "off", s.scan ? `scan ${s.scan}` : "none");
-  $("scan").textContent = s.scan ? `Stop scan ${s.scan}` : "Start scan";
-  $("scan").dataset.scanning = String(Boolean(s.scan));
+  setText($("scan"), s.scan ? `Stop scan ${s.scan}` : "Start scan");
+  setData($("scan"), "scanning", String(Boolean(s.scan)));
   const clutch = s.clutch || {};
-  $("clutch").setAttribute("aria-pressed", String(Boolean(clutch.on)));
-  $("clutch").textContent = clutch.engaged ? "Clutch (engaged)" : "Clutch";
+  if ($("clutch").getAttribute("aria-pressed") !== String(Boolean(clutch.on))) {
+    $("clutch").setAttribute("aria-pressed", String(Boolean(clutch.on)));
+  }
+  setText($("clutch"), clutch.engaged ? "Clutch (engaged)" : "Clutch");
   const f = s.force || {};
-  $("n-pose").textContent = link.pose_age_ms == null ? "–" : link.stale ? "stale" : fmt(link.pose_age_ms, 0, " ms");
-  $("n-fm").textContent = link.stale ? "stale" : fmt(f.measured_n, 2, " N");
-  $("n-fr").textContent = fmt(f.rendered_n, 2, " N");
-  $("n-servo").textContent = servo.alive ? fmt(servo.rate_hz, 0, " Hz") : "stopped";
+  setText($("n-pose"), link.pose_age_ms == null ? "–" : link.stale ? "stale" : fmt(link.pose_age_ms, 0, " ms"));
+  setText($("n-fm"), link.stale ? "stale" : fmt(f.measured_n, 2, " N"));
+  setText($("n-fr"), fmt(f.rendered_n, 2, " N"));
+  setText($("n-servo"), servo.alive ? fmt(servo.rate_hz, 0, " Hz") : "stopped");
   plot.add(performance.now(), link.stale ? null : f.measured_n ?? null, servo.alive ? f.rendered_n ?? null : null);
-  const bar = $("fbar");
-  bar.dataset.stale = String(Boolean(link.stale) || f.measured_n == null);
-  $("fbar-fill").style.width = `${Math.min(100, (100 * (f.measured_n || 0)) / FORCE_BAR_MAX_N)}%`;
-  $("fbar-value").textContent = link.stale || f.measured_n == null ? "–" : fmt(f.measured_n, 1, " N");
+  setData($("fbar"), "stale", String(Boolean(link.stale) || f.measured_n == null));
+  const width = `${Math.min(100, (100 * (f.measured_n || 0)) / FORCE_BAR_MAX_N).toFixed(1)}%`;
+  if ($("fbar-fill").style.width !== width) $("fbar-fill").style.width = width;
+  setText($("fbar-value"), link.stale || f.measured_n == null ? "–" : fmt(f.measured_n, 1, " N"));
+  plot.draw(performance.now());
 }
 
-// Per display frame: staleness of the video and of the page's own link, the plot.
-const plot = new ForcePlot($("plot"), 10);
-app.plot = plot;
 
 function videoInfo(track) {
   const s = app.state, v = s && s.video ? s.video[track] : null;
@@ -347,33 +356,33 @@ function videoInfo(track) {
   return { v, stale, pageAge, last };
 }
 
+// Ten times a second: staleness of the video and of the page's own link; the plot scrolls.
 function tick() {
   const now = performance.now();
   app.stateAge = now - app.stateAt;
   const lost = app.stateAge > LOST_AFTER_MS;
-  document.body.dataset.conn = lost ? "lost" : "live";
-  $("lost").hidden = !lost || app.stateAt === -Infinity && !app.closedReason && now < 3000;
-  if (lost && app.closedReason) $("lost").textContent = `The console is not connected: ${app.closedReason}`;
+  setData(document.body, "conn", lost ? "lost" : "live");
+  setHidden($("lost"), !lost || (app.stateAt === -Infinity && !app.closedReason && now < 3000));
+  if (lost && app.closedReason) setText($("lost"), `The console is not connected: ${app.closedReason}`);
   for (const track of TRACKS) {
     const { v, stale, pageAge, last } = videoInfo(track);
     const box = $(`${track}-box`), overlay = $(`${track}-stale`);
     const frozenUs = track === "us" && app.frozen;
-    box.dataset.stale = String(stale && !frozenUs);
-    overlay.hidden = !stale || frozenUs;
+    setData(box, "stale", String(stale && !frozenUs));
+    setHidden(overlay, !stale || frozenUs);
     if (stale && !frozenUs) {
       const age = v && v.age_ms != null ? v.age_ms / 1000 : last ? pageAge / 1000 : null;
-      overlay.querySelector("span").textContent = age === null ? "no frame received yet"
-        : `last frame ${age.toFixed(1)} s ago${lost ? " (daemon out of reach)" : ""}`;
+      setText(overlay.querySelector("span"), age === null ? "no frame received yet"
+        : `last frame ${age.toFixed(1)} s ago${lost ? " (daemon out of reach)" : ""}`);
     }
     const info = $(`${track}-info`);
-    if (frozenUs && app.shown) info.textContent = `frozen · frame ${app.shown.seq}`;
-    else if (v && !stale) info.textContent = `${fmt(v.fps, 0)} fps · ${fmt(v.age_ms, 0)} ms old`;
-    else info.textContent = "not live";
+    if (frozenUs && app.shown) setText(info, `frozen · frame ${app.shown.seq}`);
+    else if (v && !stale) setText(info, `${fmt(v.fps, 0)} fps · ${fmt(v.age_ms, 0)} ms old`);
+    else setText(info, "not live");
   }
-  plot.draw(now);
-  requestAnimationFrame(tick);
+  if (lost) plot.draw(now); // no state messages: the plot still scrolls, with a gap
 }
 
 fit();
 connect();
-requestAnimationFrame(tick);
+setInterval(tick, 100);

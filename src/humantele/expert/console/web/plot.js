@@ -1,6 +1,8 @@
 // The force plot: the follower's measured force and the force rendered to the sonographer's
 // hand, the last `seconds`, on one canvas. Samples taken while the data is stale are gaps.
 
+const GAP_MS = 500;
+
 export class ForcePlot {
   constructor(canvas, seconds = 10) {
     this.canvas = canvas;
@@ -48,9 +50,11 @@ export class ForcePlot {
     for (const [i, colour] of [[2, "#4cc9f0"], [1, "#ff9f43"]]) {
       g.strokeStyle = colour;
       g.beginPath();
-      let pen = false;
+      let pen = false, tPrev = -Infinity;
       for (const s of this.samples) {
         const v = s[i];
+        if (s[0] - tPrev > GAP_MS) pen = false; // no samples for a while: a gap, not a line
+        tPrev = s[0];
         if (v === null || v === undefined) { pen = false; continue; }
         if (pen) g.lineTo(x(s[0]), y(v)); else g.moveTo(x(s[0]), y(v));
         pen = true;
