@@ -12,8 +12,9 @@ from humantele.wire import (
     POSE_SIZE,
     PROTOCOL_VERSION,
     STATE_SIZE,
+    TRACKING_CODES,
     Bye,
-    Calibration,
+    CalibrationProgress,
     EllipsoidModel,
     Hello,
     Ping,
@@ -121,6 +122,18 @@ def test_bad_pose_numbers_are_refused(offset, value, reason):
     assert err.value.reason == reason
 
 
+def test_every_tracking_status_has_one_wire_code_and_round_trips():
+    assert sorted(TRACKING_CODES.values()) == list(range(len(TrackingStatus)))
+    for status in TrackingStatus:
+        raw = _state(tracking=status).encode()
+        assert raw[70] == TRACKING_CODES[status]
+        back = StateMessage.decode(raw).tracking
+        assert back is status and back == str(status)  # the same words as the tracker's
+    assert StateMessage.decode(_state(tracking="ambiguous").encode()).tracking == "ambiguous"
+    with pytest.raises(WireError, match="tracking status 'searching' is unknown"):
+        _state(tracking="searching").encode()
+
+
 def test_bad_state_fields():
     good = _state().encode()
     with pytest.raises(WireError, match="tracking"):
@@ -157,7 +170,7 @@ def test_control_round_trip():
     msgs = [
         Hello(role="expert", software="x"),
         EllipsoidModel(model={"center": [0, 0.1, 0], "semi_axes": [0.15, 0.1, 10], "heading": 0.2}),
-        Calibration(event="point", index=2, point=(0.1, 0.0, -0.2)),
+        CalibrationProgress(event="point", index=2, point=(0.1, 0.0, -0.2)),
         Scan(action="start", scan_id="s-01"),
         Ping(seq=3, t0=1.5),
         Pong(seq=3, t0=1.5, t1=2.0, t2=2.1),

@@ -25,6 +25,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "loop": ("humantele.bench.loop", "servo loop rate and jitter on the sim device"),
     "session": ("humantele.bench.session", "pose stream over loopback WebRTC"),
     "tracking": ("humantele.bench.tracking", "IR marker tracking: time against pose error"),
+    "sensing": ("humantele.bench.sensing", "follower loop latency with sensing: thread/process"),
     "analysis": ("humantele.bench.analysis", "analyze a 10-min session; recording CPU cost"),
     "video": ("humantele.bench.video", "video sources: render cost, frame counter after VP8"),
 }

@@ -1,4 +1,11 @@
-"""Configuration: pydantic models loaded from TOML or JSON files in ``configs/``.
+"""Configuration: pydantic models loaded from TOML or JSON files.
+
+Where the files are: the daemons' own files are wherever ``--config`` says (``configs/`` in the
+repository holds editable examples); named definitions (probe tools ``tools/``, HID profiles
+``hid/``, force sensor set-ups ``forcesense/``) ship inside the package as
+``humantele/defaults/<folder>/<name>.toml``, read through :mod:`importlib.resources`
+(:func:`named_config_path`), so an installed package finds them; a path in their place reads
+the user's own file.
 
 Every model derives from :class:`ConfigModel`: unknown fields are refused, and every field has a
 default that runs the demo. A bad value fails at start with :class:`ConfigError`, whose message
@@ -9,12 +16,12 @@ from __future__ import annotations
 
 import json
 import tomllib
+from importlib import resources
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, ClassVar, TypeVar
 
-from pydantic import BaseModel, ConfigDict, ValidationError
-
-CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
+from pydantic import BaseModel, ConfigDict, ValidationError, model_validator
+from pydantic_core import PydanticCustomError
 
 
 class ConfigError(ValueError):
@@ -22,21 +29,66 @@ class ConfigError(ValueError):
 
 
 class ConfigModel(BaseModel):
-    """Base of every configuration model: strict about unknown keys, validated on assignment."""
+    """Base of every configuration model: strict about unknown keys, validated on assignment.
+
+    ``moved_fields`` names fields a model no longer has and where their setting went; a file
+    that still sets one is refused with that hint rather than a bare "extra field".
+    """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=False)
+    moved_fields: ClassVar[dict[str, str]] = {}
+
+    @model_validator(mode="before")
+    @classmethod
+    def _refuse_moved_fields(cls, data: Any) -> Any:
+        if isinstance(data, dict):
+            for name, hint in cls.moved_fields.items():
+                if name in data:
+                    raise PydanticCustomError(
+                        "moved_field", "no longer set here: {hint}", {"field": name, "hint": hint}
+                    )
+        return data
 
 
 M = TypeVar("M", bound=BaseModel)
 
 
+def _backend_message(e: Any, loc: str) -> tuple[str, str] | None:
+    """(field path, reason) for a device/source section whose ``backend`` is bad, else None."""
+    ctx = e.get("ctx") or {}
+    if ctx.get("discriminator") != "'backend'":
+        return None
+    where = f"{loc}.backend" if loc else "backend"
+    if e["type"] == "union_tag_invalid":
+        return where, f"unknown backend {ctx['tag']!r}; choose one of: {ctx['expected_tags']}"
+    data = e.get("input")
+    if isinstance(data, dict) and "kind" in data:
+        return where, (
+            f"the field 'kind' is now called 'backend': write backend = {data['kind']!r} "
+            "instead of kind = ... (every device and source family picks its backend this way)"
+        )
+    return where, "missing: say which backend this section configures (backend = ...)"
+
+
 def describe_validation_error(err: ValidationError, source: str = "") -> str:
-    """One line per bad field: ``source: field.path: reason``."""
+    """One line per bad field: ``source: field.path: reason``.
+
+    A section whose ``backend`` is unknown or missing (a discriminated union of backend
+    configurations) gets one line naming ``section.backend`` and the backends to choose from.
+    """
     lines = []
+    prefix = f"{source}: " if source else ""
     for e in err.errors():
-        loc = ".".join(str(part) for part in e["loc"]) or "(top level)"
-        prefix = f"{source}: " if source else ""
-        lines.append(f"{prefix}{loc}: {e['msg']}")
+        parts = [str(part) for part in e["loc"]]
+        if e["type"] == "moved_field":  # name the field itself, not the section it was in
+            parts.append(e["ctx"]["field"])
+        loc = ".".join(parts)
+        special = _backend_message(e, loc)
+        if special is not None:
+            lines.append(f"{prefix}{special[0]}: {special[1]}")
+        else:
+            msg = e["msg"].removeprefix("Value error, ")  # our own validators' words
+            lines.append(f"{prefix}{loc or '(top level)'}: {msg}")
     return "\n".join(lines)
 
 
@@ -77,3 +129,25 @@ def load_config(model: type[M], path: str | Path | None = None, section: str | N
         if not isinstance(data, dict):
             raise ConfigError(f"{path}: [{section}] must be a table")
     return validate_config(model, data, str(path) + (f" [{section}]" if section else ""))
+
+
+def defaults_dir(folder: str = "") -> Path:
+    """The packaged defaults folder ``humantele/defaults/<folder>`` (installed or checkout)."""
+    return Path(str(resources.files("humantele").joinpath("defaults"))) / folder
+
+
+def named_config_path(folder: str, name_or_path: str | Path, what: str = "definition") -> Path:
+    """The file for ``name_or_path``: a path as given when it ends in .toml or .json (relative:
+    from the current directory), else the packaged ``defaults/<folder>/<name>.toml``.
+    ConfigError naming the known names when the name has no packaged file."""
+    p = Path(name_or_path)
+    if p.suffix in (".toml", ".json"):
+        return p
+    f = defaults_dir(folder) / f"{p.name}.toml"
+    if p.name != str(name_or_path) or not f.is_file():
+        known = ", ".join(sorted(x.stem for x in defaults_dir(folder).glob("*.toml")))
+        raise ConfigError(
+            f"{str(name_or_path)!r}: no such {what} (known {what}s: {known or 'none'}); or give "
+            "the path of your own .toml file"
+        )
+    return f

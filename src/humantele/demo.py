@@ -8,7 +8,9 @@ directory, so its simulated person performs the four-landmark calibration first;
 then gets the patient model and the session runs.
 
 A status line shows the pose rate and age at the follower, the haptic force at the expert, the
-follower's alignment error and the link state. ``--duration S`` ends the run; ``--json`` prints
+follower's alignment error and the link state. ``--duration S`` ends the run S seconds after
+both daemons have started (their first stats; a daemon not started within ``START_TIMEOUT_S``
+fails the demo), so a slow start on a busy machine never cuts the run short; ``--json`` prints
 one summary object, on one line, as the last line of output. Ctrl-C or SIGTERM: the daemons
 say bye, every process ends, exit code 0.
 
@@ -91,7 +93,9 @@ def _resolve(path: str | None, base: Path) -> str | None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--duration", type=float, default=20.0, help="seconds (default 20)")
+    parser.add_argument(
+        "--duration", type=float, default=20.0, help="seconds once both daemons run (default 20)"
+    )
     parser.add_argument("--json", action="store_true", help="print a JSON summary at the end")
     parser.add_argument("--config", help="TOML file with a [demo] section (configs/demo.toml)")
     parser.add_argument("--room", help="session room name (default demo)")
@@ -201,8 +205,31 @@ def summarize(
         "cpu_percent_follower": f.get("cpu_percent"),
         "scans": e.get("scans_started", 0),
         "recording": recording or None,
+        "video": video_summary(e.get("video"), f.get("video")),
         "exit_codes": codes,
     }
+
+
+START_TIMEOUT_S = 120.0  # a daemon that has written no stats by then has failed to start
+
+
+def video_summary(e: dict[str, Any] | None, f: dict[str, Any] | None) -> dict[str, Any] | None:
+    """Per track at the expert: frames, rate, age (capture to decoded) p50/p95/max; the
+    follower's POV degradation level. None when video is off."""
+    if not e:
+        return None
+    out: dict[str, Any] = {}
+    keys = ("frames", "fps", "fps_mean", "gap_max_ms", "age_p50_ms", "age_p95_ms", "age_max_ms",
+            "unreadable", "no_info")  # fmt: skip
+    for name in ("us", "pov"):
+        t = e.get(name) or {}
+        out[name] = {k: t.get(k) for k in (*keys, "size")}
+    if f:
+        out["pov_level"] = f.get("pov_level")
+        out["pov_level_changes"] = f.get("pov_level_changes")
+        out["process"] = f.get("process")
+        out["follower"] = {n: f.get(n) for n in ("us", "pov")}
+    return out
 
 
 async def _stop_child(proc: asyncio.subprocess.Process, timeout_s: float = 10.0) -> int | None:
@@ -274,9 +301,10 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
             log_file.close()
         last_print = 0.0
         pages: dict[str, str] = {}
+        t_started: float | None = None  # both daemons up: --duration counts from here
         while not stop.is_set():
             now = time.monotonic()
-            if now - t0 >= args.duration:
+            if t_started is not None and now - t_started >= args.duration:
                 break
             dead = [r for r, p in procs.items() if p.returncode is not None]
             if dead:
@@ -287,6 +315,12 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
                 if name not in pages:
                     pages[name] = url
                     print(f"{name}: {url}", file=status_to, flush=True)
+            if t_started is None and e and f:
+                t_started = now
+            elif t_started is None and now - t0 > START_TIMEOUT_S:
+                late = "expert" if not e else "follower"
+                failed = f"{late} did not start within {START_TIMEOUT_S:.0f} s"
+                break
             if tty or now - last_print >= 2.0:
                 last_print = now
                 line = _status_line(e, f, now - t0)

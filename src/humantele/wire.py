@@ -17,7 +17,7 @@ Binary layout (little endian, no padding)::
 
     header  u8 version | u8 kind | u32 sequence | f64 t_sent              14 bytes
     pose    f64 position[3] | f64 quaternion[4] | u8 buttons | u8 clutch  72 bytes in all
-    state   f64 position[3] | f64 quaternion[4] | u8 tracking |
+    state   f64 position[3] | f64 quaternion[4] | u8 tracking (TRACKING_CODES) |
             f64 force[3] (N, probe frame) | u8 contact                    96 bytes in all
 
 Decoding never trusts the bytes: a wrong size, version or kind, a non-finite or out-of-range
@@ -31,13 +31,13 @@ from __future__ import annotations
 import math
 import struct
 from dataclasses import dataclass
-from enum import IntEnum
 from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 from humantele.geometry import Pose
+from humantele.tracking.status import TrackingStatus
 
 PROTOCOL_VERSION = 1
 """Version of every message format here; a peer with another version is refused."""
@@ -71,12 +71,14 @@ class WireError(ValueError):
         self.reason = reason
 
 
-class TrackingStatus(IntEnum):
-    """How the follower knows the probe pose in a :class:`StateMessage`."""
-
-    LOST = 0
-    TRACKED = 1
-    PREDICTED = 2  # short gap bridged by prediction
+TRACKING_CODES: dict[TrackingStatus, int] = {
+    TrackingStatus.LOST: 0,
+    TrackingStatus.TRACKED: 1,
+    TrackingStatus.PREDICTED: 2,
+    TrackingStatus.AMBIGUOUS: 3,
+}
+"""The state message's one-byte code of each :class:`TrackingStatus`."""
+_TRACKING_BY_CODE = {code: status for status, code in TRACKING_CODES.items()}
 
 
 Vec3 = tuple[float, float, float]
@@ -188,12 +190,13 @@ class StateMessage:
         """The 96-byte wire form; WireError if a field is NaN, out of range or malformed."""
         _check_numbers(self.seq, self.t_sent, self.position, self.quaternion, "state")
         _check_force(self.force)
-        if self.tracking not in TrackingStatus._value2member_map_:
-            raise WireError("field", f"state tracking status {self.tracking} is unknown")
+        code = TRACKING_CODES.get(self.tracking)  # type: ignore[call-overload]
+        if code is None:
+            raise WireError("field", f"state tracking status {self.tracking!r} is unknown")
         try:
             return _STATE.pack(
                 PROTOCOL_VERSION, KIND_STATE, self.seq, self.t_sent,
-                *self.position, *self.quaternion, int(self.tracking),
+                *self.position, *self.quaternion, code,
                 *self.force, 1 if self.contact else 0,
             )  # fmt: skip
         except (struct.error, TypeError) as exc:
@@ -204,11 +207,12 @@ class StateMessage:
         """Parse the wire form; WireError (with ``reason``) on anything malformed."""
         _check_header(data, _STATE, KIND_STATE, "state")
         f = _STATE.unpack(data)
-        if f[11] not in TrackingStatus._value2member_map_:
+        tracking = _TRACKING_BY_CODE.get(f[11])
+        if tracking is None:
             raise WireError("field", f"state tracking status {f[11]} is unknown")
         if f[15] > 1:
             raise WireError("field", f"state contact flag {f[15]} is not 0 or 1")
-        msg = cls(f[2], f[3], f[4:7], f[7:11], TrackingStatus(f[11]), f[12:15], bool(f[15]))
+        msg = cls(f[2], f[3], f[4:7], f[7:11], tracking, f[12:15], bool(f[15]))
         _check_numbers(msg.seq, msg.t_sent, msg.position, msg.quaternion, "state")
         _check_force(msg.force)
         return msg
@@ -264,9 +268,10 @@ class EllipsoidModel(_Control):
     model: EllipsoidParams
 
 
-class Calibration(_Control):
+class CalibrationProgress(_Control):
     """Calibration progress: ``start``, a landmark ``point`` (index 0-3, position m in the
-    patient/world frame the calibration uses), ``done``, ``cancel`` or ``error``."""
+    patient/world frame the calibration uses), ``done``, ``cancel`` or ``error``. (The fitted
+    calibration itself is :class:`humantele.follower.calibration.Calibration`.)"""
 
     type: Literal["calibration"] = "calibration"
     event: Literal["start", "point", "done", "cancel", "error"]
@@ -317,7 +322,7 @@ class Bye(_Control):
 
 
 ControlMessage = Annotated[
-    Hello | EllipsoidModel | Calibration | Scan | Ping | Pong | Heartbeat | Bye,
+    Hello | EllipsoidModel | CalibrationProgress | Scan | Ping | Pong | Heartbeat | Bye,
     Field(discriminator="type"),
 ]
 _CONTROL = TypeAdapter(ControlMessage)

@@ -113,3 +113,39 @@ def test_errors_are_clear_exit_codes(tmp_path, capsys):
     bad.write_text("scan,target,R1\n1,aorta,9\n")
     assert main(["analyze", "--scores", str(bad)]) == 2
     assert "row 2: column 'R1'" in capsys.readouterr().err
+
+
+def test_sim_image_quality_is_the_per_scan_quality_when_recorded(tmp_path, capsys):
+    path = tmp_path / "simq.mcap"
+    qualities = [0.1, 0.7, 0.4, 0.9]
+    write_synthetic(
+        path,
+        SyntheticSession(
+            duration_s=20.0,
+            n_scans=4,
+            offset_mm=(5.0, 0.0, 0.0),
+            tremor_mm=1.0,
+            us_quality=qualities,
+        ),  # fmt: skip
+    )
+    assert main(["analyze", str(path), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    got = [s["sim_image_quality"] for s in report["scans"]]
+    assert got == pytest.approx(qualities)
+    assert all(s["sim_image_quality_frames"] > 20 for s in report["scans"])
+    q = report["quality"]
+    assert q["source"] == "sim" and q["scan_quality"] == {
+        str(s["scan"]): s["sim_image_quality"] for s in report["scans"]
+    }
+    assert q["spearman"]["position_rmse_mm"]["n"] == 4
+    assert main(["analyze", str(path)]) == 0
+    text = capsys.readouterr().out
+    assert "sim ultrasound" in text and "in place of rater scores" in text
+    assert "scan 2: 0.70" in text
+
+
+def test_without_video_frames_there_is_no_sim_quality(recording, capsys):
+    assert main(["analyze", str(recording), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert "quality" not in report
+    assert all(s["sim_image_quality"] is None for s in report["scans"])

@@ -370,3 +370,37 @@ def test_alignment_and_pose_history():
     assert h.at(2.52).position[0] == pytest.approx(0.025)
     assert h.at(1.0) is None  # older than the history keeps
     assert h.at(10.0) is None  # nothing near
+
+
+def test_received_frames_number_and_time_the_receivers_frames():
+    """The adapter over the WebRTC receiver: the counter's number, else the next one; the
+    capture time, else the decode time; spacing on the ultrasound only; one object per frame."""
+    from types import SimpleNamespace
+
+    from humantele.expert.console.frames import ReceivedFrames
+
+    img = np.zeros((48, 64, 3), np.uint8)
+
+    def frame(seq, t_capture, t_received):
+        return SimpleNamespace(seq=seq, t_capture=t_capture, t_received=t_received,
+                               width=64, height=48, image=lambda: img)  # fmt: skip
+
+    latest = {"us": None, "pov": None}
+    rf = ReceivedFrames(SimpleNamespace(latest=lambda t: latest[t]), (0.3, 0.4))
+    assert rf.latest("us") is None
+    latest["us"] = frame(7, 10.0, 10.05)
+    a = rf.latest("us")
+    assert (a.seq, a.t_capture, a.pixel_spacing_mm, a.width) == (7, 10.0, (0.3, 0.4), 64)
+    assert rf.latest("us") is a and a.image is img
+    latest["us"] = frame(None, None, 10.2)  # the counter did not read, no capture time
+    b = rf.latest("us")
+    assert (b.seq, b.t_capture) == (8, 10.2)
+    latest["pov"] = frame(3, 9.0, 9.1)
+    assert rf.latest("pov").pixel_spacing_mm is None
+
+
+def test_console_config_checks_the_pixel_spacing():
+    assert ConsoleConfig(us_pixel_spacing_mm=(0.39, 0.39)).us_pixel_spacing_mm == (0.39, 0.39)
+    for bad in ((0.0, 0.3), (math.nan, 0.3), (50.0, 0.3)):
+        with pytest.raises(ValueError, match="pixel spacing"):
+            ConsoleConfig(us_pixel_spacing_mm=bad)

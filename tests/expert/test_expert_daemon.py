@@ -4,62 +4,11 @@ import math
 
 import numpy as np
 
+from daemon_doubles import Clock, LinkDouble, ServoDouble
 from humantele.expert.daemon import ExpertConfig, ExpertDaemon
 from humantele.geometry import Pose
 from humantele.haptics.ellipsoid import Ellipsoid
-from humantele.haptics.servo_layout import ServoSample
 from humantele.wire import EllipsoidModel, EllipsoidParams
-
-
-class ServoDouble:
-    """Stands in for the servo process: applies the registration like the servo does."""
-
-    def __init__(self):
-        self.model = None
-        self.reg = (Pose.identity(), 1.0)
-        self.models = []
-        self.p_device = np.zeros(3)
-        self.buttons = 0
-        self.t = 0.0
-        self.alive = True
-        self.pid = None
-
-    def set_model(self, model):
-        self.model = model
-        self.models.append(model)
-
-    def set_registration(self, T, scale):
-        self.reg = (T, scale)
-
-    def latest(self):
-        T, s = self.reg
-        self.t += 0.01
-        pose = Pose(T.apply(s * self.p_device), T.quaternion)
-        z = (0.0, 0.0, 0.0)
-        return ServoSample(self.t, pose, z, z, z, 0.0, self.buttons, 0, 1, 1.0)
-
-
-class LinkDouble:
-    connected = True
-    state = "connected"
-
-    def __init__(self):
-        self.poses = []
-
-    def send_pose(self, msg):
-        self.poses.append(msg)
-        return True
-
-    def age_of(self, t):
-        return 0.0
-
-
-class Clock:
-    def __init__(self):
-        self.t = 0.0
-
-    def __call__(self):
-        return self.t
 
 
 def make():

@@ -10,6 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from daemon_doubles import Clock, LinkDouble, ServoDouble
 from humantele.config import ConfigError
 from humantele.expert.daemon import (
     ExpertConfig,
@@ -19,74 +20,17 @@ from humantele.expert.daemon import (
     servo_config_for,
 )
 from humantele.expert.mapping import MappingConfig
-from humantele.geometry import Pose
 from humantele.haptics.ellipsoid import Ellipsoid
 from humantele.haptics.servo_config import ServoConfig
-from humantele.haptics.servo_layout import ServoSample
 from humantele.recording import Recorder, RecorderConfig, read_recording
 from humantele.runtime.session import SessionConfig
 from humantele.transport.clocksync import SyncSample
 from humantele.wire import EllipsoidModel, EllipsoidParams, Scan
 
 
-class ServoDouble:
-    """Applies the registration like the servo; renders a force that grows with the tick."""
-
-    def __init__(self):
-        self.reg = (Pose.identity(), 1.0)
-        self.model = None
-        self.p_device = np.zeros(3)
-        self.t = 0.0
-        self.alive = True
-        self.pid = None
-        self.late_ticks = 0
-
-    def set_model(self, model):
-        self.model = model
-
-    def set_registration(self, T, scale):
-        self.reg = (T, scale)
-
-    def latest(self):
-        T, s = self.reg
-        self.t += 0.01
-        pose = Pose(T.apply(s * self.p_device), T.quaternion)
-        force = (0.0, 0.1 * self.t, 0.0)
-        return ServoSample(self.t, pose, (0.0, 0.0, 0.0), force, force, 0.001, 0, 0, 1, 1.0)
-
-    def stats(self):
-        st = SimpleNamespace(ticks=100, rate_hz=999.5, period_p99_us=1040.0,
-                             late_ticks=self.late_ticks)  # fmt: skip
-        st.as_dict = lambda: dict(st.__dict__)
-        return st
-
-
-class LinkDouble:
-    connected = True
-    state = "connected"
-
-    def __init__(self):
-        self.poses, self.controls = [], []
-        self.clock = SimpleNamespace(best=None)
-        self.counters = SimpleNamespace(connections=1, dropped={})
-
-    def send_pose(self, msg):
-        self.poses.append(msg)
-        return True
-
-    def send_control(self, msg):
-        self.controls.append(msg)
-        return True
-
-    def age_of(self, t):
-        return 0.004
-
-
 def make(tmp_path=None, stream=None, **config):
     d = ExpertDaemon(ExpertConfig(**config))
-    d.servo, d.link = ServoDouble(), LinkDouble()
-    d.clock = lambda: d.now
-    d.now = 0.0
+    d.servo, d.link, d.clock = ServoDouble(), LinkDouble(age_s=0.004), Clock()
     if tmp_path is not None or stream is not None:
         target = stream if stream is not None else tmp_path / "s.expert.mcap"
         fast = RecorderConfig(flush_interval_s=0.01)
@@ -96,7 +40,7 @@ def make(tmp_path=None, stream=None, **config):
 
 
 def at(d, t):
-    d.now = t
+    d.clock.t = t
     d.publish_pose(t)
     d.guarded(d.script_scans, t)
     d.guarded(d.record_reports, t)
@@ -109,7 +53,7 @@ def install_model(d):
 
 def test_poses_force_and_the_scripted_scan_are_recorded_as_sent(tmp_path):
     d = make(tmp_path, scans=ScanScriptConfig(start_after_model_s=0.5, length_s=1.0))
-    d.now = 10.0
+    d.clock.t = 10.0
     install_model(d)
     for i in range(200):  # 2 s at 100 Hz, the stylus sweeping along x
         d.servo.p_device = np.array([0.05 * math.sin(i / 30.0), 0.0, 0.0])

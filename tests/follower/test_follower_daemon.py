@@ -2,35 +2,17 @@
 
 import numpy as np
 
+from daemon_doubles import LinkDouble
 from humantele.follower.daemon import FollowerConfig, FollowerDaemon
 from humantele.follower.sim_human import probe_down_quat
 from humantele.geometry import Pose
 from humantele.wire import EllipsoidModel, Hello, PoseMessage
 
 
-class LinkDouble:
-    def __init__(self):
-        self.connected = True
-        self.state = "connected"
-        self.states, self.controls = [], []
-        self.counters = type("C", (), {"connections": 1, "sent": {}, "dropped": {}})()
-
-    def send_state(self, msg):
-        self.states.append(msg)
-        return True
-
-    def send_control(self, msg):
-        self.controls.append(msg)
-        return True
-
-    def age_of(self, t):
-        return 0.01
-
-
 def make(tmp_path, **kw):
     cfg = FollowerConfig(state_dir=str(tmp_path), probe_source="truth", **kw)
     d = FollowerDaemon(cfg)
-    d.link = LinkDouble()
+    d.link = LinkDouble(age_s=0.01)
     return d
 
 

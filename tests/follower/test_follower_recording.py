@@ -8,6 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from daemon_doubles import LinkDouble
 from humantele.follower.daemon import FollowerConfig, FollowerDaemon
 from humantele.follower.sim_human import probe_down_quat
 from humantele.geometry import Pose
@@ -16,29 +17,9 @@ from humantele.transport.clocksync import SyncSample
 from humantele.wire import PoseMessage, Scan
 
 
-class LinkDouble:
-    def __init__(self):
-        self.connected = True
-        self.state = "connected"
-        self.states, self.controls = [], []
-        self.clock = SimpleNamespace(best=None)
-        self.counters = SimpleNamespace(connections=1, sent={}, dropped={})
-
-    def send_state(self, msg):
-        self.states.append(msg)
-        return True
-
-    def send_control(self, msg):
-        self.controls.append(msg)
-        return True
-
-    def age_of(self, t):
-        return 0.006
-
-
 def make(tmp_path, record=True, **kw):
     d = FollowerDaemon(FollowerConfig(state_dir=str(tmp_path), probe_source="truth", **kw))
-    d.link = LinkDouble()
+    d.link = LinkDouble(age_s=0.006)
     if record:
         d.rec = Recorder(tmp_path / "s.follower.mcap", "follower", session_id="s01",
                          config=RecorderConfig(flush_interval_s=0.01))  # fmt: skip

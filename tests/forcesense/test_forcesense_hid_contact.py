@@ -82,8 +82,14 @@ def test_hid_sensor_drops_and_counts_garbage_and_keeps_the_newest_good_report():
 
 
 def test_no_hid_device_is_a_clear_error():
+    sensor = make_force_sensor(HidForceConfig(serial="not-plugged-in"))
+    assert isinstance(sensor, HidForceSensor)  # made, not opened: no board needed yet
+    with pytest.raises(ForceSensorUnavailable, match="not open"):
+        sensor.read()
     with pytest.raises(ForceSensorUnavailable, match="no force sensor board with USB id 1209:4854"):
-        make_force_sensor(HidForceConfig(serial="not-plugged-in"))
+        sensor.open()
+    with pytest.raises(TypeError, match="not a force sensor configuration"):
+        make_force_sensor(object())  # type: ignore[arg-type]
     assert load_force_config("hid").sensor.backend == "hid"
 
 

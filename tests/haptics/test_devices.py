@@ -37,22 +37,36 @@ def _sim(**hand) -> tuple[SimTouchX, ManualClock]:
     return dev, clock
 
 
-def test_factory_unknown_kind_lists_the_choices():
-    with pytest.raises(ConfigError, match=r"'phantom'.*sim, touchx, hid"):
-        make_device({"kind": "phantom"})
-    with pytest.raises(ConfigError, match="sim, touchx, hid"):
-        device_config({"kind": 3})
+def test_factory_unknown_backend_names_the_field_and_lists_the_choices():
+    with pytest.raises(
+        ConfigError, match=r"device: backend: unknown backend 'phantom'.*'sim', 'touchx', 'hid'"
+    ):
+        make_device({"backend": "phantom"})
+    with pytest.raises(ConfigError, match="'sim', 'touchx', 'hid'"):
+        device_config({"backend": 3})
+    with pytest.raises(ConfigError, match=r"device: backend: missing"):
+        device_config({"seed": 3})
 
 
-def test_factory_builds_each_kind_and_names_bad_fields():
+def test_old_kind_field_is_refused_with_the_new_name():
+    with pytest.raises(
+        ConfigError, match=r"device: backend: .*'kind' is now called 'backend'.*'sim'"
+    ):
+        make_device({"kind": "sim", "seed": 3})
+
+
+def test_factory_builds_each_backend_and_names_bad_fields():
     assert isinstance(make_device(None), SimTouchX)
-    assert isinstance(make_device({"kind": "sim", "seed": 3}), SimTouchX)
-    assert isinstance(make_device({"kind": "touchx"}), TouchX)  # not opened: no library needed
-    assert make_device({"kind": "hid"}).has_force is False
+    assert isinstance(make_device({"backend": "sim", "seed": 3}), SimTouchX)
+    assert isinstance(make_device({"backend": "touchx"}), TouchX)  # not opened: no library needed
+    assert make_device({"backend": "hid"}).has_force is False
+    assert isinstance(make_device(TouchXConfig()), TouchX)
     with pytest.raises(ConfigError, match=r"sim_rate_hz"):
-        make_device({"kind": "sim", "sim_rate_hz": 100})
+        make_device({"backend": "sim", "sim_rate_hz": 100})
     with pytest.raises(ConfigError, match=r"bogus"):
-        make_device({"kind": "sim", "bogus": 1})
+        make_device({"backend": "sim", "bogus": 1})
+    with pytest.raises(TypeError, match="not a haptic device configuration"):
+        make_device(42)  # type: ignore[arg-type]
 
 
 def test_free_hand_follows_the_held_target():

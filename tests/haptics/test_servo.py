@@ -146,10 +146,12 @@ def test_never_nan_never_over_limit(p, v, dt):
 def test_config_errors_name_the_field():
     with pytest.raises(ConfigError, match="force_limit_n"):
         validate_config(ServoConfig, {"force_limit_n": 20})
-    with pytest.raises(ConfigError, match=r"device.*kind|tag 'nope'"):
-        validate_config(ServoConfig, {"device": {"kind": "nope"}})
-    cfg = validate_config(ServoConfig, {"device": {"kind": "hid"}, "kp": 4000})
-    assert cfg.device.kind == "hid"  # no force output: the gains cannot destabilise it
+    with pytest.raises(ConfigError, match=r"device\.backend: unknown backend 'nope'"):
+        validate_config(ServoConfig, {"device": {"backend": "nope"}})
+    with pytest.raises(ConfigError, match=r"device\.backend: .*'kind' is now called 'backend'"):
+        validate_config(ServoConfig, {"device": {"kind": "hid"}})
+    cfg = validate_config(ServoConfig, {"device": {"backend": "hid"}, "kp": 4000})
+    assert cfg.device.backend == "hid"  # no force output: the gains cannot destabilise it
 
 
 # ------------------------------------------------------------------ the servo process
@@ -175,7 +177,11 @@ def test_process_runs_swaps_model_and_stops_cleanly():
         s = _wait(lambda: (x := sp.latest()) and x.tick > 300 and x.ramp == 1.0 and x)
         assert s.force[1] > 0.5 and s.depth > 0 and s.fault == ""
         assert s.force[1] == pytest.approx(300 * s.depth, rel=0.1)
-        assert isinstance(s.pose, Pose) and s.t <= time.monotonic()
+        assert (
+            isinstance(s.T_patient_stylus, Pose)
+            and isinstance(s.T_device_stylus, Pose)
+            and s.t <= time.monotonic()
+        )
         sp.set_model(None)
         _wait(lambda: (x := sp.latest()) and x.force == (0.0, 0.0, 0.0))
         st_ = _wait(lambda: (x := sp.stats()) and x.ticks > 0 and x)
@@ -199,7 +205,7 @@ def test_process_stale_fault_zeroes_force_then_recovers():
 
 
 def test_process_reports_device_errors_at_start():
-    cfg = ServoConfig(device={"kind": "touchx", "library": "/nonexistent/libHD.so"})
+    cfg = ServoConfig(device={"backend": "touchx", "library": "/nonexistent/libHD.so"})
     with pytest.raises(ServoError, match="libHD"):
         ServoProcess(cfg).start()
 

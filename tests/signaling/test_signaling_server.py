@@ -206,6 +206,9 @@ def test_cli_runs_and_refuses_bad_config(tmp_path, capsys):
 
 
 def test_shipped_config_is_the_defaults():
-    from humantele.config import CONFIG_DIR, load_config
+    from pathlib import Path
 
-    assert load_config(SignalConfig, CONFIG_DIR / "signal.toml") == SignalConfig()
+    from humantele.config import load_config
+
+    example = Path(__file__).resolve().parents[2] / "configs" / "signal.toml"
+    assert load_config(SignalConfig, example) == SignalConfig()

@@ -105,6 +105,18 @@ def test_refinement_trusts_bearing_over_range():
     assert np.sqrt(np.mean(np.square(e_r))) < 0.6 * np.sqrt(np.mean(np.square(e_k)))
 
 
+def test_match_outcomes_use_the_one_tracking_status_vocabulary():
+    from humantele.tracking.status import TrackingStatus
+    from humantele.wire import TrackingStatus as WireTrackingStatus
+
+    assert WireTrackingStatus is TrackingStatus  # one vocabulary from tracker to wire
+    pts = TOOL.markers
+    res = match_markers(pts, TOOL)
+    assert res.status is TrackingStatus.TRACKED and res.status.has_pose
+    lost = match_markers(pts[:2], TOOL).status
+    assert lost is TrackingStatus.LOST and not lost.has_pose
+
+
 @pytest.mark.parametrize("shape", [(2, 6), (12,), (3, 4), (4, 3, 1), ()])
 def test_wrong_shapes_are_refused_with_a_clear_error(shape):
     pts = np.zeros(shape)

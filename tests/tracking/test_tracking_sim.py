@@ -67,9 +67,15 @@ def test_render_at_a_given_pose_and_factory():
 
 def test_opencv_backend_without_camera_is_a_clear_error(tmp_path):
     with pytest.raises(FrameSourceUnavailable, match="cannot open camera .*use the 'sim'"):
-        OpenCVFrameSource(OpenCVFrameConfig(device=str(tmp_path / "no_camera.avi")))
-    with pytest.raises(FrameSourceUnavailable):
-        make_frame_source(OpenCVFrameConfig(device=str(tmp_path / "none.avi")))
+        OpenCVFrameSource(OpenCVFrameConfig(device=str(tmp_path / "no_camera.avi"))).open()
+    src = make_frame_source(OpenCVFrameConfig(device=str(tmp_path / "none.avi")))
+    assert isinstance(src, OpenCVFrameSource)  # made, not opened: no camera needed yet
+    with pytest.raises(FrameSourceUnavailable, match="not open"):
+        src.read()
+    with pytest.raises(FrameSourceUnavailable), src:
+        pass
+    with pytest.raises(TypeError, match="not a frame source configuration"):
+        make_frame_source(object())  # type: ignore[arg-type]
 
 
 def test_opencv_backend_reads_a_recorded_ir_video(tmp_path):
@@ -85,6 +91,7 @@ def test_opencv_backend_reads_a_recorded_ir_video(tmp_path):
         w.write(img)
     w.release()
     src = OpenCVFrameSource(OpenCVFrameConfig(device=path, intrinsics={"width": 64, "height": 48}))
+    src.open()
     frames = [src.read(t=float(i)) for i in range(4)]
     src.close()
     assert frames[0] is not None and frames[0].ir.shape == (48, 64)

@@ -125,7 +125,10 @@ def analyze(
             )
             for key, _ in METRICS
         }
+        quality["source"] = "raters"
         report["quality"] = quality
+    elif any(s.get("sim_image_quality") is not None for s in scans):
+        report["quality"] = sim_quality_report(scans)
     if tlx is not None:
         from humantele.analysis.questionnaires import read_tlx, summarize_tlx
 
@@ -135,6 +138,38 @@ def analyze(
 
         report["usability"] = summarize_usability(read_usability(usability))
     return report, pairs
+
+
+SIM_QUALITY_NOTE = (
+    "per-scan image quality from the recorded sim ultrasound (known answer, 0-1: the share of "
+    "the target's largest section in view, coupled and out of shadow, mean over the scan's "
+    "frames), used in place of rater scores"
+)
+
+
+def sim_quality_report(scans: list[dict[str, Any]]) -> dict[str, Any]:
+    """Image quality per scan from the sim US known answer, and its Spearman correlation with
+    each alignment metric (as for rater scores)."""
+    from humantele.analysis.quality import spearman
+
+    with_q = [s for s in scans if s.get("sim_image_quality") is not None]
+    counts: dict[int, int] = {}
+    for s in with_q:
+        counts[s["scan"]] = counts.get(s["scan"], 0) + 1
+    unique = [s for s in with_q if counts[s["scan"]] == 1]
+    return {
+        "source": "sim",
+        "note": SIM_QUALITY_NOTE,
+        "scan_quality": {str(s["scan"]): s["sim_image_quality"] for s in unique},
+        "mean": float(np.mean([s["sim_image_quality"] for s in with_q])),
+        "spearman": {
+            key: spearman(
+                [s["sim_image_quality"] for s in unique if s[key] is not None],
+                [s[key] for s in unique if s[key] is not None],
+            )
+            for key, _ in METRICS
+        },
+    }
 
 
 def _f(v: float | None, digits: int) -> str:
@@ -172,7 +207,21 @@ def format_report(report: dict[str, Any]) -> str:
             )
         out.append("")
     q = report.get("quality")
-    if q:
+    if q and q.get("source") == "sim":
+        out += ["Image quality (sim ultrasound, 0-1)", "", f"Image quality: {q['note']}."]
+        out.append(
+            "per scan: "
+            + ", ".join(f"scan {k}: {v:.2f}" for k, v in q["scan_quality"].items())
+            + f"; mean {q['mean']:.2f}"
+        )
+        for key, head in METRICS:
+            sp = q["spearman"][key]
+            out.append(
+                f"Spearman sim quality vs {head}: rho {_f(sp['rho'], 2)} (p = {_f(sp['p'], 2)}, "
+                f"n = {sp['n']})"
+            )
+        out.append("")
+    elif q:
         out += ["Image quality (0-5)", ""]
         for label, qq in (("all scans", q), ("without excluded scans", q.get("without_excluded"))):
             if not qq:
@@ -242,7 +291,7 @@ def write_plots(report: dict[str, Any], pairs: list, out_dir: Path, args: Any) -
         if result.rmse.n:
             paths += plots.plot_trajectories(session, result, out_dir)
     q = report.get("quality")
-    if q:
+    if q and q.get("source") != "sim":  # the bars are of rater scores (0-5)
         paths.append(plots.plot_quality_bars(q, out_dir / "quality_scores.png", "image quality"))
         if q.get("without_excluded"):
             excl = ",".join(map(str, q["without_excluded"]["excluded_scans"]))

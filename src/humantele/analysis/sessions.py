@@ -29,6 +29,7 @@ from humantele.recording.reader import Recording, read_recording
 
 # What the alignment reads; other topics (force at 1 kHz...) are not even decoded.
 TOPICS = (
+    "/follower/video_frame",
     "/expert/pose",
     "/follower/probe_pose",
     "/expert/scan",
@@ -59,6 +60,10 @@ class Session:
     clock: ClockMap
     scans: list[ScanInterval]
     warnings: list[str] = field(default_factory=list)
+    # The sim ultrasound's known-answer image quality of each captured frame (0-1), expert
+    # clock; empty unless the follower recorded a sim US source.
+    us_quality_t: NDArray[np.float64] = field(default_factory=lambda: np.empty(0))
+    us_quality: NDArray[np.float64] = field(default_factory=lambda: np.empty(0))
 
 
 @dataclass
@@ -71,6 +76,8 @@ class ScanResult:
     errors: AlignmentErrors
     frames_total: int
     frames_tracked: int
+    sim_quality: float | None = None  # mean sim US image quality over the scan (0-1)
+    sim_quality_frames: int = 0
 
     def as_dict(self) -> dict[str, object]:
         """The JSON object of this scan (mm and degrees, the paper's units)."""
@@ -91,6 +98,8 @@ class ScanResult:
             "centered_orientation_rmse_deg": _num(np.degrees(r.centered_orientation_rmse_rad)),
             "mean_position_error_mm": [_num(v * 1e3) for v in r.mean_position_error_m],
             "mean_rotation_error_deg": _num(np.degrees(r.mean_rotation_error_rad)),
+            "sim_image_quality": None if self.sim_quality is None else _num(self.sim_quality),
+            "sim_image_quality_frames": self.sim_quality_frames,
         }
 
 
@@ -154,6 +163,13 @@ def build_session(session_id: str, recordings: list[Recording]) -> Session:
         )
 
     real = PoseTrack(clock.to_expert(t_f[good]), p_f[good], q_f[good])
+    uq = [
+        (float(v["t"]), float(v["quality"]))
+        for v in gather("/follower/video_frame")
+        if v.get("stream") == "us" and v.get("event") == "captured" and "quality" in v
+    ]
+    uq_t = clock.to_expert(np.array([a for a, _ in uq], dtype=float)) if uq else np.empty(0)
+    uq_v = np.array([b for _, b in uq], dtype=float)
     virtual = PoseTrack(t_v, p_v, q_v)
     scans = _scan_intervals(gather("/expert/scan"), virtual, real, session_id, warnings)
     return Session(
@@ -165,6 +181,8 @@ def build_session(session_id: str, recordings: list[Recording]) -> Session:
         clock=clock,
         scans=scans,
         warnings=warnings,
+        us_quality_t=uq_t,
+        us_quality=uq_v,
     )
 
 
@@ -214,9 +232,12 @@ def analyze_scans(session: Session, max_gap_s: float = 0.05) -> list[ScanResult]
             )
         ft = session.frame_times
         frames_total = int(np.count_nonzero((ft >= iv.start) & (ft <= iv.stop)))
-        results.append(
-            ScanResult(session.session_id, iv, rmse, errors, frames_total, int(in_scan.sum()))
-        )
+        result = ScanResult(session.session_id, iv, rmse, errors, frames_total, int(in_scan.sum()))
+        q_in = (session.us_quality_t >= iv.start) & (session.us_quality_t <= iv.stop)
+        if np.any(q_in):
+            result.sim_quality = float(np.mean(session.us_quality[q_in]))
+            result.sim_quality_frames = int(q_in.sum())
+        results.append(result)
     return results
 
 

@@ -27,6 +27,7 @@ from humantele.haptics.servo import ServoProcess
 from humantele.haptics.servo_child import try_realtime
 from humantele.haptics.servo_config import ServoConfig
 from humantele.report import BENCHMARKS_MD, machine_line, markdown_table, write_section
+from humantele.runtime.stats import process_cpu_seconds
 
 HEADER = ["load", "s", "rate Hz", "p50 us", "p99 us", "max us", "> 2 ms", "overruns", "late",
           "CPU %", "SCHED_FIFO", "targets", "bare loop: max us", "bare loop: > 2 ms"]  # fmt: skip
@@ -99,15 +100,6 @@ def measure_floor(cfg: ServoConfig, seconds: float) -> dict[str, Any]:
             proc.kill()
 
 
-def _cpu_seconds(pid: int) -> float | None:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            fields = f.read().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, IndexError, ValueError):
-        return None
-
-
 def measure(seconds: float, load: bool, seed: int = 0) -> dict[str, Any]:
     """Run the servo for ``seconds`` and return its figures (see module docstring)."""
     cfg = ServoConfig(device=SimDeviceConfig(seed=seed))
@@ -120,9 +112,9 @@ def measure(seconds: float, load: bool, seed: int = 0) -> dict[str, Any]:
     sp = ServoProcess(cfg, demo_model())
     try:
         sp.start()
-        cpu0, t0 = _cpu_seconds(sp.pid), time.monotonic()
+        cpu0, t0 = process_cpu_seconds(sp.pid), time.monotonic()
         time.sleep(seconds)
-        cpu1, t1 = _cpu_seconds(sp.pid), time.monotonic()
+        cpu1, t1 = process_cpu_seconds(sp.pid), time.monotonic()
         sp.stop()
         st = sp.stats()
         floor = measure_floor(cfg, seconds)  # same load, same timing, no work
@@ -141,7 +133,7 @@ def measure(seconds: float, load: bool, seed: int = 0) -> dict[str, Any]:
         "period_p99_us": round(st.period_p99_us, 1),
         "period_max_us": round(st.period_max_us, 1),
         "overruns": st.overruns,
-        "periods_over_2ms": st.periods_over_2t,
+        "periods_over_2ms": st.periods_over_2ms,
         "late_ticks": st.late_ticks,
         "fault_episodes": st.fault_episodes,
         "realtime": st.realtime,

@@ -321,7 +321,8 @@ def run(args: argparse.Namespace) -> int:
                 "(`humantele.tracking.psf.estimate_psf_sigma`, 10 frames).",
                 "Where the default pipeline fails (hidden markers have a finger in front; sphere "
                 "strays are drawn by the sim's marker renderer, never intersecting a marker; the "
-                "second tool is `configs/tools/reference_frame.toml` 7-14 cm from the probe). "
+                "second tool is `src/humantele/defaults/tools/reference_frame.toml` 7-14 cm "
+                "from the probe). "
                 "*Before checks*: the same scene with the matcher as it was before issue 9 "
                 "(any three-marker fit within the distance tolerances).",
                 markdown_table(

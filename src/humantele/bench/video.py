@@ -1,6 +1,7 @@
 """``humantele bench video``: the video sources' figures.
 
-Part ``sources`` (the only one so far; glass to glass over the link comes with the tracks):
+Part ``link``: glass to glass over the link in the whole session
+(:mod:`humantele.bench.video_link`). Part ``sources`` (the default):
 
 - render cost of each sim source per frame at a few sizes (median and p90 ms, one OpenCV
   thread: the cost on one core), over the demo scene's moving probe;
@@ -35,11 +36,14 @@ DEFAULT_US, DEFAULT_POV = (640, 480), (960, 540)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("part", nargs="?", default="sources", choices=["sources"])
-    p.add_argument("--frames", type=int, default=60, help="frames per measurement (default 60)")
+    from humantele.bench.video_link import add_link_arguments
+
+    p.add_argument("part", nargs="?", default="sources", choices=["sources", "link"])
+    p.add_argument("--frames", type=int, default=60, help="sources: frames per measurement")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", action="store_true", help="print only the JSON summary line")
     p.add_argument("--no-write", action="store_true", help="do not update docs/benchmarks.md")
+    add_link_arguments(p)
 
 
 def make_source(kind: str, size: tuple[int, int], seed: int, scene: DemoScene):
@@ -85,6 +89,10 @@ def counter_after_vp8(frames, bit_rate: int) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.part == "link":
+        from humantele.bench.video_link import run_link
+
+        return run_link(args)
     import cv2
 
     cv2.setNumThreads(1)

@@ -3,9 +3,10 @@
 It runs the 1 kHz servo process (:class:`humantele.haptics.servo.ServoProcess`, its own OS
 process), and at the link's pose rate:
 
-- reads the servo's latest sample (the stylus already mapped into the patient frame by the
-  registration the daemon gave it), applies the clutch (:mod:`humantele.expert.mapping`) and
-  publishes the virtual transducer pose ``T_patient_probe`` (tip frame) on the ``pose`` channel;
+- reads the servo's latest sample, maps the stylus as the device read it (``T_device_stylus``)
+  once through the registration and clutch (:mod:`humantele.expert.mapping`) and publishes the
+  virtual transducer pose ``T_patient_probe`` (tip frame) on the ``pose`` channel; the servo
+  renders with the same registration (the daemon passes each change on);
 - receives the follower's state (probe pose, force) and control messages; each ellipsoid model
   the follower sends is installed in the servo loop (with the registration placing the device
   workspace over it).
@@ -20,8 +21,8 @@ Message handling is one method per kind (``on_state``, ``on_control``, ``on_link
 Recording (``--record FILE`` or ``[expert.session] record``): every published pose
 (``/expert/pose``, the same ``t`` as the PoseMessage) and the rendered force (``/expert/force``,
 patient frame); about once a second the servo statistics, the state stream's one-way latency
-and, when it changes, the clock-sync estimate; scan starts and stops. Video frame timestamps
-(``/expert/video_frame``) come with the video tracks: there is no video yet. ``t`` is this
+and, when it changes, the clock-sync estimate; scan starts and stops; every received video
+frame's number and age (``/expert/video_frame``, :mod:`humantele.media.receiver`). ``t`` is this
 daemon's monotonic clock (s), the one its ClockSync uses. A path that cannot be recorded to
 stops the daemon at start (exit code 2); a failure during the session is reported in the stats
 and never stops the haptics or the session.
@@ -58,11 +59,12 @@ from humantele.expert.mapping import (
     StylusMapping,
     default_registration,
 )
-from humantele.geometry import Pose, quat_conjugate, quat_multiply
 from humantele.haptics.ellipsoid import Ellipsoid
 from humantele.haptics.servo import ServoProcess
 from humantele.haptics.servo_config import ServoConfig
 from humantele.haptics.servo_layout import ServoError
+from humantele.media.config import ExpertVideoConfig
+from humantele.media.receiver import VideoReceiver
 from humantele.recording import RecorderConfig
 from humantele.runtime.daemon import (
     Daemon,
@@ -74,9 +76,7 @@ from humantele.runtime.session import SessionConfig, recorder_stats
 from humantele.runtime.stats import percentile_ms, process_cpu_seconds
 from humantele.transport import LinkConfig, PeerLink
 from humantele.wire import (
-    Calibration as CalibrationMsg,
-)
-from humantele.wire import (
+    CalibrationProgress,
     ControlMessage,
     EllipsoidModel,
     PoseMessage,
@@ -86,7 +86,6 @@ from humantele.wire import (
 
 log = logging.getLogger(__name__)
 
-REINDEX_SETTLE_S = 0.005  # after a registration change, the servo takes it at its next tick
 REPORT_PERIOD_S = 1.0  # servo statistics and latency figures are recorded this often
 
 
@@ -107,10 +106,11 @@ class ExpertConfig(ConfigModel):
     """The expert daemon (``[expert]`` of configs/expert.toml; the servo has ``[servo]``)."""
 
     servo_restart_s: float = Field(2.0, gt=0, le=60, description="retry a dead servo after")
-    # Poses at 100 Hz, as the published system (ANCHORS); the follower's lag is ~0.35 s.
+    # Poses at 100 Hz, as the published system (C&G 2024, Table 1; docs/references.md).
     link: LinkConfig = LinkConfig(pose_rate_hz=100.0)
     mapping: MappingConfig = MappingConfig()
     scans: ScanScriptConfig = ScanScriptConfig()
+    video: ExpertVideoConfig = ExpertVideoConfig()
     session: SessionConfig = SessionConfig()
     recording: RecorderConfig = RecorderConfig()
     console: ConsoleConfig = ConsoleConfig()
@@ -156,7 +156,11 @@ class ExpertDaemon(Daemon):
             on_state=self.on_state,
             on_control=self.on_control,
             on_link_state=self.on_link_state,
+            media=lambda pc, role: self.video.prepare(pc),
         )
+        # The follower's us and pov tracks: the latest decoded frame of each, with its capture
+        # time on this clock (self.video.latest("us")), for the console.
+        self.video = VideoReceiver(config.video, self.link.clock, self.link.now, self.record_any)
         self.pose_seq = 0
         self.poses_sent = 0
         self.pose_send_failures = 0
@@ -166,9 +170,7 @@ class ExpertDaemon(Daemon):
         self.state_ages: deque[float] = deque(maxlen=20000)
         self.models_installed = 0
         self.calibration_events: list[str] = []
-        self.last_pose: Pose | None = None
         self.last_sample_t = -math.inf
-        self.hold_until = -math.inf
         self.servo_restarts = 0
         self._servo_dead_since: float | None = None
         self.servo_started: float | None = None
@@ -189,6 +191,7 @@ class ExpertDaemon(Daemon):
         self.last_state_age: float | None = None  # its one-way age then (s)
         self.probe_history = PoseHistory()
         self.virtual_history = PoseHistory()
+        self.last_pose = None  # the virtual probe last published (Pose, patient frame)
         self.console_clutch = False
         self.console = None
         self._console_video = None
@@ -211,13 +214,13 @@ class ExpertDaemon(Daemon):
     def on_control(self, msg: ControlMessage) -> None:
         if isinstance(msg, EllipsoidModel):
             self.install_model(Ellipsoid.from_dict(msg.model.model_dump()))
-        elif isinstance(msg, CalibrationMsg):
+        elif isinstance(msg, CalibrationProgress):
             text = msg.event if not msg.detail else f"{msg.event}: {msg.detail}"
             self.calibration_events.append(text)
             self.on_calibration(msg)
             log.info("follower calibration: %s", text)
 
-    def on_calibration(self, msg: CalibrationMsg) -> None:
+    def on_calibration(self, msg: CalibrationProgress) -> None:
         """Calibration progress as the follower reports it: which landmark comes next."""
         nxt = None
         if msg.event == "start":
@@ -260,36 +263,24 @@ class ExpertDaemon(Daemon):
         reg: Registration = self.mapping.registration
         self.mapping.take_changed()
         self.servo.set_registration(reg.T_patient_device, reg.scale)
-        # Hold the published pose until the servo has taken the new registration.
-        self.hold_until = self.clock() + REINDEX_SETTLE_S
 
     # --- outgoing -------------------------------------------------------------------------
-
-    def stylus_in_device(self, pose_patient: Pose) -> tuple[np.ndarray, np.ndarray]:
-        """Undo the registration the servo applied: stylus position and quaternion, device."""
-        reg = self.mapping.registration
-        p = reg.point_to_device(pose_patient.position)
-        q = quat_multiply(quat_conjugate(reg.rotation), pose_patient.quaternion)
-        return p, q
 
     def publish_pose(self, t: float) -> None:
         s = self.servo.latest()
         if s is None or s.t <= self.last_sample_t or not self.link.connected:
             return
         self.last_sample_t = s.t
-        if t < self.hold_until and self.last_pose is not None:
-            pose = self.last_pose  # the servo has not applied the new registration yet
-        else:
-            was_clutched = self.mapping.clutched
-            p_dev, q_dev = self.stylus_in_device(s.pose)
-            buttons = s.buttons
-            if self.console_clutch:  # the console's clutch button holds it as the stylus's
-                buttons |= 1 << self.config.mapping.clutch_button
-            pose = self.mapping.update(p_dev, q_dev, buttons)
-            if self.mapping.take_changed():
-                self.push_registration()
-            if self.mapping.clutched != was_clutched and self.model is not None:
-                self.servo.set_model(None if self.mapping.clutched else self.model)
+        was_clutched = self.mapping.clutched
+        stylus = s.T_device_stylus  # the mapping is applied once, here
+        buttons = s.buttons
+        if self.console_clutch:  # the console's clutch button holds it as the stylus's does
+            buttons |= 1 << self.config.mapping.clutch_button
+        pose = self.mapping.update(stylus.position, stylus.quaternion, buttons)
+        if self.mapping.take_changed():
+            self.push_registration()
+        if self.mapping.clutched != was_clutched and self.model is not None:
+            self.servo.set_model(None if self.mapping.clutched else self.model)
         self.last_pose = pose
         self.virtual_history.add(t, pose)
         self.pose_seq += 1
@@ -387,6 +378,12 @@ class ExpertDaemon(Daemon):
                 "/expert/latency", t, {"name": "state_one_way", "value_s": float(np.median(recent))}
             )
 
+    def record_any(self, topic: str, t: float, payload: dict) -> None:
+        """Record one sample if recording (the recorder only queues)."""
+        rec = self.rec
+        if rec is not None:
+            rec.write(topic, t, payload)
+
     def check_servo(self, t: float) -> None:
         """A dead servo process is restarted (the daemon itself keeps running)."""
         if self.servo.alive:
@@ -462,6 +459,7 @@ class ExpertDaemon(Daemon):
             "step_errors": self.step_errors,
             "recording": recorder_stats(self.rec),
             "console": None if self.console is None else self.console.stats(),
+            "video": self.video.stats() if self.config.video.enabled else None,
         }
 
     def guarded(self, step: Callable[[float], object], t: float) -> None:
@@ -518,6 +516,7 @@ class ExpertDaemon(Daemon):
             self.guarded(self.stop_scan, self.clock())  # the scan ends before the bye
             await self.close_link(self.link, link_task)
             await self.stop_console()
+            await self.video.close()
             self.servo_cpu_percent()
             self.servo.stop()
             self.finish_run()

@@ -6,16 +6,19 @@ Every tick (``rate_hz``, asyncio) it:
    person, head) advances; its person follows the virtual probe, or performs the calibration
    presses when calibrating;
 2. at the tracker's rate (``sensing_rate_hz``) measures it through the sensing pipeline
-   (:mod:`humantele.follower.sensing` when present, else the truth behind the same small
-   interface), so what it streams is what a real tracker and force sensor would give. The
-   pipeline (~5-7 ms a frame) runs on one worker thread, off the asyncio loop, so the pose
-   path is never held up; frames are measured in order and never overlap: a frame due while
-   the previous one is still measured is skipped (counted in ``sensing_skipped``);
+   (:mod:`humantele.follower.sensing`; ``probe_source = "truth"``: the simulated truth behind
+   the same small interface), so what it streams is what a real tracker and force sensor
+   would give. The pipeline (~5-7 ms a frame) runs in a child process
+   (``sensing_worker = "process"``, :mod:`humantele.follower.sensing_process`; ``"thread"``:
+   a worker thread), off the asyncio loop and off its GIL, so the pose path is never held
+   up; frames are measured in order and never overlap: a frame due while the previous one is
+   still measured (or while the child starts) is skipped (counted in ``sensing_skipped``);
 3. with each measurement: feeds the calibration (:mod:`humantele.follower.calibration`) while
    calibrating, streams the probe pose and force to the expert (``state``, patient frame) and
    records them;
-4. publishes the virtual probe to renderers (:mod:`humantele.follower.feed`, world frame;
-   ``stale`` when no fresh pose came or the link is down).
+4. publishes the measured probe to renderers (:mod:`humantele.follower.feed`, world frame),
+   and the virtual probe while it is ``stale`` (no fresh pose came or the link is down); a
+   fresh virtual probe is published as its pose arrives, not at the next tick.
 
 Frames: the headset's world frame (y up) here; the patient frame of the calibration on the
 wire (``T_world_patient`` from the saved calibration). Poses are of the transducer's tip frame
@@ -45,6 +48,7 @@ import contextlib
 import logging
 import math
 import os
+import sys
 import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -66,6 +70,8 @@ from humantele.follower.calibration import (
     Calibrator,
 )
 from humantele.follower.feed import FeedConfig, RendererFeed, model_fields
+from humantele.follower.sensing import ProbeSensing, SensingConfig
+from humantele.follower.sensing_process import SensingProcess
 from humantele.follower.sim_human import (
     CalibrationScript,
     SimHeadConfig,
@@ -74,6 +80,9 @@ from humantele.follower.sim_human import (
 )
 from humantele.follower.sim_world import SimWorld, WorldTruth
 from humantele.geometry import Pose, matrix_to_quat
+from humantele.haptics.ellipsoid import Ellipsoid
+from humantele.media.config import FollowerVideoConfig
+from humantele.media.sender import VideoSender
 from humantele.recording import RecorderConfig
 from humantele.runtime.daemon import (
     Daemon,
@@ -83,11 +92,12 @@ from humantele.runtime.daemon import (
 )
 from humantele.runtime.session import SessionConfig, recorder_stats
 from humantele.runtime.stats import percentile_ms
+from humantele.tracking.tool import load_tool
 from humantele.transport import LinkConfig, PeerLink
+from humantele.video.base import VideoSourceUnavailable
+from humantele.video.scene import SceneSnapshot
 from humantele.wire import (
-    Calibration as CalibrationMsg,
-)
-from humantele.wire import (
+    CalibrationProgress,
     ControlMessage,
     EllipsoidModel,
     EllipsoidParams,
@@ -119,13 +129,24 @@ class FollowerConfig(ConfigModel):
         "pipeline", description="measure through the sensing pipeline ([sensing]), or the truth"
     )
     sensing_rate_hz: float = Field(45.0, gt=1, le=1000, description="tracker frames per second")
-    tool: str = Field("probe_default", description="probe tool definition (configs/tools)")
+    sensing_worker: Literal["process", "thread"] = Field(
+        "process",
+        description="where frames are measured while the daemon runs: a child process (its "
+        "GIL apart from the loop's) or a thread",
+    )
+    sensing_nice: int = Field(
+        10, ge=0, le=19, description="the sensing process's nice: the daemon's loop wakes first"
+    )
+    tool: str = Field(
+        "probe_default", description="the probe's tool definition: tracked, drawn, tip (one)"
+    )
     link: LinkConfig = LinkConfig()
     feed: FeedConfig = FeedConfig()
     calibration: CalibrationConfig = CalibrationConfig()
     sim_patient: SimPatientConfig = SimPatientConfig()
     sim_human: SimHumanConfig = SimHumanConfig()
     sim_head: SimHeadConfig = SimHeadConfig()
+    video: FollowerVideoConfig = FollowerVideoConfig()
     session: SessionConfig = SessionConfig()
     recording: RecorderConfig = RecorderConfig()
 
@@ -159,13 +180,8 @@ class TrackerImage:
 
 def _tip_transform(tool_name: str) -> Pose:
     """``T_probe_tip``: the tip frame on the tracked probe body (from the tool definition)."""
-    try:
-        from humantele.tracking.tool import load_tool
-
-        tool = load_tool(tool_name)
-        tip, z = np.asarray(tool.tip, dtype=float), np.asarray(tool.face_direction, dtype=float)
-    except (ImportError, AttributeError):  # no tracking package: the default tool's figures
-        tip, z = np.array([0.0, 0.0, -0.15]), np.array([0.0, 0.0, -1.0])
+    tool = load_tool(tool_name)
+    tip, z = np.asarray(tool.tip, dtype=float), np.asarray(tool.face_direction, dtype=float)
     z = z / np.linalg.norm(z)
     x = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     x = x - z * float(x @ z)
@@ -179,21 +195,37 @@ class Sensing:
     :class:`Measurement`; a pipeline error gives a LOST measurement (counted), never a crash.
     """
 
-    def __init__(self, config: FollowerConfig, sensing_config: object | None = None) -> None:
+    def __init__(
+        self,
+        config: FollowerConfig,
+        sensing_config: SensingConfig | None = None,
+        build: bool = True,
+    ) -> None:
+        """``build=False``: build the pipeline at the first :meth:`measure` (the daemon's own
+        copy when a :class:`~humantele.follower.sensing_process.SensingProcess` measures)."""
         self.T_probe_tip = _tip_transform(config.tool)
         self.T_tip_probe = self.T_probe_tip.inverse()
         self.pipeline = None
         self.errors = 0
         self.contact_n = config.calibration.force_off_n
-        if config.probe_source == "pipeline":
-            try:
-                from humantele.follower.sensing import ProbeSensing
-            except ImportError:
-                log.warning("follower: no sensing pipeline here; streaming the simulated truth")
-            else:
-                self.pipeline = ProbeSensing(sensing_config)
+        self.sensing_config = sensing_config
+        self.tool = config.tool
+        self.unbuilt = config.probe_source == "pipeline"  # the pipeline is still to be built
+        if build:
+            self.build()
+
+    def build(self) -> None:
+        """Build the sensing pipeline (once; nothing in ``truth`` mode)."""
+        if not self.unbuilt:
+            return
+        self.unbuilt = False
+        if self.pipeline is not None:  # given by the caller
+            return
+        self.pipeline = ProbeSensing(self.sensing_config, self.tool)
 
     def measure(self, truth: WorldTruth) -> Measurement:
+        if self.unbuilt:
+            self.build()
         t, T_world_tip, force_world = truth.t, truth.T_world_tip, truth.force_world
         T_world_camera = truth.T_world_camera
         lost = Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
@@ -207,6 +239,7 @@ class Sensing:
             m = self.pipeline.measure(
                 t, T_world_tip @ self.T_tip_probe, force_world, T_world_camera
             )
+            status = TrackingStatus(m.status)
         except Exception:  # a sensing fault must not stop the daemon
             self.errors += 1
             if self.errors == 1:
@@ -216,10 +249,11 @@ class Sensing:
         force_tip = self.T_tip_probe.rotate(np.asarray(m.force_probe, dtype=float))
         if not (np.all(np.isfinite(force)) and np.all(np.isfinite(force_tip))):
             force, force_tip = np.zeros(3), None
-        if m.status != "tracked" or m.T_world_probe is None:
-            return Measurement(TrackingStatus.LOST, None, force, bool(m.contact), force_tip)
+        if not status.has_pose or m.T_world_probe is None:
+            status = TrackingStatus.LOST if status.has_pose else status  # lost or ambiguous
+            return Measurement(status, None, force, bool(m.contact), force_tip)
         tip = m.T_world_probe @ self.T_probe_tip
-        return Measurement(TrackingStatus.TRACKED, tip, force, bool(m.contact), force_tip)
+        return Measurement(status, tip, force, bool(m.contact), force_tip)
 
     def close(self) -> None:
         if self.pipeline is not None:
@@ -236,7 +270,7 @@ class FollowerDaemon(Daemon):
         self,
         config: FollowerConfig,
         stats_file: str | None = None,
-        sensing_config: object | None = None,
+        sensing_config: SensingConfig | None = None,
     ) -> None:
         super().__init__(config, stats_file)
         self.state_dir = Path(config.state_dir).expanduser()
@@ -244,17 +278,41 @@ class FollowerDaemon(Daemon):
         self.calibration: Calibration | None = Calibration.load(self.calibration_path)
         self.calibrator = Calibrator(config.calibration)
         self.world = SimWorld(config.sim_patient, config.sim_human, config.sim_head)
-        self.sensing = Sensing(config, sensing_config)
+        patient = self.world.patient
+        self.patient_ellipsoid = Ellipsoid(
+            tuple(patient.T_world_body.position),
+            tuple(float(v) for v in patient.semi_axes),
+            math.radians(config.sim_patient.yaw_deg),
+        )
+        # with a sensing process, the daemon's own pipeline is built only if ever used
+        self.sensing = Sensing(config, sensing_config, build=config.sensing_worker == "thread")
+        self.sensing_proc: SensingProcess | None = None  # run() starts it
+        self._proc_frame: tuple[int, TrackerImage] | None = None  # (job, image) in flight
+        self._jobs = 0
+        self.sensing_failure: str | None = None
         self.measurement = Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
         self.last_measure_t = -math.inf
         self.measurements = 0
         self.feed = RendererFeed(config.feed, self.state_dir)
+        # Video: the us and pov tracks (humantele.media.sender), fed by the sim world's latest
+        # snapshot (self.scene_snapshot, updated each tick) for the sim sources.
+        self._scene: SceneSnapshot | None = None
+        self._head: Pose | None = None
+        self.video = (
+            VideoSender(config.video, self.scene_snapshot, self.record_any, self.patient_ellipsoid)
+            if config.video.enabled
+            else None
+        )
+        self._video_check_t = -math.inf
+        self.video_error = ""
+        self._video_late_ticks = 0
         self.link = PeerLink(
             "follower",
             config.link,
             on_pose=self.on_pose,
             on_control=self.on_control,
             on_link_state=self.on_link_state,
+            media=None if self.video is None else (lambda pc, role: self.video.attach(pc)),
         )
         self.calibrating = False
         self.following_since: float | None = None
@@ -297,11 +355,12 @@ class FollowerDaemon(Daemon):
         age = self.link.age_of(msg.t_sent)
         if age is not None and math.isfinite(age):
             self.pose_ages.append(max(0.0, age))
+        self.publish_virtual(self.last_pose_rx)
 
     def on_control(self, msg: ControlMessage) -> None:
         if isinstance(msg, Hello):
             self.send_model()  # the expert (re)joined: give it the model we have
-        elif isinstance(msg, CalibrationMsg) and msg.event == "start":
+        elif isinstance(msg, CalibrationProgress) and msg.event == "start":
             self.start_calibration()
         elif isinstance(msg, Scan):
             self.on_scan(msg)
@@ -353,20 +412,30 @@ class FollowerDaemon(Daemon):
             )
         )
 
-    def publish_feed(self, t: float, virtual: Pose | None, m: Measurement) -> None:
-        age = None if self.last_pose is None else self.link.age_of(self.last_pose.t_sent)
-        if virtual is not None:
-            self.feed.publish(
-                "virtual_probe",
-                {
-                    "position": virtual.position,
-                    "quaternion": virtual.quaternion,
-                    "age_ms": None if age is None else age * 1000.0,
-                    "stale": self.virtual_stale(t),
-                    "clutch": bool(self.last_pose.clutch) if self.last_pose else False,
-                },
-                t_origin=self.last_pose_rx,
-            )
+    def publish_virtual(self, t: float) -> None:
+        """The virtual probe (world frame) to renderers, once calibrated: as each pose arrives
+        (from :meth:`on_pose`, so the page sees it at once), and at each tick while it is
+        stale (``t``: the time it is judged at, s)."""
+        virtual = self.virtual_world()
+        if virtual is None or self.last_pose is None:
+            return
+        age = self.link.age_of(self.last_pose.t_sent)
+        self.feed.publish(
+            "virtual_probe",
+            {
+                "position": virtual.position,
+                "quaternion": virtual.quaternion,
+                "age_ms": None if age is None else age * 1000.0,
+                "stale": self.virtual_stale(t),
+                "clutch": bool(self.last_pose.clutch),
+            },
+            t_origin=self.last_pose_rx,
+        )
+
+    def publish_feed(self, t: float, m: Measurement) -> None:
+        """At each tick: the virtual probe if it went stale, and the measured probe."""
+        if self.virtual_stale(t):
+            self.publish_virtual(t)
         if m.T_world_tip is not None:
             self.feed.publish(
                 "probe",
@@ -407,7 +476,7 @@ class FollowerDaemon(Daemon):
         self.record("/follower/calibration", time.monotonic(), {"event": "reset"})
         self.script = self.world.calibration_script() if self.config.auto_calibrate else None
         self.script_t0 = time.monotonic()
-        self.send_control(CalibrationMsg(event="start"))
+        self.send_control(CalibrationProgress(event="start"))
         self.publish_calibration()
 
     def on_calibration_event(self, ev: CalibrationEvent, t: float | None = None) -> None:
@@ -418,16 +487,18 @@ class FollowerDaemon(Daemon):
         self.record_calibration_event(t, ev)
         if ev.kind == "refused":
             self.send_control(
-                CalibrationMsg(event="error", index=index, point=point, detail=ev.message[:200])
+                CalibrationProgress(
+                    event="error", index=index, point=point, detail=ev.message[:200]
+                )
             )
         else:
-            self.send_control(CalibrationMsg(event="point", index=index, point=point))
+            self.send_control(CalibrationProgress(event="point", index=index, point=point))
         if ev.kind == "done" and self.calibrator.result is not None:
             self.calibration = self.calibrator.result
             self.calibration.save(self.calibration_path)
             self.calibrating = False
             self.script = None
-            self.send_control(CalibrationMsg(event="done"))
+            self.send_control(CalibrationProgress(event="done"))
             self.send_model()
             self.record_model(t)
             self.publish_model()
@@ -468,11 +539,38 @@ class FollowerDaemon(Daemon):
             # fraction of the tick rate (45 Hz from 100 Hz ticks, not 33); no catching up.
             late = t - self.last_measure_t >= 2.0 * frame_period
             self.last_measure_t = t if late else self.last_measure_t + frame_period
-            self.start_measurement(TrackerImage(self.world.truth(t), virtual, target))
-        # Video frame timestamps (/follower/video_frame: stream 'pov' or 'us', seq, event) are
-        # recorded here once the follower has its POV and ultrasound tracks; there is no video
-        # yet, so nothing is recorded for it.
-        self.publish_feed(t, virtual, self.measurement)
+            truth = self.world.truth(t)
+            self._head = truth.T_world_camera
+            self.start_measurement(TrackerImage(truth, virtual, target))
+        # The sim video sources render this snapshot (in the video process); video frame
+        # timestamps (/follower/video_frame) are recorded as each frame is captured and sent.
+        self.publish_scene(t, self.world.T_world_tip, self.world.force_world, virtual)
+        self.publish_feed(t, self.measurement)
+
+    def publish_scene(
+        self, t: float, true_tip: Pose | None, force: NDArray, virtual: Pose | None
+    ) -> None:
+        """The sim world now, for the sim video sources (an immutable snapshot)."""
+        if self.video is None:
+            return
+        force_n = 0.0
+        if true_tip is not None:
+            beam = true_tip.rotate((0.0, 0.0, 1.0))
+            force_n = max(0.0, -float(np.dot(force, beam)))
+        self._scene = SceneSnapshot(t, self.patient_ellipsoid, true_tip, force_n, self._head,
+                                    virtual)  # fmt: skip
+        self.video.publish_scene(self._scene)
+
+    def scene_snapshot(self) -> SceneSnapshot:
+        """The latest snapshot (called from the video threads)."""
+        s = self._scene
+        return s if s is not None else SceneSnapshot(0.0, self.patient_ellipsoid, None, 0.0, None)
+
+    def record_any(self, topic: str, t: float, payload: dict) -> None:
+        """Record from any thread (the recorder only queues)."""
+        rec = self.rec
+        if rec is not None:
+            rec.write(topic, t, payload)
 
     # --- measurements (sensing worker thread -> loop) -------------------------------------
 
@@ -480,6 +578,17 @@ class FollowerDaemon(Daemon):
         """Measure one tracker image: on the sensing worker when the daemon runs (the result
         is taken on the loop), else in line. Never two at once: an image due while the
         previous one is measured is skipped and counted."""
+        proc = self.sensing_proc
+        if proc is not None and proc.running:
+            if not proc.ready or proc.busy:
+                self.sensing_skipped += 1
+                return
+            self._jobs += 1
+            if proc.submit(self._jobs, frame.truth):
+                self._proc_frame = (self._jobs, frame)
+            else:
+                self.sensing_skipped += 1
+            return
         if self.executor is None:
             self.take_measurement(frame, self.sensing.measure(frame.truth))
             return
@@ -489,6 +598,24 @@ class FollowerDaemon(Daemon):
         fut = asyncio.get_running_loop().run_in_executor(self.executor, self._measure, frame)
         self._sensing = fut
         fut.add_done_callback(lambda f: self._measured(frame, f))
+
+    def _measured_in_process(self, job: int, m: Measurement, seconds: float) -> None:
+        """A measurement from the sensing process (on the loop)."""
+        pending, self._proc_frame = self._proc_frame, None
+        self.sensing_times.append(seconds)
+        if pending is None or pending[0] != job:
+            return  # a frame submitted to a child that has since been replaced
+        try:
+            self.take_measurement(pending[1], m)
+        except Exception:
+            self.tick_errors += 1
+            if self.tick_errors in (1, 10, 100, 1000):
+                log.exception("follower: measurement failed (%d so far)", self.tick_errors)
+
+    def _sensing_cannot_start(self, reason: str) -> None:
+        """The sensing process refused its config: the daemon stops (exit code 2)."""
+        self.sensing_failure = reason
+        self.stop()
 
     def _measure(self, frame: TrackerImage) -> Measurement:
         """On the sensing worker: measure, and time it."""
@@ -620,8 +747,15 @@ class FollowerDaemon(Daemon):
             "ticks": self.ticks,
             "measurements": self.measurements,
             "tracking_lost": self.tracking_lost,
-            "sensing_errors": self.sensing.errors,
+            "sensing_errors": self.sensing.errors
+            + (0 if self.sensing_proc is None else self.sensing_proc.child_errors),
             "sensing_skipped": self.sensing_skipped,
+            "sensing_worker": (
+                "process"
+                if self.sensing_proc is not None and self.sensing_proc.running
+                else "thread"
+            ),
+            "sensing_restarts": 0 if self.sensing_proc is None else self.sensing_proc.restarts,
             "sensing_p50_ms": percentile_ms(self.sensing_times, 50),
             "sensing_p99_ms": percentile_ms(self.sensing_times, 99),
             "scan": self.scan,
@@ -630,7 +764,19 @@ class FollowerDaemon(Daemon):
             "tick_errors": self.tick_errors,
             "late_ticks": self.late_ticks,
             "cpu_percent": self.cpu.overall(),
+            "video": None if self.video is None else self.video.stats(),
         }
+
+    def check_video(self, t: float) -> None:
+        """Once a second, the video's degradation policy (POV first), in a task."""
+        if self.video is None or t - self._video_check_t < 1.0:
+            return
+        dt = 1.0 if self._video_check_t == -math.inf else t - self._video_check_t
+        self._video_check_t = t
+        late = (self.late_ticks - self._video_late_ticks) / dt
+        self._video_late_ticks = self.late_ticks
+        task = asyncio.ensure_future(self.video.check(t, late))
+        task.add_done_callback(_log_task_error)
 
     def _count_late_tick(self) -> None:
         self.late_ticks += 1
@@ -639,7 +785,29 @@ class FollowerDaemon(Daemon):
         if not self.start_run():
             return 2
         self.record_model()  # a saved calibration's model
+        # The video sources open beside the session (the video process takes a few seconds
+        # to start); one that cannot open stops the daemon with a clear message, exit code 2.
+        video_task = None if self.video is None else asyncio.create_task(self.start_video())
         self.executor = ThreadPoolExecutor(1, thread_name_prefix="humantele-sensing")
+        if self.config.sensing_worker == "process" and self.sensing.unbuilt:
+            self.sensing_proc = SensingProcess(
+                self.config,
+                self.sensing.sensing_config,
+                self._measured_in_process,
+                self._sensing_cannot_start,
+                nice=self.config.sensing_nice,
+            )
+            self.sensing_proc.start()
+            # as the in-thread pipeline was built before the daemon ran: measure from the start
+            ready = await self.sensing_proc.wait_ready(cancel=self._stop.is_set)
+            if not ready and not self.sensing_proc.failed and not self._stop.is_set():
+                log.warning("follower: the sensing process is slow to start; going on")
+            if self.sensing_failure is not None:
+                self.sensing_proc.close()
+                self.executor.shutdown(wait=False)
+                self.finish_run()
+                print(f"humantele follower: sensing cannot start: {self.sensing_failure}")
+                return 2
         if self.config.feed.enabled:
             try:
                 await self.feed.start()
@@ -662,6 +830,7 @@ class FollowerDaemon(Daemon):
                 try:
                     self.tick(t)
                     self.record_reports(t)
+                    self.check_video(t)
                 except Exception:  # never let one bad tick end the daemon
                     self.tick_errors += 1
                     if self.tick_errors in (1, 10, 100, 1000):
@@ -669,11 +838,38 @@ class FollowerDaemon(Daemon):
         finally:
             await self.close_link(self.link, link_task)
             await self.feed.stop()
+            if video_task is not None:
+                with contextlib.suppress(BaseException):
+                    await video_task  # opening cannot be interrupted: it ends by itself
+                await asyncio.to_thread(self.video.close)
             self.executor.shutdown(wait=True)  # the frame being measured ends first
             self.executor = None
+            if self.sensing_proc is not None:
+                self.sensing_proc.close()
             self.sensing.close()
             self.finish_run()
-        return 0
+        if self.sensing_failure is not None:
+            print(f"humantele follower: sensing cannot start: {self.sensing_failure}", flush=True)
+            return 2
+        return 2 if self.video_error else 0
+
+    async def start_video(self) -> None:
+        """Open the video sources (in a thread: it blocks) and start them; a source that
+        cannot open is reported on stderr and stops the daemon (exit code 2)."""
+        assert self.video is not None
+        try:
+            await asyncio.to_thread(self.video.open)
+        except VideoSourceUnavailable as exc:
+            self.video_error = str(exc)
+            print(f"humantele follower: {exc}", file=sys.stderr, flush=True)
+            self._stop.set()
+            return
+        self.video.start(asyncio.get_running_loop())
+
+
+def _log_task_error(task: asyncio.Future) -> None:
+    if not task.cancelled() and task.exception() is not None:
+        log.error("follower: video check failed: %s", task.exception())
 
 
 def _rms_scaled(values: list[float], scale: float) -> float | None:
@@ -703,12 +899,8 @@ def config_from_args(args: argparse.Namespace) -> FollowerConfig:
     return validate_config(FollowerConfig, data, "command line")
 
 
-def sensing_config_from_args(args: argparse.Namespace) -> object | None:
+def sensing_config_from_args(args: argparse.Namespace) -> SensingConfig:
     """The ``[sensing]`` section of the follower's file (the sensing pipeline's own)."""
-    try:
-        from humantele.follower.sensing import SensingConfig
-    except ImportError:
-        return None
     return load_config(SensingConfig, args.config, "sensing" if args.config else None)
 
 

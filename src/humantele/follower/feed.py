@@ -55,11 +55,11 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Literal
 
-import numpy as np
 from aiohttp import WSCloseCode, WSMsgType, web
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from humantele.config import ConfigModel
+from humantele.runtime.stats import percentile_ms
 from humantele.signaling.messages import is_loopback
 from humantele.web.guard import MessageBudget, origin_allowed
 from humantele.web.tls import Certificate, ensure_certificate, local_hosts
@@ -368,16 +368,12 @@ class RendererFeed:
             "sent": self.sent,
             "coalesced": self.coalesced,
             "echoes": self.echoes,
-            "draw_latency_p50_ms": _percentile_ms(self.latencies, 50),
-            "draw_latency_p95_ms": _percentile_ms(self.latencies, 95),
+            "draw_latency_p50_ms": percentile_ms(self.latencies, 50),
+            "draw_latency_p95_ms": percentile_ms(self.latencies, 95),
             "refused": dict(self.refused),
             "refused_total": sum(self.refused.values()),
             "disconnects": self.disconnects,
         }
-
-
-def _percentile_ms(values_s: deque[float], q: float) -> float | None:
-    return round(float(np.percentile(values_s, q)) * 1000.0, 3) if values_s else None
 
 
 def _too_big(ws: web.WebSocketResponse) -> bool:

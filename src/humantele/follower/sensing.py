@@ -6,7 +6,7 @@ readings of the simulated follower's probe from the true pose and force it is gi
 it returns is measured (noise, occlusion, lost frames), not the truth.
 
 Frames: world (the headset's, y up), camera (OpenCV: x right, y down, z forward), probe
-(see configs/tools). Units: m, N, s.
+(see humantele/defaults/tools). Units: m, N, s.
 
 Cost per ``measure`` call with the sim backends, one core: about 2-5 ms (frame rendering about
 half, the pipeline the rest; see ``humantele bench tracking``), so 45 Hz takes < 25 % of a
@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Annotated, Literal
+from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -30,20 +30,20 @@ from humantele.forcesense.sensors import ForceSensorConfig, calibration_path, ma
 from humantele.forcesense.sim import SimForceConfig, SimForceSensor
 from humantele.geometry import Pose, matrix_to_quat
 from humantele.tracking.filter import FilterConfig
-from humantele.tracking.opencv_source import OpenCVFrameConfig
 from humantele.tracking.pipeline import PipelineConfig, Tracker
 from humantele.tracking.sim import SimFrameConfig, SimFrameSource
-from humantele.tracking.sources import make_frame_source
-from humantele.tracking.tool import DEFAULT_TOOL, load_tool
-
-Status = Literal["tracked", "lost", "ambiguous"]
+from humantele.tracking.sources import FrameSourceConfig, make_frame_source
+from humantele.tracking.status import TrackingStatus
+from humantele.tracking.tool import DEFAULT_TOOL, ToolDefinition, load_tool
 
 # Camera looking straight down (world -y), image x along world x, image y along world z.
 _R_WORLD_CAMERA_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]).T
 
 
 class SensingConfig(ConfigModel):
-    """Tracker (camera backend, pipeline, filter, tool), force sensor, and where the camera is.
+    """Tracker (camera backend, pipeline, filter), force sensor, and where the camera is. The
+    tool (the probe's marker tree) is not here: it is the follower's one ``tool`` setting,
+    given to :class:`ProbeSensing`.
 
     ``camera_anchor = "above_probe"``: the headset camera is placed ``camera_height_m`` above
     the probe's first true position, looking down (the follower's head, held steady).
@@ -51,10 +51,9 @@ class SensingConfig(ConfigModel):
     :meth:`ProbeSensing.measure` (the headset's own pose) overrides both.
     """
 
-    tool: str = DEFAULT_TOOL
-    camera: Annotated[SimFrameConfig | OpenCVFrameConfig, Field(discriminator="backend")] = Field(
-        default_factory=SimFrameConfig
-    )
+    moved_fields = {"tool": "the probe's tool is set once, in [follower] tool"}
+
+    camera: FrameSourceConfig = Field(default_factory=SimFrameConfig)
     pipeline: PipelineConfig = Field(default_factory=PipelineConfig)
     filter: FilterConfig = Field(default_factory=FilterConfig)
     force: ForceSensorConfig = Field(default_factory=ForceSensorConfig)
@@ -71,7 +70,7 @@ class ProbeMeasurement:
     ``contact`` the detector state and ``contact_event`` "press"/"release" on this call."""
 
     t: float
-    status: Status
+    status: TrackingStatus
     T_world_probe: Pose | None
     tip_world: NDArray[np.float64] | None
     force_world: NDArray[np.float64]
@@ -82,12 +81,15 @@ class ProbeMeasurement:
 
 
 class ProbeSensing:
-    """Tracker + force sensor + contact detector, from one :class:`SensingConfig`."""
+    """Tracker + force sensor + contact detector, from one :class:`SensingConfig`, for the
+    probe ``tool`` (a :class:`ToolDefinition`, or its name or path for :func:`load_tool`)."""
 
-    def __init__(self, config: SensingConfig | None = None):
+    def __init__(
+        self, config: SensingConfig | None = None, tool: ToolDefinition | str = DEFAULT_TOOL
+    ):
         self.config = c = config or SensingConfig()
-        self.tool = load_tool(c.tool)
-        self.source = make_frame_source(c.camera)
+        self.tool = tool if isinstance(tool, ToolDefinition) else load_tool(tool)
+        self.source = make_frame_source(c.camera, self.tool)
         self.tracker = Tracker(self.tool, c.pipeline, c.filter)
         self.sensor = make_force_sensor(c.force.sensor)
         path = calibration_path(c.force)
@@ -108,6 +110,12 @@ class ProbeSensing:
         self._R_world_probe = np.eye(3)
         self._force_probe = np.zeros(3)
         self.bad_force = 0
+        try:  # the devices last: a bad setting above fails before any hardware is touched
+            self.source.open()
+            self.sensor.open()
+        except Exception:
+            self.close()
+            raise
 
     def measure(
         self,
@@ -133,7 +141,7 @@ class ProbeSensing:
             frame = self.source.render(T_world_camera.inverse() @ T_world_probe_true, t)
         else:
             frame = self.source.read(t)
-        status: Status = "lost"
+        status = TrackingStatus.LOST
         pose_w = tip_w = None
         residual = math.nan
         if frame is not None:

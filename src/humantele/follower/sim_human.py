@@ -4,7 +4,8 @@ Used by the follower daemon when no person is there (demo, tests, benchmarks). I
 the anchors measured of novices and no more:
 
 - lag: the hand reacts after ``reaction_delay_s`` and closes the gap with a first-order
-  response of time constant ``tracking_time_constant_s`` (together ~0.35 s, ANCHORS);
+  response of time constant ``tracking_time_constant_s`` (together ~0.35 s: Black et al., C&G 2024,
+  Table 3; docs/references.md);
 - a constant offset (how this person holds the probe), position in world (m) and rotation;
 - hand tremor: a 8-12 Hz band-limited random motion (physiological tremor) of given RMS.
 
@@ -128,7 +129,8 @@ def probe_down_quat(normal_world: ArrayLike) -> NDArray[np.float64]:
 
 
 class SimHumanConfig(ConfigModel):
-    """The simulated novice (ANCHORS: lag 0.35 s, error 6.24 mm / 5.93 deg RMS)."""
+    """The simulated novice: lag 0.35 s, error 6.24 mm / 5.93 deg RMS (Black et al., C&G 2024,
+    Table 3; docs/references.md)."""
 
     reaction_delay_s: float = Field(0.20, ge=0, le=2.0)
     tracking_time_constant_s: float = Field(0.15, gt=0, le=2.0)

@@ -30,6 +30,7 @@ import numpy as np
 from pydantic import Field
 
 from humantele.config import ConfigModel
+from humantele.forcesense.base import ForceSensor, ForceSensorUnavailable
 from humantele.forcesense.readings import ForceReading
 
 REPORT_ID = 0x01
@@ -41,10 +42,6 @@ FLAG_OVER_RANGE = 0x01
 FLAG_FAULT = 0x02
 _HEAD = struct.Struct("<BBHIBBh")  # 12 bytes
 _PAIRS = struct.Struct(f"<{2 * MAX_PAIRS}h")  # 24 bytes
-
-
-class ForceSensorUnavailable(RuntimeError):
-    """No force sensor board could be opened; the message says what was looked for."""
 
 
 class ReportError(ValueError):
@@ -124,17 +121,25 @@ class HidForceConfig(ConfigModel):
     read_timeout_ms: int = Field(20, ge=0, le=1000)
 
 
-class HidForceSensor:
-    """Reads reports from the board; ``read`` returns the newest good reading or None."""
+class HidForceSensor(ForceSensor):
+    """Reads reports from the board; ``read`` returns the newest good reading or None.
+
+    ``device``: an already open hidapi-like device (``read(n, timeout_ms)``, ``close()``), for
+    tests; None: ``open()`` finds the board by its USB ids.
+    """
+
+    name = "hid force sensor"
 
     def __init__(self, config: HidForceConfig | None = None, device=None):
-        self.config = c = config or HidForceConfig()
+        self.config = config or HidForceConfig()
         self.dropped: dict[str, int] = {}
         self.received = 0
-        if device is None:
-            device = self._open(c)
         self._dev = device
-        self._t0_host: float | None = None
+
+    def open(self) -> None:
+        """Open the board; ForceSensorUnavailable saying which USB id was looked for."""
+        if self._dev is None:
+            self._dev = self._open(self.config)
 
     @staticmethod
     def _open(c: HidForceConfig):
@@ -172,6 +177,8 @@ class HidForceSensor:
 
     def read(self, t: float | None = None) -> ForceReading | None:
         """Drain waiting reports; the newest good one (time-stamped ``t`` if given)."""
+        if self._dev is None:
+            raise ForceSensorUnavailable("the force sensor board is not open; call open() first")
         newest = None
         timeout = self.config.read_timeout_ms
         while True:
@@ -189,11 +196,11 @@ class HidForceSensor:
             newest = ForceReading(t, newest.a, newest.b, newest.temperature_c, newest.seq)
         return newest
 
-    def set_force(self, force_probe) -> None:
-        """Real hardware: the force is what it is (present so sim and hid share a shape)."""
-
     def close(self) -> None:
+        dev, self._dev = self._dev, None
+        if dev is None:
+            return
         try:
-            self._dev.close()
+            dev.close()
         except Exception:  # noqa: BLE001 - closing a vanished device must not raise
             pass

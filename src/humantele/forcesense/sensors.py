@@ -1,4 +1,9 @@
-"""Force sensor configuration and factory: sim or hid, the same ``read(t)`` interface."""
+"""Force sensor configuration and factory: one config union, one function.
+
+Each backend's configuration has a ``backend`` field that picks it: ``sim`` (the simulated
+board, :mod:`humantele.forcesense.sim`) or ``hid`` (the board over USB HID,
+:mod:`humantele.forcesense.hid`); both give :class:`~humantele.forcesense.base.ForceSensor` s.
+"""
 
 from __future__ import annotations
 
@@ -7,41 +12,45 @@ from typing import Annotated
 
 from pydantic import Field
 
-from humantele.config import CONFIG_DIR, ConfigModel, load_config
+from humantele.config import ConfigModel, load_config, named_config_path
+from humantele.forcesense.base import ForceSensor
 from humantele.forcesense.contact import ContactConfig
 from humantele.forcesense.hid import HidForceConfig, HidForceSensor
 from humantele.forcesense.sim import SimForceConfig, SimForceSensor
 
 ForceBackendConfig = Annotated[SimForceConfig | HidForceConfig, Field(discriminator="backend")]
+"""A force sensor board's configuration, picked by its ``backend`` field: "sim" or "hid"."""
 
 
 class ForceSensorConfig(ConfigModel):
     """The sensor backend, where its calibration lives (None: calibrate the sim at start),
-    and the contact detector. File: ``configs/forcesense/*.toml``."""
+    and the contact detector. Packaged set-ups: ``humantele/defaults/forcesense/*.toml``."""
 
     sensor: ForceBackendConfig = Field(default_factory=SimForceConfig)
     calibration_file: str | None = None
     contact: ContactConfig = Field(default_factory=ContactConfig)
 
 
-def make_force_sensor(config: SimForceConfig | HidForceConfig) -> SimForceSensor | HidForceSensor:
-    """The backend a configuration asks for; HidForceSensor raises ForceSensorUnavailable."""
+def make_force_sensor(config: SimForceConfig | HidForceConfig) -> ForceSensor:
+    """The force sensor a configuration asks for, not yet opened (``open()`` raises
+    ForceSensorUnavailable when the board is missing)."""
     if isinstance(config, SimForceConfig):
         return SimForceSensor(config)
-    return HidForceSensor(config)
+    if isinstance(config, HidForceConfig):
+        return HidForceSensor(config)
+    raise TypeError(f"not a force sensor configuration: {type(config).__name__}")
 
 
 def calibration_path(config: ForceSensorConfig) -> Path | None:
-    """The calibration file (relative names are in configs/forcesense/), or None."""
+    """The calibration file (a relative path is from the current directory; ``~`` is the
+    user's home), or None when the sim is calibrated at start."""
     if not config.calibration_file:
         return None
-    p = Path(config.calibration_file)
-    return p if p.is_absolute() else CONFIG_DIR / "forcesense" / p
+    return Path(config.calibration_file).expanduser()
 
 
 def load_force_config(name_or_path: str = "sim") -> ForceSensorConfig:
-    """A force sensor configuration by name in configs/forcesense/ or by path."""
-    path = CONFIG_DIR / "forcesense" / f"{name_or_path}.toml"
-    if name_or_path.endswith((".toml", ".json")):
-        path = name_or_path
+    """A force sensor set-up by name (packaged ``humantele/defaults/forcesense/NAME.toml``:
+    ``sim``, ``hid``) or by path."""
+    path = named_config_path("forcesense", name_or_path, "force sensor set-up")
     return load_config(ForceSensorConfig, path)

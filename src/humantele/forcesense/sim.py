@@ -16,6 +16,7 @@ from numpy.typing import ArrayLike
 from pydantic import Field
 
 from humantele.config import ConfigModel
+from humantele.forcesense.base import ForceSensor
 from humantele.forcesense.model import SensorGeometry, SensorModel
 from humantele.forcesense.readings import ForceReading
 
@@ -38,8 +39,10 @@ class SimForceConfig(ConfigModel):
     rate_hz: float = Field(100.0, gt=0, le=10000)
 
 
-class SimForceSensor:
+class SimForceSensor(ForceSensor):
     """``set_force`` (probe frame, N), then ``read(t)`` gives a :class:`ForceReading`."""
+
+    name = "sim force sensor"
 
     def __init__(self, config: SimForceConfig | None = None):
         self.config = c = config or SimForceConfig()
@@ -81,6 +84,9 @@ class SimForceSensor:
         rb = self._gain[1] * (b + cm) + self._off[1] + noise[1]
         self._seq += 1
         return ForceReading(t, ra, rb, self.temperature(t), self._seq & 0xFFFF)
+
+    def open(self) -> None:
+        """Nothing to open: the simulated board is ready when made."""
 
     def close(self) -> None:
         pass

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from humantele.haptics.ellipsoid import Ellipsoid
 
-# Demo patient (world, m, y up): a torso 0.30 m wide whose xiphoid is 0.22 m above the bed.
+# Demo patient (the servo's patient frame, m, y up): a torso 0.30 m wide whose xiphoid is
+# 0.22 m above the bed.
 DEMO_LANDMARKS = {
     "xiphoid": (0.0, 0.97, 0.0),
     "left": (0.0, 0.86, -0.15),

@@ -48,7 +48,7 @@ DEFAULT_LONGITUDINAL = 10.0  # m, the paper's "very large" longitudinal semi-axi
 MIN_TORSO_SEMI_AXIS = 0.05  # m, plausibility bounds for the lateral and vertical semi-axes
 MAX_TORSO_SEMI_AXIS = 1.0  # m
 MAX_SEMI_AXIS = 1.0e6  # m, bound for any semi-axis (as the wire message allows)
-DEFAULT_FORCE_LIMIT = 7.9  # N, Touch X peak force (CHAI3D device tables, see ANCHORS.md)
+DEFAULT_FORCE_LIMIT = 7.9  # N, Touch X peak force (CHAI3D device tables; docs/references.md)
 METHODS = ("radial", "newton", "exact")
 ARRAY_LENGTH = 7  # as_array(): centre (3), semi_axes (3), heading (1)
 

@@ -1,9 +1,11 @@
 """One servo tick without timing: device state in, ellipsoid force and the tick's sample out.
 
 Frames: the device frame of :mod:`humantele.haptics.devices` (x right, y up, z toward the user);
-the world frame of the model (headset world, y up). ``T_world_device`` maps device points into
-the world, with optional motion scaling ``s``: ``p_world = R (s p_device) + t``. The force is
-computed in the world frame and rotated back into the device frame (unscaled).
+the patient frame the model is given in (the expert's: :mod:`humantele.expert.mapping`).
+``T_patient_device`` maps device points into the patient frame, with optional motion scaling
+``s``: ``p_patient = R (s p_device) + t``. The force is computed in the patient frame and
+rotated back into the device frame (unscaled). Each tick's sample carries the stylus both as
+the device read it and in the patient frame the force law used.
 
 Safety: the force crossfades over ``ramp_s`` at start, after a model or registration change and
 after a fault (no kick); stale device data, a device error, non-finite data or a tick later than
@@ -42,8 +44,10 @@ def _rot(q: tuple[float, float, float, float]) -> tuple:
 
 
 def auto_registration(model: Ellipsoid | None, clearance_m: float) -> Pose:
-    """Default ``T_world_device``: origin ``clearance_m`` above the model's top at the xiphoid,
-    device axes along the patient axes (identity if there is no model)."""
+    """Default ``T_patient_device``: origin ``clearance_m`` above the model's top at the
+    xiphoid, device axes along the model's axes (identity if there is no model). The model's
+    ``T_world_patient`` is its principal frame in the frame it is given in: here the patient
+    frame."""
     if model is None:
         return Pose.identity()
     top = model.center + np.array([0.0, model.semi_axes[1] + clearance_m, 0.0])
@@ -55,18 +59,18 @@ class _Setup:
 
     __slots__ = ("model", "t", "q", "R", "scale")
 
-    def __init__(self, model: Ellipsoid | None, T_world_device: Pose, scale: float) -> None:
+    def __init__(self, model: Ellipsoid | None, T_patient_device: Pose, scale: float) -> None:
         self.model = model
-        self.t = tuple(float(c) for c in T_world_device.position)
-        self.q = tuple(float(c) for c in T_world_device.quaternion)
+        self.t = tuple(float(c) for c in T_patient_device.position)
+        self.q = tuple(float(c) for c in T_patient_device.quaternion)
         self.R = _rot(self.q)
         self.scale = scale
 
-    def to_world(self, p: tuple, v: tuple) -> tuple[tuple, tuple]:
+    def to_patient(self, p: tuple, v: tuple) -> tuple[tuple, tuple]:
         R, s, t = self.R, self.scale, self.t
-        pw = tuple(s * (R[i][0] * p[0] + R[i][1] * p[1] + R[i][2] * p[2]) + t[i] for i in range(3))
-        vw = tuple(s * (R[i][0] * v[0] + R[i][1] * v[1] + R[i][2] * v[2]) for i in range(3))
-        return pw, vw
+        pp = tuple(s * (R[i][0] * p[0] + R[i][1] * p[1] + R[i][2] * p[2]) + t[i] for i in range(3))
+        vp = tuple(s * (R[i][0] * v[0] + R[i][1] * v[1] + R[i][2] * v[2]) for i in range(3))
+        return pp, vp
 
     def to_device(self, f: tuple) -> tuple[float, float, float]:
         R = self.R
@@ -90,6 +94,9 @@ class ForceRenderer:
     """One tick of the servo, without timing: device state in, device force and sample out.
 
     Used by the servo process and by :func:`run_lockstep`. Not thread-safe (one loop owns it).
+    ``sample`` after a tick: stylus position, quaternion and velocity (patient frame), force
+    (N, patient frame), force sent (N, device frame), depth (m), buttons, fault flags, ramp
+    (0-1), and the stylus position and quaternion as the device read them (device frame).
     """
 
     def __init__(self, config: ServoConfig) -> None:
@@ -118,17 +125,17 @@ class ForceRenderer:
         self._model = model
         self._rebuild(now)
 
-    def set_registration(self, T_world_device: Pose | None, scale: float, now: float) -> None:
+    def set_registration(self, T_patient_device: Pose | None, scale: float, now: float) -> None:
         """``None``: automatic registration from the model."""
-        self._reg = T_world_device
+        self._reg = T_patient_device
         self._scale = scale
         self._rebuild(now)
 
     def configure(
-        self, model: Ellipsoid | None, T_world_device: Pose | None, scale: float, now: float
+        self, model: Ellipsoid | None, T_patient_device: Pose | None, scale: float, now: float
     ) -> None:
         """Model and registration together (one crossfade)."""
-        self._model, self._reg, self._scale = model, T_world_device, scale
+        self._model, self._reg, self._scale = model, T_patient_device, scale
         self._rebuild(now)
 
     def _rebuild(self, now: float) -> None:
@@ -166,7 +173,7 @@ class ForceRenderer:
         self._fault_until = now + self.config.fault_hold_s
 
     def tick(self, state: DeviceState | None, now: float, extra_flags: int = 0):
-        """Force for the device (N, device frame) and the world sample of this tick.
+        """Force for the device (N, device frame); the tick's sample is in :attr:`sample`.
 
         ``state`` None means the device could not be read (the caller passes FAULT_DEVICE).
         """
@@ -193,39 +200,39 @@ class ForceRenderer:
             p = self._prev.position if self._prev is not None else _ZERO3
         v = tuple(self._v)
         cur = self._cur
-        pw, vw = cur.to_world(p, v)
+        pp, vp = cur.to_patient(p, v)
         depth = 0.0
-        f_world = _ZERO3
+        f_patient = _ZERO3
         alpha = self._alpha(now)
         if not self._faulted:
-            f_world = self._force(cur, pw, vw)
+            f_patient = self._force(cur, pp, vp)
             if alpha < 1.0:
                 old = self._old
-                f_old = self._force(old, *old.to_world(p, v)) if old is not None else _ZERO3
+                f_old = self._force(old, *old.to_patient(p, v)) if old is not None else _ZERO3
                 w = 1.0 - alpha
-                f_world = tuple(alpha * a + w * b for a, b in zip(f_world, f_old, strict=True))
+                f_patient = tuple(alpha * a + w * b for a, b in zip(f_patient, f_old, strict=True))
             elif self._fade_t0 is not None:
                 self._fade_t0, self._old = None, None
         if cur.model is not None and good:
-            depth = cur.model.penetration(pw, self.config.method)[0]
-        f_dev = self._clamp(cur.to_device(f_world))
+            depth = cur.model.penetration(pp, self.config.method)[0]
+        f_dev = self._clamp(cur.to_device(f_patient))
         if f_dev is _ZERO3:
-            f_world = _ZERO3
+            f_patient = _ZERO3
         q = state.quaternion if good else (0.0, 0.0, 0.0, 1.0)
-        qw = quat_multiply_tuple(cur.q, q)
+        qp = quat_multiply_tuple(cur.q, q)
         buttons = state.buttons if state is not None else 0
         if flags:
             self._flags |= flags
         elif not self._faulted:
             self._flags = 0
         ramp = 0.0 if self._faulted else alpha
-        self.sample = (pw, qw, vw, f_world, f_dev, depth, buttons, self._flags, ramp)
+        self.sample = (pp, qp, vp, f_patient, f_dev, depth, buttons, self._flags, ramp, p, q)
         return f_dev
 
-    def _force(self, setup: _Setup, pw: tuple, vw: tuple) -> tuple:
+    def _force(self, setup: _Setup, pp: tuple, vp: tuple) -> tuple:
         if setup.model is None:
             return _ZERO3
-        return setup.model.force(pw, vw, self.kp, self.kd, self.config.method, self.limit)
+        return setup.model.force(pp, vp, self.kp, self.kd, self.config.method, self.limit)
 
     def _clamp(self, f: tuple) -> tuple:
         fx, fy, fz = f

@@ -38,7 +38,9 @@ from humantele.haptics.servo_layout import (
     S_FAULT,
     S_FD,
     S_P,
+    S_PD,
     S_Q,
+    S_QD,
     S_RAMP,
     S_T,
     S_TICK,
@@ -156,18 +158,18 @@ class ServoProcess:
             v[C_MODEL : C_MODEL + 7] = 0.0 if arr is None else arr
             self._push()
 
-    def set_registration(self, T_world_device: Pose | None, scale: float | None = None) -> None:
-        """Set ``T_world_device`` (None: automatic, above the model) and motion scaling."""
+    def set_registration(self, T_patient_device: Pose | None, scale: float | None = None) -> None:
+        """Set ``T_patient_device`` (None: automatic, above the model) and motion scaling."""
         s = self.config.motion_scale if scale is None else float(scale)
         if not (math.isfinite(s) and 0.0 < s <= 10.0):
             raise ValueError(f"motion scale must be in (0, 10], got {scale!r}")
         with self._lock:
             v = self._cmd_values
             v[C_REG_GEN] += 1.0
-            v[C_REG_ON] = 0.0 if T_world_device is None else 1.0
-            if T_world_device is not None:
-                v[C_REG_P : C_REG_P + 3] = T_world_device.position
-                v[C_REG_Q : C_REG_Q + 4] = T_world_device.quaternion
+            v[C_REG_ON] = 0.0 if T_patient_device is None else 1.0
+            if T_patient_device is not None:
+                v[C_REG_P : C_REG_P + 3] = T_patient_device.position
+                v[C_REG_Q : C_REG_Q + 4] = T_patient_device.quaternion
             v[C_REG_S] = s
             self._push()
 
@@ -189,7 +191,8 @@ class ServoProcess:
             return None
         self._last_sample = ServoSample(
             t=float(a[S_T]),
-            pose=Pose(a[S_P : S_P + 3], a[S_Q : S_Q + 4]),
+            T_device_stylus=Pose(a[S_PD : S_PD + 3], a[S_QD : S_QD + 4]),
+            T_patient_stylus=Pose(a[S_P : S_P + 3], a[S_Q : S_Q + 4]),
             velocity=tuple(float(x) for x in a[S_V : S_V + 3]),  # type: ignore[arg-type]
             force=tuple(float(x) for x in a[S_F : S_F + 3]),  # type: ignore[arg-type]
             force_device=tuple(float(x) for x in a[S_FD : S_FD + 3]),  # type: ignore[arg-type]

@@ -39,7 +39,9 @@ from humantele.haptics.servo_layout import (
     S_FAULT,
     S_FD,
     S_P,
+    S_PD,
     S_Q,
+    S_QD,
     S_RAMP,
     S_T,
     S_TICK,
@@ -223,18 +225,20 @@ def _run(config, device, cmd, out, st, stop, parent_pid, realtime) -> None:
                 device.command_force(f)
             except DeviceError:
                 r.fault(FAULT_DEVICE, now)
-            pw, qw, vw, fw, fd, depth, buttons, fflags, ramp = r.sample
+            pp, qp, vp, fp, fd, depth, buttons, fflags, ramp, p_dev, q_dev = r.sample
             sample[S_T] = now
-            sample[S_P : S_P + 3] = pw
-            sample[S_Q : S_Q + 4] = qw
-            sample[S_V : S_V + 3] = vw
-            sample[S_F : S_F + 3] = fw
+            sample[S_P : S_P + 3] = pp
+            sample[S_Q : S_Q + 4] = qp
+            sample[S_V : S_V + 3] = vp
+            sample[S_F : S_F + 3] = fp
             sample[S_FD : S_FD + 3] = fd
             sample[S_DEPTH] = depth
             sample[S_BUTTONS] = buttons
             sample[S_FAULT] = fflags
             sample[S_TICK] = timing.ticks
             sample[S_RAMP] = ramp
+            sample[S_PD : S_PD + 3] = p_dev
+            sample[S_QD : S_QD + 4] = q_dev
             out.write(sample)
             if now >= next_stats:
                 st.write(_stats_row(timing, r, realtime))
@@ -258,7 +262,7 @@ def _stats_row(timing: PeriodTiming, r: ForceRenderer, realtime: bool) -> list[f
         "period_p99_us": timing.percentile(0.99),
         "period_max_us": timing.max_us,
         "overruns": timing.overruns,
-        "periods_over_2t": timing.count_over(2.0 * timing.period),
+        "periods_over_2ms": timing.count_over(2.0 * timing.period),
         "late_ticks": c["late"],
         "stale_ticks": c["stale"],
         "device_errors": c["device"],

@@ -18,7 +18,7 @@ log = logging.getLogger(__name__)
 
 
 class RegistrationConfig(ConfigModel):
-    """``T_world_device``: device origin in the world (m) and rotation (x, y, z, w)."""
+    """``T_patient_device``: device origin in the patient frame (m) and rotation (x, y, z, w)."""
 
     position_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     quaternion: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
@@ -28,7 +28,7 @@ class RegistrationConfig(ConfigModel):
 
 
 class ServoConfig(ConfigModel):
-    """The servo loop (``[servo]`` of configs/expert.toml). Gains in the world frame.
+    """The servo loop (``[servo]`` of configs/expert.toml). Gains in the patient frame.
 
     ``registration`` None: automatic, the device origin ``clearance_m`` above the top of the
     model at the xiphoid, device axes along the patient's (the sonographer at the patient's

@@ -12,12 +12,15 @@ from humantele.haptics.renderer import FAULT_NAMES
 
 @dataclass(frozen=True)
 class ServoSample:
-    """The latest tick. ``t`` monotonic s; ``pose`` T_world_stylus (m); ``velocity`` m/s and
-    ``force`` N in the world frame (``force_device``: what went to the device); ``depth`` m
+    """The latest tick. ``t`` monotonic s; ``T_device_stylus``: the stylus as the device read
+    it (m); ``T_patient_stylus``: the same stylus in the patient frame the force law used
+    (registration and motion scale applied); ``velocity`` m/s and ``force`` N in the patient
+    frame (``force_device``: what went to the device, device frame); ``depth`` m
     (> 0 in contact); ``fault`` names of the active faults, '' when none."""
 
     t: float
-    pose: Pose
+    T_device_stylus: Pose
+    T_patient_stylus: Pose
     velocity: tuple[float, float, float]
     force: tuple[float, float, float]
     force_device: tuple[float, float, float]
@@ -35,7 +38,8 @@ class ServoSample:
 @dataclass(frozen=True)
 class ServoStats:
     """Loop statistics since start. Periods are between tick starts (us); ``overruns``: periods
-    over 1.5 T (a tick slipped); ``periods_over_2t``: periods over 2 T (2 ms at 1 kHz);
+    over 1.5 T (a tick slipped); ``periods_over_2ms``: periods over 2 T (2 ms at
+    the 1 kHz the figure is named for);
     ``late_ticks``: later than late_after_s (fault)."""
 
     ticks: int
@@ -45,7 +49,7 @@ class ServoStats:
     period_p99_us: float
     period_max_us: float
     overruns: int
-    periods_over_2t: int
+    periods_over_2ms: int
     late_ticks: int
     stale_ticks: int
     device_errors: int
@@ -65,10 +69,10 @@ C_MODEL_GEN, C_MODEL_ON, C_MODEL = 0, 1, 2  # model: 7 floats (Ellipsoid.as_arra
 C_REG_GEN, C_REG_ON, C_REG_P, C_REG_Q, C_REG_S = 9, 10, 11, 14, 18
 C_STOP = 19
 CMD_LEN = 20
-# Sample (servo -> daemon), written every tick.
-S_T, S_P, S_Q, S_V, S_F, S_FD, S_DEPTH, S_BUTTONS, S_FAULT, S_TICK, S_RAMP = (
-    0, 1, 4, 8, 11, 14, 17, 18, 19, 20, 21)  # fmt: skip
-SAMPLE_LEN = 22
+# Sample (servo -> daemon), written every tick. S_P, S_Q: patient frame; S_PD, S_QD: device.
+S_T, S_P, S_Q, S_V, S_F, S_FD, S_DEPTH, S_BUTTONS, S_FAULT, S_TICK, S_RAMP, S_PD, S_QD = (
+    0, 1, 4, 8, 11, 14, 17, 18, 19, 20, 21, 22, 25)  # fmt: skip
+SAMPLE_LEN = 29
 STAT_FIELDS = [f for f in ServoStats.__dataclass_fields__]
 STATS_LEN = len(STAT_FIELDS)
 

@@ -15,6 +15,7 @@ are JSON with a JSON schema, so Foxglove opens the files directly. Ids are pseud
 
 from __future__ import annotations
 
+import base64
 import json
 import math
 import re
@@ -57,9 +58,12 @@ class ChannelSpec:
     required: tuple[str, ...] = ()
     batch: bool = False
     enums: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    image: bool = False  # a foxglove.CompressedImage (JPEG) channel, see image_sample
 
     @property
     def schema_name(self) -> str:
+        if self.image:
+            return IMAGE_SCHEMA
         return "humantele" + self.topic.replace("/", ".")
 
 
@@ -79,7 +83,14 @@ _VIDEO = {
     "stream": ("string", "'pov' (follower camera) or 'us' (ultrasound image)"),
     "seq": ("integer", "frame number in its stream"),
     "event": ("string", "'captured', 'sent' or 'received'"),
+    "quality": ("number", "sim US: known-answer image quality of the frame, 0-1 (captured)"),
+    "coupling": ("number", "sim US: mean acoustic coupling of the beams, 0-1 (captured)"),
+    "width": ("integer", "size sent, px (sent)"),
+    "height": ("integer", "size sent, px (sent)"),
+    "age_s": ("number", "capture (follower) to decoded (expert), s, via clock sync (received)"),
 }
+IMAGE_SCHEMA = "foxglove.CompressedImage"
+IMAGE_TOPICS = ("/follower/us_image", "/follower/pov_image")
 
 CHANNELS: dict[str, ChannelSpec] = {
     spec.topic: spec
@@ -188,6 +199,18 @@ CHANNELS: dict[str, ChannelSpec] = {
             enums={"event": ("freeze", "live", "caliper", "annotation", "capture")},
         ),
         ChannelSpec(
+            "/follower/us_image",
+            "the ultrasound image as sent, JPEG, at [follower.video] record_us_hz",
+            {"seq": ("integer", "frame number in the us stream")},
+            image=True,
+        ),
+        ChannelSpec(
+            "/follower/pov_image",
+            "the follower's point of view as sent, JPEG, at [follower.video] record_pov_hz",
+            {"seq": ("integer", "frame number in the pov stream")},
+            image=True,
+        ),
+        ChannelSpec(
             "/follower/probe_pose",
             "the real probe tracked by the headset (T_patient_probe), one per tracker frame",
             {
@@ -229,8 +252,52 @@ CHANNELS: dict[str, ChannelSpec] = {
 }
 
 
+def image_json_schema(spec: ChannelSpec) -> dict[str, Any]:
+    """Foxglove's ``foxglove.CompressedImage`` as a JSON schema (bytes as base64), plus the
+    sample's ``t`` and ``seq``: Foxglove's Image panel shows these channels."""
+    time_schema = {
+        "type": "object",
+        "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}},
+    }
+    return {
+        "type": "object",
+        "title": IMAGE_SCHEMA,
+        "description": spec.description,
+        "properties": {
+            "timestamp": {**time_schema, "description": "capture time, this daemon's clock"},
+            "frame_id": {"type": "string", "description": "'us' or 'pov'"},
+            "data": {"type": "string", "contentEncoding": "base64", "description": "JPEG"},
+            "format": {"type": "string", "description": "'jpeg'"},
+            "t": {"type": "number", "description": "time on this daemon's clock, s"},
+            "seq": {"type": "integer", "description": "frame number in its stream"},
+        },
+        "required": ["timestamp", "frame_id", "data", "format", "t"],
+    }
+
+
+def image_sample(spec: ChannelSpec, t: float, payload: dict[str, Any]) -> dict[str, Any]:
+    """A ``foxglove.CompressedImage`` message from ``{"data": JPEG bytes, "seq": n}``."""
+    data = payload.get("data")
+    if not isinstance(data, bytes | bytearray) or data[:2] != b"\xff\xd8":
+        raise ValueError(f"{spec.topic}: field 'data' must be JPEG bytes")
+    tt = round(_value("number", t), T_DECIMALS)
+    sec = math.floor(tt)
+    sample: dict[str, Any] = {
+        "timestamp": {"sec": int(sec), "nsec": int(round((tt - sec) * 1e9)) % 1_000_000_000},
+        "frame_id": spec.topic.rsplit("/", 1)[-1].removesuffix("_image"),
+        "data": base64.b64encode(bytes(data)).decode("ascii"),
+        "format": "jpeg",
+        "t": tt,
+    }
+    if "seq" in payload:
+        sample["seq"] = _value("integer", payload["seq"])
+    return sample
+
+
 def json_schema(spec: ChannelSpec) -> dict[str, Any]:
     """The JSON schema of one message of ``spec`` (Foxglove reads it)."""
+    if spec.image:
+        return image_json_schema(spec)
     props: dict[str, Any] = {
         "t": {"type": "number", "description": "time on this daemon's clock, s"}
     }
@@ -301,6 +368,8 @@ def _value(kind: str, v: Any) -> Any:
 def make_sample(spec: ChannelSpec, t: float, payload: dict[str, Any]) -> dict[str, Any]:
     """The sample ``{"t": t, **fields}`` of ``spec`` with plain JSON values (numpy arrays become
     lists); ValueError naming the field if a value is missing, unknown, non-finite or mistyped."""
+    if spec.image:
+        return image_sample(spec, t, payload)
     sample: dict[str, Any] = {"t": round(_value("number", t), T_DECIMALS)}
     for name in payload:
         if name != "t" and name not in spec.fields:

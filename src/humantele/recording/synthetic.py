@@ -60,6 +60,9 @@ class SyntheticSession(ConfigModel):
     session_id: str = "sim0001"
     seed: int = 0
     batch_max_samples: int = Field(100, ge=1)
+    us_quality: list[float] | None = Field(
+        None, description="sim US image quality (0-1) of each scan's frames, 10 per second"
+    )
 
 
 @dataclass
@@ -167,6 +170,12 @@ def write_synthetic(
         events.append(
             (start + length, "/expert/scan", start + length, {"event": "stop", "scan": scan})
         )
+        if cfg.us_quality is not None:  # the sim US known answer, follower clock
+            q = float(cfg.us_quality[k % len(cfg.us_quality)])
+            for n, te in enumerate(np.arange(start + 0.05, start + length, 0.1)):
+                tf = float(to_follower(np.array([te]))[0])
+                frame = {"stream": "us", "seq": n + 1, "event": "captured", "quality": q}
+                events.append((float(te), "/follower/video_frame", tf, frame))
 
     # Clock sync estimates (follower side) and a few slower streams.
     for tf in np.arange(tf0, tf0 + cfg.duration_s, cfg.sync_period_s):

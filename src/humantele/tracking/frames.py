@@ -3,13 +3,15 @@
 A :class:`TrackingFrame` is what the HoloLens 2 AHAT stream delivers: an active-brightness
 (IR) image and a depth image (range along the ray, mm, 0 = invalid, wrapping beyond ~1 m),
 with the intrinsics and a timestamp. Backends (``sim``, ``opencv``; a HoloLens 2 stream
-client can be another) are picked by configuration in :mod:`humantele.tracking.sources`.
+client can be another) subclass :class:`FrameSource` and are picked by the ``backend`` field
+of their configuration in :mod:`humantele.tracking.sources` (:func:`make_frame_source`), as
+haptic devices, force sensors and video sources are.
 """
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -40,14 +42,31 @@ class TrackingFrame:
     visible_true: tuple[bool, ...] | None = None
 
 
-@runtime_checkable
-class FrameSource(Protocol):
-    """What the tracker needs from a camera: frames and intrinsics."""
+class FrameSource(ABC):
+    """IR (and depth) frames from a camera or a simulation; same methods for all backends.
 
+    ``open()`` raises :class:`FrameSourceUnavailable` (one line naming the camera and what to
+    check) when the camera cannot start; ``read(t)`` returns the next frame stamped ``t`` (s;
+    None: the source's own clock), or None when the camera gave none (the backend counts
+    it, in its ``dropped``); ``close()`` releases the camera, safe to call twice.
+    ``intrinsics`` are the camera's (the configured ones until opened).
+    """
+
+    name: str = "frames"
     intrinsics: CameraIntrinsics
 
-    def read(self, t: float | None = None) -> TrackingFrame | None:
-        """The next frame (None if none is available now); ``t`` is the time to stamp it."""
-        ...
+    @abstractmethod
+    def open(self) -> None: ...
 
+    @abstractmethod
+    def read(self, t: float | None = None) -> TrackingFrame | None: ...
+
+    @abstractmethod
     def close(self) -> None: ...
+
+    def __enter__(self) -> FrameSource:
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -22,15 +22,13 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from humantele.geometry import Pose, matrix_to_quat
+from humantele.tracking.status import TrackingStatus
 from humantele.tracking.tool import ToolDefinition, kabsch
-
-Status = Literal["tracked", "lost", "ambiguous"]
 
 LATERAL_SEEN = 0.004  # a candidate this close (m) to a missing marker's ray is that marker
 
@@ -75,7 +73,7 @@ class MatchResult:
     input rows dropped for not being finite, and fits refuted because a marker they leave
     unmatched would have been seen (``explain_missing``)."""
 
-    status: Status
+    status: TrackingStatus
     estimate: PoseEstimate | None
     n_hypotheses: int
     n_nonfinite: int = 0
@@ -144,12 +142,12 @@ def match_markers(
     pts = pts_in[finite]
     model = tool.markers
     if len(pts) < tool.min_visible:
-        return MatchResult("lost", None, 0, n_bad)
+        return MatchResult(TrackingStatus.LOST, None, 0, n_bad)
     d_meas = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
     d_model = np.linalg.norm(model[:, None] - model[None], axis=-1)
     hyps = _assignments(d_meas, d_model, p.distance_tol, tool.min_visible)
     if not hyps:
-        return MatchResult("lost", None, 0, n_bad)
+        return MatchResult(TrackingStatus.LOST, None, 0, n_bad)
     n_refuted = 0
     hyp = np.array(hyps, dtype=np.intp)  # (H, M): candidate index per marker, -1 missing
     present = hyp >= 0
@@ -187,12 +185,12 @@ def match_markers(
         # ambiguous: another assignment with as many markers fits as well but moves the tool
         moved = np.linalg.norm(placed - placed[j], axis=-1).max(axis=1)
         if np.any(moved > p.distinct_pose):
-            return MatchResult("ambiguous", None, len(hyps), n_bad, n_refuted)
+            return MatchResult(TrackingStatus.AMBIGUOUS, None, len(hyps), n_bad, n_refuted)
         pose = Pose(t[best], matrix_to_quat(r[best]))
         matched = tuple(int(finite[i]) if i >= 0 else -1 for i in hyp[rows[best]])
         est = PoseEstimate(pose, float(rms[best]), matched, r[best])
-        return MatchResult("tracked", est, len(hyps), n_bad, n_refuted)
-    return MatchResult("lost", None, len(hyps), n_bad, n_refuted)
+        return MatchResult(TrackingStatus.TRACKED, est, len(hyps), n_bad, n_refuted)
+    return MatchResult(TrackingStatus.LOST, None, len(hyps), n_bad, n_refuted)
 
 
 def _missing_contradicted(

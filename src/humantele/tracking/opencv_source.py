@@ -16,7 +16,7 @@ from pydantic import Field
 
 from humantele.config import ConfigModel
 from humantele.tracking.camera import CameraIntrinsics
-from humantele.tracking.frames import FrameSourceUnavailable, TrackingFrame
+from humantele.tracking.frames import FrameSource, FrameSourceUnavailable, TrackingFrame
 
 
 class OpenCVFrameConfig(ConfigModel):
@@ -40,26 +40,38 @@ def _open(device: str) -> cv2.VideoCapture:
     return cap
 
 
-class OpenCVFrameSource:
-    """IR (and depth) frames from OpenCV captures; raises FrameSourceUnavailable at start."""
+class OpenCVFrameSource(FrameSource):
+    """IR (and depth) frames from OpenCV captures; ``open()`` raises FrameSourceUnavailable."""
+
+    name = "opencv frames"
 
     def __init__(self, config: OpenCVFrameConfig | None = None):
         self.config = c = config or OpenCVFrameConfig()
         self.intrinsics = c.intrinsics
+        self._ir: cv2.VideoCapture | None = None
+        self._depth: cv2.VideoCapture | None = None
+        self._seq = 0
+        self.dropped = 0  # reads that gave no frame
+
+    def open(self) -> None:
+        """Open the IR (and depth) captures; FrameSourceUnavailable if one cannot be opened."""
+        c = self.config
+        self.close()
         self._ir = _open(c.device)
-        self._depth = None
         if c.depth_device is not None:
             try:
                 self._depth = _open(c.depth_device)
             except FrameSourceUnavailable:
-                self._ir.release()
+                self.close()
                 raise
             self._depth.set(cv2.CAP_PROP_CONVERT_RGB, 0)
-        self._seq = 0
-        self.dropped = 0
 
     def read(self, t: float | None = None) -> TrackingFrame | None:
         """The next frame, or None (counted in ``dropped``) if the camera gave none."""
+        if self._ir is None:
+            raise FrameSourceUnavailable(
+                f"camera {self.config.device!r} is not open; call open() before read()"
+            )
         ok, img = self._ir.read()
         if not ok or img is None:
             self.dropped += 1
@@ -84,6 +96,7 @@ class OpenCVFrameSource:
         )
 
     def close(self) -> None:
-        self._ir.release()
-        if self._depth is not None:
-            self._depth.release()
+        for cap in (self._ir, self._depth):
+            if cap is not None:
+                cap.release()
+        self._ir = self._depth = None

@@ -24,8 +24,9 @@ from humantele.tracking.blobs import BlobParams, CentroidMethod, DepthMethod, de
 from humantele.tracking.evidence import FreeSpaceCheck
 from humantele.tracking.filter import FilterConfig, PoseFilter
 from humantele.tracking.frames import TrackingFrame
-from humantele.tracking.markers import MatchParams, Status, match_markers, refine_rt
+from humantele.tracking.markers import MatchParams, match_markers, refine_rt
 from humantele.tracking.sphere import SphereFitParams
+from humantele.tracking.status import TrackingStatus
 from humantele.tracking.tool import ToolDefinition
 
 
@@ -77,12 +78,12 @@ class PipelineConfig(ConfigModel):
 
 @dataclass(frozen=True)
 class TrackingResult:
-    """One frame's outcome. ``T_camera_probe`` is set only when ``status == "tracked"``;
+    """One frame's outcome. ``T_camera_probe`` is set only when ``status`` is ``tracked``;
     ``residual_m`` is the fit's RMS residual (NaN when not tracked); ``matched[i]`` the blob
     index of tool marker i (-1 missing); ``n_blobs`` candidate points found."""
 
     t: float
-    status: Status
+    status: TrackingStatus
     T_camera_probe: Pose | None
     residual_m: float
     matched: tuple[int, ...]
@@ -130,7 +131,7 @@ class Tracker:
         )
         fc = filter_config or FilterConfig()
         self.filter = PoseFilter(fc) if fc.enabled else None
-        self.counts = {"tracked": 0, "lost": 0, "ambiguous": 0}
+        self.counts = {str(s): 0 for s in TrackingStatus if s != TrackingStatus.PREDICTED}
         self.refuted = 0  # fits refuted because a marker they leave unmatched was not there
 
     def process(self, frame: TrackingFrame) -> TrackingResult:
@@ -174,7 +175,7 @@ class Tracker:
                 pose = Pose(t, matrix_to_quat(r))  # never let a refinement run away
         if self.filter is not None:
             pose = self.filter.update(frame.t, pose)
-        return TrackingResult(frame.t, "tracked", pose, est.residual_m, est.matched, n)
+        return TrackingResult(frame.t, TrackingStatus.TRACKED, pose, est.residual_m, est.matched, n)
 
 
 def _never(centres: np.ndarray) -> np.ndarray:

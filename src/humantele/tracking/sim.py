@@ -35,7 +35,7 @@ from pydantic import Field
 from humantele.config import ConfigModel
 from humantele.geometry import Pose, quat_from_axis_angle, quat_multiply
 from humantele.tracking.camera import CameraIntrinsics
-from humantele.tracking.frames import TrackingFrame
+from humantele.tracking.frames import FrameSource, TrackingFrame
 from humantele.tracking.tool import DEFAULT_TOOL, ToolDefinition, load_tool
 
 _SS = 4  # supersampling per pixel side
@@ -49,11 +49,16 @@ def default_sim_pose() -> Pose:
 
 
 class SimFrameConfig(ConfigModel):
-    """Simulated AHAT-like sensor. Counts are IR active-brightness units; distances m."""
+    """Simulated AHAT-like sensor. Counts are IR active-brightness units; distances m. The
+    marker tree it draws is given to :class:`SimFrameSource` (the follower's ``tool``)."""
+
+    moved_fields = {
+        "tool": "the sim draws the follower's probe, set once in [follower] tool "
+        "(SimFrameSource(config, tool) elsewhere)"
+    }
 
     backend: Literal["sim"] = "sim"
     seed: int = 0
-    tool: str = Field(DEFAULT_TOOL, description="tool name in configs/tools or a path")
     intrinsics: CameraIntrinsics = Field(default_factory=CameraIntrinsics)
     frame_rate_hz: float = Field(45.0, gt=0, le=1000)
     noise_scale: float = Field(1.0, ge=0, le=20, description="multiplies every noise term")
@@ -87,19 +92,23 @@ class SimFrameConfig(ConfigModel):
         0.07, gt=0, le=0.5, description="strays lie within this of the probe's origin, per axis"
     )
     second_tool: str | None = Field(
-        None, description="another marker tool in view (name in configs/tools or a path)"
+        None, description="another marker tool in view (a packaged tool name or a path)"
     )
     second_tool_distance_m: tuple[float, float] = Field(
         (0.07, 0.14), description="its origin's distance from the probe's, sideways, m"
     )
 
 
-class SimFrameSource:
-    """Renders frames of the tool at ``pose`` (``set_pose``) or a given pose (``render``)."""
+class SimFrameSource(FrameSource):
+    """Renders frames of ``tool`` (None: the default probe) at ``pose`` (``set_pose``, then
+    ``read``) or at a given pose (``render``: what the follower's sensing does with the
+    simulated probe's true pose)."""
+
+    name = "sim frames"
 
     def __init__(self, config: SimFrameConfig | None = None, tool: ToolDefinition | None = None):
         self.config = config or SimFrameConfig()
-        self.tool = tool or load_tool(self.config.tool)
+        self.tool = tool or load_tool(DEFAULT_TOOL)
         self.intrinsics = self.config.intrinsics
         self.pose = default_sim_pose()
         self._rng = np.random.default_rng(self.config.seed)
@@ -171,6 +180,9 @@ class SimFrameSource:
     def read(self, t: float | None = None) -> TrackingFrame:
         """A frame at the current pose; ``t`` defaults to seq / frame rate."""
         return self.render(self.pose, t)
+
+    def open(self) -> None:
+        """Nothing to open: the scene was drawn when the source was made."""
 
     def close(self) -> None:
         pass

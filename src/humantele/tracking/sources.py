@@ -1,4 +1,9 @@
-"""Frame source configuration and factory: one config union, one function."""
+"""Frame source configurations and the factory: one config union, one function.
+
+Each backend's configuration has a ``backend`` field that picks it: ``sim`` (rendered AHAT-like
+frames, :mod:`humantele.tracking.sim`) or ``opencv`` (a camera OpenCV can open,
+:mod:`humantele.tracking.opencv_source`).
+"""
 
 from __future__ import annotations
 
@@ -9,12 +14,19 @@ from pydantic import Field
 from humantele.tracking.frames import FrameSource
 from humantele.tracking.opencv_source import OpenCVFrameConfig, OpenCVFrameSource
 from humantele.tracking.sim import SimFrameConfig, SimFrameSource
+from humantele.tracking.tool import ToolDefinition
 
 FrameSourceConfig = Annotated[SimFrameConfig | OpenCVFrameConfig, Field(discriminator="backend")]
+"""A tracking camera's configuration, picked by its ``backend`` field: "sim" or "opencv"."""
 
 
-def make_frame_source(config: SimFrameConfig | OpenCVFrameConfig) -> FrameSource:
-    """The frame source a configuration asks for (``backend`` = "sim" or "opencv")."""
+def make_frame_source(
+    config: SimFrameConfig | OpenCVFrameConfig, tool: ToolDefinition | None = None
+) -> FrameSource:
+    """The frame source a configuration asks for, not yet opened. ``tool`` is the marker tree
+    the sim backend draws (None: the default probe); the others ignore it."""
     if isinstance(config, SimFrameConfig):
-        return SimFrameSource(config)
-    return OpenCVFrameSource(config)
+        return SimFrameSource(config, tool)
+    if isinstance(config, OpenCVFrameConfig):
+        return OpenCVFrameSource(config)
+    raise TypeError(f"not a frame source configuration: {type(config).__name__}")

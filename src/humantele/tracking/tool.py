@@ -1,11 +1,11 @@
 """Probe tool definitions: where the retro-reflective marker spheres sit on the probe.
 
-A tool file (``configs/tools/*.toml``) gives, in millimetres (the edge of the system), the
-marker sphere centres in the **probe frame**, the sphere radius, the tip (centre of the
-transducer face) and the axis the face points along. Inside, :class:`ToolDefinition` exposes
-the same in metres. The probe frame of the default tool: origin near the marker centroid,
-x along the transducer array, y across it (elevation), z along the handle towards the cable;
-the face points along -z.
+A tool file (packaged: ``humantele/defaults/tools/*.toml``; or a file of yours) gives, in
+millimetres (the edge of the system), the marker sphere centres in the **probe frame**, the
+sphere radius, the tip (centre of the transducer face) and the axis the face points along.
+Inside, :class:`ToolDefinition` exposes the same in metres. The probe frame of the default
+tool: origin near the marker centroid, x along the transducer array, y across it
+(elevation), z along the handle towards the cable; the face points along -z.
 
 A layout that could be confused with itself (a rigid motion or a reflection that maps the
 markers, or any ``min_visible`` of them, onto a different assignment of markers) is refused
@@ -22,9 +22,8 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field, field_validator, model_validator
 
-from humantele.config import CONFIG_DIR, ConfigError, ConfigModel, load_config
+from humantele.config import ConfigError, ConfigModel, load_config, named_config_path
 
-TOOLS_DIR = CONFIG_DIR / "tools"
 DEFAULT_TOOL = "probe_default"
 
 
@@ -183,11 +182,8 @@ class ToolDefinition(ConfigModel):
 
 
 def load_tool(name_or_path: str | Path = DEFAULT_TOOL) -> ToolDefinition:
-    """A tool from a file path or a name in ``configs/tools/`` (``NAME.toml``)."""
-    p = Path(name_or_path)
-    if p.suffix not in (".toml", ".json"):
-        p = TOOLS_DIR / f"{name_or_path}.toml"
+    """A tool by name (packaged ``humantele/defaults/tools/NAME.toml``) or from a file path."""
+    p = named_config_path("tools", name_or_path, "tool")
     if not p.exists():
-        known = sorted(f.stem for f in TOOLS_DIR.glob("*.toml"))
-        raise ConfigError(f"{p}: no such tool definition (known tools: {', '.join(known)})")
+        raise ConfigError(f"{p}: no such tool definition file")
     return load_config(ToolDefinition, p)

@@ -33,6 +33,8 @@ class LinkConfig(ConfigModel):
     ``ice_servers`` defaults to an explicit empty list: aiortc would otherwise try a public
     STUN server. ``relay_only`` sets iceTransportPolicy="relay" (needs a TURN server).
     ``token`` falls back to $HUMANTELE_TOKEN, then to the loopback development token.
+    ``pose_rate_hz`` paces the expert's poses; the follower's state goes out with each
+    tracker image (``[follower] sensing_rate_hz``).
     """
 
     signaling_url: str = Field("ws://127.0.0.1:8765/ws", pattern=r"^wss?://\S+$")
@@ -42,7 +44,6 @@ class LinkConfig(ConfigModel):
     ice_servers: list[IceServer] = Field(default_factory=list)
     relay_only: bool = False
     pose_rate_hz: float = Field(250.0, gt=0, le=1000)
-    state_rate_hz: float = Field(100.0, gt=0, le=1000)
     heartbeat_interval_s: float = Field(0.5, gt=0, le=10)
     heartbeat_timeout_s: float = Field(2.0, gt=0, le=60)
     clock_sync_interval_s: float = Field(1.0, gt=0, le=60)

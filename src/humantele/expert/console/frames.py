@@ -214,3 +214,54 @@ def _render_child(configs: Mapping[str, Any], scene_q: Any, out_q: Any, stop: An
         t.start()
     for t in threads:
         t.join()
+
+
+class _Received:
+    """A received frame as the console reads it (``image`` converted when first read, in the
+    console's encoding thread)."""
+
+    __slots__ = ("_frame", "seq", "t_capture", "pixel_spacing_mm")
+
+    def __init__(self, frame: Any, seq: int, spacing: tuple[float, float] | None) -> None:
+        self._frame = frame
+        self.seq = seq
+        # Capture time mapped onto the expert's clock; the decode time when it is unknown.
+        self.t_capture = frame.t_capture if frame.t_capture is not None else frame.t_received
+        self.pixel_spacing_mm = spacing
+
+    @property
+    def image(self) -> Any:
+        return self._frame.image()
+
+    @property
+    def width(self) -> int:
+        return self._frame.width
+
+    @property
+    def height(self) -> int:
+        return self._frame.height
+
+
+class ReceivedFrames:
+    """A :class:`FrameProvider` over the expert's WebRTC receiver
+    (:class:`humantele.media.receiver.VideoReceiver`): its latest decoded frame of each track,
+    numbered by the frame counter the follower stamped (a frame whose counter did not read
+    gets the next number), with ``us_spacing_mm`` (row, col; mm per pixel of the frames as
+    received, from ``[expert.console] us_pixel_spacing_mm``) on the ultrasound frames."""
+
+    def __init__(self, receiver: Any, us_spacing_mm: tuple[float, float] | None) -> None:
+        self.receiver = receiver
+        self.us_spacing_mm = us_spacing_mm
+        self._last: dict[str, tuple[Any, _Received]] = {}
+
+    def latest(self, track: str) -> _Received | None:
+        f = self.receiver.latest(track)
+        if f is None:
+            return None
+        last = self._last.get(track)
+        if last is not None and last[0] is f:
+            return last[1]
+        seq = f.seq if f.seq is not None else (0 if last is None else last[1].seq + 1)
+        out = _Received(f, seq, self.us_spacing_mm if track == "us" else None)
+        self._last[track] = (f, out)
+        return out

@@ -5,11 +5,11 @@
 video ``[expert.console] video`` asks for:
 
 - ``received``: the follower's tracks as the daemon's WebRTC receiver decodes them
-  (``daemon.video_frames``, a :class:`~humantele.expert.console.frames.FrameProvider`);
+  (``daemon.video``, :mod:`humantele.media.receiver`; ``[expert.video] enabled``);
 - ``sim``: sim sources here, rendering what the session knows (the patient model, the
   follower's tracked probe and force), labelled as simulated on the page: a stand-in for
   development and the demo while the tracks do not come over the link;
-- ``auto`` (default): ``received`` when the daemon has a receiver, else ``sim``;
+- ``auto`` (default): ``received`` when ``[expert.video]`` is enabled, else ``sim``;
 - ``none``: no video.
 """
 
@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from humantele.expert.console.frames import FrameProvider, ProcessFrames
+from humantele.expert.console.frames import FrameProvider, ProcessFrames, ReceivedFrames
 from humantele.expert.console.server import ConsoleServer
 from humantele.geometry import Pose
 from humantele.recording import Recorder
@@ -174,7 +174,9 @@ def make_console(daemon: ExpertDaemon) -> tuple[ConsoleServer, ProcessFrames | N
     """The console server for ``daemon`` and, for sim video, its sources (they run while a
     console page is open; the daemon stops them at the end)."""
     cfg = daemon.config.console
-    received: FrameProvider | None = getattr(daemon, "video_frames", None)
+    received: FrameProvider | None = None
+    if daemon.config.video.enabled:
+        received = ReceivedFrames(daemon.video, cfg.us_pixel_spacing_mm)
     mode = cfg.video
     if mode == "auto":
         mode = "received" if received is not None else "sim"

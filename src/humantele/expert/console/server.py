@@ -83,6 +83,11 @@ class ConsoleConfig(ConfigModel):
         description="'received': the follower's tracks; 'sim': sim sources here (a stand-in); "
         "'auto': received when the daemon has a receiver, else sim; 'none'",
     )
+    us_pixel_spacing_mm: tuple[float, float] | None = Field(
+        None,
+        description="(row, col) mm per pixel of the received ultrasound frames; None: no "
+        "calipers (a sim or local source gives its own)",
+    )
     jpeg_quality: int = Field(88, ge=30, le=100)
     poll_hz: float = Field(250.0, gt=0, le=2000, description="how often new frames are looked for")
     state_rate_hz: float = Field(20.0, gt=0, le=100)
@@ -93,6 +98,13 @@ class ConsoleConfig(ConfigModel):
     )
     max_clients: int = Field(1, ge=1, le=8, description="consoles at once; more are refused")
     page_rate_hz: float = Field(80.0, gt=0, le=1000, description="page messages a second")
+
+    @field_validator("us_pixel_spacing_mm")
+    @classmethod
+    def _spacing(cls, v: tuple[float, float] | None) -> tuple[float, float] | None:
+        if v is not None and not all(math.isfinite(x) and 0.001 <= x <= 10.0 for x in v):
+            raise ValueError(f"pixel spacing {v} mm: each must be within 0.001-10 mm")
+        return v
 
     @field_validator("host")
     @classmethod
@@ -528,7 +540,10 @@ class ConsoleServer:
         base = {"seq": f.seq, "t_capture": f.t_capture}
         if isinstance(m, Caliper):
             if f.pixel_spacing_mm is None:
-                self._result(client, "caliper", False, "this image has no pixel spacing")
+                self._result(
+                    client, "caliper", False,
+                    "no pixel spacing for this image: set [expert.console] us_pixel_spacing_mm",
+                )  # fmt: skip
                 return
             row, col = f.pixel_spacing_mm
             mm = math.hypot((m.b[0] - m.a[0]) * col, (m.b[1] - m.a[1]) * row)

@@ -1,5 +1,9 @@
 """Haptic devices: one interface (:class:`HapticDevice`), backends picked by configuration.
 
+The device layer's pattern, shared with frame sources, force sensors and video sources: an
+abstract base per family, a pydantic config per backend whose ``backend`` field picks it, one
+factory (:func:`make_device`) that builds the backend a config asks for, not yet opened.
+
 ``sim`` (a simulated Touch X and sonographer's hand), ``touchx`` (the real Touch X through
 OpenHaptics' libHD) and ``hid`` (a 6-DOF HID input such as the SpaceMouse, no force).
 Device frame: x right, y up, z toward the user, origin at the workspace centre, metres.
@@ -7,6 +11,7 @@ Device frame: x right, y up, z toward the user, origin at the workspace centre, 
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Annotated, Any
 
 from pydantic import Field, TypeAdapter, ValidationError
@@ -23,43 +28,41 @@ from humantele.haptics.devices.hid import HidDevice, HidDeviceConfig
 from humantele.haptics.devices.sim import ManualClock, SimDeviceConfig, SimTouchX
 from humantele.haptics.devices.touchx import TouchX, TouchXConfig
 
-DEVICE_KINDS = {"sim": SimTouchX, "touchx": TouchX, "hid": HidDevice}
-
 DeviceConfig = Annotated[
-    SimDeviceConfig | TouchXConfig | HidDeviceConfig, Field(discriminator="kind")
+    SimDeviceConfig | TouchXConfig | HidDeviceConfig, Field(discriminator="backend")
 ]
+"""A haptic device's configuration, picked by its ``backend`` field: "sim", "touchx", "hid"."""
 _ADAPTER: TypeAdapter = TypeAdapter(DeviceConfig)
 
 
-def device_config(data: dict[str, Any]) -> SimDeviceConfig | TouchXConfig | HidDeviceConfig:
-    """Validate a device configuration mapping; ConfigError listing the known kinds."""
-    kind = data.get("kind", "sim") if isinstance(data, dict) else None
-    if kind not in DEVICE_KINDS:
-        raise ConfigError(
-            f"device kind {kind!r} is unknown; choose one of: {', '.join(DEVICE_KINDS)}"
-        )
+def device_config(data: Mapping[str, Any]) -> SimDeviceConfig | TouchXConfig | HidDeviceConfig:
+    """Validate a device configuration mapping; ConfigError naming the bad field (an unknown
+    ``backend`` lists the known ones)."""
     try:
-        return _ADAPTER.validate_python({**data, "kind": kind})
+        return _ADAPTER.validate_python(data)
     except ValidationError as exc:
-        raise ConfigError(describe_validation_error(exc, f"device ({kind})")) from exc
+        raise ConfigError(describe_validation_error(exc, "device")) from exc
 
 
-def make_device(config: Any = None) -> HapticDevice:
-    """The device for ``config`` (a device config model or a mapping with ``kind``); not opened."""
+def make_device(
+    config: SimDeviceConfig | TouchXConfig | HidDeviceConfig | Mapping[str, Any] | None = None,
+) -> HapticDevice:
+    """The haptic device a configuration asks for (None: the sim), not yet opened. A mapping is
+    validated first (:func:`device_config`)."""
     if config is None:
         config = SimDeviceConfig()
-    elif isinstance(config, dict):
+    elif isinstance(config, Mapping):
         config = device_config(config)
-    kind = getattr(config, "kind", None)
-    if kind not in DEVICE_KINDS:
-        raise ConfigError(
-            f"device kind {kind!r} is unknown; choose one of: {', '.join(DEVICE_KINDS)}"
-        )
-    return DEVICE_KINDS[kind](config)
+    if isinstance(config, SimDeviceConfig):
+        return SimTouchX(config)
+    if isinstance(config, TouchXConfig):
+        return TouchX(config)
+    if isinstance(config, HidDeviceConfig):
+        return HidDevice(config)
+    raise TypeError(f"not a haptic device configuration: {type(config).__name__}")
 
 
 __all__ = [
-    "DEVICE_KINDS",
     "DeviceConfig",
     "DeviceError",
     "DeviceSpec",

@@ -1,10 +1,11 @@
 """A generic HID 6-DOF input (e.g. the 3Dconnexion SpaceMouse) as a haptic device without force.
 
-A report map in ``configs/hid/*.toml`` (:class:`HidProfile`) says which report ids carry which
-axes at which byte offsets, and their scales. The axes are velocity-like (deflection of a cap),
-so :class:`VelocityIntegrator` integrates them into a stylus pose in the device frame of
-``base`` (x right, y up, z toward the user, metres), kept inside the workspace box. Short,
-unknown or out-of-range reports are dropped and counted, never raised.
+A report map (:class:`HidProfile`: ``humantele/defaults/hid/*.toml``, or a file of yours)
+says which report ids carry which axes at which byte offsets, and their scales. The axes are
+velocity-like (deflection of a cap), so :class:`VelocityIntegrator` integrates them into a
+stylus pose in the device frame of ``base`` (x right, y up, z toward the user, metres), kept
+inside the workspace box. Short, unknown or out-of-range reports are dropped and counted,
+never raised.
 """
 
 from __future__ import annotations
@@ -12,12 +13,11 @@ from __future__ import annotations
 import math
 import struct
 import time
-from pathlib import Path
 from typing import Literal
 
 from pydantic import Field
 
-from humantele.config import CONFIG_DIR, ConfigModel, load_config
+from humantele.config import ConfigModel, load_config, named_config_path
 from humantele.geometry import quat_multiply_tuple
 from humantele.haptics.devices.base import DeviceError, DeviceSpec, DeviceState, HapticDevice, Vec3
 
@@ -45,7 +45,7 @@ class HidReport(ConfigModel):
 
 
 class HidProfile(ConfigModel):
-    """A device's report map (see configs/hid/spacemouse.toml)."""
+    """A device's report map (see humantele/defaults/hid/spacemouse.toml)."""
 
     name: str = "HID 6-DOF device"
     vendor_ids: list[int] = []
@@ -128,17 +128,15 @@ class VelocityIntegrator:
 
 
 def load_profile(name_or_path: str) -> HidProfile:
-    """A profile by name (``configs/hid/NAME.toml``) or by path."""
-    p = Path(name_or_path)
-    if p.suffix != ".toml":
-        p = CONFIG_DIR / "hid" / f"{name_or_path}.toml"
-    return load_config(HidProfile, p)
+    """A profile by name (packaged ``humantele/defaults/hid/NAME.toml``) or by path."""
+    return load_config(HidProfile, named_config_path("hid", name_or_path, "HID profile"))
 
 
 class HidDeviceConfig(ConfigModel):
-    """The ``hid`` backend: ``profile`` is a name in configs/hid/ or a .toml path."""
+    """The ``hid`` backend: ``profile`` is a packaged profile's name (``spacemouse``) or the
+    path of a .toml profile."""
 
-    kind: Literal["hid"] = "hid"
+    backend: Literal["hid"] = "hid"
     profile: str = "spacemouse"
     spec: DeviceSpec = DeviceSpec(max_force_n=0.0, continuous_force_n=0.0)
 
@@ -174,7 +172,7 @@ class HidDevice(HapticDevice):
             ids = ", ".join(f"0x{v:04x}" for v in prof.vendor_ids)
             raise DeviceError(
                 f"hid: no {prof.name} found (vendor id {ids}); check the USB connection and "
-                'read permission on /dev/hidraw* (a udev rule), or use kind = "sim".'
+                'read permission on /dev/hidraw* (a udev rule), or use backend = "sim".'
             )
         dev = hid.device()
         try:

@@ -84,7 +84,7 @@ class SimFault(ConfigModel):
 class SimDeviceConfig(ConfigModel):
     """The ``sim`` backend: a simulated Touch X (``spec``) driven by a simulated hand."""
 
-    kind: Literal["sim"] = "sim"
+    backend: Literal["sim"] = "sim"
     seed: int = 0
     sim_rate_hz: float = Field(5000.0, ge=1000.0, le=100000.0)
     spec: DeviceSpec = DeviceSpec()

@@ -35,7 +35,7 @@ class TouchXConfig(ConfigModel):
     """The ``touchx`` backend. ``library``: libHD path or name; ``device_name``: the name set in
     the Touch Setup tool (empty = HD_DEFAULT_DEVICE)."""
 
-    kind: Literal["touchx"] = "touchx"
+    backend: Literal["touchx"] = "touchx"
     library: str = "libHD.so"
     device_name: str = ""
     spec: DeviceSpec = DeviceSpec()
@@ -62,7 +62,7 @@ def load_hd_library(name: str) -> ctypes.CDLL:
         "touchx: the OpenHaptics HD library (libHD.so) is not installed or not found "
         f"({'; '.join(errors)}). Install the 3D Systems Touch device driver and OpenHaptics "
         "for Linux, or set [servo.device] library to the path of libHD.so; to run without the "
-        'device use kind = "sim" (or "hid" for a SpaceMouse).'
+        'device use backend = "sim" (or "hid" for a SpaceMouse).'
     )
 
 

@@ -51,3 +51,27 @@ def test_fixed_camera_and_explicit_headset_pose():
     assert m.status == "tracked"
     far = Pose([0.1, 3.0, 0.2], s.T_world_camera.quaternion)
     assert s.measure(0.1, _probe(0), np.zeros(3), T_world_camera=far).status == "lost"
+
+
+def test_one_tool_setting_drives_both_the_sim_camera_and_the_tracker(tmp_path):
+    from humantele.config import ConfigError, validate_config
+    from humantele.tracking.tool import load_tool
+
+    other = tmp_path / "wide_probe.toml"  # a larger marker tree than the default probe
+    other.write_text(
+        "markers_mm = [[-40.0, 27.0, 3.0], [-35.0, -45.0, 4.0], [14.0, -47.0, -15.0], "
+        "[62.0, 63.0, 4.0]]\n"
+    )
+    s = ProbeSensing(SensingConfig(camera_anchor="fixed", camera_position_m=[0.1, 1.37, 0.2]),
+                     tool=str(other))  # fmt: skip
+    assert s.source.tool is s.tool is s.tracker.tool  # drawn, tracked: the same tree
+    assert np.abs(s.tool.markers - load_tool().markers).max() > 0.01
+    assert s.measure(0.0, _probe(0), np.zeros(3)).status == "tracked"
+    # the old per-section settings are refused with where the one setting lives
+    with pytest.raises(
+        ConfigError,
+        match=r"\[sensing\]: tool: no longer set here: .*\[follower\] tool",
+    ):
+        validate_config(SensingConfig, {"tool": "probe_default"}, "follower.toml [sensing]")
+    with pytest.raises(ConfigError, match=r"camera\.sim\.tool: no longer set here"):
+        validate_config(SensingConfig, {"camera": {"backend": "sim", "tool": "probe_default"}})

@@ -1,0 +1,272 @@
+"""``humantele bench video link``: the two video tracks end to end, in the whole session.
+
+Runs the demo (both daemons, the 1 kHz servo, the video process, on this machine) with a
+generated configuration for ``--seconds`` and reads the daemons' figures:
+
+- per track, glass to glass: the frame counter drawn at capture is read from the decoded
+  frame at the expert and matched to its capture time (clock sync): p50/p95/max (ms, capture
+  to decoded, display not included), frames per second at the expert (mean over the run),
+  the longest gap between frames (a freeze), the POV's degradation level at the end;
+- in the same row: the pose stream's age at the follower (p50/p99), the servo's rate and
+  overruns, and CPU of the expert, its servo, the follower and its video process (% of one
+  core).
+
+Links: loopback; ``--turn`` (relay through coturn) with ``--delay-ms``/``--jitter-ms``/
+``--loss`` (the user-space WAN emulator on the expert's side, as ``bench session``);
+``--busy-core`` adds a process spinning on one core. ``--codec``, ``--us-size``, ``--pov-size``
+pick the encoder and sizes. ``--matrix`` runs the standard set of rows. Each row is merged
+into the "video-link" section of docs/benchmarks.md (rows of other settings are kept).
+Prints each row and, last, one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import io
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from humantele.report import BENCHMARKS_MD, machine_line, markdown_table, write_section
+
+SECTION = "video-link"
+TARGETS = {"us_p95_ms": 100.0, "pov_p95_ms": 150.0, "us_fps": 15.0, "pov_fps": 20.0}
+MATRIX = [
+    [],
+    ["--codec", "h264"],
+    ["--us-size", "320x240", "--pov-size", "640x360"],
+    ["--turn", "--delay-ms", "4", "--jitter-ms", "1.5"],
+    ["--turn", "--delay-ms", "4", "--jitter-ms", "1.5", "--loss", "1"],
+    ["--turn", "--delay-ms", "4", "--jitter-ms", "1.5", "--loss", "2"],
+    ["--turn", "--delay-ms", "4", "--jitter-ms", "1.5", "--loss", "5"],
+    ["--busy-core"],
+]
+
+
+def add_link_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--seconds", type=float, default=30.0, help="session length (s)")
+    p.add_argument("--codec", choices=["vp8", "h264"], default="vp8")
+    p.add_argument("--us-size", default="640x480", help="US image WxH (default 640x480)")
+    p.add_argument("--pov-size", default="960x540", help="POV WxH (default 960x540)")
+    p.add_argument("--turn", action="store_true", help="relay through a coturn turnserver")
+    p.add_argument("--delay-ms", type=float, default=0.0, help="one-way delay (ms; --turn)")
+    p.add_argument("--jitter-ms", type=float, default=0.0, help="delay std dev (ms; --turn)")
+    p.add_argument("--loss", type=float, default=0.0, help="percent lost each way (--turn)")
+    p.add_argument("--busy-core", action="store_true", help="a process spins on one core")
+    p.add_argument("--no-process", action="store_true", help="video sources in threads")
+    p.add_argument("--matrix", action="store_true", help="run the standard set of rows")
+
+
+def _size(text: str) -> tuple[int, int]:
+    w, h = (int(v) for v in text.lower().split("x"))
+    return w, h
+
+
+def label(args: argparse.Namespace) -> str:
+    parts = [args.codec, f"US {args.us_size}", f"POV {args.pov_size}"]
+    if args.turn or args.delay_ms or args.loss:
+        link = "TURN"
+        if args.delay_ms:
+            link += f" +{args.delay_ms:g}" + (f"±{args.jitter_ms:g}" if args.jitter_ms else "")
+            link += " ms"
+        if args.loss:
+            link += f", {args.loss:g} % loss"
+        parts.append(link)
+    else:
+        parts.append("loopback")
+    if args.busy_core:
+        parts.append("1 core busy")
+    if args.no_process:
+        parts.append("threads")
+    return ", ".join(parts)
+
+
+def _toml_str(v: object) -> str:
+    return json.dumps(v)  # a JSON string is a TOML basic string
+
+
+def write_configs(d: Path, args: argparse.Namespace, ice: object | None) -> Path:
+    """expert.toml, follower.toml and demo.toml for one run, in ``d`` (0700)."""
+    (uw, uh), (pw, ph) = _size(args.us_size), _size(args.pov_size)
+    link = {"expert": "", "follower": ""}
+    for role, server in (ice or {}).items():
+        cred = server.credential.get_secret_value() if server.credential else ""
+        url = _toml_str(server.urls[0])
+        link[role] = (
+            f"relay_only = true\n[[{role}.link.ice_servers]]\nurls = [{url}]\n"
+            f"username = {_toml_str(server.username or '')}\ncredential = {_toml_str(cred)}\n"
+        )
+    (d / "expert.toml").write_text(
+        f"[expert.link]\npose_rate_hz = 100.0\n{link['expert']}\n"
+        f'[expert.video]\ncodec = "{args.codec}"\n'
+    )
+    (d / "follower.toml").write_text(
+        f"[follower.link]\n{link['follower']}\n"
+        f"[follower.video]\nprocess = {str(not args.no_process).lower()}\n"
+        f"record_us_hz = 0.0\nrecord_pov_hz = 0.0\n"
+        f'[follower.video.us]\nbackend = "sim"\nwidth = {uw}\nheight = {uh}\nfps = 20.0\n'
+        f'[follower.video.pov]\nbackend = "sim"\nwidth = {pw}\nheight = {ph}\nfps = 25.0\n'
+    )
+    (d / "demo.toml").write_text(
+        f"[demo]\nexpert_config = {_toml_str(str(d / 'expert.toml'))}\n"
+        f"follower_config = {_toml_str(str(d / 'follower.toml'))}\n"
+    )
+    os.chmod(d, 0o700)
+    return d / "demo.toml"
+
+
+async def measure(args: argparse.Namespace) -> dict:
+    """One session with video; the demo's summary with this run's settings."""
+    from humantele.demo import run_demo
+    from humantele.transport.netem import NetemConfig, UdpRelay
+    from humantele.transport.turnserver import TurnServer
+
+    impaired = bool(args.delay_ms or args.jitter_ms or args.loss)
+    use_turn = args.turn or impaired
+    busy = None
+    with tempfile.TemporaryDirectory(prefix="humantele-bench-video-") as tmp:
+        async with contextlib.AsyncExitStack() as stack:
+            ice = None
+            relay = None
+            if use_turn:
+                turn = await stack.enter_async_context(TurnServer())
+                ice = {"expert": turn.ice_server(), "follower": turn.ice_server()}
+                if impaired:
+                    netem = NetemConfig(
+                        delay_s=args.delay_ms * 1e-3,
+                        jitter_s=args.jitter_ms * 1e-3,
+                        loss=args.loss / 100.0,
+                    )
+                    relay = await stack.enter_async_context(UdpRelay((turn.host, turn.port), netem))
+                    ice["expert"] = turn.ice_server(*relay.address)
+            config = write_configs(Path(tmp), args, ice)
+            if args.busy_core:
+                busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+            try:
+                out = io.StringIO()
+                demo_args = argparse.Namespace(
+                    config=str(config), duration=args.seconds, json=True, room=None,
+                    keep=False, log_level="WARNING", record=None,
+                )  # fmt: skip
+                t0 = time.monotonic()
+                code = await run_demo(demo_args, out=out)
+                wall = time.monotonic() - t0
+            finally:
+                if busy is not None:
+                    busy.kill()
+                    busy.wait()
+            summary = json.loads(out.getvalue().strip().splitlines()[-1])
+            summary["exit_code"] = code
+            summary["wall_s"] = wall
+            summary["relay"] = None if relay is None else relay.counters.as_dict()
+    summary["label"] = label(args)
+    return summary
+
+
+def _v(x: object, fmt: str = "{:.0f}") -> str:
+    return "-" if x is None else fmt.format(x)
+
+
+def row(s: dict) -> list[str]:
+    v = s.get("video") or {}
+    us, pov = v.get("us") or {}, v.get("pov") or {}
+    dur = s.get("duration_s") or 1.0
+    proc = v.get("process") or {}
+    vcpu = None if not proc.get("cpu_s") else 100.0 * proc["cpu_s"] / dur
+
+    def track(t: dict) -> list[str]:
+        return [
+            f"{_v(t.get('age_p50_ms'))} / {_v(t.get('age_p95_ms'))} / {_v(t.get('age_max_ms'))}",
+            _v(t.get("fps_mean"), "{:.1f}"),
+            _v(t.get("gap_max_ms")),
+        ]
+
+    return [
+        s["label"],
+        *track(us),
+        *track(pov),
+        _v(v.get("pov_level")),
+        f"{_v(s.get('pose_age_p50_ms'), '{:.1f}')} / {_v(s.get('pose_age_p99_ms'))}",
+        f"{_v(s.get('servo_rate_hz'))} / {_v(s.get('servo_overruns'))}",
+        f"{_v(s.get('cpu_percent_expert'))} / {_v(s.get('cpu_percent_servo'))} / "
+        f"{_v(s.get('cpu_percent_follower'))} / {_v(vcpu)}",
+        time.strftime("%H:%M", time.gmtime()),
+    ]
+
+
+HEADER = [
+    "setting", "US p50/p95/max ms", "US fps", "US gap ms", "POV p50/p95/max ms", "POV fps",
+    "POV gap ms", "POV level", "pose age p50/p99 ms", "servo Hz / overruns",
+    "CPU % expert/servo/follower/video", "UTC",
+]  # fmt: skip
+
+
+def previous_rows(path: Path) -> list[list[str]]:
+    if not path.exists():
+        return []
+    text = path.read_text(encoding="utf-8")
+    begin, end = f"<!-- bench:{SECTION} -->", f"<!-- /bench:{SECTION} -->"
+    if begin not in text:
+        return []
+    body = text.split(begin, 1)[1].split(end, 1)[0]
+    rows = []
+    for line in body.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == len(HEADER) and cells[0] != "setting" and not cells[0].startswith("-"):
+            rows.append(cells)
+    return rows
+
+
+def markdown(rows: list[list[str]]) -> str:
+    return "\n\n".join(
+        [
+            "## Video over the link: glass to glass (`humantele bench video link`)",
+            machine_line() + " The machine was shared with other work (load average above 2 on"
+            " 2 cores): figures are one run each, noisy.",
+            "The whole demo session per row (both daemons, the 1 kHz servo in its own process, "
+            "the follower's video process at nice +5, US 20 fps and POV 25 fps sim sources), "
+            "`--seconds` long including the follower's calibration. Latency is capture to "
+            "decoded at the expert (the counter drawn at capture read back from the decoded "
+            "frame and matched to its capture time through the clock sync; display not "
+            "included). fps: mean frames per second decoded at the expert; gap: the longest "
+            "time between two decoded frames (a freeze). POV level: the degradation level at "
+            "the end (0 full; 1 half rate; 2 half size, half rate; 3 half size, quarter rate). "
+            f"Targets: US p95 <= {TARGETS['us_p95_ms']:.0f} ms, POV p95 <= "
+            f"{TARGETS['pov_p95_ms']:.0f} ms, US >= {TARGETS['us_fps']:.0f} fps, POV >= "
+            f"{TARGETS['pov_fps']:.0f} fps at the default settings on loopback.",
+            markdown_table(HEADER, rows),
+        ]
+    )
+
+
+def run_link(args: argparse.Namespace) -> int:
+    from humantele.transport.turnserver import TurnServer
+
+    runs = MATRIX if args.matrix else [None]
+    summaries = []
+    rows = {r[0]: r for r in previous_rows(BENCHMARKS_MD)}
+    for extra in runs:
+        a = args
+        if extra is not None:
+            p = argparse.ArgumentParser()
+            add_link_arguments(p)
+            a = p.parse_args(["--seconds", str(args.seconds), *extra])
+        if (a.turn or a.loss or a.delay_ms) and not TurnServer.available():
+            print("bench video link: turnserver (coturn) is not installed", file=sys.stderr)
+            return 2
+        s = asyncio.run(measure(a))
+        summaries.append(s)
+        r = row(s)
+        rows[r[0]] = r
+        if not args.json:
+            print(" | ".join(r), flush=True)
+        if not args.no_write:
+            write_section(SECTION, markdown(list(rows.values())), BENCHMARKS_MD)
+    print(json.dumps({"part": "link", "runs": summaries}))
+    return 0

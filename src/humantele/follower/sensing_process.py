@@ -1,0 +1,231 @@
+"""The follower's sensing (tracker frames, the tracking pipeline, the force sensor) in its own
+process, so its Python time never holds the daemon's GIL.
+
+Why: on the follower's thread pool, each tracker frame (~5 ms of Python and small NumPy
+calls, 45 Hz) held the GIL the event loop needs to read the expert's poses. With the CPU
+shared (2 cores, the servo spinning, other processes), the sensing thread is often descheduled
+*while holding the GIL*, and the loop waits for it: ``humantele bench sensing`` measures the
+loop's wake-up latency with sensing beside it in a thread and in a process.
+
+:class:`SensingProcess` is the daemon's handle: a ``spawn`` child that builds the daemon's own
+:class:`~humantele.follower.daemon.Sensing` and answers one request at a time over a pipe:
+``(job, WorldTruth)`` in, ``(job, Measurement, seconds)`` out. The daemon's loop reads the
+answers with ``add_reader`` (never blocks on the child). One frame at most is in flight: the
+caller skips frames while :attr:`busy`, as it did with the thread. A child that dies is
+restarted (``max_restarts``, then :attr:`failed` and the caller falls back to its thread); a
+child that cannot build its sensing (a bad config) reports why and is not restarted. The child
+ignores SIGINT (Ctrl-C reaches the whole process group; the daemon stops it) and exits when
+the pipe closes, so it never outlives the daemon. It runs at ``nice`` +10 by default
+(``sensing_nice``): when the daemon's loop and the child both want the CPU, the loop, which
+only needs it briefly to read a pose, wakes first; the child still gets every idle moment.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import multiprocessing as mp
+import os
+import signal
+import time
+from collections.abc import Callable
+from multiprocessing.connection import Connection
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+NICE = 10  # the child's nice: the loops it shares the CPU with wake first (it is a batch job)
+OnResult = Callable[[int, Any, float], None]  # (job, Measurement, seconds measuring)
+
+
+def sensing_main(config: Any, sensing_config: Any, conn: Connection, nice: int = 0) -> None:
+    """The child: build the sensing, then measure each request until the pipe closes."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if nice:
+        with contextlib.suppress(OSError):
+            os.nice(nice)
+    try:
+        from humantele.follower.daemon import Sensing
+
+        sensing = Sensing(config, sensing_config)
+    except Exception as exc:  # a config the sensing refuses: say why, once
+        with contextlib.suppress(OSError):
+            conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        return
+    conn.send(("ready", os.getpid()))
+    try:
+        while True:
+            try:
+                msg = conn.recv()
+            except (EOFError, OSError):
+                break
+            if msg is None:
+                break
+            job, truth = msg
+            t0 = time.perf_counter()
+            m = sensing.measure(truth)  # catches the pipeline's own faults
+            conn.send(("result", job, m, time.perf_counter() - t0, sensing.errors))
+    except (BrokenPipeError, OSError):
+        pass
+    finally:
+        sensing.close()
+
+
+class SensingProcess:
+    """The daemon's handle on the sensing child. ``start(loop)`` spawns it (non-blocking);
+    ``submit(job, truth)`` sends one frame (False when busy, not running or failed);
+    results arrive through ``on_result`` on the loop; ``on_error(reason)`` once if the child
+    cannot build its sensing. ``close()`` stops it."""
+
+    def __init__(
+        self,
+        config: Any,
+        sensing_config: Any,
+        on_result: OnResult,
+        on_error: Callable[[str], None] | None = None,
+        max_restarts: int = 5,
+        nice: int = NICE,
+    ) -> None:
+        self.config = config
+        self.sensing_config = sensing_config
+        self.on_result = on_result
+        self.on_error = on_error
+        self.max_restarts = max_restarts
+        self.nice = nice
+        self.restarts = 0
+        self.child_errors = 0  # sensing faults the child counted (all children so far)
+        self._errors_before = 0
+        self.ready = False
+        self.busy = False
+        self.failed = False
+        self.error: str | None = None
+        self.pid: int | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._proc: mp.process.BaseProcess | None = None
+        self._conn: Connection | None = None
+
+    @property
+    def running(self) -> bool:
+        return self._proc is not None and not self.failed
+
+    def start(self, loop: asyncio.AbstractEventLoop | None = None) -> None:
+        self._loop = loop or asyncio.get_running_loop()
+        self._spawn()
+
+    async def wait_ready(
+        self, timeout_s: float = 120.0, cancel: Callable[[], bool] | None = None
+    ) -> bool:
+        """Wait until the child has built its sensing (True) or failed, timed out or
+        ``cancel()`` said so (False)."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout_s
+        while not self.ready and not self.failed and loop.time() < deadline:
+            if cancel is not None and cancel():
+                break
+            await asyncio.sleep(0.02)
+        return self.ready
+
+    def _spawn(self) -> None:
+        ctx = mp.get_context("spawn")
+        parent, child = ctx.Pipe(duplex=True)
+        self._proc = ctx.Process(
+            target=sensing_main,
+            args=(self.config, self.sensing_config, child, self.nice),
+            name="humantele-sensing",
+            daemon=True,
+        )
+        self._proc.start()
+        child.close()
+        self._errors_before = self.child_errors
+        self._conn = parent
+        self.ready = self.busy = False
+        assert self._loop is not None
+        self._loop.add_reader(parent.fileno(), self._readable)
+
+    def submit(self, job: int, truth: Any) -> bool:
+        """Send one frame to measure; False (nothing sent) if one is in flight or no child."""
+        if self.busy or not self.running or self._conn is None:
+            return False
+        try:
+            self._conn.send((job, truth))
+        except (BrokenPipeError, OSError):
+            self._died()
+            return False
+        self.busy = True
+        return True
+
+    def _readable(self) -> None:
+        conn = self._conn
+        if conn is None:
+            return
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            self._died()
+            return
+        kind = msg[0]
+        if kind == "result":
+            self.busy = False
+            self.child_errors = self._errors_before + msg[4]
+            self.on_result(msg[1], msg[2], msg[3])
+        elif kind == "ready":
+            self.ready, self.pid = True, msg[1]
+        elif kind == "error":
+            self.failed, self.error = True, msg[1]
+            self._drop_child()
+            log.error("follower: the sensing process cannot start: %s", msg[1])
+            if self.on_error is not None:
+                self.on_error(msg[1])
+
+    def _died(self) -> None:
+        code = self._proc.exitcode if self._proc is not None else None
+        self._drop_child()
+        if self.restarts >= self.max_restarts:
+            self.failed = True
+            log.error(
+                "follower: the sensing process exited (code %s) %d times; measuring in a thread",
+                code,
+                self.restarts + 1,
+            )
+            return
+        self.restarts += 1
+        log.warning("follower: the sensing process exited (code %s); restarting it", code)
+        self._spawn()
+
+    def _drop_child(self) -> None:
+        """Forget the child: stop reading its pipe, close it, reap the process."""
+        conn, proc = self._conn, self._proc
+        self._conn, self._proc = None, None
+        self.busy = self.ready = False
+        if conn is not None:
+            if self._loop is not None and not self._loop.is_closed():
+                with contextlib.suppress(Exception):
+                    self._loop.remove_reader(conn.fileno())
+            conn.close()
+        if proc is not None:
+            proc.join(1.0)
+            if proc.is_alive():
+                proc.kill()
+                proc.join()
+
+    def close(self, timeout_s: float = 3.0) -> None:
+        """Ask the child to stop (the frame being measured ends first), then reap it."""
+        conn, proc = self._conn, self._proc
+        self._conn, self._proc = None, None
+        if conn is not None:
+            if self._loop is not None and not self._loop.is_closed():
+                with contextlib.suppress(Exception):
+                    self._loop.remove_reader(conn.fileno())
+            with contextlib.suppress(OSError):
+                conn.send(None)
+            conn.close()
+        if proc is not None:
+            proc.join(timeout_s)
+            if proc.is_alive():
+                proc.terminate()
+                proc.join(timeout_s)
+            if proc.is_alive():
+                proc.kill()
+                proc.join()
+        self.busy = self.ready = False

@@ -1,0 +1,74 @@
+"""Video settings of the two daemons (``[follower.video]``, ``[expert.video]``).
+
+Defaults were chosen by measurement on the 2-core machine (docs/benchmarks.md, "Video over
+the link"): VP8 (libvpx real time, ~4 ms/frame at 960x540 on one core, against 8-13 ms for
+H.264 with libx264 ultrafast), US 640x480 at 20 fps, POV 960x540 at 25 fps.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from humantele.config import ConfigModel
+from humantele.video.sim_pov import SimPovConfig
+from humantele.video.sim_ultrasound import SimUltrasoundConfig
+from humantele.video.sources import PovSourceConfig, UltrasoundSourceConfig
+
+TRACKS = ("us", "pov")
+Codec = Literal["vp8", "h264"]
+
+
+class DegradeConfig(ConfigModel):
+    """When CPU or bandwidth runs short the POV degrades, the US image does not.
+
+    Once a second the follower looks at the last window: the share of US frames the encoder
+    took (of those captured), the loss the expert reports (RTCP) on either track, and the
+    follower's late ticks. If any is bad, the POV drops one level; after ``recover_s`` with
+    all good, it climbs back one level. Levels (POV only): 0 full size and rate; 1 full size,
+    half rate; 2 half size (each side), half rate; 3 half size, quarter rate.
+    """
+
+    enabled: bool = True
+    min_us_delivery: float = Field(
+        0.85, ge=0.0, le=1.0, description="US frames encoded / captured below this: degrade"
+    )
+    max_loss: float = Field(0.03, ge=0.0, le=1.0, description="RTCP fraction lost above: degrade")
+    max_late_ticks_per_s: float = Field(5.0, ge=0.0, description="follower ticks late per second")
+    recover_s: float = Field(5.0, gt=0.0, le=300.0, description="all good this long: climb back")
+    max_level: int = Field(3, ge=0, le=3)
+
+
+class FollowerVideoConfig(ConfigModel):
+    """The follower's video (``[follower.video]``): the two sources, the counter, recording."""
+
+    enabled: bool = Field(True, description="send the us and pov tracks")
+    us: UltrasoundSourceConfig = SimUltrasoundConfig()
+    pov: PovSourceConfig = SimPovConfig()
+    stamp_counter: bool = Field(
+        True, description="draw the frame counter (64x32 px, top left) into every frame sent"
+    )
+    degrade: DegradeConfig = DegradeConfig()
+    process: bool = Field(
+        True, description="render/capture in a separate, lower-priority process (not threads)"
+    )
+    process_nice: int = Field(5, ge=0, le=19, description="the video process's nice increment")
+    record_us_hz: float = Field(
+        3.0, ge=0.0, le=120.0, description="US frames recorded as JPEG per second (0: none)"
+    )
+    record_pov_hz: float = Field(
+        0.5, ge=0.0, le=120.0, description="POV frames recorded as JPEG per second (0: none)"
+    )
+    jpeg_quality: int = Field(80, ge=10, le=100)
+
+
+class ExpertVideoConfig(ConfigModel):
+    """The expert's video (``[expert.video]``): receive the tracks, with which codec.
+
+    The expert makes the offer, so its codec is the one used (the follower encodes with it).
+    """
+
+    enabled: bool = Field(True, description="receive the us and pov tracks")
+    codec: Codec = Field("vp8", description="vp8 (default, cheapest on 2 cores) or h264")
+    record_frames: bool = Field(True, description="record every received frame's timestamps")

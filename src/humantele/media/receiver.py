@@ -1,0 +1,335 @@
+"""The expert's side of the video: receive ``us`` and ``pov``, keep the latest decoded frame of
+each with its capture time on the expert's clock.
+
+:meth:`VideoReceiver.prepare` is the expert link's media hook: before each offer it adds two
+receive-only video transceivers (``us`` first, then ``pov``) offering only the configured
+codec, and the ``video`` data channel (id 3) on which the follower sends each frame's
+:class:`~humantele.media.frameinfo.FrameInfo`. For each track a task on the loop takes the
+decoded frames (aiortc decodes in its own thread), reads the frame counter from the luma
+plane's top-left corner (64 x 32 px, a fraction of a millisecond), finds the frame's capture
+time (follower clock) and maps it to the expert's with the link's clock sync.
+
+The sender's frame ``pts`` is its capture time on the 90 kHz RTP clock, and aiortc gives each
+decoded frame the RTP timestamp counted from the first frame received: so the two differ by a
+constant per stream, learnt from any frame whose counter reads and whose record arrived (the
+"anchor"). After that every frame's capture time is known, including frames whose counter the
+codec smeared (aiortc's VP8 runs at constant bit rate with a denoiser, and at low bit rates
+leaves an occasional 16 x 16 block of the counter from the previous frame). Nothing on the
+loop converts or copies the picture: :meth:`ReceivedFrame.image` does that for whoever shows
+it, in its own thread.
+
+Frame age (``age_s``) is capture to decoded-at-the-expert ("glass to glass" without the
+display). Frames whose counter does not read or whose record was lost are kept (they are the
+latest picture) with an unknown age, and counted.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import threading
+import time
+from collections import OrderedDict, deque
+from collections.abc import Callable
+from typing import Any
+
+import av
+import numpy as np
+from aiortc import RTCPeerConnection, RTCRtpSender
+from aiortc.mediastreams import MediaStreamError
+
+from humantele.media.config import TRACKS, ExpertVideoConfig
+from humantele.media.frameinfo import FrameInfo, FrameInfoError
+from humantele.media.sender import VIDEO_CHANNEL_ID
+from humantele.transport.clocksync import ClockSync
+from humantele.video.counter import CELL, COLS, ROWS, read_counter, unwrap
+
+log = logging.getLogger(__name__)
+
+Record = Callable[[str, float, dict], Any]
+INFO_KEEP = 256  # frame records kept per track for matching
+VIDEO_RATE = 90000  # RTP video clock, Hz
+
+
+class ReceivedFrame:
+    """One decoded frame of a track.
+
+    ``seq``: its number (from the counter drawn in it; None if it did not read);
+    ``t_received``: when it was decoded (s, the expert's clock); ``t_capture``: its capture
+    time mapped onto the expert's clock (None when unknown); ``frame``: the decoded
+    ``av.VideoFrame`` (yuv420p).
+    """
+
+    __slots__ = ("track", "seq", "frame", "t_received", "t_capture", "_bgr", "_lock")
+
+    def __init__(
+        self,
+        track: str,
+        seq: int | None,
+        frame: av.VideoFrame,
+        t_received: float,
+        t_capture: float | None,
+    ) -> None:
+        self.track = track
+        self.seq = seq
+        self.frame = frame
+        self.t_received = t_received
+        self.t_capture = t_capture
+        self._bgr: np.ndarray | None = None
+        self._lock = threading.Lock()
+
+    @property
+    def width(self) -> int:
+        return int(self.frame.width)
+
+    @property
+    def height(self) -> int:
+        return int(self.frame.height)
+
+    @property
+    def age_s(self) -> float | None:
+        """Capture to decoded (s), or None when the capture time is unknown."""
+        return None if self.t_capture is None else self.t_received - self.t_capture
+
+    def image(self) -> np.ndarray:
+        """The picture, (H, W, 3) uint8 BGR; converted once (a few ms: call it off the loop)."""
+        with self._lock:
+            if self._bgr is None:
+                self._bgr = self.frame.to_ndarray(format="bgr24")
+            return self._bgr
+
+
+def luma_patch(frame: av.VideoFrame) -> np.ndarray | None:
+    """The top-left 64 x 32 px of the luma plane (a view), or None if the frame is smaller."""
+    h, w = ROWS * CELL, COLS * CELL
+    if frame.format.name not in ("yuv420p", "yuvj420p", "nv12") or frame.height < h:
+        return None
+    plane = frame.planes[0]
+    if plane.width < w:
+        return None
+    buf = np.frombuffer(plane, np.uint8)
+    return buf.reshape(-1, plane.line_size)[:h, :w]
+
+
+class TrackStats:
+    """Figures of one received track (the last ``keep`` frames)."""
+
+    def __init__(self, keep: int = 3000) -> None:
+        self.frames = 0
+        self.unreadable = 0  # counter did not read
+        self.no_info = 0  # capture time unknown
+        self.out_of_order = 0
+        self.skipped = 0  # frames the counter says were never received (lost or not sent)
+        self.ages: deque[float] = deque(maxlen=keep)
+        self.arrivals: deque[float] = deque(maxlen=keep)
+        self.last_seq: int | None = None
+        self.anchor: int | None = None  # sender's capture time minus received pts, 90 kHz
+        self.anchors = 0  # times the anchor moved (a new stream, a sender's clock jump)
+        self.size: tuple[int, int] | None = None
+
+    def fps(self, now: float, window_s: float = 2.0) -> float:
+        n = sum(1 for t in self.arrivals if now - t <= window_s)
+        return round(n / window_s, 1)
+
+    def as_dict(self, now: float) -> dict[str, Any]:
+        a = np.asarray(self.ages, dtype=float)
+        arr = np.asarray(self.arrivals, dtype=float)
+        span = float(arr[-1] - arr[0]) if arr.size > 1 else 0.0
+        pct = (lambda q: round(float(np.percentile(a, q)) * 1e3, 1)) if a.size else lambda q: None
+        return {
+            "frames": self.frames,
+            "fps": self.fps(now),
+            "fps_mean": round((arr.size - 1) / span, 2) if span > 0 else None,
+            "gap_max_ms": round(float(np.diff(arr).max()) * 1e3, 1) if arr.size > 1 else None,
+            "age_p50_ms": pct(50),
+            "age_p95_ms": pct(95),
+            "age_max_ms": round(float(a.max()) * 1e3, 1) if a.size else None,
+            "unreadable": self.unreadable,
+            "no_info": self.no_info,
+            "out_of_order": self.out_of_order,
+            "skipped": self.skipped,
+            "size": list(self.size) if self.size else None,
+        }
+
+
+class VideoReceiver:
+    """The expert's two tracks; ``clock`` is the link's ClockSync, ``now`` the expert's clock,
+    ``record(topic, t, payload)`` records (None: no recording)."""
+
+    def __init__(
+        self,
+        config: ExpertVideoConfig,
+        clock: ClockSync,
+        now: Callable[[], float] = time.monotonic,
+        record: Record | None = None,
+    ) -> None:
+        self.config = config
+        self.clock = clock
+        self.now = now
+        self.record = record
+        self.stats_by_track = {name: TrackStats() for name in TRACKS}
+        self.infos_bad = 0
+        self.tracks_started = 0
+        self._latest: dict[str, ReceivedFrame | None] = dict.fromkeys(TRACKS)
+        self._infos: dict[str, OrderedDict[int, float]] = {n: OrderedDict() for n in TRACKS}
+        self._seq_at: dict[str, OrderedDict[int, int]] = {n: OrderedDict() for n in TRACKS}
+        self._events = {name: asyncio.Event() for name in TRACKS}
+        self._pc: RTCPeerConnection | None = None
+        self._tasks: set[asyncio.Task] = set()
+
+    # --- what the console reads ---------------------------------------------------------------
+
+    def latest(self, track: str) -> ReceivedFrame | None:
+        """The newest decoded frame of ``track`` ('us' or 'pov'), or None before the first."""
+        return self._latest[track]
+
+    async def wait_frame(self, track: str, timeout: float | None = None) -> ReceivedFrame:
+        """The next frame of ``track`` (TimeoutError after ``timeout`` s)."""
+        ev = self._events[track]
+        await asyncio.wait_for(ev.wait(), timeout)
+        frame = self._latest[track]
+        assert frame is not None
+        return frame
+
+    # --- per peer connection ------------------------------------------------------------------
+
+    def prepare(self, pc: RTCPeerConnection) -> None:
+        """Before the offer on a new peer connection: two recvonly video transceivers offering
+        the configured codec, the ``video`` channel, and a task per received track."""
+        if not self.config.enabled:
+            return
+        self._pc = pc
+        for name in TRACKS:  # a new follower process numbers its frames from 1 again
+            self.stats_by_track[name].last_seq = None
+            self.stats_by_track[name].anchor = None  # and its RTP timestamps start anew
+            self._infos[name].clear()
+            self._seq_at[name].clear()
+        codec = f"video/{self.config.codec}"
+        prefs = [
+            c
+            for c in RTCRtpSender.getCapabilities("video").codecs
+            if c.mimeType.lower() in (codec, "video/rtx")
+        ]
+        names = {}
+        for name in TRACKS:
+            transceiver = pc.addTransceiver("video", direction="recvonly")
+            transceiver.setCodecPreferences(prefs)
+            names[id(transceiver.receiver)] = name
+        channel = pc.createDataChannel(
+            "video", negotiated=True, id=VIDEO_CHANNEL_ID, ordered=False, maxRetransmits=0
+        )
+        channel.on("message", lambda data: self._on_info(pc, data))
+
+        def on_track(track: Any) -> None:
+            for t in pc.getTransceivers():
+                if t.receiver.track is track and id(t.receiver) in names:
+                    self._spawn(self._consume(pc, names[id(t.receiver)], track))
+
+        pc.on("track", on_track)
+
+    def _spawn(self, coro: Any) -> None:
+        task = asyncio.ensure_future(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def close(self) -> None:
+        for task in list(self._tasks):
+            task.cancel()
+            with contextlib.suppress(BaseException):
+                await task
+
+    def _on_info(self, pc: RTCPeerConnection, data: object) -> None:
+        if pc is not self._pc:
+            return
+        try:
+            info = FrameInfo.decode(data)  # type: ignore[arg-type]
+        except FrameInfoError:
+            self.infos_bad += 1
+            return
+        infos = self._infos[info.track]
+        infos[info.seq] = info.t_capture
+        seq_at = self._seq_at[info.track]
+        seq_at[int(round(info.t_capture * VIDEO_RATE))] = info.seq
+        while len(infos) > INFO_KEEP:
+            infos.popitem(last=False)
+        while len(seq_at) > INFO_KEEP:
+            seq_at.popitem(last=False)
+        latest = self._latest[info.track]
+        if latest is not None and latest.seq == info.seq and latest.t_capture is None:
+            self.stats_by_track[info.track].no_info -= 1  # the record came after its frame
+            self._set_capture(latest, info.t_capture)
+
+    def _set_capture(self, f: ReceivedFrame, t_follower: float) -> None:
+        f.t_capture = self.clock.to_local(t_follower)
+        if f.t_capture is not None:
+            self.stats_by_track[f.track].ages.append(f.age_s)
+
+    async def _consume(self, pc: RTCPeerConnection, name: str, track: Any) -> None:
+        self.tracks_started += 1
+        while pc is self._pc:
+            try:
+                frame = await track.recv()
+            except MediaStreamError:
+                return
+            if pc is not self._pc:
+                return
+            try:
+                self._on_frame(name, frame)
+            except Exception:
+                log.exception("video %s: frame handling failed", name)
+
+    def _on_frame(self, name: str, frame: av.VideoFrame) -> None:
+        t = self.now()
+        st = self.stats_by_track[name]
+        st.frames += 1
+        st.arrivals.append(t)
+        st.size = (frame.width, frame.height)
+        patch = luma_patch(frame)
+        value = None if patch is None else read_counter(patch)
+        seq = None
+        if value is not None:
+            seq = unwrap(value, st.last_seq if st.last_seq is not None else value)
+        pts = frame.pts
+        t_follower = None if seq is None else self._infos[name].get(seq)
+        if t_follower is not None and pts is not None:
+            # pts is the RTP timestamp from the first frame received (90 kHz), the sender's
+            # capture time plus a constant: one frame whose counter reads anchors them all
+            anchor = int(round(t_follower * VIDEO_RATE)) - int(pts)
+            if st.anchor is None or abs(anchor - st.anchor) > 2:
+                st.anchors += st.anchor is not None
+                st.anchor = anchor
+        elif st.anchor is not None and pts is not None:
+            t_follower = (int(pts) + st.anchor) / VIDEO_RATE
+            if seq is None:  # the counter did not read (a codec smear): the record says which
+                key, seq_at = int(pts) + st.anchor, self._seq_at[name]
+                seq = next((seq_at[k] for k in (key, key - 1, key + 1) if k in seq_at), None)
+        if value is None:
+            st.unreadable += 1
+        if seq is not None:
+            if st.last_seq is not None:
+                if seq <= st.last_seq:
+                    st.out_of_order += 1
+                else:
+                    st.skipped += seq - st.last_seq - 1
+            st.last_seq = seq if st.last_seq is None else max(seq, st.last_seq)
+        received = ReceivedFrame(name, seq, frame, t, None)
+        if t_follower is not None:
+            self._set_capture(received, t_follower)
+        else:
+            st.no_info += 1
+        self._latest[name] = received
+        ev, self._events[name] = self._events[name], asyncio.Event()
+        ev.set()
+        if self.record is not None and self.config.record_frames and seq is not None:
+            payload: dict[str, Any] = {"stream": name, "seq": seq, "event": "received"}
+            if received.age_s is not None:
+                payload["age_s"] = received.age_s
+            self.record("/expert/video_frame", t, payload)
+
+    def stats(self) -> dict[str, Any]:
+        now = self.now()
+        out: dict[str, Any] = {name: s.as_dict(now) for name, s in self.stats_by_track.items()}
+        out["infos_bad"] = self.infos_bad
+        out["tracks_started"] = self.tracks_started
+        return out

@@ -1,0 +1,118 @@
+"""The follower's sensing in a child process: frames measured there, answers on the loop,
+a killed child restarted, a refused config reported, nothing left running."""
+
+import asyncio
+import os
+import signal
+
+import numpy as np
+
+from humantele.follower.daemon import FollowerConfig, FollowerDaemon
+from humantele.follower.sensing_process import SensingProcess
+from humantele.follower.sim_human import probe_down_quat
+from humantele.follower.sim_world import SimWorld
+from humantele.geometry import Pose
+from humantele.wire import TrackingStatus
+
+WAIT_S = 120.0  # upper bound for a spawned child to import and calibrate on a loaded machine
+
+
+async def _until(cond, timeout=WAIT_S):
+    deadline = asyncio.get_running_loop().time() + timeout
+    while not cond():
+        assert asyncio.get_running_loop().time() < deadline, "timed out"
+        await asyncio.sleep(0.01)
+
+
+def _held_probe_world() -> SimWorld:
+    w = SimWorld()
+    w.human.hand = Pose([0.35, 1.0, -0.15], probe_down_quat([0.0, 1.0, 0.0]))
+    w.step(0.0, None)
+    return w
+
+
+async def test_the_child_measures_frames_restarts_when_killed_and_stops_cleanly():
+    results = []
+    proc = SensingProcess(FollowerConfig(), None, lambda *r: results.append(r))
+    proc.start()
+    world = _held_probe_world()
+    try:
+        await _until(lambda: proc.ready)
+        first_pid = proc.pid
+        assert first_pid != os.getpid()
+        truth = world.truth(0.1)
+        assert proc.submit(1, truth)
+        assert not proc.submit(2, truth)  # one frame in flight at most
+        await _until(lambda: results)
+        job, m, seconds = results[0]
+        assert job == 1 and seconds > 0
+        assert m.status == TrackingStatus.TRACKED
+        dp, _ = m.T_world_tip.distance_to(truth.T_world_tip)
+        assert dp < 3e-3  # measured through the pipeline in the child, not the truth copied
+        assert dp > 0.0
+        os.kill(first_pid, signal.SIGKILL)
+        await _until(lambda: proc.restarts == 1 and proc.ready)
+        assert proc.pid != first_pid and not proc.failed
+        assert proc.submit(3, world.truth(0.2))
+        await _until(lambda: len(results) == 2)
+        assert results[1][0] == 3 and results[1][1].status == TrackingStatus.TRACKED
+    finally:
+        pid = proc.pid
+        proc.close()
+    assert not proc.running
+    try:
+        os.kill(pid, 0)
+        alive = True
+    except ProcessLookupError:
+        alive = False
+    assert not alive
+
+
+async def test_a_config_the_child_refuses_is_reported_once_and_not_restarted():
+    errors = []
+    proc = SensingProcess(FollowerConfig(tool="no_such_tool"), None, lambda *r: None, errors.append)
+    proc.start()
+    try:
+        await _until(lambda: errors)
+    finally:
+        proc.close()
+    assert proc.failed and proc.restarts == 0 and not proc.running
+    assert "no_such_tool" in errors[0]
+    assert not proc.submit(1, None)
+
+
+class _Link:
+    connected, state = True, "connected"
+    counters = type("C", (), {"connections": 1, "sent": {}, "dropped": {}})()
+
+    def send_state(self, msg):
+        return True
+
+    def send_control(self, msg):
+        return True
+
+    def age_of(self, t):
+        return 0.01
+
+
+async def test_the_daemon_streams_what_the_child_measured(tmp_path):
+    d = FollowerDaemon(FollowerConfig(state_dir=str(tmp_path), sensing_worker="process"))
+    d.link = _Link()
+    d.world.human.hand = Pose([0.35, 1.0, -0.15], probe_down_quat([0.0, 1.0, 0.0]))
+    d.sensing_proc = SensingProcess(d.config, None, d._measured_in_process, d._sensing_cannot_start)
+    d.sensing_proc.start()
+    try:
+        await _until(lambda: d.sensing_proc.ready)
+        t = 0.0
+        while d.measurements < 10:
+            d.tick(t)
+            t += 0.01
+            await asyncio.sleep(0.005)
+            assert t < 600.0
+    finally:
+        d.sensing_proc.close()
+    assert d.sensing.pipeline is None  # the daemon never built its own: the child measured
+    assert d.measurement.T_world_tip is not None and d.tick_errors == 0
+    s = d.stats()
+    assert s["sensing_restarts"] == 0 and s["sensing_p50_ms"] is not None
+    assert np.isfinite(d.last_force_n)

@@ -1,0 +1,171 @@
+"""The two video tracks over real aiortc on loopback, through a real signaling server."""
+
+import asyncio
+import contextlib
+import os
+import signal
+import sys
+from pathlib import Path
+
+import pytest
+from video_helpers import small_video_config, until, video_follower
+
+from humantele.media.config import ExpertVideoConfig
+from humantele.media.receiver import VideoReceiver
+from humantele.signaling.messages import TOKEN_ENV
+from humantele.signaling.server import SignalConfig, SignalingServer
+from humantele.transport import LinkConfig, PeerLink
+
+TOKEN = "video-test-token"
+
+
+@pytest.fixture
+async def server():
+    s = SignalingServer(SignalConfig(port=0), TOKEN)
+    await s.start()
+    yield s
+    await s.stop()
+
+
+def expert_with_video(server, codec="vp8", record=None):
+    holder = {}
+    link = PeerLink(
+        "expert",
+        LinkConfig(signaling_url=server.url, room="v", token=TOKEN),
+        media=lambda pc, role: holder["rx"].prepare(pc),
+    )
+    holder["rx"] = VideoReceiver(ExpertVideoConfig(codec=codec), link.clock, link.now, record)
+    return link, holder["rx"]
+
+
+@pytest.mark.parametrize("codec", ["vp8", "h264"])
+async def test_both_tracks_arrive_with_counter_and_capture_time(server, codec):
+    expert, rx = expert_with_video(server, codec)
+    follower, tx = video_follower(server.url, "v", TOKEN)
+    loop = asyncio.get_running_loop()
+    tx.open()
+    tx.start(loop)
+    tasks = [asyncio.create_task(expert.run()), asyncio.create_task(follower.run())]
+    try:
+        await expert.wait_state("connected", timeout=30)
+        await until(lambda: expert.clock.synced, 10)
+        await until(lambda: all(rx.stats_by_track[n].frames >= 15 for n in ("us", "pov")), 30)
+        for name in ("us", "pov"):
+            st = rx.stats_by_track[name]
+            await until(lambda n=name: rx.latest(n).seq is not None)  # its number is known
+            f = rx.latest(name)
+            # the counter reads (mostly: the codec may smear one), goes forward in order, and
+            # every frame after the first anchored one has its capture time
+            assert st.out_of_order == 0
+            assert st.unreadable <= st.frames // 2
+            assert len(st.ages) >= st.frames - 3
+            assert all(0.0 <= a < 5.0 for a in st.ages)
+            assert f.t_capture is not None and f.t_capture <= f.t_received
+        assert (rx.latest("us").width, rx.latest("us").height) == (320, 240)
+        assert (rx.latest("pov").width, rx.latest("pov").height) == (320, 180)
+        # the decoded picture is the source's: the US image is not the POV
+        img = await asyncio.to_thread(rx.latest("us").image)
+        assert img.shape == (240, 320, 3)
+        assert tx.stats()["us"]["sent"] >= 15 and tx.infos_sent >= 30
+    finally:
+        await follower.close()
+        await expert.close()
+        tx.close()
+        await rx.close()
+        for t in tasks:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(t, 5)
+
+
+async def _spawn_follower(url: str, room: str) -> asyncio.subprocess.Process:
+    env = {**os.environ, TOKEN_ENV: TOKEN}
+    child = Path(__file__).with_name("video_child.py")
+    return await asyncio.create_subprocess_exec(
+        sys.executable, str(child), url, room,
+        stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE, env=env,
+    )  # fmt: skip
+
+
+@pytest.mark.slow
+async def test_tracks_come_back_after_the_follower_process_is_killed_and_restarted(server):
+    expert, rx = expert_with_video(server)
+    run = asyncio.create_task(expert.run())
+    procs = []
+    try:
+        procs.append(await _spawn_follower(server.url, "v"))
+        await expert.wait_state("connected", timeout=60)
+        await until(lambda: all(rx.stats_by_track[n].frames >= 10 for n in ("us", "pov")), 60)
+        first = {n: rx.latest(n) for n in ("us", "pov")}
+
+        procs[0].send_signal(signal.SIGKILL)
+        await procs[0].wait()
+        await expert.wait_state("disconnected", "connecting", timeout=15)
+        frames_before = {n: rx.stats_by_track[n].frames for n in ("us", "pov")}
+
+        procs.append(await _spawn_follower(server.url, "v"))
+        await expert.wait_state("connected", timeout=60)
+        tracks = ("us", "pov")
+        more = frames_before
+        await until(lambda: all(rx.stats_by_track[n].frames >= more[n] + 10 for n in tracks))
+        assert rx.tracks_started == 4  # two tracks on each of the two peer connections
+        for name in ("us", "pov"):
+            f = rx.latest(name)
+            assert f is not first[name] and f.seq is not None
+            assert f.age_s is not None and 0.0 <= f.age_s < 5.0
+    finally:
+        for p in procs:
+            if p.returncode is None:
+                p.kill()
+                await p.wait()
+        await expert.close()
+        await rx.close()
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(run, 5)
+
+
+@pytest.mark.slow
+async def test_us_image_follows_the_probe_through_the_video_process(server):
+    """The sim world's probe on the kidney, then lifted off the skin: the decoded US image at
+    the expert goes from an image to dark (the sources run in the video process)."""
+    from humantele.video.scene import DEFAULT_PATIENT, DemoScene, SceneSnapshot
+
+    expert, rx = expert_with_video(server)
+    follower, tx = video_follower(server.url, "v", TOKEN, small_video_config(process=True))
+    demo = DemoScene()
+    lifted = {"on": False}
+
+    async def world() -> None:  # the follower's tick publishing the sim world
+        while True:
+            s = demo()
+            if lifted["on"]:  # no contact: the probe 5 cm above the skin, no force
+                tip = s.T_world_tip
+                tip = type(tip)(tip.position + [0.0, 0.05, 0.0], tip.quaternion)
+                s = SceneSnapshot(s.t, DEFAULT_PATIENT, tip, 0.0, s.T_world_head)
+            tx.publish_scene(s)
+            await asyncio.sleep(0.01)
+
+    await asyncio.to_thread(tx.open)
+    tx.start(asyncio.get_running_loop())
+    tasks = [asyncio.create_task(t) for t in (expert.run(), follower.run(), world())]
+
+    async def us_brightness(after_seq: int) -> tuple[int, float]:
+        await until(lambda: (f := rx.latest("us")) is not None and (f.seq or 0) > after_seq + 5)
+        f = rx.latest("us")
+        img = await asyncio.to_thread(f.image)
+        return f.seq, float(img[40:, :].mean())  # below the counter
+
+    try:
+        await expert.wait_state("connected", timeout=60)
+        seq, on = await us_brightness(0)
+        lifted["on"] = True
+        _, off = await us_brightness(seq)
+        assert on > 20.0 and off < 0.5 * on, (on, off)
+    finally:
+        tasks[2].cancel()
+        await follower.close()
+        await expert.close()
+        await asyncio.to_thread(tx.close)
+        await rx.close()
+        for t in tasks:
+            with contextlib.suppress(BaseException):
+                await asyncio.wait_for(t, 5)

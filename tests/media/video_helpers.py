@@ -1,0 +1,45 @@
+"""Helpers of the media tests: small sim sources, a follower link with video, waiting."""
+
+import asyncio
+import time
+
+from humantele.media.config import FollowerVideoConfig
+from humantele.media.sender import VideoSender
+from humantele.transport import LinkConfig, PeerLink
+from humantele.video.sim_pov import SimPovConfig
+from humantele.video.sim_ultrasound import SimUltrasoundConfig
+
+
+def small_video_config(**kw) -> FollowerVideoConfig:
+    """Small, slow sim sources so the tests are light on a loaded machine (threads unless
+    ``process=True``)."""
+    base = dict(
+        process=False,
+        us=SimUltrasoundConfig(width=320, height=240, fps=10, beams=64, samples=128),
+        pov=SimPovConfig(width=320, height=180, fps=10),
+        record_us_hz=0,
+        record_pov_hz=0,
+    )
+    base.update(kw)
+    return FollowerVideoConfig(**base)
+
+
+async def until(cond, timeout: float = 20.0, poll: float = 0.05) -> None:
+    end = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > end:
+            raise TimeoutError("condition not met")
+        await asyncio.sleep(poll)
+
+
+def video_follower(url: str, room: str, token: str, config=None, scene=None, record=None):
+    """(PeerLink, VideoSender): a follower link whose peer connections carry the two tracks."""
+    from humantele.video.scene import DEFAULT_PATIENT
+
+    sender = VideoSender(config or small_video_config(), scene, record, DEFAULT_PATIENT)
+    link = PeerLink(
+        "follower",
+        LinkConfig(signaling_url=url, room=room, token=token),
+        media=lambda pc, role: sender.attach(pc),
+    )
+    return link, sender
