@@ -39,6 +39,7 @@ async def run(ctx) -> dict:
     await asyncio.sleep(2.0)
     f1 = await page.evaluate("({...consoleApp.frames})")
     data["page_fps"] = {t: round((f1[t] - f0[t]) / 2.0, 1) for t in f0}
+    await ctx.shot(page, "console_demo_start")  # the received tracks, before calibration
 
     # 2. Following: calibrated, a scan (scripted), force on the plot.
     await demo.wait("calibrated and following", lambda e, f: f.get("calibrated")

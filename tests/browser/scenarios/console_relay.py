@@ -8,7 +8,9 @@ has it, as a decoded received frame would be) to the page's draw call, from the 
 (the frame's number, read back from the canvas's counter patch in the WebRTC mode), less the
 time between draw and echo: p50/p95 in ms, and the page's draw rate.
 
-    python tests/browser/netns.py console_relay --arg seconds=20
+    python tests/browser/netns.py console_relay --arg seconds=20 --arg write=1
+
+(``write=1``: the figures go to docs/benchmarks.md, section ``console``.)
 """
 
 from __future__ import annotations
@@ -178,4 +180,32 @@ async def run(ctx) -> dict:
             data[f"{i}_{mode}"] = await run_mode(ctx, frames, seconds)
     finally:
         await asyncio.to_thread(frames.stop)
+    if ctx.args.get("write"):
+        write_benchmarks(data)
     return data
+
+
+def write_benchmarks(data: dict) -> None:
+    from humantele.report import machine_line, markdown_table, write_section
+
+    rows = []
+    for key, d in data.items():
+        if not isinstance(d, dict) or "p50_ms" not in d:
+            continue
+        mode = "JPEG over the console's WebSocket" if key.endswith("jpeg") else "WebRTC relay (VP8)"
+        rows.append([key.split("_")[0], mode, d["n"], d["p50_ms"], d["p95_ms"], d["page_fps"]])
+    text = (
+        "## Console video path (`python tests/browser/netns.py console_relay --arg seconds=S"
+        " --arg write=1`)\n\n"
+        f"The sim ultrasound (640 x 480, {data['fps']:g} fps, rendered in a child process) to a"
+        " page in headless Chromium (software GPU), each way for"
+        f" {data['seconds']:g} s, alternated (the machine's load drifts): from the frame's arrival"
+        " at the server to the page's draw call (the page echoes each frame it draws; the echo's"
+        " own transit included), and the page's draw rate. JPEG: encode once, a binary"
+        " WebSocket message, `createImageBitmap`, canvas; at most 2 frames in flight. WebRTC:"
+        " aiortc VP8 to a `<video>`, each frame drawn to a canvas and its counter read.\n\n"
+        + markdown_table(["run", "path", "frames", "p50 ms", "p95 ms", "page fps"], rows)
+        + "\n\n"
+        + machine_line()
+    )
+    write_section("console", text)

@@ -157,6 +157,8 @@ for (const id of TRACKS) boxWatch.observe($(`${id}-box`));
 function setFrozen(on) {
   if (!send({ type: "freeze", on })) return;
   app.frozen = on;
+  marks.visible = on;
+  $("us-marks").hidden = !on; // the marks layer exists on a frozen image only
   document.body.dataset.frozen = String(on);
   $("freeze").textContent = on ? "Live" : "Freeze";
   $("freeze").dataset.frozen = String(on);
@@ -167,6 +169,7 @@ function setFrozen(on) {
     setTool("none");
     marks.clearAll();
     app.cine = [];
+    $("cine").max = "0"; $("cine").value = "0";
     $("cine-time").textContent = "live";
   }
 }

@@ -13,6 +13,7 @@ export class Marks {
     this.start = null; // caliper's first point
     this.hover = null;
     this.count = 0;
+    this.visible = false; // marks are drawn on a frozen image only
   }
 
   // The image pixel under a mouse event on the overlay.
@@ -73,6 +74,7 @@ export class Marks {
   draw() {
     const c = this.canvas, g = c.getContext("2d");
     g.clearRect(0, 0, c.width, c.height);
+    if (!this.visible) return;
     const scale = c.width / Math.max(1, c.getBoundingClientRect().width || c.width);
     const lw = 1.5 * scale, arm = 7 * scale;
     g.lineWidth = lw;
