@@ -315,7 +315,9 @@ function renderState() {
   const link = s.link || {};
   const connected = link.state === "connected";
   chip("chip-link", !connected ? "bad" : link.stale ? "warn" : "ok",
-    !connected ? (link.state || "unknown") : link.stale ? `pose lost (${fmt(link.pose_age_ms / 1000, 1, " s")})`
+    !connected ? (link.state || "unknown")
+      : link.pose_age_ms == null ? "connected · no pose yet"
+      : link.stale ? `pose lost (${fmt(link.pose_age_ms / 1000, 1, " s")})`
       : `connected · ${fmt(link.pose_age_ms, 0, " ms")}`);
   const cal = s.calibration || {};
   chip("chip-cal", cal.state === "calibrated" ? "ok" : cal.state === "calibrating" ? "warn" : "off",
