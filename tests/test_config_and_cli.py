@@ -28,7 +28,7 @@ def test_unknown_key_and_bad_syntax(tmp_path):
     with pytest.raises(ConfigError, match="rate_hzz"):
         load_config(_Demo, f)
     f.write_text("rate_hz = = 5\n")
-    with pytest.raises(ConfigError, match="not valid toml"):
+    with pytest.raises(ConfigError, match="not valid TOML"):
         load_config(_Demo, f)
     with pytest.raises(ConfigError, match="cannot read"):
         load_config(_Demo, tmp_path / "missing.toml")

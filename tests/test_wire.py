@@ -169,7 +169,7 @@ def test_encode_refuses_what_decode_would():
 def test_control_round_trip():
     msgs = [
         Hello(role="expert", software="x"),
-        EllipsoidModel(model={"center": [0, 0.1, 0], "semi_axes": [0.15, 0.1, 10], "heading": 0.2}),
+        EllipsoidModel(model={"center": [0, 0.1, 0], "semi_axes": [10, 0.1, 0.15], "heading": 0.2}),
         CalibrationProgress(event="point", index=2, point=(0.1, 0.0, -0.2)),
         Scan(action="start", scan_id="s-01"),
         Ping(seq=3, t0=1.5),
@@ -184,7 +184,7 @@ def test_ellipsoid_payload_matches_haptics_to_dict():
     from humantele.haptics.ellipsoid import Ellipsoid
 
     e = Ellipsoid.from_dict(
-        {"center": [0.0, 0.1, 0.2], "semi_axes": [0.15, 0.1, 10.0], "heading": 0.3}
+        {"center": [0.0, 0.1, 0.2], "semi_axes": [10.0, 0.1, 0.15], "heading": 0.3}
     )
     text = json.dumps({"type": "ellipsoid", "model": e.to_dict()})
     msg = parse_control(text)

@@ -27,7 +27,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "tracking": ("humantele.bench.tracking", "IR marker tracking: time against pose error"),
     "sensing": ("humantele.bench.sensing", "follower loop latency with sensing: thread/process"),
     "analysis": ("humantele.bench.analysis", "analyze a 10-min session; recording CPU cost"),
-    "video": ("humantele.bench.video", "video sources: render cost, frame counter after VP8"),
+    "video": ("humantele.bench.video", "video: sources (render cost) and link (glass to glass)"),
 }
 
 

@@ -7,20 +7,22 @@ repository holds editable examples); named definitions (probe tools ``tools/``, 
 (:func:`named_config_path`), so an installed package finds them; a path in their place reads
 the user's own file.
 
-Every model derives from :class:`ConfigModel`: unknown fields are refused, and every field has a
-default that runs the demo. A bad value fails at start with :class:`ConfigError`, whose message
-names the file, the field and the reason.
+Every model derives from :class:`ConfigModel`: unknown fields are refused, every float (also
+inside tuples, lists and tables) must be finite, and every field has a default that runs the
+demo. Rotations are :data:`Quaternion` fields, refused unless normalisable. A bad value fails at
+start with :class:`ConfigError`, whose message names the file, the field and the reason.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import tomllib
 from importlib import resources
 from pathlib import Path
-from typing import Any, ClassVar, TypeVar
+from typing import Annotated, Any, ClassVar, TypeVar
 
-from pydantic import BaseModel, ConfigDict, ValidationError, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, ValidationError, model_validator
 from pydantic_core import PydanticCustomError
 
 
@@ -35,7 +37,9 @@ class ConfigModel(BaseModel):
     that still sets one is refused with that hint rather than a bare "extra field".
     """
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=False)
+    model_config = ConfigDict(
+        extra="forbid", validate_assignment=True, frozen=False, allow_inf_nan=False
+    )
     moved_fields: ClassVar[dict[str, str]] = {}
 
     @model_validator(mode="before")
@@ -48,6 +52,17 @@ class ConfigModel(BaseModel):
                         "moved_field", "no longer set here: {hint}", {"field": name, "hint": hint}
                     )
         return data
+
+
+def _normalised(q: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
+    n = math.sqrt(math.fsum(c * c for c in q))
+    if not 1e-6 < n < 1e6:
+        raise ValueError(f"quaternion {q} is not a rotation (norm {n:.3g}); use (0, 0, 0, 1)")
+    return tuple(c / n for c in q)  # type: ignore[return-value]
+
+
+Quaternion = Annotated[tuple[float, float, float, float], AfterValidator(_normalised)]
+"""A rotation (x, y, z, w): finite, normalisable, stored normalised."""
 
 
 M = TypeVar("M", bound=BaseModel)
@@ -99,16 +114,35 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read configuration: {exc.strerror or exc}") from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"{path}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start})"
+        ) from exc
+    kind = "JSON" if path.suffix == ".json" else "TOML"
     try:
-        if path.suffix == ".json":
-            data = json.loads(text)
-        else:
-            data = tomllib.loads(text)
+        data = json.loads(text) if kind == "JSON" else tomllib.loads(text)
     except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
-        raise ConfigError(f"{path}: not valid {path.suffix.lstrip('.') or 'TOML'}: {exc}") from exc
+        raise ConfigError(f"{path}: not valid {kind}: {exc}") from exc
+    except RecursionError as exc:
+        raise ConfigError(f"{path}: not valid {kind}: nested too deeply") from exc
+    if _depth(data) > MAX_DEPTH:
+        raise ConfigError(f"{path}: tables nested deeper than {MAX_DEPTH} levels")
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: the top level must be a table/object")
     return data
+
+
+MAX_DEPTH = 16  # the deepest real config is 4 levels
+
+
+def _depth(value: Any, level: int = 0) -> int:
+    if level > MAX_DEPTH:
+        return level
+    if isinstance(value, dict):
+        return max((_depth(v, level + 1) for v in value.values()), default=level + 1)
+    if isinstance(value, list):
+        return max((_depth(v, level + 1) for v in value), default=level + 1)
+    return level
 
 
 def validate_config(model: type[M], data: dict[str, Any], source: str = "") -> M:

@@ -36,7 +36,6 @@ import logging
 import os
 import secrets
 import shutil
-import signal
 import sys
 import tempfile
 import time
@@ -45,9 +44,11 @@ from typing import Any
 
 from pydantic import field_validator
 
+from humantele.cliargs import duration_s, log_level
 from humantele.recording.schemas import check_participant_id
-from humantele.runtime.process import PARENT_PID_ENV, on_stop_signals
+from humantele.runtime.process import PARENT_PID_ENV, ignore_stop_signals, on_stop_signals
 from humantele.runtime.stats import read_stats
+from humantele.runtime.supervise import SupervisedDaemon
 from humantele.signaling.messages import TOKEN_ENV
 
 log = logging.getLogger(__name__)
@@ -94,28 +95,40 @@ def _resolve(path: str | None, base: Path) -> str | None:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--duration", type=float, default=20.0, help="seconds once both daemons run (default 20)"
+        "--duration",
+        type=duration_s,
+        default=20.0,
+        help="seconds once both daemons run (default 20)",
     )
     parser.add_argument("--json", action="store_true", help="print a JSON summary at the end")
     parser.add_argument("--config", help="TOML file with a [demo] section (configs/demo.toml)")
     parser.add_argument("--room", help="session room name (default demo)")
     parser.add_argument("--keep", action="store_true", help="keep the run directory (logs)")
-    parser.add_argument("--log-level", default="WARNING", help="daemons' logging level")
+    parser.add_argument(
+        "--log-level", type=log_level, default="WARNING", help="daemons' logging level"
+    )
     parser.add_argument(
         "--record",
         metavar="FILE",
-        help="record the session: FILE.expert.mcap and FILE.follower.mcap (one per daemon)",
+        help="record the session: FILE.expert.mcap and FILE.follower.mcap (one per daemon); "
+        "a directory: session-<date>-<time>.*.mcap in it",
     )
 
 
 def recording_paths(record: str | Path) -> dict[str, Path]:
     """The files the daemons record to for ``--record FILE``; ConfigError (exit code 2) when
-    one exists (never overwritten) or its directory is missing or not writable. The daemons
-    check again (and the disk space) when they open them."""
+    one exists (never overwritten) or its directory is missing or not writable. ``FILE`` a
+    directory (or ending in ``/``): ``session-<date>-<time>`` files in it. The daemons check
+    again (and the disk space) when they open them."""
     from humantele.config import ConfigError
     from humantele.recording import role_path
 
-    paths = {role: role_path(Path(record).expanduser(), role) for role in ("expert", "follower")}
+    base = Path(record).expanduser()
+    if str(record).endswith(("/", os.sep)) or base.is_dir():  # a directory: a file in it
+        if not base.is_dir():
+            raise ConfigError(f"--record: no directory {base}")
+        base = base / time.strftime("session-%Y%m%d-%H%M%S.mcap")
+    paths = {role: role_path(base, role) for role in ("expert", "follower")}
     for path in paths.values():
         parent = path.parent
         if path.exists():
@@ -149,8 +162,22 @@ def _status_line(e: dict[str, Any], f: dict[str, Any], elapsed: float) -> str:
         f"force {num(e.get('force_n'), '.2f')} N | "
         f"alignment {num(f.get('alignment_mm_rms'), '.1f')} mm "
         f"{num(f.get('alignment_deg_rms'), '.1f')} deg | "
-        f"servo {num(e.get('servo_rate_hz'), '.0f')} Hz" + _recording_status(e, f)
+        + _servo_status(e)
+        + _recording_status(e, f)
     )
+
+
+def _servo_status(e: dict[str, Any]) -> str:
+    """``servo 1000 Hz``, or the fault / the reason it is down, in capitals (never hidden)."""
+    state = str(e.get("servo_state") or "running")
+    if state.startswith("down"):
+        return f"servo DOWN ({state.partition(': ')[2][:80]})"
+    text = f"servo {format(e['servo_rate_hz'], '.0f') if e.get('servo_rate_hz') else '-'} Hz"
+    if state.startswith("fault"):
+        text += f" FAULT {state.partition(': ')[2]}"
+    if e.get("models_refused"):
+        text += f", {e['models_refused']} model(s) REFUSED"
+    return text
 
 
 def _recording_status(e: dict[str, Any], f: dict[str, Any]) -> str:
@@ -193,6 +220,9 @@ def summarize(
         "servo_rate_hz": e.get("servo_rate_hz"),
         "servo_overruns": e.get("servo_overruns"),
         "servo_period_p99_us": e.get("servo_period_p99_us"),
+        "servo_state": e.get("servo_state"),
+        "servo_restarts": e.get("servo_restarts", 0),
+        "models_refused": e.get("models_refused", 0),
         "calibrated": bool(f.get("calibrated", False)),
         "model_installed": bool(e.get("has_model", False)),
         "alignment_mm_rms": f.get("alignment_mm_rms"),
@@ -203,6 +233,8 @@ def summarize(
         "cpu_percent_expert": e.get("cpu_percent"),
         "cpu_percent_servo": e.get("cpu_percent_servo"),
         "cpu_percent_follower": f.get("cpu_percent"),
+        "cpu_percent_sensing": f.get("cpu_percent_sensing"),
+        "follower_tick_late_p99_ms": f.get("tick_late_p99_ms"),
         "scans": e.get("scans_started", 0),
         "recording": recording or None,
         "video": video_summary(e.get("video"), f.get("video")),
@@ -232,17 +264,41 @@ def video_summary(e: dict[str, Any] | None, f: dict[str, Any] | None) -> dict[st
     return out
 
 
-async def _stop_child(proc: asyncio.subprocess.Process, timeout_s: float = 10.0) -> int | None:
-    if proc.returncode is None:
-        with contextlib.suppress(ProcessLookupError):
-            proc.send_signal(signal.SIGTERM)
-        try:
-            await asyncio.wait_for(proc.wait(), timeout_s)
-        except TimeoutError:
-            with contextlib.suppress(ProcessLookupError):
-                proc.kill()
-            await proc.wait()
-    return proc.returncode
+# Counts of one stream at each end: (sender's key, receiver's key) per role.
+STREAM_COUNTS = {"expert": ("poses_sent", "states_received"),
+                 "follower": ("poses_received", "states_sent")}  # fmt: skip
+
+
+class CountWindow:
+    """After a daemon restarts, the stream counts of the summary cover the same window at both
+    ends: from the restarted daemon's first stats on, the other daemon's counts are taken
+    relative to what they were then (its earlier figures would not match the new process's).
+    ``since_s``: the window's start (s after the demo started), None without a restart."""
+
+    def __init__(self) -> None:
+        self.baseline: dict[str, dict[str, int]] = {"expert": {}, "follower": {}}
+        self._restarts_seen = {"expert": 0, "follower": 0}
+        self.since_s: float | None = None
+
+    def update(self, daemons: dict, stats: dict[str, dict], t: float) -> None:
+        for role, d in daemons.items():
+            if d.restarts != self._restarts_seen[role] and stats[role]:  # its first stats
+                self._restarts_seen[role] = d.restarts
+                other = "follower" if role == "expert" else "expert"
+                self.baseline[role] = {}
+                self.baseline[other] = {
+                    k: int(stats[other].get(k) or 0) for k in STREAM_COUNTS[other]
+                }
+                self.since_s = round(t, 2)
+
+    def adjusted(self, stats: dict[str, dict]) -> tuple[dict, dict]:
+        out = []
+        for role in ("expert", "follower"):
+            s = dict(stats[role])
+            for k, v in self.baseline[role].items():
+                s[k] = max(0, int(s.get(k) or 0) - v)
+            out.append(s)
+        return out[0], out[1]
 
 
 async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
@@ -287,18 +343,22 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
                "--sonographer-id", cfg.sonographer_id]  # fmt: skip
         for role in cmds:
             cmds[role] += ["--record", str(rec_paths[role]), *ids]
-    procs: dict[str, asyncio.subprocess.Process] = {}
+    daemons = {
+        role: SupervisedDaemon(
+            role,
+            [*cmd, *common, "--stats-file", str(stats[role])],
+            stats[role],
+            run_dir / f"{role}.log",
+            env,
+        )
+        for role, cmd in cmds.items()
+    }
+    window = CountWindow()
     t0 = time.monotonic()
     failed = ""
     try:
-        for role, cmd in cmds.items():
-            log_file = open(run_dir / f"{role}.log", "wb")  # noqa: SIM115 - closed below
-            procs[role] = await asyncio.create_subprocess_exec(
-                sys.executable, "-m", "humantele", *cmd, *common,
-                "--stats-file", str(stats[role]),
-                stdin=asyncio.subprocess.DEVNULL, stdout=log_file, stderr=log_file, env=env,
-            )  # fmt: skip
-            log_file.close()
+        for d in daemons.values():
+            await d.start()
         last_print = 0.0
         pages: dict[str, str] = {}
         t_started: float | None = None  # both daemons up: --duration counts from here
@@ -306,15 +366,19 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
             now = time.monotonic()
             if t_started is not None and now - t_started >= args.duration:
                 break
-            dead = [r for r, p in procs.items() if p.returncode is not None]
-            if dead:
-                failed = f"{dead[0]} exited early with code {procs[dead[0]].returncode}"
+            for d in daemons.values():  # a daemon that died unexpectedly is restarted
+                failed = failed or (await d.check(now) or "")
+            if failed:
                 break
             e, f = read_stats(stats["expert"]) or {}, read_stats(stats["follower"]) or {}
             for name, url in _page_urls(e, f).items():
                 if name not in pages:
                     pages[name] = url
                     print(f"{name}: {url}", file=status_to, flush=True)
+            window.update(daemons, {"expert": e, "follower": f}, now - t0)
+            for d, st in ((daemons["expert"], e), (daemons["follower"], f)):
+                if st:
+                    d.saw_stats(now)
             if t_started is None and e and f:
                 t_started = now
             elif t_started is None and now - t0 > START_TIMEOUT_S:
@@ -323,7 +387,9 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
                 break
             if tty or now - last_print >= 2.0:
                 last_print = now
-                line = _status_line(e, f, now - t0)
+                line = _status_line(e, f, now - t0) + "".join(
+                    d.status(now) for d in daemons.values()
+                )
                 print(("\r" + line + "\x1b[K") if tty else line, end="" if tty else "\n",
                       file=status_to, flush=True)  # fmt: skip
             with contextlib.suppress(TimeoutError):
@@ -331,14 +397,17 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
     finally:
         codes = {}
         for role in ("expert", "follower"):  # the expert first: it says bye to the follower
-            if role in procs:
-                codes[role] = await _stop_child(procs[role])
+            codes[role] = await daemons[role].stop()
         await server.stop()
         if tty:
             print(file=status_to)
     elapsed = time.monotonic() - t0
     e, f = read_stats(stats["expert"]) or {}, read_stats(stats["follower"]) or {}
+    e, f = window.adjusted({"expert": e, "follower": f})
     summary = summarize(e, f, elapsed, codes)
+    summary["restarts"] = {role: d.restarts for role, d in daemons.items()}
+    summary["restart_exit_codes"] = {role: d.exit_codes for role, d in daemons.items()}
+    summary["counts_since_s"] = window.since_s
     ok = not failed and all(c == 0 for c in codes.values())
     if failed:
         role = failed.split(" ", 1)[0]
@@ -380,4 +449,7 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    return asyncio.run(run_demo(args))
+    try:
+        return asyncio.run(run_demo(args))
+    finally:
+        ignore_stop_signals()

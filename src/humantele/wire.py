@@ -37,6 +37,12 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 from humantele.geometry import Pose
+from humantele.haptics.ellipsoid import (
+    MAX_BODY_CENTER_M,
+    MAX_BODY_SEMI_AXIS,
+    MAX_LONGITUDINAL,
+    MIN_BODY_SEMI_AXIS,
+)
 from humantele.tracking.status import TrackingStatus
 
 PROTOCOL_VERSION = 1
@@ -231,6 +237,15 @@ Finite = Annotated[float, Field(allow_inf_nan=False)]
 Coordinate = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_POSITION_M, le=MAX_POSITION_M)]
 Time = Finite  # a monotonic clock reading (s); any finite value
 Text = Annotated[str, Field(max_length=200)]
+BodyCoordinate = Annotated[
+    float, Field(allow_inf_nan=False, ge=-MAX_BODY_CENTER_M, le=MAX_BODY_CENTER_M)
+]
+BodySemiAxis = Annotated[
+    float, Field(allow_inf_nan=False, ge=MIN_BODY_SEMI_AXIS, le=MAX_BODY_SEMI_AXIS)
+]
+LongitudinalSemiAxis = Annotated[
+    float, Field(allow_inf_nan=False, ge=MIN_BODY_SEMI_AXIS, le=MAX_LONGITUDINAL)
+]
 
 
 class _Control(BaseModel):
@@ -249,15 +264,13 @@ class Hello(_Control):
 class EllipsoidParams(_Control):
     """The patient model, exactly as ``Ellipsoid.to_dict()`` gives it, in the patient frame the
     poses use (the follower sends ``Calibration.model_patient()``: center (0, 0, 0) m and
-    heading 0 rad; other values place it in that frame): center (m), semi-axes (m, all > 0,
-    along patient x, y, z; the paper makes the longitudinal one very large), heading (rad)."""
+    heading 0 rad; other values place it in that frame): center (m), semi-axes (m, along
+    patient x, y, z), heading (rad). Only a body is accepted (``ellipsoid.body_problem``):
+    vertical and lateral semi-axes 1 cm to 2 m, the longitudinal one (the paper makes it very
+    large) 1 cm to 100 m, the centre within 5 m of the origin."""
 
-    center: tuple[Coordinate, Coordinate, Coordinate]
-    semi_axes: tuple[
-        Annotated[float, Field(gt=0.0, le=1e6, allow_inf_nan=False)],
-        Annotated[float, Field(gt=0.0, le=1e6, allow_inf_nan=False)],
-        Annotated[float, Field(gt=0.0, le=1e6, allow_inf_nan=False)],
-    ]
+    center: tuple[BodyCoordinate, BodyCoordinate, BodyCoordinate]
+    semi_axes: tuple[LongitudinalSemiAxis, BodySemiAxis, BodySemiAxis]
     heading: Annotated[float, Field(allow_inf_nan=False, ge=-10.0, le=10.0)]
 
 

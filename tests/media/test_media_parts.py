@@ -82,3 +82,14 @@ def test_us_images_are_foxglove_compressed_images():
     assert base64.b64decode(sample["data"]) == jpeg.tobytes()
     with pytest.raises(ValueError, match="JPEG"):
         make_sample(spec, 1.0, {"data": b"not a jpeg"})
+
+
+async def test_a_consumer_waiting_before_the_source_starts_still_gets_frames():
+    slot: LatestSlot[int] = LatestSlot()
+    waiter = asyncio.ensure_future(slot.get_newer(0))  # the track starts first (lazy bind)
+    await asyncio.sleep(0.01)
+    slot.bind(asyncio.get_running_loop())  # then the source starts and binds the slot
+    t = threading.Thread(target=slot.put, args=(5,))
+    t.start()
+    t.join()
+    assert await asyncio.wait_for(waiter, 2.0) == (1, 5)

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from video_helpers import small_video_config, until, video_follower
+from media_helpers import small_video_config, until, video_follower
 
 from humantele.media.config import ExpertVideoConfig
 from humantele.media.receiver import VideoReceiver

@@ -6,7 +6,7 @@ import asyncio
 import os
 import sys
 
-from video_helpers import small_video_config, video_follower
+from media_helpers import small_video_config, video_follower
 
 
 async def main(url: str, room: str) -> None:

@@ -1,1 +1,1 @@
-from session_helpers import session  # noqa: F401 - the fixture
+from session_helpers import demo_run, session  # noqa: F401 - the fixtures

@@ -2,11 +2,15 @@
 
 import asyncio
 import json
+import math
 import os
 import secrets
 import signal
+import subprocess
 import sys
+import threading
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
@@ -125,3 +129,92 @@ async def session(tmp_path):
         yield s
     finally:
         await s.close()
+
+
+def descendants(pid: int) -> set[int]:
+    """All live descendants of ``pid`` (from /proc)."""
+    children: dict[int, list[int]] = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(ppid, []).append(int(d.name))
+    out, todo = set(), [pid]
+    while todo:
+        for c in children.get(todo.pop(), []):
+            if c not in out:
+                out.add(c)
+                todo.append(c)
+    return out
+
+
+@dataclass
+class DemoRun:
+    """One ``humantele demo --json --record`` run, ended by SIGTERM once it has recorded a
+    scan long enough to analyse: what the tests of that run check."""
+
+    tmp: Path
+    returncode: int | None
+    summary: dict
+    out: str
+    err: str
+    status: list[str] = field(default_factory=list)
+    seen: set[int] = field(default_factory=set)  # the demo's descendants while it ran
+    stop_s: float = math.inf  # from SIGTERM to the demo's exit
+
+    @property
+    def recordings(self) -> tuple[Path, Path]:
+        return self.tmp / "demo.expert.mcap", self.tmp / "demo.follower.mcap"
+
+
+SCAN_S = 4.0  # a scan this long (> 3 s) is recorded before the demo is stopped
+
+
+@pytest.fixture(scope="session")
+def demo_run(tmp_path_factory) -> DemoRun:
+    """The demo run shared by the tests that check one run: it ends on its condition (link
+    connected, calibrated, scan 1 recorded for ``SCAN_S``), not after a fixed duration."""
+    tmp = tmp_path_factory.mktemp("demo")
+    env = dict(os.environ)
+    env.pop("HUMANTELE_TOKEN", None)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "humantele", "demo", "--duration", "120", "--json",
+         "--record", str(tmp / "demo.mcap")],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+    )  # fmt: skip
+    watchdog = threading.Timer(180.0, proc.kill)  # never hang the suite
+    watchdog.start()
+    status: list[str] = []
+    seen: set[int] = set()
+    scan_since = None
+    try:
+        while True:
+            # The status line (stderr with --json, every 2 s) says when each step is done.
+            line = proc.stderr.readline().decode()
+            if not line:
+                break  # the demo ended early: the tests say how
+            status.append(line)
+            seen |= descendants(proc.pid)  # expert, follower, the servo process
+            if ", calibrated |" in line and "link connected" in line and "| scan 1" in line:
+                scan_since = scan_since or time.monotonic()
+                if time.monotonic() - scan_since >= SCAN_S:
+                    break
+        t_term = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+        stop_s = time.monotonic() - t_term
+    finally:
+        watchdog.cancel()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    out_text = out.decode()
+    lines = out_text.strip().splitlines()
+    try:
+        summary = json.loads(lines[-1]) if lines else {}
+    except ValueError:
+        summary = {}
+    return DemoRun(tmp, proc.returncode, summary, out_text, "".join(status) + err.decode(),
+                   status, seen, stop_s)  # fmt: skip

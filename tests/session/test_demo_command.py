@@ -1,12 +1,6 @@
 """``humantele demo`` end to end: --json summary fields, SIGTERM ends everything cleanly."""
 
-import asyncio
-import json
-import os
-import signal
-import sys
 import time
-from pathlib import Path
 
 import pytest
 from session_helpers import pid_alive
@@ -15,52 +9,14 @@ from humantele.demo import summarize
 from humantele.runtime.stats import percentile_ms
 
 
-def descendants(pid: int) -> set[int]:
-    """All live descendants of ``pid`` (from /proc)."""
-    children: dict[int, list[int]] = {}
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                continue
-            children.setdefault(ppid, []).append(int(d.name))
-    out, todo = set(), [pid]
-    while todo:
-        for c in children.get(todo.pop(), []):
-            if c not in out:
-                out.add(c)
-                todo.append(c)
-    return out
-
-
 @pytest.mark.slow
-async def test_demo_json_and_sigterm_leave_no_process():
-    env = dict(os.environ)
-    env.pop("HUMANTELE_TOKEN", None)
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "humantele", "demo", "--duration", "120", "--json",
-        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, env=env,
-    )  # fmt: skip
-    seen: set[int] = set()
-    status = []
-    t_end = time.monotonic() + 60.0  # generous: a busy machine
-    while time.monotonic() < t_end:
-        # The status line (stderr with --json) says when the calibration is done.
-        line = (await asyncio.wait_for(proc.stderr.readline(), 60.0)).decode()
-        assert line, "demo ended early"
-        status.append(line)
-        seen |= descendants(proc.pid)  # expert, follower, the servo process
-        if ", calibrated |" in line and "link connected" in line:
-            break
+def test_demo_json_and_sigterm_leave_no_process(demo_run):
+    """The shared demo run (session_helpers.demo_run): SIGTERM once calibrated and scanning."""
+    seen, status = demo_run.seen, demo_run.status
     assert len(seen) >= 3, (seen, status)
-    t_term = time.monotonic()
-    proc.send_signal(signal.SIGTERM)
-    out, err = await asyncio.wait_for(proc.communicate(), 30)
-    assert proc.returncode == 0, "".join(status) + err.decode()[-2000:]
-    assert time.monotonic() - t_term < 20  # SIGTERM ended it, not --duration
-    lines = out.decode().strip().splitlines()
-    summary = json.loads(lines[-1])
+    assert demo_run.returncode == 0, demo_run.err[-2000:]
+    assert demo_run.stop_s < 20  # SIGTERM ended it, not --duration
+    summary = demo_run.summary
     for key in ("poses_sent", "poses_received", "pose_age_p50_ms", "pose_age_p99_ms",
                 "servo_rate_hz", "servo_overruns", "calibrated", "dropped_messages",
                 "cpu_percent_expert", "cpu_percent_follower"):  # fmt: skip
@@ -75,7 +31,7 @@ async def test_demo_json_and_sigterm_leave_no_process():
     for _ in range(50):
         if not any(pid_alive(p) for p in seen):
             break
-        await asyncio.sleep(0.1)
+        time.sleep(0.1)
     assert not [p for p in seen if pid_alive(p)]
 
 

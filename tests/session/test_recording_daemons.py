@@ -23,14 +23,19 @@ async def run_cli(*args: str) -> tuple[int, str]:
 
 
 async def test_an_unusable_recording_path_is_a_clear_error_at_start(tmp_path):
-    code, text = await run_cli("expert", "--record", str(tmp_path / "missing" / "s.mcap"))
-    assert code == 2 and "no directory" in text and "Traceback" not in text
     existing = tmp_path / "s.follower.mcap"
     existing.write_bytes(b"an earlier session")
-    code, text = await run_cli("follower", "--state-dir", str(tmp_path), "--record", str(existing))
+    missing, exists, named = await asyncio.gather(  # three daemons at once: one start-up wait
+        run_cli("expert", "--record", str(tmp_path / "missing" / "s.mcap")),
+        run_cli("follower", "--state-dir", str(tmp_path), "--record", str(existing)),
+        run_cli("follower", "--record", "x.mcap", "--follower-id", "Jane Doe"),
+    )
+    code, text = missing
+    assert code == 2 and "no directory" in text and "Traceback" not in text
+    code, text = exists
     assert code == 2 and "exists" in text and "Traceback" not in text
     assert existing.read_bytes() == b"an earlier session"  # never overwritten
-    code, text = await run_cli("follower", "--record", "x.mcap", "--follower-id", "Jane Doe")
+    code, text = named
     assert code == 2 and "not a pseudonymous id" in text
 
 

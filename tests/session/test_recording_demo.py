@@ -1,10 +1,7 @@
 """``humantele demo --record FILE`` then ``humantele analyze``: the alignment error found in the
 recordings is the one the simulated follower was configured with."""
 
-import asyncio
-import json
 import math
-import sys
 
 import pytest
 
@@ -15,18 +12,13 @@ from humantele.recording import read_recording
 
 
 @pytest.mark.slow
-async def test_demo_records_a_scan_that_analyze_measures(tmp_path):
-    base = tmp_path / "demo.mcap"
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "humantele", "demo", "--duration", "22", "--json",
-        "--record", str(base),
-        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
-    )  # fmt: skip
-    out, err = await asyncio.wait_for(proc.communicate(), 120)
-    assert proc.returncode == 0, err.decode()[-3000:]
-    summary = json.loads(out.decode().strip().splitlines()[-1])
-    expert, follower = tmp_path / "demo.expert.mcap", tmp_path / "demo.follower.mcap"
-    assert f"humantele analyze {expert} {follower}" in err.decode()
+def test_demo_records_a_scan_that_analyze_measures(demo_run):
+    """The shared demo run (session_helpers.demo_run), recorded: stopped once scan 1 has run
+    for a few seconds."""
+    assert demo_run.returncode == 0, demo_run.err[-3000:]
+    summary = demo_run.summary
+    expert, follower = demo_run.recordings
+    assert f"humantele analyze {expert} {follower}" in demo_run.err
     assert summary["scans"] == 1
     for role in ("expert", "follower"):
         st = summary["recording"][role]

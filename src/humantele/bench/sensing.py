@@ -38,6 +38,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rate", type=float, default=1000.0, help="datagrams per second")
     p.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
     p.add_argument("--no-write", action="store_true", help="do not write docs/")
+    p.add_argument(
+        "--realtime",
+        action="store_true",
+        help="run the loop (and sender) SCHED_FIFO 5 to shield them from other work on the "
+        "machine (needs root or CAP_SYS_NICE); the sensing child drops to SCHED_OTHER itself",
+    )
 
 
 def _sender(port: int, seconds: float, rate: float) -> None:
@@ -184,6 +190,13 @@ async def _run(mode: str, seconds: float, rate: float) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     runs: list[dict] = []
+    policy = "normal scheduling"
+    if args.realtime:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(5))
+            policy = "loop, sender and sensing thread SCHED_FIFO 5 (`--realtime`)"
+        except (OSError, AttributeError) as exc:
+            print(f"--realtime: cannot set SCHED_FIFO ({exc}); normal scheduling", flush=True)
     for i in range(args.repeat):
         for mode in MODES:
             r = asyncio.run(_run(mode, args.seconds, args.rate))
@@ -197,7 +210,12 @@ def run(args: argparse.Namespace) -> int:
                 f"{r['frames']}, load {r['load1']:.1f}",
                 flush=True,
             )
-    summary: dict = {"runs": runs, "seconds": args.seconds, "rate_hz": args.rate}
+    summary: dict = {
+        "runs": runs,
+        "seconds": args.seconds,
+        "rate_hz": args.rate,
+        "policy": policy,
+    }
     rows = []
     for mode in MODES:
         rs = [r for r in runs if r["mode"] == mode]
@@ -227,14 +245,20 @@ def run(args: argparse.Namespace) -> int:
                 "## Follower sensing beside the event loop (`humantele bench sensing`)",
                 machine_line()
                 + f" {args.repeat} runs of {args.seconds:g} s per mode, interleaved; load "
-                f"average during the runs {min(loads):.1f}-{max(loads):.1f} (other work on the "
-                "machine: the figures are medians of runs that saw the same load).",
+                f"average during the runs {min(loads):.1f}-{max(loads):.1f}; {policy}. Figures "
+                "are medians over the runs.",
                 "A loop shaped like the follower's (100 Hz ticks, a sim tracker frame measured "
                 "at 45 Hz, one in flight) receives timestamped UDP datagrams at "
                 f"{args.rate:g} Hz from another process: receive latency is when the loop reads "
                 "each one, the part of the demo's pose age the follower adds. *none*: no "
                 "sensing; *thread*: sensing on a worker thread (the follower until issue 9); "
-                "*process*: sensing in a child process (`humantele.follower.sensing_process`).",
+                "*process*: sensing in a child process (`humantele.follower.sensing_process`, "
+                "nice +10, normal scheduling). With `--realtime` other work on the machine "
+                "cannot delay the loop, so what is left is the cost of the sensing beside it: "
+                "in a thread, the loop waits for the GIL the sensing holds (CPython hands it "
+                "over every 5 ms, `sys.getswitchinterval()`); in a process, nothing. The "
+                "frames/s column is what the sensing managed at the machine's load (45 asked): "
+                "a niced child gives way to the loop and to other work.",
                 markdown_table(
                     [
                         "sensing",

@@ -146,6 +146,7 @@ async def measure(args: argparse.Namespace) -> dict:
                     relay = await stack.enter_async_context(UdpRelay((turn.host, turn.port), netem))
                     ice["expert"] = turn.ice_server(*relay.address)
             config = write_configs(Path(tmp), args, ice)
+            load = os.getloadavg()[0]  # the machine's load when the run starts
             if args.busy_core:
                 busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
             try:
@@ -163,6 +164,7 @@ async def measure(args: argparse.Namespace) -> dict:
                     busy.wait()
             summary = json.loads(out.getvalue().strip().splitlines()[-1])
             summary["exit_code"] = code
+            summary["load_at_start"] = round(load, 1)
             summary["wall_s"] = wall
             summary["relay"] = None if relay is None else relay.counters.as_dict()
     summary["label"] = label(args)
@@ -196,6 +198,7 @@ def row(s: dict) -> list[str]:
         f"{_v(s.get('servo_rate_hz'))} / {_v(s.get('servo_overruns'))}",
         f"{_v(s.get('cpu_percent_expert'))} / {_v(s.get('cpu_percent_servo'))} / "
         f"{_v(s.get('cpu_percent_follower'))} / {_v(vcpu)}",
+        _v(s.get("load_at_start"), "{:.1f}"),
         time.strftime("%H:%M", time.gmtime()),
     ]
 
@@ -203,7 +206,7 @@ def row(s: dict) -> list[str]:
 HEADER = [
     "setting", "US p50/p95/max ms", "US fps", "US gap ms", "POV p50/p95/max ms", "POV fps",
     "POV gap ms", "POV level", "pose age p50/p99 ms", "servo Hz / overruns",
-    "CPU % expert/servo/follower/video", "UTC",
+    "CPU % expert/servo/follower/video", "load", "UTC",
 ]  # fmt: skip
 
 
@@ -227,8 +230,9 @@ def markdown(rows: list[list[str]]) -> str:
     return "\n\n".join(
         [
             "## Video over the link: glass to glass (`humantele bench video link`)",
-            machine_line() + " The machine was shared with other work (load average above 2 on"
-            " 2 cores): figures are one run each, noisy.",
+            machine_line() + " The machine was shared with other work: `load` is its 1-minute"
+            " load average when the row started (2 cores: above 2, every process waits for"
+            " CPU). Figures are one run each; a row where a daemon did not start shows `-`.",
             "The whole demo session per row (both daemons, the 1 kHz servo in its own process, "
             "the follower's video process at nice +5, US 20 fps and POV 25 fps sim sources), "
             "`--seconds` long including the follower's calibration. Latency is capture to "

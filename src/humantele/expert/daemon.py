@@ -40,9 +40,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import bisect
 import logging
 import math
 import os
+import sys
 import time
 from collections import deque
 from collections.abc import Callable
@@ -50,6 +52,7 @@ from collections.abc import Callable
 import numpy as np
 from pydantic import Field
 
+from humantele.cliargs import EXIT_FAILED
 from humantele.config import ConfigError, ConfigModel, load_config, validate_config
 from humantele.expert.console import ConsoleConfig
 from humantele.expert.console.hook import LANDMARKS, PoseHistory, make_console
@@ -62,7 +65,7 @@ from humantele.expert.mapping import (
 from humantele.haptics.ellipsoid import Ellipsoid
 from humantele.haptics.servo import ServoProcess
 from humantele.haptics.servo_config import ServoConfig
-from humantele.haptics.servo_layout import ServoError
+from humantele.haptics.servo_layout import ServoError, ServoSample
 from humantele.media.config import ExpertVideoConfig
 from humantele.media.receiver import VideoReceiver
 from humantele.recording import RecorderConfig
@@ -72,8 +75,9 @@ from humantele.runtime.daemon import (
     daemon_overrides,
     setup_logging,
 )
+from humantele.runtime.process import ignore_stop_signals
 from humantele.runtime.session import SessionConfig, recorder_stats
-from humantele.runtime.stats import percentile_ms, process_cpu_seconds
+from humantele.runtime.stats import SortedWindow, percentile_ms, process_cpu_seconds
 from humantele.transport import LinkConfig, PeerLink
 from humantele.wire import (
     CalibrationProgress,
@@ -167,8 +171,12 @@ class ExpertDaemon(Daemon):
         self.pose_times: deque[float] = deque(maxlen=4000)
         self.last_state: StateMessage | None = None
         self.states_received = 0
-        self.state_ages: deque[float] = deque(maxlen=20000)
+        self.state_ages = SortedWindow(20000)  # s; percentiles without sorting on the loop
         self.models_installed = 0
+        self.models_refused = 0
+        self.model_refusal = ""  # why the last refused model was refused
+        self.servo_down = ""  # why the servo is not running ("" while it runs)
+        self.servo_stopped = False  # stopped by the daemon (its end)
         self.calibration_events: list[str] = []
         self.last_sample_t = -math.inf
         self.servo_restarts = 0
@@ -213,7 +221,12 @@ class ExpertDaemon(Daemon):
 
     def on_control(self, msg: ControlMessage) -> None:
         if isinstance(msg, EllipsoidModel):
-            self.install_model(Ellipsoid.from_dict(msg.model.model_dump()))
+            try:
+                model = Ellipsoid.from_dict(msg.model.model_dump())
+            except ValueError as exc:
+                self.refuse_model(str(exc))
+                return
+            self.install_model(model)
         elif isinstance(msg, CalibrationProgress):
             text = msg.event if not msg.detail else f"{msg.event}: {msg.detail}"
             self.calibration_events.append(text)
@@ -243,8 +256,22 @@ class ExpertDaemon(Daemon):
 
     # --- the model and the registration ---------------------------------------------------
 
+    def refuse_model(self, why: str) -> None:
+        """A patient model that is not a body: refused, counted, reported; the last good stays."""
+        self.models_refused += 1
+        self.model_refusal = why
+        log.warning(
+            "expert: patient model refused (%s); %s", why,
+            "keeping the last good one" if self.model is not None else "no model yet",
+        )  # fmt: skip
+
     def install_model(self, model: Ellipsoid) -> None:
-        """Render ``model`` (patient frame); a new one moves the workspace over it."""
+        """Render ``model`` (patient frame); a new one moves the workspace over it. A model
+        that is not a body (:meth:`Ellipsoid.problem`) is refused and the last good one kept."""
+        why = model.problem()
+        if why is not None:
+            self.refuse_model(why)
+            return
         if self.model is not None and model == self.model:
             return  # the same model again (the follower rejoined): nothing changes
         self.model = model
@@ -372,7 +399,7 @@ class ExpertDaemon(Daemon):
             rec.write("/expert/servo_stats", t, {"rate_hz": 0.0, "state": "stopped"})
         new = min(len(self.state_ages), self.states_received - self._states_reported)
         self._states_reported = self.states_received
-        recent = list(self.state_ages)[-new:] if new > 0 else []
+        recent = self.state_ages.last(new)
         if recent:  # the follower's state stream, one way: median since the last report
             rec.write(
                 "/expert/latency", t, {"name": "state_one_way", "value_s": float(np.median(recent))}
@@ -385,13 +412,17 @@ class ExpertDaemon(Daemon):
             rec.write(topic, t, payload)
 
     def check_servo(self, t: float) -> None:
-        """A dead servo process is restarted (the daemon itself keeps running)."""
+        """A dead servo process is restarted (the daemon itself keeps running); while it is
+        down, ``servo_down`` says why (the status and the JSON show it as a fault)."""
         if self.servo.alive:
             self._servo_dead_since = None
+            self.servo_down = ""
             return
         if self._servo_dead_since is None:
             self._servo_dead_since = t
-            log.error("expert: the servo process died; restarting it")
+            if not self.servo_down:
+                self.servo_down = f"servo process exited with code {self.servo.returncode}"
+            log.error("expert: %s; restarting it", self.servo_down)
         if t - self._servo_dead_since < self.config.servo_restart_s:
             return
         self._servo_dead_since = t
@@ -400,11 +431,24 @@ class ExpertDaemon(Daemon):
         try:
             self.servo.start()
         except ServoError as exc:
+            self.servo_down = str(exc)
             log.error("expert: %s", exc)
             return
+        self.servo_down = ""
         self.servo_restarts += 1
         self.servo_started = time.monotonic()
         self.push_registration()
+
+    def servo_state(self, latest: ServoSample | None) -> str:
+        """``running``, ``fault: <names>`` (force zeroed by the loop), ``down: <reason>``, or
+        ``stopped`` (by the daemon, at its end)."""
+        if self.servo_stopped and not self.servo_down:
+            return "stopped"
+        if self.servo_down or not self.servo.alive:
+            return f"down: {self.servo_down or 'servo process not running'}"
+        if latest is not None and latest.fault:
+            return f"fault: {latest.fault}"
+        return "running" if latest is not None else "starting"
 
     def servo_cpu_percent(self) -> float | None:
         """CPU use (% of one core) of the servo process since it started."""
@@ -418,7 +462,8 @@ class ExpertDaemon(Daemon):
 
     def pose_rate_hz(self, window_s: float = 1.0) -> float:
         now = time.monotonic()
-        return round(sum(1 for t in self.pose_times if now - t <= window_s) / window_s, 1)
+        recent = len(self.pose_times) - bisect.bisect_left(self.pose_times, now - window_s)
+        return round(recent / window_s, 1)
 
     def stats(self) -> dict:
         try:
@@ -426,7 +471,9 @@ class ExpertDaemon(Daemon):
         except ServoError:
             servo = {}
         latest = self.servo.latest() if self.servo.alive else None
-        force = None if latest is None else round(float(np.linalg.norm(latest.force)), 3)
+        state = self.servo_state(latest)
+        # A servo that is down drives no force: 0, and the state says why (never None).
+        force = 0.0 if latest is None else round(float(np.linalg.norm(latest.force)), 3)
         return {
             "role": "expert",
             "pid": os.getpid(),
@@ -444,7 +491,12 @@ class ExpertDaemon(Daemon):
             "calibration_events": self.calibration_events[-8:],
             "clutch_reindexes": self.mapping.reindex_count,
             "force_n": force,
-            "servo_fault": "" if latest is None else latest.fault,
+            "servo_state": state,
+            "servo_fault": state if state.startswith("down") else (latest.fault if latest else ""),
+            "models_refused": self.models_refused,
+            "model_refusal": self.model_refusal,
+            "servo_models_refused": servo.get("models_refused"),
+            "servo_tick_errors": servo.get("tick_errors"),
             "servo_rate_hz": servo.get("rate_hz"),
             "servo_overruns": servo.get("overruns"),
             "servo_period_p99_us": servo.get("period_p99_us"),
@@ -500,6 +552,7 @@ class ExpertDaemon(Daemon):
             await asyncio.get_running_loop().run_in_executor(None, self.servo.start)
         except ServoError as exc:
             log.error("expert: %s", exc)
+            print(f"humantele expert: {exc}", file=sys.stderr)
             self.close_recording()
             return 1
         self.servo_started = time.monotonic()
@@ -518,9 +571,14 @@ class ExpertDaemon(Daemon):
             await self.stop_console()
             await self.video.close()
             self.servo_cpu_percent()
+            self.servo_stopped = True
             self.servo.stop()
             self.finish_run()
-        return 0
+        code = self.run_result(link_task)
+        if code == 0 and self.servo_down:  # the haptics were off at the end: not a clean run
+            print(f"humantele expert: servo not running: {self.servo_down}", file=sys.stderr)
+            return EXIT_FAILED
+        return code
 
 
 # --- command line ---------------------------------------------------------------------------
@@ -548,4 +606,7 @@ def configs_from_args(args: argparse.Namespace) -> tuple[ExpertConfig, ServoConf
 def run(args: argparse.Namespace) -> int:
     setup_logging("expert", args.log_level)
     config, servo = configs_from_args(args)
-    return asyncio.run(ExpertDaemon(config, servo, args.stats_file).run(args.duration))
+    try:
+        return asyncio.run(ExpertDaemon(config, servo, args.stats_file).run(args.duration))
+    finally:
+        ignore_stop_signals()

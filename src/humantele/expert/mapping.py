@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -33,6 +34,8 @@ from humantele.config import ConfigModel
 from humantele.geometry import Pose, quat_from_axis_angle, quat_multiply, quat_normalize
 
 UP = np.array([0.0, 1.0, 0.0])
+Offset = Annotated[float, Field(ge=-2.0, le=2.0)]  # m
+Angle = Annotated[float, Field(ge=-360.0, le=360.0)]  # deg
 
 
 class MappingConfig(ConfigModel):
@@ -45,10 +48,10 @@ class MappingConfig(ConfigModel):
     origin_above_model_m: float = Field(
         0.03, ge=-0.2, le=0.5, description="device origin this far above the model's top"
     )
-    origin_offset_m: tuple[float, float, float] = Field(
+    origin_offset_m: tuple[Offset, Offset, Offset] = Field(
         (0.0, 0.0, 0.0), description="extra shift of the device origin, patient frame"
     )
-    stylus_to_probe_deg: tuple[float, float, float] = Field(
+    stylus_to_probe_deg: tuple[Angle, Angle, Angle] = Field(
         (90.0, 0.0, 0.0), description="rotation vector (deg) from stylus to probe tip frame"
     )
     clutch_button: int = Field(1, ge=0, le=7, description="stylus button bit for the clutch")

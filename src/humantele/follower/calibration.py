@@ -32,7 +32,13 @@ from pydantic import Field, model_validator
 
 from humantele.config import ConfigModel
 from humantele.geometry import Pose
-from humantele.haptics.ellipsoid import DEFAULT_LONGITUDINAL, Ellipsoid, LandmarkError
+from humantele.haptics.ellipsoid import (
+    DEFAULT_LONGITUDINAL,
+    MAX_LONGITUDINAL,
+    MIN_BODY_SEMI_AXIS,
+    Ellipsoid,
+    LandmarkError,
+)
 
 LANDMARKS: tuple[str, ...] = ("xiphoid", "left", "right", "bed")
 
@@ -60,7 +66,10 @@ class CalibrationConfig(ConfigModel):
         0.05, ge=0, description="how far a side landmark may be above the xiphoid or below the bed"
     )
     long_semi_axis_m: float = Field(
-        DEFAULT_LONGITUDINAL, gt=0, description="the paper's very large longitudinal semi-axis c"
+        DEFAULT_LONGITUDINAL,
+        ge=MIN_BODY_SEMI_AXIS,
+        le=MAX_LONGITUDINAL,
+        description="the paper's very large longitudinal semi-axis c (m)",
     )
 
     @model_validator(mode="after")

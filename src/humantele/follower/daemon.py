@@ -12,13 +12,17 @@ Every tick (``rate_hz``, asyncio) it:
    (``sensing_worker = "process"``, :mod:`humantele.follower.sensing_process`; ``"thread"``:
    a worker thread), off the asyncio loop and off its GIL, so the pose path is never held
    up; frames are measured in order and never overlap: a frame due while the previous one is
-   still measured (or while the child starts) is skipped (counted in ``sensing_skipped``);
+   still measured is skipped (counted in ``sensing_skipped``; those due while the child
+   starts, in ``sensing_starting``);
 3. with each measurement: feeds the calibration (:mod:`humantele.follower.calibration`) while
    calibrating, streams the probe pose and force to the expert (``state``, patient frame) and
    records them;
 4. publishes the measured probe to renderers (:mod:`humantele.follower.feed`, world frame),
    and the virtual probe while it is ``stale`` (no fresh pose came or the link is down); a
    fresh virtual probe is published as its pose arrives, not at the next tick.
+5. publishes the sim world's snapshot to the video sources, which render and send the ``us``
+   and ``pov`` tracks from their own process (:mod:`humantele.media.sender`, docs/video.md);
+   once a second the degradation policy may lower the POV (never the US).
 
 Frames: the headset's world frame (y up) here; the patient frame of the calibration on the
 wire (``T_world_patient`` from the saved calibration). Poses are of the transducer's tip frame
@@ -44,6 +48,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import bisect
 import contextlib
 import logging
 import math
@@ -60,6 +65,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
 
+from humantele.cliargs import EXIT_FAILED, port, socket_error
 from humantele.config import ConfigModel, load_config, validate_config
 from humantele.follower.calibration import (
     CALIBRATION_FILE,
@@ -90,8 +96,9 @@ from humantele.runtime.daemon import (
     daemon_overrides,
     setup_logging,
 )
+from humantele.runtime.process import ignore_stop_signals
 from humantele.runtime.session import SessionConfig, recorder_stats
-from humantele.runtime.stats import percentile_ms
+from humantele.runtime.stats import SortedWindow, percentile_ms
 from humantele.tracking.tool import load_tool
 from humantele.transport import LinkConfig, PeerLink
 from humantele.video.base import VideoSourceUnavailable
@@ -111,6 +118,7 @@ from humantele.wire import (
 log = logging.getLogger(__name__)
 
 DEFAULT_STATE_DIR = "~/.local/state/humantele/follower"
+ALIGN_KEPT = 3000  # alignment errors the RMS is over (the last ~65 s of 45 Hz frames)
 REPORT_PERIOD_S = 1.0  # latency figures are recorded this often
 ZERO_POSE = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))  # recorded when the probe is not tracked
 
@@ -290,6 +298,7 @@ class FollowerDaemon(Daemon):
         self._proc_frame: tuple[int, TrackerImage] | None = None  # (job, image) in flight
         self._jobs = 0
         self.sensing_failure: str | None = None
+        self.sensing_starting = 0  # tracker images due before the sensing process was ready
         self.measurement = Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
         self.last_measure_t = -math.inf
         self.measurements = 0
@@ -321,9 +330,9 @@ class FollowerDaemon(Daemon):
         self.script_t0 = 0.0
         self.last_pose: PoseMessage | None = None
         self.last_pose_rx = -math.inf
-        self.pose_ages: deque[float] = deque(maxlen=20000)
-        self.align_pos: deque[float] = deque(maxlen=20000)
-        self.align_ang: deque[float] = deque(maxlen=20000)
+        self.pose_ages = SortedWindow(20000)  # s; percentiles without sorting on the loop
+        self.align_pos: deque[float] = deque(maxlen=ALIGN_KEPT)
+        self.align_ang: deque[float] = deque(maxlen=ALIGN_KEPT)
         self.poses_received = 0
         self.pose_times: deque[float] = deque(maxlen=2000)
         self.state_seq = 0
@@ -333,11 +342,13 @@ class FollowerDaemon(Daemon):
         self.late_ticks = 0
         self.last_event: CalibrationEvent | None = None
         self.loaded_calibration = self.calibration is not None
+        self.calibration_save_error = ""  # why the last calibration could not be saved
         # The sensing worker (run() starts it; without it, tick() measures in line).
         self.executor: ThreadPoolExecutor | None = None
         self._sensing: Future | None = None
         self.sensing_skipped = 0
-        self.sensing_times: deque[float] = deque(maxlen=2000)  # s per measurement, worker
+        self.sensing_times = SortedWindow(2000)  # s per measurement (worker or child)
+        self.tick_late = SortedWindow(20000)  # s each tick came after its period
         # Scans (from the expert) and what has been recorded.
         self.scan: int | None = None
         self.scans_seen = 0
@@ -479,6 +490,21 @@ class FollowerDaemon(Daemon):
         self.send_control(CalibrationProgress(event="start"))
         self.publish_calibration()
 
+    def save_calibration(self) -> bool:
+        """Save the calibration for the next start; a failure (read-only or full state dir) is
+        reported (log, stats ``calibration_save_error``) and the session goes on without it."""
+        try:
+            self.calibration.save(self.calibration_path)
+        except OSError as exc:
+            self.calibration_save_error = f"{exc.strerror or exc}: {exc.filename or ''}".strip()
+            log.error(
+                "follower: calibration not saved (%s); it is used now but will be asked for "
+                "again at the next start", self.calibration_save_error,
+            )  # fmt: skip
+            return False
+        self.calibration_save_error = ""
+        return True
+
     def on_calibration_event(self, ev: CalibrationEvent, t: float | None = None) -> None:
         self.last_event = ev
         log.info("calibration: %s", ev.message)
@@ -495,7 +521,7 @@ class FollowerDaemon(Daemon):
             self.send_control(CalibrationProgress(event="point", index=index, point=point))
         if ev.kind == "done" and self.calibrator.result is not None:
             self.calibration = self.calibrator.result
-            self.calibration.save(self.calibration_path)
+            self.save_calibration()  # best-effort: the model goes to the expert regardless
             self.calibrating = False
             self.script = None
             self.send_control(CalibrationProgress(event="done"))
@@ -580,7 +606,10 @@ class FollowerDaemon(Daemon):
         previous one is measured is skipped and counted."""
         proc = self.sensing_proc
         if proc is not None and proc.running:
-            if not proc.ready or proc.busy:
+            if not proc.ready:  # still starting (importing, calibrating the sim force sensor)
+                self.sensing_starting += 1
+                return
+            if proc.busy:
                 self.sensing_skipped += 1
                 return
             self._jobs += 1
@@ -709,16 +738,17 @@ class FollowerDaemon(Daemon):
         new = min(len(self.pose_ages), self.poses_received - self._poses_reported)
         self._poses_reported = self.poses_received
         if new > 0:
-            value = float(np.median(list(self.pose_ages)[-new:]))
+            value = float(np.median(self.pose_ages.last(new)))
             self.rec.write("/follower/latency", t, {"name": "pose_one_way", "value_s": value})
 
     def pose_rate_hz(self, window_s: float = 1.0) -> float:
         """Poses received per second over the last ``window_s``."""
         now = time.monotonic()
-        return round(sum(1 for t in self.pose_times if now - t <= window_s) / window_s, 1)
+        recent = len(self.pose_times) - bisect.bisect_left(self.pose_times, now - window_s)
+        return round(recent / window_s, 1)
 
     def stats(self) -> dict:
-        ap, aa = list(self.align_pos)[-3000:], list(self.align_ang)[-3000:]
+        ap, aa = self.align_pos, self.align_ang
         wall = time.monotonic() - self.t_start
         return {
             "role": "follower",
@@ -730,10 +760,11 @@ class FollowerDaemon(Daemon):
             "pose_rate_hz": self.pose_rate_hz(),
             "pose_age_p50_ms": percentile_ms(self.pose_ages, 50),
             "pose_age_p99_ms": percentile_ms(self.pose_ages, 99),
-            "pose_age_last_ms": percentile_ms(list(self.pose_ages)[-1:], 50),
+            "pose_age_last_ms": percentile_ms(self.pose_ages.last(1), 50),
             "states_sent": self.link.counters.sent.get("state", 0),
             "calibrated": self.calibration is not None,
             "calibration_reused": self.loaded_calibration,
+            "calibration_save_error": self.calibration_save_error,
             "calibration_refusals": self.calibrator.refusals,
             "calibration_step": self.calibrator.step if self.calibrating else None,
             "force_n": round(self.last_force_n, 3),
@@ -750,6 +781,7 @@ class FollowerDaemon(Daemon):
             "sensing_errors": self.sensing.errors
             + (0 if self.sensing_proc is None else self.sensing_proc.child_errors),
             "sensing_skipped": self.sensing_skipped,
+            "sensing_starting": self.sensing_starting,
             "sensing_worker": (
                 "process"
                 if self.sensing_proc is not None and self.sensing_proc.running
@@ -763,9 +795,24 @@ class FollowerDaemon(Daemon):
             "recording": recorder_stats(self.rec),
             "tick_errors": self.tick_errors,
             "late_ticks": self.late_ticks,
+            "tick_late_p99_ms": percentile_ms(self.tick_late, 99),
+            "tick_late_max_ms": percentile_ms(self.tick_late, 100),
+            "cpu_percent_sensing": (
+                None if self.sensing_proc is None else self.sensing_proc.cpu_percent()
+            ),
             "cpu_percent": self.cpu.overall(),
             "video": None if self.video is None else self.video.stats(),
         }
+
+    def feed_error(self, exc: OSError) -> str:
+        """One line for a renderer feed that cannot start."""
+        cfg = self.config.feed
+        if exc.filename is not None:  # the TLS certificate in the state directory
+            return (
+                f"humantele follower: renderer feed: cannot write {exc.filename}: "
+                f"{exc.strerror or exc} (check --state-dir {self.state_dir})"
+            )
+        return socket_error("humantele follower: renderer feed", cfg.host, cfg.port, exc)
 
     def check_video(self, t: float) -> None:
         """Once a second, the video's degradation policy (POV first), in a task."""
@@ -797,25 +844,20 @@ class FollowerDaemon(Daemon):
                 self._sensing_cannot_start,
                 nice=self.config.sensing_nice,
             )
-            self.sensing_proc.start()
-            # as the in-thread pipeline was built before the daemon ran: measure from the start
-            ready = await self.sensing_proc.wait_ready(cancel=self._stop.is_set)
-            if not ready and not self.sensing_proc.failed and not self._stop.is_set():
-                log.warning("follower: the sensing process is slow to start; going on")
-            if self.sensing_failure is not None:
-                self.sensing_proc.close()
-                self.executor.shutdown(wait=False)
-                self.finish_run()
-                print(f"humantele follower: sensing cannot start: {self.sensing_failure}")
-                return 2
+            self.sensing_proc.start()  # it starts while the link connects
         if self.config.feed.enabled:
             try:
                 await self.feed.start()
-            except BaseException:  # e.g. the port is taken: the recording is still closed
+            except OSError as exc:  # port taken, unknown host, unwritable state dir
+                self.close_recording()
+                print(self.feed_error(exc), file=sys.stderr)
+                return EXIT_FAILED
+            except BaseException:  # the recording is still closed
                 self.close_recording()
                 raise
             print(f"humantele follower: {self.feed.banner()}", flush=True)
         link_task = asyncio.create_task(self.link.run())
+        prev_t, period = None, 1.0 / self.config.rate_hz
         if self.calibration is None:
             self.start_calibration()
         else:
@@ -827,6 +869,9 @@ class FollowerDaemon(Daemon):
                 self.config.rate_hz, duration_s, link_task, on_late=self._count_late_tick
             ):
                 self.ticks += 1
+                if prev_t is not None:  # how late this tick came after the previous one
+                    self.tick_late.append(max(0.0, t - prev_t - period))
+                prev_t = t
                 try:
                     self.tick(t)
                     self.record_reports(t)
@@ -851,7 +896,9 @@ class FollowerDaemon(Daemon):
         if self.sensing_failure is not None:
             print(f"humantele follower: sensing cannot start: {self.sensing_failure}", flush=True)
             return 2
-        return 2 if self.video_error else 0
+        if self.video_error:
+            return 2
+        return self.run_result(link_task)
 
     async def start_video(self) -> None:
         """Open the video sources (in a thread: it blocks) and start them; a source that
@@ -872,10 +919,11 @@ def _log_task_error(task: asyncio.Future) -> None:
         log.error("follower: video check failed: %s", task.exception())
 
 
-def _rms_scaled(values: list[float], scale: float) -> float | None:
+def _rms_scaled(values: deque[float], scale: float) -> float | None:
     if not values:
         return None
-    return round(math.sqrt(sum(v * v for v in values) / len(values)) * scale, 3)
+    a = np.fromiter(values, dtype=float, count=len(values))
+    return round(float(np.sqrt(np.mean(a * a))) * scale, 3)
 
 
 # --- command line ---------------------------------------------------------------------------
@@ -884,7 +932,7 @@ def _rms_scaled(values: list[float], scale: float) -> float | None:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_daemon_arguments(parser, "TOML file; the [follower] section is used")
     parser.add_argument("--state-dir", help="where the calibration is saved")
-    parser.add_argument("--feed-port", type=int, help="renderer feed port (0 picks one)")
+    parser.add_argument("--feed-port", type=port, help="renderer feed port (0 picks one)")
     parser.add_argument("--recalibrate", action="store_true", help="ignore a saved calibration")
 
 
@@ -911,4 +959,7 @@ def run(args: argparse.Namespace) -> int:
     if args.recalibrate:
         daemon.calibration = None
         daemon.loaded_calibration = False
-    return asyncio.run(daemon.run(args.duration))
+    try:
+        return asyncio.run(daemon.run(args.duration))
+    finally:
+        ignore_stop_signals()

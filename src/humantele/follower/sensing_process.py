@@ -15,9 +15,12 @@ caller skips frames while :attr:`busy`, as it did with the thread. A child that 
 restarted (``max_restarts``, then :attr:`failed` and the caller falls back to its thread); a
 child that cannot build its sensing (a bad config) reports why and is not restarted. The child
 ignores SIGINT (Ctrl-C reaches the whole process group; the daemon stops it) and exits when
-the pipe closes, so it never outlives the daemon. It runs at ``nice`` +10 by default
-(``sensing_nice``): when the daemon's loop and the child both want the CPU, the loop, which
-only needs it briefly to read a pose, wakes first; the child still gets every idle moment.
+the pipe closes, so it never outlives the daemon. Once started it runs at ``nice`` +10 by
+default (``sensing_nice``): when the daemon's loop and the child both want the CPU, the loop,
+which only needs it briefly to read a pose, wakes first; the child still gets every idle
+moment. On an overloaded machine it then measures fewer frames (skipped, counted) rather
+than delay the poses. If the daemon runs with a real-time policy (``chrt``, a systemd unit),
+the child drops to the normal one: 5 ms bursts at 45 Hz must not hold a core against it.
 """
 
 from __future__ import annotations
@@ -42,9 +45,6 @@ OnResult = Callable[[int, Any, float], None]  # (job, Measurement, seconds measu
 def sensing_main(config: Any, sensing_config: Any, conn: Connection, nice: int = 0) -> None:
     """The child: build the sensing, then measure each request until the pipe closes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    if nice:
-        with contextlib.suppress(OSError):
-            os.nice(nice)
     try:
         from humantele.follower.daemon import Sensing
 
@@ -53,8 +53,14 @@ def sensing_main(config: Any, sensing_config: Any, conn: Connection, nice: int =
         with contextlib.suppress(OSError):
             conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
-    conn.send(("ready", os.getpid()))
+    if hasattr(os, "sched_setscheduler"):  # a batch job: never a real-time daemon's policy
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    if nice:  # after starting at the daemon's priority: a niced start can starve for long
+        with contextlib.suppress(OSError):
+            os.nice(nice)
     try:
+        conn.send(("ready", os.getpid()))
         while True:
             try:
                 msg = conn.recv()
@@ -101,6 +107,7 @@ class SensingProcess:
         self.failed = False
         self.error: str | None = None
         self.pid: int | None = None
+        self._started: float | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._proc: mp.process.BaseProcess | None = None
         self._conn: Connection | None = None
@@ -136,12 +143,26 @@ class SensingProcess:
             daemon=True,
         )
         self._proc.start()
+        self._started = time.monotonic()
         child.close()
         self._errors_before = self.child_errors
         self._conn = parent
         self.ready = self.busy = False
         assert self._loop is not None
         self._loop.add_reader(parent.fileno(), self._readable)
+
+    def cpu_percent(self) -> float | None:
+        """The running child's CPU use since it started, % of one core (Linux; else None)."""
+        if self._proc is None or self.pid is None or self._started is None:
+            return None
+        try:
+            with open(f"/proc/{self.pid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+        except OSError:
+            return None
+        ticks = int(fields[11]) + int(fields[12])  # utime + stime
+        wall = time.monotonic() - self._started
+        return round(100.0 * ticks / os.sysconf("SC_CLK_TCK") / max(wall, 1e-3), 1)
 
     def submit(self, job: int, truth: Any) -> bool:
         """Send one frame to measure; False (nothing sent) if one is in flight or no child."""

@@ -47,7 +47,15 @@ from humantele.haptics import penetration as _pen
 DEFAULT_LONGITUDINAL = 10.0  # m, the paper's "very large" longitudinal semi-axis c
 MIN_TORSO_SEMI_AXIS = 0.05  # m, plausibility bounds for the lateral and vertical semi-axes
 MAX_TORSO_SEMI_AXIS = 1.0  # m
-MAX_SEMI_AXIS = 1.0e6  # m, bound for any semi-axis (as the wire message allows)
+MIN_SEMI_AXIS = 1.0e-6  # m, bounds for any semi-axis of the geometric object
+MAX_SEMI_AXIS = 1.0e6  # m
+# A body the servo renders and the wire carries (see body_problem): vertical and lateral
+# semi-axes 1 cm to 2 m, the longitudinal one 1 cm to 100 m (the paper's "very large"), the
+# centre within 5 m of the patient-frame origin, a finite heading.
+MIN_BODY_SEMI_AXIS = 0.01  # m
+MAX_BODY_SEMI_AXIS = 2.0  # m, vertical and lateral
+MAX_LONGITUDINAL = 100.0  # m
+MAX_BODY_CENTER_M = 5.0  # m, each coordinate
 DEFAULT_FORCE_LIMIT = 7.9  # N, Touch X peak force (CHAI3D device tables; docs/references.md)
 METHODS = ("radial", "newton", "exact")
 ARRAY_LENGTH = 7  # as_array(): centre (3), semi_axes (3), heading (1)
@@ -76,6 +84,33 @@ def _point(name: str, p: Any) -> NDArray[np.float64]:
     return a
 
 
+def body_problem(center: ArrayLike, semi_axes: ArrayLike, heading: float) -> str | None:
+    """Why this ellipsoid is not a patient body the servo can render (None if it is).
+
+    Bounds: see ``MIN_BODY_SEMI_AXIS`` etc. A semi-axis of 1e-160 m (1/s^2 overflows) or a
+    20 m high body (every pose out of range) is refused here, by the wire schema and the servo.
+    """
+    try:
+        c = np.asarray(center, dtype=float).reshape(-1)
+        s = np.asarray(semi_axes, dtype=float).reshape(-1)
+        h = float(heading)
+    except (TypeError, ValueError):
+        return "centre, semi-axes and heading must be numbers"
+    if c.shape != (3,) or s.shape != (3,):
+        return "centre and semi-axes must be 3 numbers each"
+    if not (np.all(np.isfinite(c)) and np.all(np.isfinite(s)) and math.isfinite(h)):
+        return "centre, semi-axes and heading must be finite"
+    if np.any(np.abs(c) > MAX_BODY_CENTER_M):
+        return f"centre {c.tolist()} m is more than {MAX_BODY_CENTER_M:g} m from the origin"
+    highs = (MAX_LONGITUDINAL, MAX_BODY_SEMI_AXIS, MAX_BODY_SEMI_AXIS)
+    for axis, v, hi in zip(("longitudinal", "vertical", "lateral"), s, highs, strict=True):
+        if not MIN_BODY_SEMI_AXIS <= v <= hi:
+            return (
+                f"{axis} semi-axis {v:.3g} m is not a body's ({MIN_BODY_SEMI_AXIS:g} to {hi:g} m)"
+            )
+    return None
+
+
 class Ellipsoid:
     """Axis-aligned ellipsoid in the patient frame, placed in the world by centre and heading.
 
@@ -92,9 +127,10 @@ class Ellipsoid:
             raise ValueError(f"ellipsoid center must be 3 finite numbers (m), got {center!r}")
         if s.shape != (3,) or not np.all(np.isfinite(s)):
             raise ValueError(f"ellipsoid semi_axes must be 3 finite numbers (m), got {semi_axes!r}")
-        if np.any(s <= 0.0) or np.any(s > MAX_SEMI_AXIS):
+        if np.any(s < MIN_SEMI_AXIS) or np.any(s > MAX_SEMI_AXIS):  # 1/s^2 stays finite
             raise ValueError(
-                f"ellipsoid semi_axes must be in (0, {MAX_SEMI_AXIS:g}] m, got {s.tolist()}"
+                f"ellipsoid semi_axes must be in [{MIN_SEMI_AXIS:g}, {MAX_SEMI_AXIS:g}] m, "
+                f"got {s.tolist()}"
             )
         h = float(heading)
         if not math.isfinite(h):
@@ -193,6 +229,10 @@ class Ellipsoid:
         yc = (x1[1] + y_bed) / 2.0
         center = (ch * xc + sh * zc, yc, -sh * xc + ch * zc)
         return cls(center, (c_long, b, a), heading)
+
+    def problem(self) -> str | None:
+        """:func:`body_problem` of this model (None: a body the servo can render)."""
+        return body_problem(self.center, self.semi_axes, self.heading)
 
     # ----------------------------------------------------------------- frames
     @property

@@ -15,6 +15,7 @@ after a fault (no kick); stale device data, a device error, non-finite data or a
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -25,13 +26,16 @@ from humantele.haptics.devices.sim import ManualClock, SimTouchX
 from humantele.haptics.ellipsoid import Ellipsoid
 from humantele.haptics.servo_config import ServoConfig
 
+log = logging.getLogger(__name__)
+
 # Fault flags (bitmask in ServoSample.fault_flags).
 FAULT_STALE = 1  # device data older than stale_after_s
 FAULT_LATE = 2  # a tick started more than late_after_s after its deadline
 FAULT_DEVICE = 4  # the device raised (disconnect, driver error)
 FAULT_BAD_DATA = 8  # non-finite or implausible (beyond 1 m, 100 m/s) device data
+FAULT_MODEL = 16  # a tick failed on the model (dropped for the last good one)
 FAULT_NAMES = {FAULT_STALE: "stale", FAULT_LATE: "late", FAULT_DEVICE: "device",
-               FAULT_BAD_DATA: "bad_data"}  # fmt: skip
+               FAULT_BAD_DATA: "bad_data", FAULT_MODEL: "model"}  # fmt: skip
 
 
 def _rot(q: tuple[float, float, float, float]) -> tuple:
@@ -80,6 +84,7 @@ class _Setup:
 _ZERO3 = (0.0, 0.0, 0.0)
 MAX_DEVICE_COORD_M = 1.0  # a device reading farther than this from its origin is garbage
 MAX_DEVICE_SPEED = 100.0  # m/s, likewise for a device's own velocity estimate
+MAX_REGISTRATION_M = 10.0  # m, a device origin farther from the world origin is refused
 
 
 def _plausible(state: DeviceState) -> bool:
@@ -116,9 +121,24 @@ class ForceRenderer:
         self._fault_until = -math.inf
         self._faulted = False
         self._flags = 0
+        self._good: Ellipsoid | None = None  # the last model a tick rendered without error
         self.counts = {"stale": 0, "device": 0, "bad_data": 0, "late": 0, "episodes": 0,
-                       "nonfinite": 0, "clamped": 0}  # fmt: skip
+                       "nonfinite": 0, "clamped": 0, "refused": 0, "tick_errors": 0}  # fmt: skip
+        self.last_refusal = ""
         self.sample = None
+
+    @property
+    def model(self) -> Ellipsoid | None:
+        return self._model
+
+    @property
+    def registration(self) -> Pose | None:
+        """``T_world_device`` as commanded (None: automatic)."""
+        return self._reg
+
+    @property
+    def scale(self) -> float:
+        return self._scale
 
     # -- commands ---------------------------------------------------------------------------
     def set_model(self, model: Ellipsoid | None, now: float) -> None:
@@ -228,6 +248,48 @@ class ForceRenderer:
         ramp = 0.0 if self._faulted else alpha
         self.sample = (pp, qp, vp, f_patient, f_dev, depth, buttons, self._flags, ramp, p, q)
         return f_dev
+
+    def refuse(self, why: str) -> None:
+        """Count and log a refused model or registration command (the last good one stays)."""
+        self.counts["refused"] += 1
+        self.last_refusal = why
+        if self.counts["refused"] <= 10:
+            log.warning("servo: %s; keeping the last good one", why)
+
+    def safe_tick(self, state: DeviceState | None, now: float, extra_flags: int = 0):
+        """:meth:`tick` that never raises: a tick that fails zeroes the force, drops the model
+        for the last good one (or none) and flags FAULT_MODEL; the loop goes on."""
+        try:
+            f = self.tick(state, now, extra_flags)
+        except Exception as exc:  # noqa: BLE001 - the servo must outlive any one tick
+            return self._tick_failed(exc, now)
+        self._good = self._model
+        return f
+
+    def _tick_failed(self, exc: Exception, now: float) -> tuple:
+        self.counts["tick_errors"] += 1
+        if self.counts["tick_errors"] in (1, 10, 100, 1000):
+            log.error(
+                "servo: a tick failed (%d so far): %s: %s; force zeroed, model %s",
+                self.counts["tick_errors"], type(exc).__name__, exc,
+                "dropped" if self._model is not None else "none",
+            )  # fmt: skip
+        bad = self._model
+        self._model = self._good if self._good is not bad else None
+        self._good = self._model
+        self._enter_fault(now)
+        self._flags |= FAULT_MODEL
+        try:
+            self._rebuild(now)
+        except Exception:  # noqa: BLE001 - fall back to free space
+            self._model, self._reg = None, None
+            self._cur = _Setup(None, Pose.identity(), self._scale)
+        self._old, self._fade_t0 = None, None
+        prev = self.sample
+        pw, qw, vw, buttons = (prev[0], prev[1], prev[2], prev[6]) if prev else (
+            _ZERO3, (0.0, 0.0, 0.0, 1.0), _ZERO3, 0)  # fmt: skip
+        self.sample = (pw, qw, vw, _ZERO3, _ZERO3, 0.0, buttons, self._flags, 0.0)
+        return _ZERO3
 
     def _force(self, setup: _Setup, pp: tuple, vp: tuple) -> tuple:
         if setup.model is None:

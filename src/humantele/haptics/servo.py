@@ -9,6 +9,7 @@ never hold its GIL. The daemon talks to it through three seqlocked shared-memory
 
 from __future__ import annotations
 
+import contextlib
 import math
 import multiprocessing as mp
 import os
@@ -72,6 +73,7 @@ class ServoProcess:
         self._proc: mp.process.BaseProcess | None = None
         self._blocks: list[SeqlockArray] = []
         self.realtime = False
+        self.exitcode: int | None = None  # of the last process, once stopped
         self.set_model(model)
 
     # -- lifecycle --------------------------------------------------------------------------
@@ -93,7 +95,15 @@ class ServoProcess:
             name="humantele-servo",
             daemon=True,
         )
-        self._proc.start()
+        try:
+            self._proc.start()
+        except BaseException as exc:
+            self._proc = None
+            parent_conn.close()
+            self.stop()  # frees the shared memory
+            if isinstance(exc, Exception):
+                raise ServoError(f"servo did not start: {type(exc).__name__}: {exc}") from exc
+            raise
         child_conn.close()
         msg = None
         if parent_conn.poll(timeout_s):
@@ -111,24 +121,30 @@ class ServoProcess:
     def stop(self, timeout_s: float = 3.0) -> None:
         """Stop the loop (force zeroed by the servo process) and free the shared memory."""
         proc = self._proc
-        if proc is not None:
-            with self._lock:
-                self._cmd_values[C_STOP] = 1.0
-                self._cmd.write(self._cmd_values)
-            proc.join(timeout_s)
-            if proc.is_alive():
-                proc.terminate()  # SIGTERM: the servo zeroes the force and exits
+        try:
+            if proc is not None:
+                with self._lock:
+                    self._cmd_values[C_STOP] = 1.0
+                    self._cmd.write(self._cmd_values)
                 proc.join(timeout_s)
-            if proc.is_alive():
-                proc.kill()
-                proc.join()
-            self._final_stats = self._read_stats()
-            self._proc = None
-        for b in self._blocks:
-            b.close()
-            b.unlink()
-        self._blocks = []
-        self._cmd_values[C_STOP] = 0.0
+                if proc.is_alive():
+                    proc.terminate()  # SIGTERM: the servo zeroes the force and exits
+                    proc.join(timeout_s)
+                if proc.is_alive():
+                    proc.kill()
+                    proc.join()
+                self.exitcode = proc.exitcode
+                self._proc = None
+                with contextlib.suppress(ServoError):
+                    self._final_stats = self._read_stats()
+        finally:  # the shared memory is freed whatever happened above
+            for b in self._blocks:
+                with contextlib.suppress(OSError):
+                    b.close()
+                with contextlib.suppress(OSError):
+                    b.unlink()
+            self._blocks = []
+            self._cmd_values[C_STOP] = 0.0
 
     @property
     def alive(self) -> bool:
@@ -137,6 +153,11 @@ class ServoProcess:
     @property
     def pid(self) -> int | None:
         return self._proc.pid if self._proc is not None else None
+
+    @property
+    def returncode(self) -> int | None:
+        """The servo process's exit code once it ended (None while it runs or before start)."""
+        return self._proc.exitcode if self._proc is not None else self.exitcode
 
     def __enter__(self) -> ServoProcess:
         self.start()

@@ -3,14 +3,18 @@
 It asks for SCHED_FIFO and a CPU (falls back, logged once, when refused), sleeps to a deadline
 and spins the last ``spin_s``; each tick is a :class:`~humantele.haptics.renderer.ForceRenderer`
 tick. It reads commands (model, registration, stop) and writes the latest sample and the
-statistics (:mod:`humantele.haptics.servo_layout`); it never waits on the daemon. SIGINT,
-SIGTERM, the stop command or the parent's death end the loop with the force zeroed.
+statistics (:mod:`humantele.haptics.servo_layout`); it never waits on the daemon. SIGTERM,
+the stop command or the parent's death end the loop with the force zeroed; SIGINT is ignored
+(a terminal's Ctrl-C reaches the whole process group and the daemon stops the servo itself,
+which would otherwise see it die and restart it). A model, registration or tick that fails is
+refused and counted (:func:`apply_commands`, ``ForceRenderer.safe_tick``): the loop goes on.
 """
 
 from __future__ import annotations
 
 import gc
 import logging
+import math
 import os
 import signal
 import time
@@ -20,7 +24,12 @@ import numpy as np
 from humantele.geometry import Pose
 from humantele.haptics.devices import DeviceError, make_device
 from humantele.haptics.ellipsoid import Ellipsoid
-from humantele.haptics.renderer import FAULT_DEVICE, FAULT_LATE, ForceRenderer
+from humantele.haptics.renderer import (
+    FAULT_DEVICE,
+    FAULT_LATE,
+    MAX_REGISTRATION_M,
+    ForceRenderer,
+)
 from humantele.haptics.servo_config import ServoConfig
 from humantele.haptics.servo_layout import (
     C_MODEL,
@@ -134,7 +143,7 @@ def servo_main(config_json: str, names: tuple[str, str, str], parent_pid: int, c
         stop["flag"] = True
 
     signal.signal(signal.SIGTERM, _on_signal)
-    signal.signal(signal.SIGINT, _on_signal)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the daemon stops us
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     cmd = SeqlockArray(CMD_LEN, names[0])
     out = SeqlockArray(SAMPLE_LEN, names[1])
@@ -204,23 +213,14 @@ def _run(config, device, cmd, out, st, stop, parent_pid, realtime) -> None:
             if c[C_STOP] != 0.0 or os.getppid() != parent_pid:
                 break
             if c[C_MODEL_GEN] != model_gen or c[C_REG_GEN] != reg_gen:
-                model = None
-                if c[C_MODEL_ON]:
-                    try:
-                        model = Ellipsoid.from_array(c[C_MODEL : C_MODEL + 7])
-                    except ValueError as exc:
-                        log.warning("servo: model refused: %s", exc)
-                reg = None
-                if c[C_REG_ON]:
-                    reg = Pose(c[C_REG_P : C_REG_P + 3], c[C_REG_Q : C_REG_Q + 4])
-                r.configure(model, reg, float(c[C_REG_S]) or config.motion_scale, now)
+                apply_commands(r, c, now)
                 model_gen, reg_gen = c[C_MODEL_GEN], c[C_REG_GEN]
             # Device, force, device.
             try:
                 state = device.read()
             except DeviceError:
                 state = None
-            f = r.tick(state, now, flags)
+            f = r.safe_tick(state, now, flags)
             try:
                 device.command_force(f)
             except DeviceError:
@@ -252,6 +252,39 @@ def _run(config, device, cmd, out, st, stop, parent_pid, realtime) -> None:
         st.write(_stats_row(timing, r, realtime))
 
 
+def apply_commands(r: ForceRenderer, c: np.ndarray, now: float) -> None:
+    """Give ``r`` the model and registration of the command block ``c``; never raises. A model
+    that is not a body (``Ellipsoid.problem``), a registration that is not a rigid pose within
+    reach, or a bad scale is refused (counted, logged) and the last good value kept."""
+    model = None
+    if c[C_MODEL_ON]:
+        try:
+            model = Ellipsoid.from_array(c[C_MODEL : C_MODEL + 7])
+            why = model.problem()
+        except Exception as exc:  # noqa: BLE001 - ValueError expected; anything is refused
+            why = str(exc)
+        if why is not None:
+            r.refuse(f"model refused: {why}")
+            model = r.model
+    reg = None
+    if c[C_REG_ON]:
+        p, q = c[C_REG_P : C_REG_P + 3], c[C_REG_Q : C_REG_Q + 4]
+        n = float(np.sqrt(np.sum(q * q))) if np.all(np.isfinite(q)) else 0.0
+        if np.all(np.isfinite(p)) and np.all(np.abs(p) <= MAX_REGISTRATION_M) and 1e-6 < n < 1e6:
+            reg = Pose(p, q / n)
+        else:
+            r.refuse(f"registration refused: position {p.tolist()} m, quaternion {q.tolist()}")
+            reg = r.registration
+    scale = float(c[C_REG_S]) or r.config.motion_scale
+    if not (math.isfinite(scale) and 0.0 < scale <= 10.0):
+        r.refuse(f"motion scale {scale!r} refused")
+        scale = r.scale
+    try:
+        r.configure(model, reg, scale, now)
+    except Exception as exc:  # noqa: BLE001 - keep what ran
+        r.refuse(f"configuration refused: {type(exc).__name__}: {exc}")
+
+
 def _stats_row(timing: PeriodTiming, r: ForceRenderer, realtime: bool) -> list[float]:
     c = r.counts
     vals = {
@@ -271,5 +304,7 @@ def _stats_row(timing: PeriodTiming, r: ForceRenderer, realtime: bool) -> list[f
         "nonfinite_forces": c["nonfinite"],
         "clamped_forces": c["clamped"],
         "realtime": float(realtime),
+        "models_refused": c["refused"],
+        "tick_errors": c["tick_errors"],
     }
     return [float(vals[k]) for k in STAT_FIELDS]

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import logging
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import Field, model_validator
 
-from humantele.config import ConfigModel
+from humantele.config import ConfigModel, Quaternion
 from humantele.geometry import Pose
 from humantele.haptics.devices import DeviceConfig
 from humantele.haptics.devices.sim import SimDeviceConfig
@@ -17,11 +17,14 @@ from humantele.haptics.stability import check_passivity
 log = logging.getLogger(__name__)
 
 
+Coord = Annotated[float, Field(ge=-10.0, le=10.0)]  # m, a device within 10 m of the world origin
+
+
 class RegistrationConfig(ConfigModel):
     """``T_patient_device``: device origin in the patient frame (m) and rotation (x, y, z, w)."""
 
-    position_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    quaternion: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
+    position_m: tuple[Coord, Coord, Coord] = (0.0, 0.0, 0.0)
+    quaternion: Quaternion = (0.0, 0.0, 0.0, 1.0)
 
     def pose(self) -> Pose:
         return Pose(np.array(self.position_m), np.array(self.quaternion))

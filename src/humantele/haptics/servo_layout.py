@@ -58,6 +58,8 @@ class ServoStats:
     nonfinite_forces: int
     clamped_forces: int
     realtime: bool
+    models_refused: int = 0  # models/registrations refused on arrival (the last good kept)
+    tick_errors: int = 0  # ticks that raised (force zeroed, the model dropped)
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)

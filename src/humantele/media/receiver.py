@@ -120,6 +120,7 @@ class TrackStats:
         self.unreadable = 0  # counter did not read
         self.no_info = 0  # capture time unknown
         self.out_of_order = 0
+        self.stale_dropped = 0  # decoded frames dropped for a newer one already waiting
         self.skipped = 0  # frames the counter says were never received (lost or not sent)
         self.ages: deque[float] = deque(maxlen=keep)
         self.arrivals: deque[float] = deque(maxlen=keep)
@@ -148,6 +149,7 @@ class TrackStats:
             "unreadable": self.unreadable,
             "no_info": self.no_info,
             "out_of_order": self.out_of_order,
+            "stale_dropped": self.stale_dropped,
             "skipped": self.skipped,
             "size": list(self.size) if self.size else None,
         }
@@ -270,6 +272,15 @@ class VideoReceiver:
         while pc is self._pc:
             try:
                 frame = await track.recv()
+                # Decoded frames wait in the track's queue when this loop was held up: keep
+                # only the newest (aiortc has no public way to ask; the queue is its own).
+                queue = getattr(track, "_queue", None)
+                while queue is not None and queue.qsize() > 0:
+                    newer = queue.get_nowait()
+                    if newer is None:  # the track ended
+                        return
+                    self.stats_by_track[name].stale_dropped += 1
+                    frame = newer
             except MediaStreamError:
                 return
             if pc is not self._pc:

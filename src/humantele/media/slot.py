@@ -28,9 +28,11 @@ class LatestSlot(Generic[T]):
         self._event: asyncio.Event | None = None
 
     def bind(self, loop: asyncio.AbstractEventLoop) -> None:
-        """Wake consumers on ``loop`` (call on the loop, before ``put`` from threads)."""
+        """Wake consumers on ``loop`` (call on the loop). Binding again keeps the consumers
+        already waiting (a track may start before its source does)."""
         self._loop = loop
-        self._event = asyncio.Event()
+        if self._event is None:
+            self._event = asyncio.Event()
 
     @property
     def number(self) -> int:

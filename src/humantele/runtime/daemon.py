@@ -8,10 +8,12 @@ import asyncio
 import contextlib
 import logging
 import math
+import sys
 import time
 from collections.abc import AsyncIterator, Callable
 from typing import Any
 
+from humantele.cliargs import EXIT_OK, EXIT_REFUSED, duration_s, log_level
 from humantele.recording import Recorder
 from humantele.runtime.pacing import daemon_ticks
 from humantele.runtime.process import on_stop_signals
@@ -23,6 +25,7 @@ from humantele.runtime.session import (
     session_overrides,
 )
 from humantele.runtime.stats import CpuMeter, write_stats
+from humantele.transport.link import link_refusal
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +99,16 @@ class Daemon:
         with contextlib.suppress(asyncio.CancelledError, Exception):
             await asyncio.wait_for(link_task, 5.0)
 
+    def run_result(self, link_task: asyncio.Task) -> int:
+        """The exit code of :meth:`run` after its teardown: ``EXIT_REFUSED`` (the reason on
+        stderr) when the signaling server refused this daemon (wrong token, room full),
+        else 0."""
+        refused = link_refusal(link_task)
+        if refused:
+            print(f"humantele {self.role}: {refused}", file=sys.stderr)
+            return EXIT_REFUSED
+        return EXIT_OK
+
     def finish_run(self) -> None:
         """The end of :meth:`run`: the recording closed, the final stats written."""
         self.close_recording()
@@ -110,9 +123,11 @@ def add_daemon_arguments(parser: argparse.ArgumentParser, config_help: str) -> N
     parser.add_argument("--config", help=config_help)
     parser.add_argument("--signaling-url", help="signaling server, e.g. ws://127.0.0.1:8765/ws")
     parser.add_argument("--room", help="session room name")
-    parser.add_argument("--duration", type=float, help="stop after this many seconds")
+    parser.add_argument("--duration", type=duration_s, help="stop after this many seconds")
     parser.add_argument("--stats-file", help="write running figures (JSON) to this file")
-    parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
+    parser.add_argument(
+        "--log-level", type=log_level, default="WARNING", help="logging level (default WARNING)"
+    )
     add_session_arguments(parser)
 
 

@@ -16,6 +16,14 @@ def on_stop_signals(loop: Any, callback: Callable[[], None]) -> None:
         loop.add_signal_handler(sig, callback)
 
 
+def ignore_stop_signals() -> None:
+    """After the asyncio loop closed (its handlers are gone): a late SIGINT/SIGTERM (a
+    terminal's Ctrl-C reaching the process group, a supervisor's SIGTERM) must not turn a
+    clean stop into a KeyboardInterrupt or a death by signal while the process exits."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
+
+
 def parent_gone() -> bool:
     """True when this process was started by a demo (``HUMANTELE_PARENT_PID``) that is gone."""
     want = os.environ.get(PARENT_PID_ENV)

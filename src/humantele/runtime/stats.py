@@ -3,20 +3,74 @@ latency percentiles."""
 
 from __future__ import annotations
 
+import bisect
+import itertools
 import json
+import math
 import os
 import time
-from collections.abc import Iterable
+from collections import deque
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 
+class SortedWindow:
+    """The last ``maxlen`` durations (s), kept in arrival order *and* sorted.
+
+    A daemon reports percentiles of its latencies every 0.5 s on its event loop; sorting a
+    20000-sample window there took 2-17 ms (machine-dependent) each time, a stall in the
+    very loop whose latency it reports. Here adding a sample costs a bisect and a short
+    memmove (microseconds), and a percentile is one index. Non-finite values are ignored.
+    """
+
+    def __init__(self, maxlen: int) -> None:
+        self.maxlen = maxlen
+        self._order: deque[float] = deque()
+        self._sorted: list[float] = []
+
+    def append(self, value: float) -> None:
+        v = float(value)
+        if not math.isfinite(v):
+            return
+        if len(self._order) >= self.maxlen:
+            old = self._order.popleft()
+            del self._sorted[bisect.bisect_left(self._sorted, old)]
+        self._order.append(v)
+        bisect.insort(self._sorted, v)
+
+    def __len__(self) -> int:
+        return len(self._order)
+
+    def __iter__(self) -> Iterator[float]:
+        return iter(self._order)
+
+    def last(self, n: int) -> list[float]:
+        """The ``n`` most recent values, oldest first."""
+        if n <= 0:
+            return []
+        out = list(itertools.islice(reversed(self._order), n))
+        out.reverse()
+        return out
+
+    def percentile_ms(self, q: float) -> float | None:
+        """As :func:`percentile_ms`, in O(1)."""
+        v = self._sorted
+        if not v:
+            return None
+        k = min(len(v) - 1, max(0, round(q / 100.0 * (len(v) - 1))))
+        return round(v[k] * 1000.0, 3)
+
+
 def percentile_ms(values_s: Iterable[float], q: float) -> float | None:
     """The ``q`` percentile (0-100) of durations in seconds, in ms, rounded to 1 us; None when
     there are none. The one definition the figures use: the nearest sample (numpy's
-    ``method="nearest"``), so a percentile is always a latency that was measured."""
+    ``method="nearest"``), so a percentile is always a latency that was measured. A
+    :class:`SortedWindow` answers without sorting."""
+    if isinstance(values_s, SortedWindow):
+        return values_s.percentile_ms(q)
     v = np.fromiter(values_s, dtype=float)
     if v.size == 0:
         return None

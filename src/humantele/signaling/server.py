@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import errno
 import logging
 import signal
 import ssl
@@ -29,6 +28,7 @@ from typing import Self
 from aiohttp import WSCloseCode, WSMsgType, web
 from pydantic import Field, FilePath, SecretStr, model_validator
 
+from humantele.cliargs import port, socket_error
 from humantele.config import ConfigError, ConfigModel, load_config, validate_config
 from humantele.signaling.guard import (
     ACCEPT_BACKLOG,
@@ -370,7 +370,7 @@ class SignalingServer:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", help="TOML/JSON file with the server settings")
     parser.add_argument("--host", help="address to bind (default 127.0.0.1)")
-    parser.add_argument("--port", type=int, help="TCP port (default 8765; 0 picks one)")
+    parser.add_argument("--port", type=port, help="TCP port (default 8765; 0 picks one)")
     parser.add_argument("--tls-cert", help="PEM certificate (chain): serve wss://")
     parser.add_argument("--tls-key", help="PEM private key of --tls-cert")
     parser.add_argument(
@@ -393,13 +393,7 @@ async def serve(config: SignalConfig, stop: asyncio.Event | None = None) -> None
 
 
 def _bind_error(config: SignalConfig, exc: OSError) -> str:
-    reasons = {
-        errno.EADDRINUSE: "the port is in use (another server running?)",
-        errno.EACCES: "permission denied (ports below 1024 need privileges)",
-        errno.EADDRNOTAVAIL: "this machine has no such address",
-    }
-    reason = reasons.get(exc.errno or 0) or exc.strerror or str(exc)
-    return f"humantele signal: cannot listen on {config.host}:{config.port}: {reason}"
+    return socket_error("humantele signal", config.host, config.port, exc)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -134,6 +134,17 @@ class _Peer:
         self.open = False
 
 
+def link_refusal(task: asyncio.Task) -> str | None:
+    """Why a finished :meth:`PeerLink.run` task was refused by the signaling server (wrong
+    token, room full), or None (it did not end that way)."""
+    if not task.done() or task.cancelled():
+        return None
+    exc = task.exception()
+    if isinstance(exc, SignalingRefused):
+        return f"refused by the signaling server: {exc.reason}"
+    return None
+
+
 class PeerLink:
     """The expert's or the follower's end of the session link (see the module docstring)."""
 

@@ -1,0 +1,136 @@
+"""The demo supervises its daemons: a killed one comes back (issue 9 §5)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+
+from humantele.demo import CountWindow
+from humantele.runtime.supervise import SupervisedDaemon
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env.pop("HUMANTELE_TOKEN", None)
+    return env
+
+
+async def _run_until_done(d: SupervisedDaemon, timeout_s: float = 120.0) -> str | None:
+    import asyncio
+
+    await d.start()
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        reason = await d.check(time.monotonic())
+        if reason:
+            return reason
+        await asyncio.sleep(0.05)
+    return None
+
+
+async def test_restarts_are_bounded_and_fatal_exits_are_not_restarted(tmp_path):
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = str(busy.getsockname()[1])
+        argv = ["signal", "--port", port]
+        d = SupervisedDaemon("signal", argv, tmp_path / "s.json", tmp_path / "s.log", _env(),
+                             max_restarts=2, backoff_s=0.05)  # fmt: skip
+        reason = await _run_until_done(d)
+    assert reason == "signal exited with code 1 after 2 restart(s); giving up"
+    assert d.restarts == 2 and d.exit_codes == [1, 1, 1]
+    assert (tmp_path / "s.log").read_text().count("the port is in use") == 3
+    fatal = SupervisedDaemon("signal", ["signal", "--port", "70000"], tmp_path / "f.json",
+                             tmp_path / "f.log", _env(), backoff_s=0.05)  # fmt: skip
+    assert await _run_until_done(fatal) == "signal exited with code 2"  # bad arguments
+    assert fatal.restarts == 0
+
+
+def test_count_window_takes_both_ends_from_the_rejoin():
+    class D:
+        def __init__(self, restarts):
+            self.restarts = restarts
+
+    w = CountWindow()
+    e = {"poses_sent": 500, "states_received": 480}
+    w.update({"expert": D(0), "follower": D(0)}, {"expert": e, "follower": {}}, 5.0)
+    assert w.since_s is None
+    # The follower was killed and restarted; its first stats appear at 12 s.
+    e = {"poses_sent": 900, "states_received": 700}
+    f = {"poses_received": 3, "states_sent": 0}
+    w.update({"expert": D(0), "follower": D(1)}, {"expert": e, "follower": f}, 12.0)
+    e = {"poses_sent": 1900, "states_received": 1650}
+    f = {"poses_received": 990, "states_sent": 950}
+    e2, f2 = w.adjusted({"expert": e, "follower": f})
+    assert w.since_s == 12.0
+    assert (e2["poses_sent"], e2["states_received"]) == (1000, 950)
+    assert f2 == f  # the restarted daemon's own counts start at its start
+    assert f2["poses_received"] <= e2["poses_sent"] and e2["states_received"] <= f2["states_sent"]
+
+
+def _child(parent: int, word: str) -> int | None:
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            cmd = open(f"/proc/{d}/cmdline").read().split("\0")
+            ppid = int(open(f"/proc/{d}/stat").read().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            continue
+        if ppid == parent and word in cmd:
+            return int(d)
+    return None
+
+
+@pytest.mark.slow
+def test_sigkill_of_the_follower_during_a_demo_it_comes_back_and_poses_flow_again():
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "humantele", "demo", "--duration", "400", "--json"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(),
+        start_new_session=True,
+    )  # fmt: skip
+    lines: list[str] = []
+    killed = None
+    try:
+        t_end = time.monotonic() + 300.0  # generous: a loaded 2-core machine starts slowly
+        while time.monotonic() < t_end:
+            line = proc.stderr.readline()
+            assert line, "demo ended early:\n" + "".join(lines[-10:])
+            lines.append(line)
+            flowing = "link connected" in line and "poses 0 Hz" not in line
+            if killed is None and flowing:
+                killed = _child(proc.pid, "follower")
+                assert killed is not None
+                os.kill(killed, signal.SIGKILL)
+                continue
+            if killed is not None and flowing and "follower rejoined (restart 1)" in line:
+                break
+        else:
+            pytest.fail("the follower did not rejoin:\n" + "".join(lines[-10:]))
+        new = _child(proc.pid, "follower")
+        assert new is not None and new != killed
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    after_kill = lines[
+        lines.index(next(ln for ln in lines if "follower" in ln and "restart" in ln)) :
+    ]
+    assert any("follower DIED (code -9)" in ln or "restarted (1)" in ln for ln in after_kill)
+    assert proc.returncode == 0, err[-3000:]
+    s = json.loads(out.strip().splitlines()[-1])
+    assert s["restarts"] == {"expert": 0, "follower": 1}
+    assert s["restart_exit_codes"]["follower"] == [-9]
+    assert s["exit_codes"] == {"expert": 0, "follower": 0}
+    assert s["counts_since_s"] is not None
+    # One window at both ends: nothing received that was not sent.
+    assert 0 < s["poses_received"] <= s["poses_sent"]
+    assert s["states_received"] <= s["states_sent"]

@@ -1,0 +1,54 @@
+"""The systemd units in examples/ match the commands and the servo's configuration."""
+
+from __future__ import annotations
+
+import configparser
+import shlex
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from humantele.cli import build_parser
+from humantele.cliargs import FATAL_EXIT_CODES
+from humantele.haptics.servo_config import ServoConfig
+
+UNITS = Path(__file__).resolve().parents[1] / "examples" / "systemd"
+NAMES = ("humantele-signal", "humantele-expert", "humantele-follower")
+
+
+def _unit(name: str) -> configparser.ConfigParser:
+    cp = configparser.ConfigParser(interpolation=None, strict=True)
+    cp.optionxform = str  # keys are case-sensitive
+    cp.read(UNITS / f"{name}.service")
+    return cp
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_unit_restarts_on_failure_but_not_on_fatal_codes(name):
+    svc = _unit(name)["Service"]
+    assert svc["Restart"] == "on-failure"
+    assert {int(c) for c in svc["RestartPreventExitStatus"].split()} == set(FATAL_EXIT_CODES)
+    assert "HUMANTELE_TOKEN" not in svc["ExecStart"]  # the token is never on a command line
+    argv = shlex.split(svc["ExecStart"])[1:]
+    assert argv[0] == name.removeprefix("humantele-")
+    args = build_parser(argv).parse_args(argv)  # the options exist and their values parse
+    assert args.config.startswith("/etc/humantele/")
+
+
+def test_expert_unit_allows_the_servo_s_realtime_priority():
+    svc = _unit("humantele-expert")["Service"]
+    assert int(svc["LimitRTPRIO"]) >= ServoConfig().realtime_priority
+    assert svc["KillMode"] == "mixed"  # SIGTERM to the daemon; it stops the servo itself
+    assert svc["LimitRTTIME"]
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="no systemd-analyze")
+def test_units_verify():
+    r = subprocess.run(
+        ["systemd-analyze", "verify", "--man=no", *[str(UNITS / f"{n}.service") for n in NAMES]],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    problems = [ln for ln in r.stderr.splitlines() if "is not executable" not in ln and ln]
+    assert problems == [], r.stderr
