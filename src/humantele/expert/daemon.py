@@ -588,6 +588,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_daemon_arguments(parser, "TOML file; [expert] and [servo] sections are used")
     parser.add_argument("--console-port", type=int, help="console page port (0 picks one)")
     parser.add_argument("--no-console", action="store_true", help="do not serve the console page")
+    parser.add_argument(
+        "--us-pixel-spacing-mm", type=float, nargs=2, metavar=("ROW", "COL"),
+        help="mm per pixel of the received ultrasound image, for the console's calipers",
+    )  # fmt: skip
 
 
 def configs_from_args(args: argparse.Namespace) -> tuple[ExpertConfig, ServoConfig]:
@@ -598,6 +602,8 @@ def configs_from_args(args: argparse.Namespace) -> tuple[ExpertConfig, ServoConf
         data["console"]["port"] = args.console_port
     if getattr(args, "no_console", False):
         data["console"]["enabled"] = False
+    if getattr(args, "us_pixel_spacing_mm", None):
+        data["console"]["us_pixel_spacing_mm"] = tuple(args.us_pixel_spacing_mm)
     daemon_overrides(args, data)
     config = validate_config(ExpertConfig, data, "command line")
     return config, servo_config_for(config.mapping, servo)

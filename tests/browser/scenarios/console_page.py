@@ -134,7 +134,7 @@ async def run(ctx) -> dict:
     await page.click("#capture")
     data["capture"] = await result(ctx, page, "capture", 1)
     await ctx.shot(page, "console_page_frozen")
-    await page.click("#freeze")
+    await page.evaluate("document.getElementById('freeze').click()")  # back to live
     await ctx.until(page, "!consoleApp.frozen", 5)
     frames_live = await page.evaluate("consoleApp.frames.us")
     await ctx.until(page, f"consoleApp.frames.us > {frames_live + 3}", 20)
