@@ -30,7 +30,9 @@ async def run(ctx) -> dict:
     data: dict = {"url": url}
 
     # 1. Both videos play: frames drawn, pictures change, not black.
-    await ctx.until(page, "consoleApp.frames.us > 10 && consoleApp.frames.pov > 10", 60)
+    await ctx.until(
+        page, "window.consoleApp && consoleApp.frames.us > 10 && consoleApp.frames.pov > 10", 90
+    )
     a = {t: await pixels(page, t) for t in ("us", "pov")}
     await asyncio.sleep(1.0)
     b = {t: await pixels(page, t) for t in ("us", "pov")}

@@ -95,7 +95,9 @@ async def run(ctx) -> dict:
     page = await ctx.page(server.url, width=1280, height=800)
 
     # 1. Both videos play; the force plot moves.
-    await ctx.until(page, "consoleApp.frames.us > 5 && consoleApp.frames.pov > 5", 60)
+    await ctx.until(
+        page, "window.consoleApp && consoleApp.frames.us > 5 && consoleApp.frames.pov > 5", 90
+    )
     a = {t: await pixels(page, t) for t in ("us", "pov")}
     await ctx.until(page, "consoleApp.frames.us > 12 && consoleApp.frames.pov > 12", 60)
     b = {t: await pixels(page, t) for t in ("us", "pov")}

@@ -148,7 +148,7 @@ class Quiet:
 async def jpeg_mode(ctx, frames, seconds: float) -> dict:
     server = await ctx.console(frames, Quiet())
     p = await ctx.page(server.url, width=1280, height=800)
-    await ctx.until(p, "consoleApp.frames.us > 10", 60)
+    await ctx.until(p, "window.consoleApp && consoleApp.frames.us > 10", 90)
     st = server.tracks["us"]
     st.seen_to_draw.clear()
     f0 = await p.evaluate("consoleApp.frames.us")
