@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-# Mean level and a hash of a canvas's pixels (every 97th pixel): a picture, and whether it
-# changed.
+# Mean level of a canvas's pixels (every 97th) and a hash of them and of the top-left 64 x 32
+# px (the frame counter the sources stamp: it changes with every frame, even a dark one).
 PIXELS_JS = """(id) => {
   const c = document.getElementById(id), g = c.getContext('2d');
   const d = g.getImageData(0, 0, c.width, c.height).data;
@@ -11,6 +11,8 @@ PIXELS_JS = """(id) => {
   for (let i = 0; i < d.length; i += 4 * 97) {
     sum += d[i] + d[i + 1] + d[i + 2]; n += 3; hash = (hash * 31 + d[i]) | 0;
   }
+  const p = g.getImageData(0, 0, 64, 32).data;
+  for (let i = 0; i < p.length; i += 4) hash = (hash * 31 + p[i]) | 0;
   return { mean: sum / n, hash, w: c.width, h: c.height };
 }"""
 
