@@ -17,6 +17,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "follower": ("humantele.follower.daemon", "run the follower daemon (tracking, force, video)"),
     "signal": ("humantele.signaling.server", "run the signaling server"),
     "analyze": ("humantele.analysis.cli", "the study's analysis of recorded sessions"),
+    "devices": ("humantele.devices.check", "list devices and read a few samples from each"),
 }
 
 # name -> (module, one-line help) for `humantele bench NAME`.
@@ -28,6 +29,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "sensing": ("humantele.bench.sensing", "follower loop latency with sensing: thread/process"),
     "analysis": ("humantele.bench.analysis", "analyze a 10-min session; recording CPU cost"),
     "video": ("humantele.bench.video", "video: sources (render cost) and link (glass to glass)"),
+    "igtl": ("humantele.bench.igtl", "OpenIGTLink: added follower CPU, pose/image latency"),
 }
 
 

@@ -173,3 +173,31 @@ def test_explain_missing_refutes_two_markers_and_a_stray():
     np.testing.assert_allclose(seen[0], wrong.T_camera_probe.apply(TOOL.markers[3:]), atol=1e-9)
     hidden = match_markers(three, TOOL, explain_missing=lambda c: np.ones(len(c), bool))
     assert hidden.status == "tracked"
+
+
+def _edge_on_pose(hidden: int = 1, front: int = 0) -> Pose:
+    """A pose with marker ``hidden`` straight behind marker ``front`` on the camera's ray
+    (camera at the origin looking along +z): the tool turned edge-on."""
+    m = TOOL.markers
+    p_front = np.array([0.02, -0.01, 0.4])
+    rot, _ = Rotation.align_vectors([p_front / np.linalg.norm(p_front)], [m[hidden] - m[front]])
+    return Pose(p_front - rot.apply(m[front]), rot.as_quat())
+
+
+def test_a_marker_hidden_behind_another_with_nothing_else_in_view_is_tracked():
+    T = _edge_on_pose()
+    pts = T.apply(TOOL.markers)
+    ray = pts[0] / np.linalg.norm(pts[0])
+    assert np.linalg.norm(np.cross(pts[1], ray)) < 1e-9  # marker 1 is behind marker 0
+    res = match_markers(pts[[0, 2, 3]], TOOL)
+    assert res.status == "tracked" and res.estimate.n_matched == 3
+    dp, dr = T.distance_to(res.estimate.T_camera_probe)
+    assert dp < 1e-6 and dr < 1e-6
+
+
+def test_a_marker_hidden_behind_another_with_a_stray_in_view_is_not_trusted():
+    T = _edge_on_pose()
+    pts = T.apply(TOOL.markers)
+    stray = T.position + [0.0, 0.09, 0.02]  # a ring or a second tool's sphere, in view
+    res = match_markers(np.vstack([pts[[0, 2, 3]], stray]), TOOL)
+    assert res.status != "tracked"  # a stray may stand in for the hidden marker: lost

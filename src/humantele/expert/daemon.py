@@ -52,7 +52,7 @@ from collections.abc import Callable
 import numpy as np
 from pydantic import Field
 
-from humantele.cliargs import EXIT_FAILED
+from humantele.cliargs import EXIT_FAILED, port
 from humantele.config import ConfigError, ConfigModel, load_config, validate_config
 from humantele.expert.console import ConsoleConfig
 from humantele.expert.console.hook import LANDMARKS, PoseHistory, make_console
@@ -62,10 +62,13 @@ from humantele.expert.mapping import (
     StylusMapping,
     default_registration,
 )
+from humantele.geometry import Pose
 from humantele.haptics.ellipsoid import Ellipsoid
 from humantele.haptics.servo import ServoProcess
 from humantele.haptics.servo_config import ServoConfig
 from humantele.haptics.servo_layout import ServoError, ServoSample
+from humantele.interop.igtl import IgtlConfig
+from humantele.interop.sessions import ExpertIgtl
 from humantele.media.config import ExpertVideoConfig
 from humantele.media.receiver import VideoReceiver
 from humantele.recording import RecorderConfig
@@ -118,6 +121,7 @@ class ExpertConfig(ConfigModel):
     session: SessionConfig = SessionConfig()
     recording: RecorderConfig = RecorderConfig()
     console: ConsoleConfig = ConsoleConfig()
+    igtl: IgtlConfig = IgtlConfig()
 
 
 def servo_config_for(mapping: MappingConfig, servo: ServoConfig) -> ServoConfig:
@@ -170,6 +174,9 @@ class ExpertDaemon(Daemon):
         self.pose_send_failures = 0
         self.pose_times: deque[float] = deque(maxlen=4000)
         self.last_state: StateMessage | None = None
+        self.last_state_t: float | None = None  # its sample time on this clock (s)
+        self.last_pose: Pose | None = None
+        self.igtl = ExpertIgtl(config.igtl)
         self.states_received = 0
         self.state_ages = SortedWindow(20000)  # s; percentiles without sorting on the loop
         self.models_installed = 0
@@ -195,11 +202,9 @@ class ExpertDaemon(Daemon):
         # of the last seconds (a captured frame gets its pose), the console's clutch.
         self.calibration_state = "not calibrated"
         self.calibration_landmark: str | None = None
-        self.last_state_t: float | None = None  # when the last state arrived (clock)
         self.last_state_age: float | None = None  # its one-way age then (s)
         self.probe_history = PoseHistory()
         self.virtual_history = PoseHistory()
-        self.last_pose = None  # the virtual probe last published (Pose, patient frame)
         self.console_clutch = False
         self.console = None
         self._console_video = None
@@ -212,12 +217,13 @@ class ExpertDaemon(Daemon):
         self.states_received += 1
         age = self.link.age_of(msg.t_sent)
         now = self.clock()
-        self.last_state_t = now
         self.last_state_age = age if age is not None and math.isfinite(age) else None
         if self.last_state_age is not None:
             self.state_ages.append(max(0.0, age))
         if isinstance(msg, StateMessage):
             self.probe_history.add(now - max(0.0, self.last_state_age or 0.0), msg.pose)
+        ok = age is not None and math.isfinite(age)
+        self.last_state_t = time.monotonic() - (max(0.0, age) if ok else 0.0)
 
     def on_control(self, msg: ControlMessage) -> None:
         if isinstance(msg, EllipsoidModel):
@@ -304,11 +310,11 @@ class ExpertDaemon(Daemon):
         if self.console_clutch:  # the console's clutch button holds it as the stylus's does
             buttons |= 1 << self.config.mapping.clutch_button
         pose = self.mapping.update(stylus.position, stylus.quaternion, buttons)
+        self.last_pose = pose  # T_patient_stylus as sent (OpenIGTLink serves it)
         if self.mapping.take_changed():
             self.push_registration()
         if self.mapping.clutched != was_clutched and self.model is not None:
             self.servo.set_model(None if self.mapping.clutched else self.model)
-        self.last_pose = pose
         self.virtual_history.add(t, pose)
         self.pose_seq += 1
         msg = PoseMessage.from_pose(
@@ -511,8 +517,14 @@ class ExpertDaemon(Daemon):
             "step_errors": self.step_errors,
             "recording": recorder_stats(self.rec),
             "console": None if self.console is None else self.console.stats(),
+            "igtl": self.igtl.stats(),
             "video": self.video.stats() if self.config.video.enabled else None,
         }
+
+    def publish_igtl(self, t: float) -> None:
+        """The stylus as sent and the follower's probe as received, to OpenIGTLink clients."""
+        us = self.video.latest("us") if self.config.video.enabled else None
+        self.igtl.tick(t, self.last_pose, self.last_state, self.last_state_t, us)
 
     def guarded(self, step: Callable[[float], object], t: float) -> None:
         """Run a step that must never end the daemon (scans, recording); failures counted."""
@@ -558,11 +570,15 @@ class ExpertDaemon(Daemon):
         self.servo_started = time.monotonic()
         self.push_registration()
         await self.start_console()
+        await self.igtl.start()
+        if self.igtl.banner():
+            print(f"humantele expert: {self.igtl.banner()}", flush=True)
         link_task = asyncio.create_task(self.link.run())
         try:
             async for t in self.loop_ticks(self.config.link.pose_rate_hz, duration_s, link_task):
                 self.check_servo(t)
                 self.publish_pose(t)
+                self.guarded(self.publish_igtl, t)
                 self.guarded(self.script_scans, t)
                 self.guarded(self.record_reports, t)
         finally:
@@ -573,6 +589,7 @@ class ExpertDaemon(Daemon):
             self.servo_cpu_percent()
             self.servo_stopped = True
             self.servo.stop()
+            await self.igtl.stop()
             self.finish_run()
         code = self.run_result(link_task)
         if code == 0 and self.servo_down:  # the haptics were off at the end: not a clean run
@@ -592,6 +609,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--us-pixel-spacing-mm", type=float, nargs=2, metavar=("ROW", "COL"),
         help="mm per pixel of the received ultrasound image, for the console's calipers",
     )  # fmt: skip
+    parser.add_argument(
+        "--igtl-port",
+        type=port,
+        help="serve OpenIGTLink on this port (0 picks one; 18944 Slicer's)",
+    )
 
 
 def configs_from_args(args: argparse.Namespace) -> tuple[ExpertConfig, ServoConfig]:
@@ -604,6 +626,8 @@ def configs_from_args(args: argparse.Namespace) -> tuple[ExpertConfig, ServoConf
         data["console"]["enabled"] = False
     if getattr(args, "us_pixel_spacing_mm", None):
         data["console"]["us_pixel_spacing_mm"] = tuple(args.us_pixel_spacing_mm)
+    if getattr(args, "igtl_port", None) is not None:
+        data["igtl"].update(enabled=True, port=args.igtl_port)
     daemon_overrides(args, data)
     config = validate_config(ExpertConfig, data, "command line")
     return config, servo_config_for(config.mapping, servo)

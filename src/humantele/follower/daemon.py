@@ -87,6 +87,8 @@ from humantele.follower.sim_human import (
 from humantele.follower.sim_world import SimWorld, WorldTruth
 from humantele.geometry import Pose, matrix_to_quat
 from humantele.haptics.ellipsoid import Ellipsoid
+from humantele.interop.igtl import IgtlConfig
+from humantele.interop.sessions import FollowerIgtl
 from humantele.media.config import FollowerVideoConfig
 from humantele.media.sender import VideoSender
 from humantele.recording import RecorderConfig
@@ -157,6 +159,7 @@ class FollowerConfig(ConfigModel):
     video: FollowerVideoConfig = FollowerVideoConfig()
     session: SessionConfig = SessionConfig()
     recording: RecorderConfig = RecorderConfig()
+    igtl: IgtlConfig = IgtlConfig()
 
 
 @dataclass
@@ -315,6 +318,8 @@ class FollowerDaemon(Daemon):
         self._video_check_t = -math.inf
         self.video_error = ""
         self._video_late_ticks = 0
+        us = (self.video.captures["us"].slot, config.video.us) if self.video else None
+        self.igtl = FollowerIgtl(config.igtl, self.world.patient.ellipsoid(), us)
         self.link = PeerLink(
             "follower",
             config.link,
@@ -572,6 +577,9 @@ class FollowerDaemon(Daemon):
         # timestamps (/follower/video_frame) are recorded as each frame is captured and sent.
         self.publish_scene(t, self.world.T_world_tip, self.world.force_world, virtual)
         self.publish_feed(t, self.measurement)
+        v_patient = None if self.last_pose is None else self.last_pose.pose
+        force_n = float(np.linalg.norm(self.world.force_world))
+        self.igtl.tick(t, self.calibration, v_patient, self.world.T_world_tip, force_n)
 
     def publish_scene(
         self, t: float, true_tip: Pose | None, force: NDArray, virtual: Pose | None
@@ -686,6 +694,7 @@ class FollowerDaemon(Daemon):
                 self.align_ang.append(da)
         self.send_state(frame.t, m)
         self.record_measurement(frame.t, m)
+        self.igtl.on_measurement(frame.t, self.calibration, m)
 
     # --- recording ------------------------------------------------------------------------
 
@@ -801,6 +810,7 @@ class FollowerDaemon(Daemon):
                 None if self.sensing_proc is None else self.sensing_proc.cpu_percent()
             ),
             "cpu_percent": self.cpu.overall(),
+            "igtl": self.igtl.stats(),
             "video": None if self.video is None else self.video.stats(),
         }
 
@@ -856,6 +866,9 @@ class FollowerDaemon(Daemon):
                 self.close_recording()
                 raise
             print(f"humantele follower: {self.feed.banner()}", flush=True)
+        await self.igtl.start()
+        if self.igtl.banner():
+            print(f"humantele follower: {self.igtl.banner()}", flush=True)
         link_task = asyncio.create_task(self.link.run())
         prev_t, period = None, 1.0 / self.config.rate_hz
         if self.calibration is None:
@@ -887,6 +900,7 @@ class FollowerDaemon(Daemon):
                 with contextlib.suppress(BaseException):
                     await video_task  # opening cannot be interrupted: it ends by itself
                 await asyncio.to_thread(self.video.close)
+            await self.igtl.stop()
             self.executor.shutdown(wait=True)  # the frame being measured ends first
             self.executor = None
             if self.sensing_proc is not None:
@@ -933,6 +947,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_daemon_arguments(parser, "TOML file; the [follower] section is used")
     parser.add_argument("--state-dir", help="where the calibration is saved")
     parser.add_argument("--feed-port", type=port, help="renderer feed port (0 picks one)")
+    parser.add_argument(
+        "--igtl-port",
+        type=port,
+        help="serve OpenIGTLink on this port (0 picks one; 18944 Slicer's)",
+    )
     parser.add_argument("--recalibrate", action="store_true", help="ignore a saved calibration")
 
 
@@ -944,6 +963,8 @@ def config_from_args(args: argparse.Namespace) -> FollowerConfig:
         data["state_dir"] = args.state_dir
     if args.feed_port is not None:
         data["feed"]["port"] = args.feed_port
+    if getattr(args, "igtl_port", None) is not None:
+        data["igtl"].update(enabled=True, port=args.igtl_port)
     return validate_config(FollowerConfig, data, "command line")
 
 

@@ -65,6 +65,14 @@ class SimPatient:
         # Ellipsoid frame: x head to feet, y up, z to the patient's right (the paper's axes).
         self.T_world_body = Pose(center, quat_from_axis_angle(UP, yaw))
 
+    def ellipsoid(self):  # -> humantele.haptics.ellipsoid.Ellipsoid
+        """The true abdomen as an Ellipsoid (world frame, m), e.g. for the sim ultrasound."""
+        from humantele.haptics.ellipsoid import Ellipsoid
+
+        c = self.config
+        return Ellipsoid(tuple(self.T_world_body.position), tuple(self.semi_axes),
+                         math.radians(c.yaw_deg))  # fmt: skip
+
     def landmarks(self) -> dict[str, NDArray[np.float64]]:
         """The true xiphoid, extreme left, extreme right and a bed point (world, m)."""
         a, b = self.config.half_width_m, self.config.half_height_m

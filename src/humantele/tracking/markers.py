@@ -206,19 +206,21 @@ def _missing_contradicted(
     ``pts`` the candidates, ``used`` (M,) candidate index per marker (-1 missing). True when
     a candidate left out of the fit lies on a missing marker's ray (within ``LATERAL_SEEN``
     m) or within the tool's marker spacing of its fitted place (seen, did not fit), or when
-    the fit puts a missing marker's image onto one of its matched markers' (it would have
-    merged with it: the detector would not have seen that marker whole).
+    the fit puts a missing marker's image onto one of its matched markers' while other
+    candidates are in view (one of them may be the marker: a stray then stands in for it).
+    A marker hidden behind another with nothing else in view is the usual occlusion of a
+    tool turned edge-on, and is kept.
     """
     missing = placed[~present]
     ray = missing / np.linalg.norm(missing, axis=1, keepdims=True)  # (K, 3)
+    rest = np.delete(pts, used[used >= 0], axis=0)
+    if len(rest) == 0:
+        return False
     own = placed[present]
     if np.any(
         np.linalg.norm(np.cross(own[None], ray[:, None]), axis=-1) < 2.0 * tool.sphere_radius
     ):
         return True
-    rest = np.delete(pts, used[used >= 0], axis=0)
-    if len(rest) == 0:
-        return False
     across = np.linalg.norm(np.cross(rest[None, :, :], ray[:, None, :]), axis=-1)
     near = np.linalg.norm(rest[None, :, :] - missing[:, None, :], axis=-1)
     return bool(np.any(across < LATERAL_SEEN) or np.any(near < tool.min_separation_mm / 1000.0))

@@ -12,16 +12,21 @@ from typing import Annotated
 from pydantic import Field
 
 from humantele.tracking.frames import FrameSource
+from humantele.tracking.hl2ss_source import Hl2ssFrameConfig, Hl2ssFrameSource
 from humantele.tracking.opencv_source import OpenCVFrameConfig, OpenCVFrameSource
 from humantele.tracking.sim import SimFrameConfig, SimFrameSource
 from humantele.tracking.tool import ToolDefinition
 
-FrameSourceConfig = Annotated[SimFrameConfig | OpenCVFrameConfig, Field(discriminator="backend")]
-"""A tracking camera's configuration, picked by its ``backend`` field: "sim" or "opencv"."""
+FrameSourceConfig = Annotated[
+    SimFrameConfig | OpenCVFrameConfig | Hl2ssFrameConfig, Field(discriminator="backend")
+]
+"""A tracking camera's configuration, picked by its ``backend`` field: "sim", "opencv" or
+"hl2ss" (the HoloLens 2 AHAT stream)."""
 
 
 def make_frame_source(
-    config: SimFrameConfig | OpenCVFrameConfig, tool: ToolDefinition | None = None
+    config: SimFrameConfig | OpenCVFrameConfig | Hl2ssFrameConfig,
+    tool: ToolDefinition | None = None,
 ) -> FrameSource:
     """The frame source a configuration asks for, not yet opened. ``tool`` is the marker tree
     the sim backend draws (None: the default probe); the others ignore it."""
@@ -29,4 +34,6 @@ def make_frame_source(
         return SimFrameSource(config, tool)
     if isinstance(config, OpenCVFrameConfig):
         return OpenCVFrameSource(config)
+    if isinstance(config, Hl2ssFrameConfig):
+        return Hl2ssFrameSource(config)
     raise TypeError(f"not a frame source configuration: {type(config).__name__}")

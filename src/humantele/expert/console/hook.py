@@ -79,7 +79,7 @@ class DaemonSession:
         st = d.last_state
         pose_age = None
         if st is not None and d.last_state_t is not None:
-            pose_age = (now - d.last_state_t + max(0.0, d.last_state_age or 0.0)) * 1000.0
+            pose_age = (now - d.last_state_t) * 1000.0  # last_state_t: when it was sent
         latest = d.servo.latest() if d.servo.alive else None
         try:
             servo_stats = d.servo.stats() if d.servo.alive else None

@@ -1,0 +1,1 @@
+"""Checking the devices one at a time (``humantele devices check``)."""

@@ -1,0 +1,1 @@
+"""Interoperability with research tools: OpenIGTLink for 3D Slicer and PLUS (:mod:`.igtl`)."""
