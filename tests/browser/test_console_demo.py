@@ -19,7 +19,6 @@ def test_console_in_the_demo(browser_scenario):
     for t, level in (("us", 0.0), ("pov", 10.0)):
         before, after = d["pixels"]["before"][t], d["pixels"]["after"][t]
         assert after["mean"] > level and before["hash"] != after["hash"], (t, before, after)
-        assert d["page_fps"][t] > 0.5
     live = d["state_live"]
     assert live["link"]["state"] == "connected" and live["servo"]["alive"]
     assert live["recording"]["on"]  # calibration: whatever the follower has reported so far
