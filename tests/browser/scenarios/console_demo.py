@@ -54,14 +54,14 @@ async def run(ctx) -> dict:
     scripted = await page.evaluate("consoleApp.state.scan")
     if scripted:  # the demo's scripted scan already runs: stop it first
         await page.click("#scan")
-        await ctx.until(page, "consoleApp.state.scan === null", 15)
+        await ctx.until(page, "consoleApp.state.scan === null", 60)
     await page.click("#scan")
-    await ctx.until(page, "consoleApp.state.scan !== null", 15)
+    await ctx.until(page, "consoleApp.state.scan !== null", 60)
     first = await page.evaluate("consoleApp.state.scan")
     await page.click("#scan")
-    await ctx.until(page, "consoleApp.state.scan === null", 15)
+    await ctx.until(page, "consoleApp.state.scan === null", 60)
     await page.click("#scan")
-    await ctx.until(page, f"consoleApp.state.scan === {first + 1}", 15)
+    await ctx.until(page, f"consoleApp.state.scan === {first + 1}", 60)
     data["scan_button"] = await page.text_content("#scan")
     data["scans_clicked"] = [first, first + 1]
 

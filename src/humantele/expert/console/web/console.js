@@ -287,7 +287,8 @@ document.addEventListener("keydown", (ev) => {
 
 // --- scan and clutch ------------------------------------------------------------------------
 
-$("scan").onclick = () => send({ type: "scan", action: app.state && app.state.scan ? "stop" : "start" });
+// The button does what it says (its label is the state the sonographer saw when clicking).
+$("scan").onclick = () => send({ type: "scan", action: $("scan").dataset.scanning === "true" ? "stop" : "start" });
 $("clutch").onclick = () => {
   const on = $("clutch").getAttribute("aria-pressed") !== "true";
   if (send({ type: "clutch", on })) $("clutch").setAttribute("aria-pressed", String(on));
