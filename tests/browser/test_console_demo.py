@@ -50,4 +50,7 @@ def test_console_in_the_demo(browser_scenario):
     (run.out_dir / "console_latency.json").write_text(json.dumps(figure))
     print(f"console: {figure}")
     assert all(math.isfinite(v) for v in figure.values() if isinstance(v, float))
-    assert d["console_errors"] == []
+    # The page logged nothing but the refused second console and its own reconnection
+    # attempts once the demo had stopped.
+    unexpected = [e for e in d["console_errors"] if "409" not in e and "REFUSED" not in e]
+    assert unexpected == []
