@@ -242,7 +242,9 @@ def test_expert_refuses_the_issue_s_models_that_bypass_the_schema():
 
 
 def test_servo_process_survives_the_tiny_model_and_keeps_pressing():
-    with ServoProcess(_pressing_config(), MODEL) as sp:
+    # Late or stale ticks on a loaded machine are not what this test is about: tolerate them.
+    cfg = _pressing_config().model_copy(update={"late_after_s": 1.0, "stale_after_s": 1.0})
+    with ServoProcess(cfg, MODEL) as sp:
         _wait(lambda: (x := sp.latest()) and x.ramp == 1.0 and x.force[1] > 0.5, timeout=30.0)
         with sp._lock:  # noqa: SLF001 - a command no daemon check stands between
             v = sp._cmd_values  # noqa: SLF001

@@ -17,6 +17,7 @@ signaling_url = "ws://127.0.0.1:9/ws"
 [follower.feed]
 enabled = false
 [follower.video]
+enabled = true
 process = {str(process).lower()}
 [follower.video.us]
 backend = "opencv"

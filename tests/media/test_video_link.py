@@ -34,7 +34,8 @@ def expert_with_video(server, codec="vp8", record=None):
         LinkConfig(signaling_url=server.url, room="v", token=TOKEN),
         media=lambda pc, role: holder["rx"].prepare(pc),
     )
-    holder["rx"] = VideoReceiver(ExpertVideoConfig(codec=codec), link.clock, link.now, record)
+    config = ExpertVideoConfig(enabled=True, codec=codec)
+    holder["rx"] = VideoReceiver(config, link.clock, link.now, record)
     return link, holder["rx"]
 
 

@@ -121,10 +121,7 @@ def test_sigkill_of_the_follower_during_a_demo_it_comes_back_and_poses_flow_agai
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
-    after_kill = lines[
-        lines.index(next(ln for ln in lines if "follower" in ln and "restart" in ln)) :
-    ]
-    assert any("follower DIED (code -9)" in ln or "restarted (1)" in ln for ln in after_kill)
+    assert any("follower restarted (1), starting" in ln for ln in lines)
     assert proc.returncode == 0, err[-3000:]
     s = json.loads(out.strip().splitlines()[-1])
     assert s["restarts"] == {"expert": 0, "follower": 1}

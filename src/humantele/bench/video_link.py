@@ -104,11 +104,11 @@ def write_configs(d: Path, args: argparse.Namespace, ice: object | None) -> Path
         )
     (d / "expert.toml").write_text(
         f"[expert.link]\npose_rate_hz = 100.0\n{link['expert']}\n"
-        f'[expert.video]\ncodec = "{args.codec}"\n'
+        f'[expert.video]\nenabled = true\ncodec = "{args.codec}"\n'
     )
     (d / "follower.toml").write_text(
         f"[follower.link]\n{link['follower']}\n"
-        f"[follower.video]\nprocess = {str(not args.no_process).lower()}\n"
+        f"[follower.video]\nenabled = true\nprocess = {str(not args.no_process).lower()}\n"
         f"record_us_hz = 0.0\nrecord_pov_hz = 0.0\n"
         f'[follower.video.us]\nbackend = "sim"\nwidth = {uw}\nheight = {uh}\nfps = 20.0\n'
         f'[follower.video.pov]\nbackend = "sim"\nwidth = {pw}\nheight = {ph}\nfps = 25.0\n'

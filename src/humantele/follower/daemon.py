@@ -896,10 +896,10 @@ class FollowerDaemon(Daemon):
         finally:
             await self.close_link(self.link, link_task)
             await self.feed.stop()
-            if video_task is not None:
-                with contextlib.suppress(BaseException):
-                    await video_task  # opening cannot be interrupted: it ends by itself
+            if video_task is not None:  # close first: an open still waiting then returns
                 await asyncio.to_thread(self.video.close)
+                with contextlib.suppress(BaseException):
+                    await asyncio.wait_for(video_task, 5.0)
             await self.igtl.stop()
             self.executor.shutdown(wait=True)  # the frame being measured ends first
             self.executor = None

@@ -43,7 +43,9 @@ class DegradeConfig(ConfigModel):
 class FollowerVideoConfig(ConfigModel):
     """The follower's video (``[follower.video]``): the two sources, the counter, recording."""
 
-    enabled: bool = Field(True, description="send the us and pov tracks")
+    enabled: bool = Field(
+        False, description="send the us and pov tracks (configs/follower.toml turns it on)"
+    )
     us: UltrasoundSourceConfig = SimUltrasoundConfig()
     pov: PovSourceConfig = SimPovConfig()
     stamp_counter: bool = Field(
@@ -67,8 +69,12 @@ class ExpertVideoConfig(ConfigModel):
     """The expert's video (``[expert.video]``): receive the tracks, with which codec.
 
     The expert makes the offer, so its codec is the one used (the follower encodes with it).
+    Off unless configured (configs/expert.toml turns it on): with video the pose stream's
+    budget is not yet shown to hold on a loaded 2-core machine (docs/video.md).
     """
 
-    enabled: bool = Field(True, description="receive the us and pov tracks")
+    enabled: bool = Field(
+        False, description="receive the us and pov tracks (configs/expert.toml turns it on)"
+    )
     codec: Codec = Field("vp8", description="vp8 (default, cheapest on 2 cores) or h264")
     record_frames: bool = Field(True, description="record every received frame's timestamps")

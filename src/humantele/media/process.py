@@ -329,6 +329,8 @@ class ProcessVideo:
         if not sh.opened_event.wait(OPEN_TIMEOUT_S):
             self.close()
             raise VideoSourceUnavailable("video process: the sources did not open in time")
+        if self.closed:  # closed while opening (the daemon is stopping)
+            return
         failed = [m for m in sh.opened.values() if m]
         if failed:
             self.close()
@@ -369,8 +371,9 @@ class ProcessVideo:
         self.closed = True
         sh = self.shared
         sh.stop.set()
+        sh.opened_event.set()  # an open() still waiting returns now (it sees closed)
         if sh.process is not None:
-            sh.process.join(timeout=5.0)
+            sh.process.join(timeout=2.0)
             if sh.process.is_alive():
                 sh.process.kill()
                 sh.process.join(timeout=2.0)

@@ -42,6 +42,7 @@ from aiortc.mediastreams import MediaStreamError
 from humantele.media.config import TRACKS, ExpertVideoConfig
 from humantele.media.frameinfo import FrameInfo, FrameInfoError
 from humantele.media.sender import VIDEO_CHANNEL_ID
+from humantele.runtime.stats import percentile_ms
 from humantele.transport.clocksync import ClockSync
 from humantele.video.counter import CELL, COLS, ROWS, read_counter, unwrap
 
@@ -137,14 +138,13 @@ class TrackStats:
         a = np.asarray(self.ages, dtype=float)
         arr = np.asarray(self.arrivals, dtype=float)
         span = float(arr[-1] - arr[0]) if arr.size > 1 else 0.0
-        pct = (lambda q: round(float(np.percentile(a, q)) * 1e3, 1)) if a.size else lambda q: None
         return {
             "frames": self.frames,
             "fps": self.fps(now),
             "fps_mean": round((arr.size - 1) / span, 2) if span > 0 else None,
             "gap_max_ms": round(float(np.diff(arr).max()) * 1e3, 1) if arr.size > 1 else None,
-            "age_p50_ms": pct(50),
-            "age_p95_ms": pct(95),
+            "age_p50_ms": percentile_ms(a, 50),
+            "age_p95_ms": percentile_ms(a, 95),
             "age_max_ms": round(float(a.max()) * 1e3, 1) if a.size else None,
             "unreadable": self.unreadable,
             "no_info": self.no_info,

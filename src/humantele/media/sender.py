@@ -301,6 +301,7 @@ class VideoSender:
         self._last_counts: dict[str, int] = {"captured": 0, "sent": 0}
         self._last_check: float | None = None
         self._started = False
+        self._closed = False
 
     def publish_scene(self, snapshot: Any) -> None:
         """The sim world's latest snapshot, for the video process (threads call ``scene``)."""
@@ -324,11 +325,14 @@ class VideoSender:
             raise
 
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
+        if self._closed:  # closed while opening: the daemon is stopping
+            return
         for cap in self.captures.values():
             cap.start(loop)
         self._started = True
 
     def close(self) -> None:
+        self._closed = True
         if self.process is not None:
             self.process.close()
         else:

@@ -99,8 +99,10 @@ class SupervisedDaemon:
             return f" | {self.role} rejoined (restart {self.restarts})"
         return ""
 
-    async def stop(self, timeout_s: float = 10.0) -> int | None:
-        """SIGTERM (the daemon stops cleanly), SIGKILL after ``timeout_s``; its exit code."""
+    async def stop(self, timeout_s: float = 20.0) -> int | None:
+        """SIGTERM (the daemon stops cleanly: recording closed, servo and video processes
+        ended), SIGKILL after ``timeout_s`` (a loaded 2-core machine can need 10 s); its exit
+        code."""
         self.restart_at = None
         proc = self.proc
         if proc is None:
