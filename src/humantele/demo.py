@@ -191,6 +191,33 @@ def _recording_status(e: dict[str, Any], f: dict[str, Any]) -> str:
     return text
 
 
+def us_pixel_spacing(follower_config: str | None) -> tuple[float, float] | None:
+    """(row, col) mm per pixel of the follower's ultrasound when it is the sim one (the demo
+    tells the expert's console, whose calipers need it); None for a real source."""
+    from humantele.config import load_config
+    from humantele.follower.daemon import FollowerConfig
+    from humantele.video.scan import ScanGeometry
+    from humantele.video.sim_ultrasound import SimUltrasoundConfig
+
+    cfg = load_config(FollowerConfig, follower_config, "follower" if follower_config else None)
+    c = cfg.video.us
+    if not isinstance(c, SimUltrasoundConfig):
+        return None
+    g = ScanGeometry(c.probe, c.width, c.height, c.depth_m, c.fov_deg, c.radius_m,
+                     c.aperture_m, c.beams, c.samples)  # fmt: skip
+    return g.pixel_spacing_mm
+
+
+def _page_urls(e: dict[str, Any], f: dict[str, Any]) -> dict[str, str]:
+    """The pages the daemons serve, once they do: the sonographer's console, the headset's."""
+    urls = {}
+    if (e.get("console") or {}).get("url"):
+        urls["console (sonographer)"] = e["console"]["url"]
+    if (f.get("feed") or {}).get("page_url"):
+        urls["headset page (follower)"] = f["feed"]["page_url"]
+    return urls
+
+
 def summarize(
     e: dict[str, Any], f: dict[str, Any], duration: float, codes: dict[str, int | None]
 ) -> dict[str, Any]:
@@ -323,11 +350,14 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
         "follower": [
             "follower", "--state-dir", str(run_dir / "follower-state"), "--feed-port", "0",
         ],
-        "expert": ["expert"],
+        "expert": ["expert", "--console-port", "0"],
     }  # fmt: skip
     for role, path in child_configs.items():
         if path:
             cmds[role] += ["--config", path]
+    spacing = us_pixel_spacing(child_configs["follower"])
+    if spacing is not None:  # the console's calipers on the follower's sim ultrasound
+        cmds["expert"] += ["--us-pixel-spacing-mm", *(f"{v:.9g}" for v in spacing)]
     if rec_paths:  # one file per daemon, one session id
         ids = ["--session-id", secrets.token_hex(6), "--follower-id", cfg.follower_id,
                "--sonographer-id", cfg.sonographer_id]  # fmt: skip
@@ -350,6 +380,7 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
         for d in daemons.values():
             await d.start()
         last_print = 0.0
+        pages: dict[str, str] = {}
         t_started: float | None = None  # both daemons up: --duration counts from here
         while not stop.is_set():
             now = time.monotonic()
@@ -360,6 +391,10 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
             if failed:
                 break
             e, f = read_stats(stats["expert"]) or {}, read_stats(stats["follower"]) or {}
+            for name, url in _page_urls(e, f).items():
+                if name not in pages:
+                    pages[name] = url
+                    print(f"{name}: {url}", file=status_to, flush=True)
             window.update(daemons, {"expert": e, "follower": f}, now - t0)
             for d, st in ((daemons["expert"], e), (daemons["follower"], f)):
                 if st:

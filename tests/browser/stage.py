@@ -6,7 +6,8 @@ page's console errors collected, optionally Meta's IWER WebXR emulator installed
 starts a signaling server here and the daemons as processes (tests/session's
 :class:`Session`: ``start``, ``kill``, ``stats``, ``wait``); ``ctx.demo()`` runs
 ``humantele demo``; ``ctx.feed()`` serves the headset page from a feed in this process, which
-the scenario publishes to. Everything is stopped at the end, pages first (an aiohttp runner
+the scenario publishes to; ``ctx.console()`` the sonographer's console, over the scenario's
+frames and session. Everything is stopped at the end, pages first (an aiohttp runner
 waits for open pages otherwise).
 """
 
@@ -153,6 +154,17 @@ class Ctx:
         await feed.start()
         self._services.push_async_callback(feed.stop)
         return feed
+
+    async def console(self, frames, session, **config: Any):
+        """The sonographer's console served from this process, over ``frames`` (a frame
+        provider) and ``session`` (a ConsoleSession); captures in ours."""
+        from humantele.expert.console import ConsoleConfig, ConsoleServer
+
+        cfg = ConsoleConfig(port=0, captures_dir=str(self.out / "captures"), **config)
+        server = ConsoleServer(cfg, frames, session, on_demand=getattr(frames, "demand", None))
+        await server.start()
+        self._services.push_async_callback(server.stop)
+        return server
 
 
 async def _serve_blank(host: str = "127.0.0.1"):

@@ -2,6 +2,7 @@
 degradation policy, the foxglove image channel."""
 
 import asyncio
+import os
 import struct
 import threading
 
@@ -93,3 +94,28 @@ async def test_a_consumer_waiting_before_the_source_starts_still_gets_frames():
     t.start()
     t.join()
     assert await asyncio.wait_for(waiter, 2.0) == (1, 5)
+
+
+def _orphaned_video_child(stop) -> None:
+    """A video process whose follower is already gone, with a thread that never ends."""
+    import threading as th
+
+    from humantele.media.process import _watch_parent
+
+    th.Thread(target=lambda: th.Event().wait()).start()  # not a daemon thread
+    _watch_parent(os.getppid() + 1_000_000, stop)  # not our parent: the follower is gone
+
+
+def test_a_video_process_whose_follower_is_gone_ends_itself():
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    stop = ctx.Event()
+    p = ctx.Process(target=_orphaned_video_child, args=(stop,))
+    p.start()
+    p.join(60.0)  # a hang guard: it ends about 3.5 s after it starts
+    try:
+        assert p.exitcode == 0 and stop.is_set()
+    finally:
+        if p.is_alive():
+            p.kill()

@@ -87,6 +87,29 @@ async def _spawn_follower(url: str, room: str) -> asyncio.subprocess.Process:
     )  # fmt: skip
 
 
+def _alive_children(pid: int) -> set[int]:
+    """Live (not zombie) processes whose parent is ``pid``."""
+    out = set()
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat") as fh:
+                    fields = fh.read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid and fields[0] != "Z":
+                out.add(int(d))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
 @pytest.mark.slow
 async def test_tracks_come_back_after_the_follower_process_is_killed_and_restarted(server):
     expert, rx = expert_with_video(server)
@@ -98,8 +121,12 @@ async def test_tracks_come_back_after_the_follower_process_is_killed_and_restart
         await until(lambda: all(rx.stats_by_track[n].frames >= 10 for n in ("us", "pov")), 60)
         first = {n: rx.latest(n) for n in ("us", "pov")}
 
+        video_procs = _alive_children(procs[0].pid)  # the follower's video process (and tracker)
+        assert video_procs
         procs[0].send_signal(signal.SIGKILL)
         await procs[0].wait()
+        # nothing of the killed follower lives on (the video process notices and ends)
+        await until(lambda: not any(_alive(p) for p in video_procs), 30)
         await expert.wait_state("disconnected", "connecting", timeout=15)
         frames_before = {n: rx.stats_by_track[n].frames for n in ("us", "pov")}
 

@@ -54,6 +54,8 @@ from pydantic import Field
 
 from humantele.cliargs import EXIT_FAILED, port
 from humantele.config import ConfigError, ConfigModel, load_config, validate_config
+from humantele.expert.console import ConsoleConfig
+from humantele.expert.console.hook import LANDMARKS, PoseHistory, make_console
 from humantele.expert.mapping import (
     MappingConfig,
     Registration,
@@ -118,6 +120,7 @@ class ExpertConfig(ConfigModel):
     video: ExpertVideoConfig = ExpertVideoConfig()
     session: SessionConfig = SessionConfig()
     recording: RecorderConfig = RecorderConfig()
+    console: ConsoleConfig = ConsoleConfig()
     igtl: IgtlConfig = IgtlConfig()
 
 
@@ -195,6 +198,16 @@ class ExpertDaemon(Daemon):
         self._late_ticks_reported = 0
         self._states_reported = 0
         self.step_errors = 0
+        # What the console shows (humantele.expert.console): calibration progress, the poses
+        # of the last seconds (a captured frame gets its pose), the console's clutch.
+        self.calibration_state = "not calibrated"
+        self.calibration_landmark: str | None = None
+        self.last_state_age: float | None = None  # its one-way age then (s)
+        self.probe_history = PoseHistory()
+        self.virtual_history = PoseHistory()
+        self.console_clutch = False
+        self.console = None
+        self._console_video = None
 
     # --- incoming messages, one handler per kind ------------------------------------------
 
@@ -203,8 +216,12 @@ class ExpertDaemon(Daemon):
         self.last_state = msg
         self.states_received += 1
         age = self.link.age_of(msg.t_sent)
-        if age is not None and math.isfinite(age):
+        now = self.clock()
+        self.last_state_age = age if age is not None and math.isfinite(age) else None
+        if self.last_state_age is not None:
             self.state_ages.append(max(0.0, age))
+        if isinstance(msg, StateMessage):
+            self.probe_history.add(now - max(0.0, self.last_state_age or 0.0), msg.pose)
         ok = age is not None and math.isfinite(age)
         self.last_state_t = time.monotonic() - (max(0.0, age) if ok else 0.0)
 
@@ -219,7 +236,26 @@ class ExpertDaemon(Daemon):
         elif isinstance(msg, CalibrationProgress):
             text = msg.event if not msg.detail else f"{msg.event}: {msg.detail}"
             self.calibration_events.append(text)
+            self.on_calibration(msg)
             log.info("follower calibration: %s", text)
+
+    def on_calibration(self, msg: CalibrationProgress) -> None:
+        """Calibration progress as the follower reports it: which landmark comes next."""
+        nxt = None
+        if msg.event == "start":
+            self.calibration_state, nxt = "calibrating", 0
+        elif msg.event == "point" and msg.index is not None:
+            self.calibration_state, nxt = "calibrating", msg.index + 1
+        elif msg.event == "error":
+            self.calibration_state = "calibrating"
+            nxt = msg.index if msg.index is not None else None
+        elif msg.event == "done":
+            self.calibration_state = "calibrated"
+        elif msg.event == "cancel":
+            self.calibration_state = "calibrated" if self.model is not None else "not calibrated"
+        self.calibration_landmark = (
+            LANDMARKS[nxt] if nxt is not None and nxt < len(LANDMARKS) else None
+        )
 
     def on_link_state(self, state: str) -> None:
         log.info("expert: link %s", state)
@@ -246,6 +282,8 @@ class ExpertDaemon(Daemon):
             return  # the same model again (the follower rejoined): nothing changes
         self.model = model
         self.models_installed += 1
+        if self.calibration_state != "calibrating":
+            self.calibration_state = "calibrated"
         if self.model_t is None:
             self.model_t = self.clock()
         top = np.array(model.center) + [0.0, float(model.semi_axes[1]), 0.0]
@@ -268,12 +306,16 @@ class ExpertDaemon(Daemon):
         self.last_sample_t = s.t
         was_clutched = self.mapping.clutched
         stylus = s.T_device_stylus  # the mapping is applied once, here
-        pose = self.mapping.update(stylus.position, stylus.quaternion, s.buttons)
+        buttons = s.buttons
+        if self.console_clutch:  # the console's clutch button holds it as the stylus's does
+            buttons |= 1 << self.config.mapping.clutch_button
+        pose = self.mapping.update(stylus.position, stylus.quaternion, buttons)
         self.last_pose = pose  # T_patient_stylus as sent (OpenIGTLink serves it)
         if self.mapping.take_changed():
             self.push_registration()
         if self.mapping.clutched != was_clutched and self.model is not None:
             self.servo.set_model(None if self.mapping.clutched else self.model)
+        self.virtual_history.add(t, pose)
         self.pose_seq += 1
         msg = PoseMessage.from_pose(
             self.pose_seq, t, pose, s.buttons & 0xFF, clutch=self.mapping.clutched
@@ -474,6 +516,7 @@ class ExpertDaemon(Daemon):
             "scans_started": self.scans_started,
             "step_errors": self.step_errors,
             "recording": recorder_stats(self.rec),
+            "console": None if self.console is None else self.console.stats(),
             "igtl": self.igtl.stats(),
             "video": self.video.stats() if self.config.video.enabled else None,
         }
@@ -492,6 +535,28 @@ class ExpertDaemon(Daemon):
             if self.step_errors in (1, 10, 100, 1000):
                 log.exception("expert: %s failed (%d so far)", step.__name__, self.step_errors)
 
+    async def start_console(self) -> None:
+        """Serve the console page (``[expert.console]``); a port that cannot be had is logged
+        and the daemon runs without it (the haptics come first)."""
+        if not self.config.console.enabled or self.console is not None:
+            return
+        self.console, self._console_video = make_console(self)
+        try:
+            await self.console.start()
+        except OSError as exc:
+            log.error("expert: console not served: %s", exc)
+            print(f"humantele expert: console not served: {exc}", flush=True)
+            self.console = None
+            return
+        print(f"humantele expert: {self.console.banner()}", flush=True)
+
+    async def stop_console(self) -> None:
+        if self._console_video is not None:
+            await asyncio.to_thread(self._console_video.stop)
+            self._console_video = None
+        if self.console is not None:
+            await self.console.stop()
+
     async def run(self, duration_s: float | None = None) -> int:
         if not self.start_run():
             return 2
@@ -504,6 +569,7 @@ class ExpertDaemon(Daemon):
             return 1
         self.servo_started = time.monotonic()
         self.push_registration()
+        await self.start_console()
         await self.igtl.start()
         if self.igtl.banner():
             print(f"humantele expert: {self.igtl.banner()}", flush=True)
@@ -518,6 +584,7 @@ class ExpertDaemon(Daemon):
         finally:
             self.guarded(self.stop_scan, self.clock())  # the scan ends before the bye
             await self.close_link(self.link, link_task)
+            await self.stop_console()
             await self.video.close()
             self.servo_cpu_percent()
             self.servo_stopped = True
@@ -536,6 +603,12 @@ class ExpertDaemon(Daemon):
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_daemon_arguments(parser, "TOML file; [expert] and [servo] sections are used")
+    parser.add_argument("--console-port", type=int, help="console page port (0 picks one)")
+    parser.add_argument("--no-console", action="store_true", help="do not serve the console page")
+    parser.add_argument(
+        "--us-pixel-spacing-mm", type=float, nargs=2, metavar=("ROW", "COL"),
+        help="mm per pixel of the received ultrasound image, for the console's calipers",
+    )  # fmt: skip
     parser.add_argument(
         "--igtl-port",
         type=port,
@@ -547,6 +620,12 @@ def configs_from_args(args: argparse.Namespace) -> tuple[ExpertConfig, ServoConf
     config = load_config(ExpertConfig, args.config, "expert" if args.config else None)
     servo = load_config(ServoConfig, args.config, "servo" if args.config else None)
     data = config.model_dump()
+    if getattr(args, "console_port", None) is not None:
+        data["console"]["port"] = args.console_port
+    if getattr(args, "no_console", False):
+        data["console"]["enabled"] = False
+    if getattr(args, "us_pixel_spacing_mm", None):
+        data["console"]["us_pixel_spacing_mm"] = tuple(args.us_pixel_spacing_mm)
     if getattr(args, "igtl_port", None) is not None:
         data["igtl"].update(enabled=True, port=args.igtl_port)
     daemon_overrides(args, data)

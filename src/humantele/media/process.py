@@ -32,6 +32,7 @@ import logging
 import multiprocessing as mp
 import os
 import threading
+import time
 from multiprocessing import shared_memory
 from typing import Any
 
@@ -84,11 +85,23 @@ def _frame_bytes(width: int, height: int) -> int:
 # --- the video process ------------------------------------------------------------------------
 
 
+def _watch_parent(parent_pid: int, stop: Any) -> None:
+    """Set ``stop`` when the follower (``parent_pid``) is gone, then end the process if its
+    threads have not ended by themselves: a video process never outlives its follower."""
+    while not stop.wait(0.5):
+        if os.getppid() != parent_pid:  # the follower died without stopping us
+            stop.set()
+            time.sleep(3.0)
+            os._exit(0)
+
+
 def _child(
     specs: dict[str, dict], patient: Any, scene_name: str, controls: dict, conn: Any, stop: Any,
-    nice: int,
+    nice: int, parent_pid: int,
 ) -> None:  # fmt: skip
-    """The video process: one capture thread per source until ``stop`` is set."""
+    """The video process: one capture thread per source until ``stop`` is set or the
+    follower ``parent_pid`` is gone (watched from the start: it may die while we open)."""
+    threading.Thread(target=_watch_parent, args=(parent_pid, stop), daemon=True).start()
     import cv2
 
     from humantele.video.sources import make_video_source
@@ -127,10 +140,7 @@ def _child(
     for cap in caps:
         cap._stop = stop  # the process's stop event ends the capture loops
         cap.start_thread()
-    parent = os.getppid()
-    while not stop.wait(0.5):
-        if os.getppid() != parent:  # the follower died without stopping us
-            stop.set()
+    stop.wait()
     for cap in caps:
         if cap._thread is not None:
             cap._thread.join(timeout=2.0)
@@ -320,7 +330,7 @@ class ProcessVideo:
             target=_child,
             args=(self.specs, self.patient, sh.scene.name,
                   {n: c.control for n, c in self.captures.items()}, sh.send_conn, sh.stop,
-                  self.nice),
+                  self.nice, os.getpid()),
             name="humantele-video", daemon=True,
         )  # fmt: skip
         sh.process.start()

@@ -41,6 +41,7 @@ _KINDS: dict[str, dict[str, Any]] = {
     "integer": {"type": "integer"},
     "string": {"type": "string", "maxLength": _MAX_STRING},
     "boolean": {"type": "boolean"},
+    "vec2": {"type": "array", "items": {"type": "number"}, "minItems": 2, "maxItems": 2},
     "vec3": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
     "quat": {"type": "array", "items": {"type": "number"}, "minItems": 4, "maxItems": 4},
 }
@@ -176,6 +177,26 @@ CHANNELS: dict[str, ChannelSpec] = {
             "video frame timestamps at the follower",
             _VIDEO,
             ("stream", "seq"),
+        ),
+        ChannelSpec(
+            "/expert/console",
+            "the sonographer's console tools on the ultrasound image (freeze, live, calipers, "
+            "annotations, captures); points are image px (x right, y down from the top-left)",
+            {
+                "event": ("string", "'freeze', 'live', 'caliper', 'annotation' or 'capture'"),
+                "seq": ("integer", "ultrasound frame number the tool was used on"),
+                "t_capture": ("number", "that frame's capture time, expert clock, s"),
+                "mm": ("number", "caliper distance, mm (from the source's pixel spacing)"),
+                "a_px": ("vec2", "caliper start or annotation point, image px"),
+                "b_px": ("vec2", "caliper end, image px"),
+                "text": ("string", "annotation text"),
+                "file": ("string", "capture: the saved JPEG (also attached to this recording)"),
+                **_POSE,
+                "virtual_position": ("vec3", "the expert's virtual probe, patient frame, m"),
+                "virtual_quaternion": ("quat", "the expert's virtual probe orientation"),
+            },
+            ("event",),
+            enums={"event": ("freeze", "live", "caliper", "annotation", "capture")},
         ),
         ChannelSpec(
             "/follower/us_image",
@@ -315,6 +336,9 @@ def _finite(x: Any) -> float:
     return v
 
 
+_VECTORS = {"vec2": (2, VEC3_DECIMALS), "vec3": (3, VEC3_DECIMALS)}  # kind -> length, digits
+
+
 def _value(kind: str, v: Any) -> Any:
     if kind == "number":
         if isinstance(v, bool):
@@ -332,7 +356,7 @@ def _value(kind: str, v: Any) -> Any:
         if not isinstance(v, bool | int) or v not in (0, 1):
             raise ValueError("expected a boolean")
         return bool(v)
-    n, digits = (3, VEC3_DECIMALS) if kind == "vec3" else (4, QUAT_DECIMALS)
+    n, digits = _VECTORS.get(kind, (4, QUAT_DECIMALS))
     vals = [round(_finite(x), digits) for x in (v.tolist() if hasattr(v, "tolist") else v)]
     if len(vals) != n:
         raise ValueError(f"expected {n} numbers")

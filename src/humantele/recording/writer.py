@@ -38,6 +38,7 @@ from humantele.recording.schemas import (
 )
 
 log = logging.getLogger("humantele.recording")
+ATTACHMENT = "@attachment"  # the queue's marker for a file to attach (Recorder.attach)
 
 try:
     import zstandard  # noqa: F401
@@ -146,6 +147,13 @@ class McapLog:
             columns[k].append(v)
         if len(columns["t"]) >= self._batch_max:
             self._emit(topic, *self._pending.pop(topic))
+
+    def attach(self, name: str, media_type: str, data: bytes, log_time_ns: int) -> None:
+        """Add a file (an MCAP attachment, e.g. a captured image); OSError on I/O failure."""
+        if not isinstance(data, bytes | bytearray) or not name or len(name) > 200:
+            raise ValueError(f"attachment {name!r}: bytes and a name of 1-200 characters")
+        self._writer.add_attachment(log_time_ns, log_time_ns, name, media_type, bytes(data))
+        self.samples += 1
 
     def flush(self) -> None:
         """Write the packed samples, close the chunk, flush and fsync: all so far is on disk."""
@@ -306,6 +314,11 @@ class Recorder:
         self.stats.queued += 1
         return True
 
+    def attach(self, name: str, media_type: str, data: bytes, t: float) -> bool:
+        """Queue a file (``data``, e.g. a captured JPEG) to be attached to the recording at
+        time ``t`` (s, this daemon's clock); never blocks. False if it was dropped."""
+        return self.write(ATTACHMENT, t, {"name": name, "media_type": media_type, "data": data})
+
     def scan_start(
         self,
         t: float,
@@ -361,6 +374,11 @@ class Recorder:
         while q:
             topic, t, payload, log_time_ns = q.popleft()
             try:
+                if topic == ATTACHMENT:
+                    logfile.attach(
+                        payload["name"], payload["media_type"], payload["data"], log_time_ns
+                    )
+                    continue
                 logfile.append(topic, t, payload, log_time_ns)
             except (ValueError, TypeError, AttributeError) as exc:
                 stats.dropped_invalid += 1

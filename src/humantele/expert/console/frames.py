@@ -1,0 +1,267 @@
+"""Where the console gets its pictures: the latest frame of each track, on the expert's clock.
+
+The console asks a :class:`FrameProvider` for ``latest("us")`` and ``latest("pov")``: the
+newest decoded :class:`~humantele.video.base.VideoFrame` of that track (``seq`` increasing,
+``t_capture`` the capture time mapped onto this process's ``time.monotonic()``), or None when
+there is none yet. It never blocks: the receiver (or a reader thread) keeps the latest frame.
+
+:class:`SourceFrames` is a provider over local :class:`~humantele.video.base.VideoSource` s,
+one reader thread each (the sim sources in tests); :class:`ProcessFrames` renders sim sources in
+a child process (the daemon's stand-in for the follower's tracks: in-process, their numpy work
+held the GIL enough to halve the daemon's pose rate on 2 cores); the expert daemon's WebRTC
+receiver is the real provider.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import multiprocessing as mp
+import os
+import queue
+import threading
+from collections.abc import Mapping
+from typing import Any, Protocol
+
+from humantele.video.base import VideoFrame, VideoSource, VideoSourceError
+
+log = logging.getLogger(__name__)
+
+TRACKS = ("us", "pov")
+
+
+class FrameProvider(Protocol):
+    """The latest frame of a track (``"us"`` or ``"pov"``), or None; never blocks."""
+
+    def latest(self, track: str) -> VideoFrame | None: ...
+
+
+class SourceFrames:
+    """A :class:`FrameProvider` reading local video sources, one daemon thread per track.
+
+    ``sources``: track name -> source (not yet opened). :meth:`start` opens them in their
+    threads; :meth:`stop` ends the threads and closes the sources. A source that fails is
+    logged once and its track gives no new frames (``errors`` says why)."""
+
+    def __init__(self, sources: Mapping[str, VideoSource]) -> None:
+        self.sources = dict(sources)
+        self.errors: dict[str, str] = {}
+        self._latest: dict[str, VideoFrame] = {}
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+
+    def latest(self, track: str) -> VideoFrame | None:
+        with self._lock:
+            return self._latest.get(track)
+
+    def start(self) -> None:
+        """Open the sources and read them (nothing if already reading)."""
+        if self._threads:
+            return
+        self._stop.clear()
+        for track, source in self.sources.items():
+            t = threading.Thread(
+                target=self._read, args=(track, source), name=f"console-{track}", daemon=True
+            )
+            t.start()
+            self._threads.append(t)
+
+    def stop(self, timeout: float = 2.0) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout)
+        self._threads.clear()
+
+    def _read(self, track: str, source: VideoSource) -> None:
+        try:
+            source.open()
+            while not self._stop.is_set():
+                frame = source.read()
+                if frame is not None:
+                    with self._lock:
+                        self._latest[track] = frame
+        except VideoSourceError as exc:
+            self.errors[track] = str(exc)
+            log.error("console: %s source stopped: %s", track, exc)
+        finally:
+            source.close()
+
+
+class ProcessFrames:
+    """A :class:`FrameProvider` rendering sim sources in a child process (``spawn``), so their
+    Python work never competes with the daemon's event loop for the GIL.
+
+    ``configs``: track -> sim source configuration; ``scene``: the daemon-side callable whose
+    snapshots the child renders (sent ``scene_hz`` times a second, latest wins). Frames come
+    back whole (BGR arrays) with their number and capture time: ``time.monotonic()`` is one
+    clock for every process of a Linux machine. :meth:`start`/:meth:`stop` as
+    :class:`SourceFrames`."""
+
+    def __init__(self, configs: Mapping[str, Any], scene: Any, scene_hz: float = 30.0) -> None:
+        self.configs = dict(configs)
+        self.scene = scene
+        self.scene_hz = scene_hz
+        self.errors: dict[str, str] = {}
+        self._latest: dict[str, VideoFrame] = {}
+        self._lock = threading.Lock()
+        self._proc: Any = None
+        self._stop: Any = None
+        self._threads: list[threading.Thread] = []
+
+    def latest(self, track: str) -> VideoFrame | None:
+        with self._lock:
+            return self._latest.get(track)
+
+    def start(self) -> None:
+        if self._proc is not None:
+            return
+        ctx = mp.get_context("spawn")
+        self._stop = ctx.Event()
+        self._scene_q = ctx.Queue(maxsize=2)
+        self._out_q = ctx.Queue(maxsize=4)
+        self._proc = ctx.Process(
+            target=_render_child,
+            args=(self.configs, self._scene_q, self._out_q, self._stop),
+            name="humantele-console-sim",
+            daemon=True,
+        )
+        self._proc.start()
+        self._threads = [
+            threading.Thread(target=self._feed, name="console-scene", daemon=True),
+            threading.Thread(target=self._collect, name="console-frames", daemon=True),
+        ]
+        for t in self._threads:
+            t.start()
+
+    def stop(self, timeout: float = 3.0) -> None:
+        if self._proc is None:
+            return
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout)
+        self._proc.join(timeout)
+        if self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join(timeout)
+        for q in (self._scene_q, self._out_q):
+            q.cancel_join_thread()
+            q.close()
+        self._proc = None
+        self._threads = []
+
+    def _feed(self) -> None:
+        period = 1.0 / self.scene_hz
+        while not self._stop.wait(period):
+            try:
+                snap = self.scene()
+            except Exception:  # noqa: BLE001 - counted by the child as a dark frame
+                snap = None
+            with contextlib.suppress(queue.Full):
+                self._scene_q.put_nowait(snap)
+
+    def _collect(self) -> None:
+        while not self._stop.is_set():
+            try:
+                item = self._out_q.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            except (EOFError, OSError):
+                return
+            track, image, seq, t, spacing, error = item
+            if error:
+                self.errors[track] = error
+                log.error("console: %s sim source stopped: %s", track, error)
+                continue
+            with self._lock:
+                self._latest[track] = VideoFrame(image, seq, t, spacing)
+
+
+def _render_child(configs: Mapping[str, Any], scene_q: Any, out_q: Any, stop: Any) -> None:
+    """The child process: one thread per track renders the latest scene and sends frames."""
+    from humantele.video.sources import make_video_source
+
+    latest: list[Any] = [None]
+    lock = threading.Lock()
+    parent = os.getppid()
+
+    def scene() -> Any:
+        with lock:
+            while True:
+                try:
+                    latest[0] = scene_q.get_nowait()
+                except queue.Empty:
+                    return latest[0]
+
+    def run(track: str, config: Any) -> None:
+        source = make_video_source(config, scene)
+        try:
+            source.open()
+            while not stop.is_set() and os.getppid() == parent:  # ends with its daemon
+                f = source.read()
+                if f is None:
+                    continue
+                item = (track, f.image, f.seq, f.t_capture, f.pixel_spacing_mm, "")
+                with contextlib.suppress(queue.Full):
+                    out_q.put(item, True, 0.5)
+        except VideoSourceError as exc:
+            out_q.put((track, None, 0, 0.0, None, str(exc)))
+        finally:
+            source.close()
+
+    threads = [threading.Thread(target=run, args=kv, daemon=True) for kv in configs.items()]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+
+
+class _Received:
+    """A received frame as the console reads it (``image`` converted when first read, in the
+    console's encoding thread)."""
+
+    __slots__ = ("_frame", "seq", "t_capture", "pixel_spacing_mm")
+
+    def __init__(self, frame: Any, seq: int, spacing: tuple[float, float] | None) -> None:
+        self._frame = frame
+        self.seq = seq
+        # Capture time mapped onto the expert's clock; the decode time when it is unknown.
+        self.t_capture = frame.t_capture if frame.t_capture is not None else frame.t_received
+        self.pixel_spacing_mm = spacing
+
+    @property
+    def image(self) -> Any:
+        return self._frame.image()
+
+    @property
+    def width(self) -> int:
+        return self._frame.width
+
+    @property
+    def height(self) -> int:
+        return self._frame.height
+
+
+class ReceivedFrames:
+    """A :class:`FrameProvider` over the expert's WebRTC receiver
+    (:class:`humantele.media.receiver.VideoReceiver`): its latest decoded frame of each track,
+    numbered by the frame counter the follower stamped (a frame whose counter did not read
+    gets the next number), with ``us_spacing_mm`` (row, col; mm per pixel of the frames as
+    received, from ``[expert.console] us_pixel_spacing_mm``) on the ultrasound frames."""
+
+    def __init__(self, receiver: Any, us_spacing_mm: tuple[float, float] | None) -> None:
+        self.receiver = receiver
+        self.us_spacing_mm = us_spacing_mm
+        self._last: dict[str, tuple[Any, _Received]] = {}
+
+    def latest(self, track: str) -> _Received | None:
+        f = self.receiver.latest(track)
+        if f is None:
+            return None
+        last = self._last.get(track)
+        if last is not None and last[0] is f:
+            return last[1]
+        seq = f.seq if f.seq is not None else (0 if last is None else last[1].seq + 1)
+        out = _Received(f, seq, self.us_spacing_mm if track == "us" else None)
+        self._last[track] = (f, out)
+        return out

@@ -1,0 +1,188 @@
+"""The console in the expert daemon: the session it shows, and where its video comes from.
+
+:class:`DaemonSession` is the :class:`~humantele.expert.console.session.ConsoleSession` of an
+:class:`~humantele.expert.daemon.ExpertDaemon`. :func:`make_console` builds the server with the
+video ``[expert.console] video`` asks for:
+
+- ``received``: the follower's tracks as the daemon's WebRTC receiver decodes them
+  (``daemon.video``, :mod:`humantele.media.receiver`; ``[expert.video] enabled``);
+- ``sim``: sim sources here, rendering what the session knows (the patient model, the
+  follower's tracked probe and force), labelled as simulated on the page: a stand-in for
+  development and the demo while the tracks do not come over the link;
+- ``auto`` (default): ``received`` when ``[expert.video]`` is enabled, else ``sim``;
+- ``none``: no video.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from humantele.expert.console.frames import FrameProvider, ProcessFrames, ReceivedFrames
+from humantele.expert.console.server import ConsoleServer
+from humantele.geometry import Pose
+from humantele.recording import Recorder
+from humantele.video.scene import SceneSnapshot, look_at
+from humantele.video.sim_pov import SimPovConfig
+from humantele.video.sim_ultrasound import SimUltrasoundConfig
+
+if TYPE_CHECKING:
+    from humantele.expert.daemon import ExpertDaemon
+
+POSES_KEPT_S = 12.0  # pose history for captures (the cine buffer holds 10 s)
+LANDMARKS = ("xiphoid", "left", "right", "bed")  # humantele.follower.calibration.LANDMARKS
+
+
+def alignment(a: Pose, b: Pose) -> dict[str, float]:
+    """Tip distance (mm) and rotation angle (deg) between two probe poses (same frame)."""
+    mm = float(np.linalg.norm(np.asarray(a.position) - np.asarray(b.position))) * 1000.0
+    d = abs(float(np.dot(a.quaternion, b.quaternion)))
+    deg = math.degrees(2.0 * math.acos(min(1.0, d)))
+    return {"mm": mm, "deg": deg}
+
+
+class PoseHistory:
+    """Timed poses (s, the expert's clock) of the last ``seconds``; ``at(t)`` the nearest."""
+
+    def __init__(self, seconds: float = POSES_KEPT_S) -> None:
+        self.seconds = seconds
+        self.items: deque[tuple[float, Pose]] = deque()
+
+    def add(self, t: float, pose: Pose) -> None:
+        self.items.append((t, pose))
+        while self.items and t - self.items[0][0] > self.seconds:
+            self.items.popleft()
+
+    def at(self, t: float, within_s: float = 0.25) -> Pose | None:
+        best = min(self.items, key=lambda it: abs(it[0] - t), default=None)
+        if best is None or abs(best[0] - t) > within_s:
+            return None
+        return best[1]
+
+
+class DaemonSession:
+    """The expert daemon as the console sees it."""
+
+    def __init__(self, daemon: ExpertDaemon) -> None:
+        self.d = daemon
+
+    @property
+    def recorder(self) -> Recorder | None:
+        return self.d.rec
+
+    def snapshot(self) -> dict[str, Any]:
+        d = self.d
+        now = d.clock()
+        st = d.last_state
+        pose_age = None
+        if st is not None and d.last_state_t is not None:
+            pose_age = (now - d.last_state_t) * 1000.0  # last_state_t: when it was sent
+        latest = d.servo.latest() if d.servo.alive else None
+        try:
+            servo_stats = d.servo.stats() if d.servo.alive else None
+        except Exception:  # noqa: BLE001 - a servo that just died: shown as stopped
+            servo_stats = None
+        al = None
+        if st is not None and d.last_pose is not None:
+            al = alignment(d.last_pose, st.pose)
+        rec = d.rec
+        return {
+            "t": now,
+            "link": {"state": d.link.state, "pose_age_ms": pose_age},
+            "calibration": {
+                "state": d.calibration_state,
+                "landmark": d.calibration_landmark,
+                "last": d.calibration_events[-1] if d.calibration_events else None,
+            },
+            "alignment": al,
+            "servo": {
+                "alive": latest is not None,
+                "rate_hz": None if servo_stats is None else servo_stats.rate_hz,
+                "fault": "" if latest is None else latest.fault,
+            },
+            "recording": {
+                "on": rec is not None and not rec.failed,
+                "error": None if rec is None else rec.stats.error,
+                "written": None if rec is None else rec.stats.written,
+            },
+            "scan": d.scan,
+            "clutch": {"on": d.console_clutch, "engaged": d.mapping.clutched},
+            "force": {
+                "measured_n": None if st is None else float(np.linalg.norm(st.force)),
+                "rendered_n": None if latest is None else float(np.linalg.norm(latest.force)),
+                "contact": None if st is None else bool(st.contact),
+            },
+        }
+
+    def pose_at(self, t: float) -> dict[str, Any] | None:
+        real = self.d.probe_history.at(t)
+        if real is None:
+            return None
+        out: dict[str, Any] = {"position": real.position, "quaternion": real.quaternion}
+        virtual = self.d.virtual_history.at(t)
+        if virtual is not None:
+            out.update(virtual_position=virtual.position, virtual_quaternion=virtual.quaternion)
+        return out
+
+    def start_scan(self) -> int:
+        return self.d.start_scan(self.d.clock())
+
+    def stop_scan(self) -> None:
+        self.d.stop_scan(self.d.clock())
+
+    def set_clutch(self, on: bool) -> None:
+        self.d.console_clutch = bool(on)
+
+
+class SessionScene:
+    """The sim sources' scene from what the expert knows: the patient model (its patient
+    frame as the world), the follower's tracked probe and force, the virtual probe; a head
+    0.5 m above and beside the probe, looking at it. Called from the sources' threads: it only
+    reads references the daemon replaces whole."""
+
+    def __init__(self, daemon: ExpertDaemon) -> None:
+        self.d = daemon
+
+    def __call__(self) -> SceneSnapshot:
+        d = self.d
+        model, st = d.model, d.last_state
+        tip = None if st is None else st.pose
+        force = 0.0 if st is None else float(np.linalg.norm(st.force))
+        head = None
+        if model is not None:
+            target = tip.position if tip is not None else np.asarray(model.center, dtype=float)
+            head = look_at(model.T_world_patient.apply((0.02, 0.45, 0.42)), target)
+        return SceneSnapshot(d.clock(), model, tip, force, head, d.last_pose)
+
+
+def sim_frames(daemon: ExpertDaemon) -> ProcessFrames:
+    """Sim ultrasound and POV of the session, rendered in a child process (lighter than the
+    follower's: 15 fps, POV 640 x 360), for ``video = "sim"``."""
+    return ProcessFrames(
+        {
+            "us": SimUltrasoundConfig(fps=15.0),
+            "pov": SimPovConfig(fps=15.0, width=640, height=360),
+        },
+        SessionScene(daemon),
+    )
+
+
+def make_console(daemon: ExpertDaemon) -> tuple[ConsoleServer, ProcessFrames | None]:
+    """The console server for ``daemon`` and, for sim video, its sources (they run while a
+    console page is open; the daemon stops them at the end)."""
+    cfg = daemon.config.console
+    received: FrameProvider | None = None
+    if daemon.config.video.enabled:
+        received = ReceivedFrames(daemon.video, cfg.us_pixel_spacing_mm)
+    mode = cfg.video
+    if mode == "auto":
+        mode = "received" if received is not None else "sim"
+    local = sim_frames(daemon) if mode == "sim" else None
+    frames = received if mode == "received" else local
+    server = ConsoleServer(
+        cfg, frames, DaemonSession(daemon), clock=daemon.clock, video=mode, on_demand=local
+    )
+    return server, local

@@ -1,0 +1,137 @@
+"""What the console page and the expert daemon say to each other over the console's WebSocket.
+
+To the page
+    Binary: one video frame, a 32-byte little-endian header then the JPEG bytes::
+
+        u8 version (1) | u8 track (0 us, 1 pov) | u8 flags (1: a cine frame, not live) | u8 0
+        u32 seq | f64 t_capture (s, the expert's clock) | f32 spacing_row_mm |
+        f32 spacing_col_mm (0 when unknown) | u16 width | u16 height | u32 0
+
+    Text: JSON objects with a ``type``: ``state`` (the session at a glance, about 20 times a
+    second), ``cine`` (the frozen loop's frame numbers and times), ``result`` (what became of
+    a tool's request: a measurement, a saved capture, or why not), ``hello`` (the page's
+    settings: the console's limits and the track names).
+
+From the page (:data:`PageMessage`; anything else is refused and counted)
+    ``drawn`` (a frame was drawn: latency echo), ``scan`` (start/stop), ``clutch`` (on/off),
+    ``freeze`` (on/off), ``cine`` (send frame ``seq`` of the frozen loop), ``caliper`` (two
+    points on a frame, image px), ``annotation`` (a text at a point of a frame), ``capture``
+    (save a frame with its pose). Points are image pixels (x right, y down, from the
+    top-left corner of the image the header describes).
+"""
+
+from __future__ import annotations
+
+import struct
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
+
+FRAME_VERSION = 1
+TRACK_IDS = {"us": 0, "pov": 1}
+FLAG_CINE = 1
+_HEADER = struct.Struct("<BBBBIdffHHI")
+HEADER_SIZE = _HEADER.size  # 32
+MAX_PAGE_MESSAGE = 1024  # bytes: the longest is an annotation (text up to 200 characters)
+
+
+def frame_header(
+    track: str,
+    seq: int,
+    t_capture: float,
+    spacing_mm: tuple[float, float] | None,
+    width: int,
+    height: int,
+    cine: bool = False,
+) -> bytes:
+    """The 32-byte header of a frame message (see the module docstring)."""
+    row, col = spacing_mm if spacing_mm is not None else (0.0, 0.0)
+    return _HEADER.pack(
+        FRAME_VERSION, TRACK_IDS[track], FLAG_CINE if cine else 0, 0,
+        seq & 0xFFFFFFFF, t_capture, row, col, width, height, 0,
+    )  # fmt: skip
+
+
+def parse_header(data: bytes) -> dict:
+    """The header's fields (for tests and tools)."""
+    v, track, flags, _, seq, t, row, col, w, h, _ = _HEADER.unpack_from(data)
+    names = {i: n for n, i in TRACK_IDS.items()}
+    return {
+        "version": v, "track": names[track], "cine": bool(flags & FLAG_CINE), "seq": seq,
+        "t_capture": t, "spacing_mm": (row, col), "width": w, "height": h,
+    }  # fmt: skip
+
+
+class _Msg(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+
+Px = Annotated[float, Field(ge=-1e5, le=1e5, allow_inf_nan=False)]
+Point = tuple[Px, Px]
+Seq = Annotated[int, Field(ge=0, le=0xFFFFFFFF)]
+
+
+class Drawn(_Msg):
+    """Frame ``seq`` of ``track`` was drawn (first time), and this was sent
+    ``draw_to_send_ms`` after the draw call."""
+
+    type: Literal["drawn"]
+    track: Literal["us", "pov"]
+    seq: Seq
+    draw_to_send_ms: float = Field(ge=0.0, le=10_000.0, allow_inf_nan=False)
+
+
+class ScanCommand(_Msg):
+    type: Literal["scan"]
+    action: Literal["start", "stop"]
+
+
+class ClutchCommand(_Msg):
+    type: Literal["clutch"]
+    on: bool
+
+
+class Freeze(_Msg):
+    """Freeze the ultrasound (``on``) or go back to live."""
+
+    type: Literal["freeze"]
+    on: bool
+
+
+class CineRequest(_Msg):
+    """Send frame ``seq`` of the frozen loop."""
+
+    type: Literal["cine"]
+    seq: Seq
+
+
+class Caliper(_Msg):
+    """A distance between ``a`` and ``b`` (image px) on ultrasound frame ``seq``."""
+
+    type: Literal["caliper"]
+    seq: Seq
+    a: Point
+    b: Point
+
+
+class Annotation(_Msg):
+    """``text`` at ``at`` (image px) on ultrasound frame ``seq``."""
+
+    type: Literal["annotation"]
+    seq: Seq
+    at: Point
+    text: str = Field(min_length=1, max_length=200)
+
+
+class Capture(_Msg):
+    """Save ultrasound frame ``seq`` with its pose."""
+
+    type: Literal["capture"]
+    seq: Seq
+
+
+PageMessage = Annotated[
+    Drawn | ScanCommand | ClutchCommand | Freeze | CineRequest | Caliper | Annotation | Capture,
+    Field(discriminator="type"),
+]
+PAGE_MESSAGE = TypeAdapter(PageMessage)

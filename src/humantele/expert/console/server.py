@@ -1,0 +1,659 @@
+"""The sonographer's console: one aiohttp server on loopback, a page and a WebSocket.
+
+``GET /`` is the page (:mod:`humantele.expert.console` ``web/``), ``GET /web/...`` its files,
+``GET /ws`` the WebSocket (see :mod:`humantele.expert.console.messages`). The server takes the
+latest frame of each track from a :class:`~humantele.expert.console.frames.FrameProvider`,
+encodes it as JPEG once (in a thread) and sends it to the page, latest wins: a slow page sees
+the newest frame, never a backlog (``coalesced`` counts the frames it skipped); the cine
+buffer keeps the very bytes the page drew. Why JPEG and not a local WebRTC relay: see
+docs/console.md.
+
+The session's state (:class:`~humantele.expert.console.session.ConsoleSession`) goes to the
+page ``state_rate_hz`` times a second with each track's age, so the page shows stale data as
+stale. The page's tools (freeze and cine, calipers, annotations, capture) come back as
+messages; each is recorded on ``/expert/console`` when the session records, and a capture is
+saved in ``captures_dir`` (and attached to the recording).
+
+Served on loopback only, plain http (a loopback page is a secure context): the console drives
+the session (scans, clutch), so another machine reaches it through an SSH tunnel. Requests
+whose ``Host`` is not a loopback name are refused (DNS rebinding), as are WebSockets from
+another origin, a second console while one is open (``max_clients``), and page messages that
+are malformed, unknown or too many; all are counted in ``refused`` and the daemon goes on.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import math
+import time
+from collections import Counter, OrderedDict, deque
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from aiohttp import WSMsgType, web
+from pydantic import Field, ValidationError, field_validator
+
+from humantele.config import ConfigModel
+from humantele.expert.console.captures import save_capture
+from humantele.expert.console.cine import CineBuffer, CineFrame
+from humantele.expert.console.frames import TRACKS, FrameProvider
+from humantele.expert.console.messages import (
+    MAX_PAGE_MESSAGE,
+    PAGE_MESSAGE,
+    Annotation,
+    Caliper,
+    Capture,
+    CineRequest,
+    ClutchCommand,
+    Drawn,
+    Freeze,
+    ScanCommand,
+    frame_header,
+)
+from humantele.expert.console.session import ConsoleSession
+from humantele.signaling.messages import is_loopback
+from humantele.video.base import VideoFrame
+from humantele.web.guard import MessageBudget, origin_allowed
+
+log = logging.getLogger(__name__)
+
+WEB_DIR = Path(str(resources.files("humantele.expert.console") / "web"))
+LATENCIES_KEPT = 20000
+IN_FLIGHT = 2  # frames of a track sent to a page and not yet drawn; more wait (latest wins)
+IN_FLIGHT_TIMEOUT_S = 0.5  # a page that echoes nothing for this long gets the next frame
+SEQS_KEPT = 256  # frames per track whose times are kept for the page's echoes
+FLOOD_CLOSE = 600
+
+
+class ConsoleConfig(ConfigModel):
+    """The console page (``[expert.console]``): where it is served and what it keeps."""
+
+    enabled: bool = True
+    host: str = Field("127.0.0.1", description="loopback only (an SSH tunnel for elsewhere)")
+    port: int = Field(8767, ge=0, le=65535, description="0 picks a free one")
+    video: str = Field(
+        "auto",
+        pattern=r"^(auto|received|sim|none)$",
+        description="'received': the follower's tracks; 'sim': sim sources here (a stand-in); "
+        "'auto': received when the daemon has a receiver, else sim; 'none'",
+    )
+    us_pixel_spacing_mm: tuple[float, float] | None = Field(
+        None,
+        description="(row, col) mm per pixel of the received ultrasound frames; None: no "
+        "calipers (a sim or local source gives its own)",
+    )
+    jpeg_quality: int = Field(88, ge=30, le=100)
+    poll_hz: float = Field(250.0, gt=0, le=2000, description="how often new frames are looked for")
+    state_rate_hz: float = Field(20.0, gt=0, le=100)
+    stale_after_s: float = Field(1.0, gt=0, le=60, description="older video or pose: stale")
+    cine_seconds: float = Field(10.0, gt=0, le=60)
+    captures_dir: str = Field(
+        "~/.local/state/humantele/captures", description="captured frames and their poses"
+    )
+    max_clients: int = Field(1, ge=1, le=8, description="consoles at once; more are refused")
+    page_rate_hz: float = Field(80.0, gt=0, le=1000, description="page messages a second")
+
+    @field_validator("us_pixel_spacing_mm")
+    @classmethod
+    def _spacing(cls, v: tuple[float, float] | None) -> tuple[float, float] | None:
+        if v is not None and not all(math.isfinite(x) and 0.001 <= x <= 10.0 for x in v):
+            raise ValueError(f"pixel spacing {v} mm: each must be within 0.001-10 mm")
+        return v
+
+    @field_validator("host")
+    @classmethod
+    def _loopback(cls, v: str) -> str:
+        if not is_loopback(v):
+            raise ValueError(
+                f"the console is served on loopback only, not {v!r} (it drives the session; "
+                "reach it from another machine through an SSH tunnel)"
+            )
+        return v
+
+
+class _Client:
+    def __init__(self, ws: web.WebSocketResponse, budget: MessageBudget) -> None:
+        self.ws = ws
+        self.budget = budget
+        self.pending: dict[str, str | bytes] = {}
+        self.wake = asyncio.Event()
+        self.flooding = 0
+        self.last_drawn: dict[str, int] = {}
+        # Frames sent and not yet drawn, per track (seq, when sent): a page that draws slower
+        # than frames come gets the newest when it is ready, not a queue in the socket.
+        self.in_flight: dict[str, deque[tuple[int, float]]] = {t: deque() for t in TRACKS}
+
+    def can_take(self, track: str, now: float, timeout_s: float) -> bool:
+        q = self.in_flight[track]
+        while q and now - q[0][1] > timeout_s:
+            q.popleft()
+        return len(q) < IN_FLIGHT
+
+    def drawn(self, track: str, seq: int) -> None:
+        q = self.in_flight[track]
+        while q and q[0][0] <= seq:
+            q.popleft()
+
+
+class _Track:
+    """What the server knows of one track: its last frame, when it came, its rate."""
+
+    def __init__(self) -> None:
+        self.seq: int | None = None
+        self.t_capture: float | None = None
+        self.t_seen: float | None = None
+        self.size: tuple[int, int] | None = None
+        self.spacing: tuple[float, float] | None = None
+        self.times: OrderedDict[int, tuple[float, float]] = OrderedDict()  # seq -> capture, seen
+        self.arrivals: deque[float] = deque(maxlen=200)
+        self.frames = 0
+        self.encode_s: deque[float] = deque(maxlen=500)
+        self.capture_to_draw: deque[float] = deque(maxlen=LATENCIES_KEPT)
+        self.seen_to_draw: deque[float] = deque(maxlen=LATENCIES_KEPT)
+        self.drawn = 0
+
+    def rate_hz(self, now: float, window_s: float = 2.0) -> float:
+        n = sum(1 for t in self.arrivals if now - t <= window_s)
+        return round(n / window_s, 1)
+
+
+class ConsoleServer:
+    """The console's server. ``frames``: the video; ``session``: the session's state and
+    commands; ``clock``: the expert's clock (the frames' ``t_capture`` are on it)."""
+
+    def __init__(
+        self,
+        config: ConsoleConfig,
+        frames: FrameProvider | None,
+        session: ConsoleSession,
+        clock=time.monotonic,
+        video: str | None = None,
+        on_demand: Any = None,
+    ) -> None:
+        self.config = config
+        self.video = "none" if frames is None else (video or config.video)
+        # Sources that run only while a page is open (sim video: no CPU without a viewer):
+        # ``start()`` when the first page connects, ``stop()`` when the last one leaves.
+        self.on_demand = on_demand
+        self.frames = frames
+        self.session = session
+        self.clock = clock
+        self.port: int | None = None
+        self.clients: set[_Client] = set()
+        self.tracks = {t: _Track() for t in TRACKS}
+        self.cine = CineBuffer(config.cine_seconds)
+        self.sent = 0
+        self.coalesced = 0
+        self.refused: Counter[str] = Counter()
+        self.disconnects = 0
+        self.events: Counter[str] = Counter()
+        self.captures: list[str] = []
+        self._runner: web.AppRunner | None = None
+        self._tasks: list[asyncio.Task] = []
+        self._closing = False
+        self.in_flight_timeout_s = IN_FLIGHT_TIMEOUT_S
+        self._index = (WEB_DIR / "index.html").read_bytes()
+
+    @property
+    def url(self) -> str:
+        host = self.config.host
+        host = f"[{host}]" if ":" in host else host
+        return f"http://{host}:{self.port}/"
+
+    def banner(self) -> str:
+        return f"console {self.url}"
+
+    # --- server ---------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        app = web.Application(middlewares=[self._host_guard])
+        app.router.add_get("/", self._page)
+        app.router.add_get("/ws", self._handle)
+        app.router.add_static("/web/", WEB_DIR, follow_symlinks=False)
+        self._runner = web.AppRunner(app, handle_signals=False, access_log=None)
+        await self._runner.setup()
+        site = web.TCPSite(self._runner, self.config.host, self.config.port)
+        await site.start()
+        self.port = site._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
+        if self.frames is not None:
+            for track in TRACKS:
+                self._tasks.append(asyncio.create_task(self._pump_video(track)))
+        self._tasks.append(asyncio.create_task(self._pump_state()))
+
+    async def stop(self) -> None:
+        self._closing = True  # a page reconnecting now is turned away (cleanup waits for pages)
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        self._tasks.clear()
+        for c in list(self.clients):
+            with contextlib.suppress(Exception):
+                await c.ws.close()
+        if self._runner is not None:
+            await self._runner.cleanup()
+            self._runner = None
+
+    @web.middleware
+    async def _host_guard(self, request: web.Request, handler):
+        if not is_loopback(_hostname(request.host or "")):
+            self.refused["host"] += 1
+            return web.Response(status=403, text="the console answers on loopback names only\n")
+        return await handler(request)
+
+    async def _page(self, request: web.Request) -> web.Response:
+        return web.Response(
+            body=self._index,
+            content_type="text/html",
+            charset="utf-8",
+            headers={
+                "Cache-Control": "no-cache",
+                "Content-Security-Policy": (
+                    "default-src 'self'; script-src 'self'; connect-src 'self'; "
+                    "img-src 'self' data: blob:; style-src 'self'; object-src 'none'; "
+                    "base-uri 'none'; frame-ancestors 'none'"
+                ),
+            },
+        )
+
+    # --- to the page ----------------------------------------------------------------------
+
+    def _post(self, key: str, data: str | bytes) -> None:
+        for c in self.clients:
+            if key in c.pending:
+                self.coalesced += 1
+            c.pending[key] = data
+            c.wake.set()
+
+    def _post_one(self, client: _Client, key: str, data: str | bytes) -> None:
+        client.pending[key] = data
+        client.wake.set()
+
+    async def _send_loop(self, client: _Client) -> None:
+        try:
+            while not client.ws.closed:
+                try:
+                    await asyncio.wait_for(client.wake.wait(), self.in_flight_timeout_s)
+                except TimeoutError:
+                    pass
+                client.wake.clear()
+                now = time.monotonic()
+                batch, client.pending = client.pending, {}
+                for key, data in batch.items():
+                    track = key[6:] if key.startswith("frame:") else None
+                    if track in TRACKS:
+                        if not client.can_take(track, now, self.in_flight_timeout_s):
+                            client.pending[key] = data  # held until the page draws one
+                            continue
+                        seq = int.from_bytes(data[4:8], "little")
+                        client.in_flight[track].append((seq, now))
+                    if isinstance(data, bytes):
+                        await client.ws.send_bytes(data)
+                    else:
+                        await client.ws.send_str(data)
+                    self.sent += 1
+        except (ConnectionError, RuntimeError) as exc:
+            log.debug("console page gone: %s", exc)
+
+    async def _pump_video(self, track: str) -> None:
+        """Look for a new frame of ``track`` ``poll_hz`` times a second; encode, send, keep."""
+        period = 1.0 / self.config.poll_hz
+        st = self.tracks[track]
+        while True:
+            await asyncio.sleep(period)
+            try:
+                frame = self.frames.latest(track) if self.frames is not None else None
+            except Exception:  # noqa: BLE001 - a provider's failure is no reason to stop
+                self.refused["provider_error"] += 1
+                continue
+            if frame is None or frame.seq == st.seq:
+                continue
+            seen = self.clock()
+            try:
+                packet, cine = await asyncio.to_thread(self._encode, track, frame)
+            except (cv2.error, ValueError) as exc:
+                self.refused["bad_frame"] += 1
+                log.debug("console: %s frame %s not encoded: %s", track, frame.seq, exc)
+                st.seq = frame.seq
+                continue
+            st.encode_s.append(self.clock() - seen)
+            st.seq, st.t_capture, st.t_seen = frame.seq, frame.t_capture, seen
+            st.size, st.spacing = (frame.width, frame.height), frame.pixel_spacing_mm
+            st.times[frame.seq] = (frame.t_capture, seen)
+            while len(st.times) > SEQS_KEPT:
+                st.times.popitem(last=False)
+            st.arrivals.append(seen)
+            st.frames += 1
+            if cine is not None:
+                self.cine.add(cine)
+            self._post(f"frame:{track}", packet)
+
+    def _encode(self, track: str, frame: VideoFrame) -> tuple[bytes, CineFrame | None]:
+        image = frame.image
+        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+            raise ValueError(f"not a BGR uint8 image: {image.shape} {image.dtype}")
+        ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.config.jpeg_quality])
+        if not ok:
+            raise ValueError("JPEG encoding failed")
+        jpeg = buf.tobytes()
+        spacing = frame.pixel_spacing_mm
+        if spacing is not None and not all(math.isfinite(s) and s > 0 for s in spacing):
+            spacing = None
+        header = frame_header(track, frame.seq, frame.t_capture, spacing, frame.width, frame.height)
+        cine = None
+        if track == "us":
+            cine = CineFrame(frame.seq, frame.t_capture, jpeg, frame.width, frame.height, spacing)
+        return header + jpeg, cine
+
+    async def _pump_state(self) -> None:
+        period = 1.0 / self.config.state_rate_hz
+        while True:
+            await asyncio.sleep(period)
+            if not self.clients:
+                continue
+            try:
+                snap = self.state()
+            except Exception:  # noqa: BLE001 - the session's failure is shown, not raised
+                self.refused["snapshot_error"] += 1
+                log.exception("console: session snapshot failed")
+                snap = {"type": "state", "error": "the expert daemon's state is unavailable"}
+            self._post("state", json.dumps(_clean(snap), separators=(",", ":")))
+
+    def state(self) -> dict[str, Any]:
+        """The ``state`` message: the session's snapshot, each track's age, the console's."""
+        now = self.clock()
+        snap = dict(self.session.snapshot())
+        stale_ms = self.config.stale_after_s * 1000.0
+        video = {}
+        for track, st in self.tracks.items():
+            age = None if st.t_capture is None else (now - st.t_capture) * 1000.0
+            video[track] = {
+                "seq": st.seq,
+                "age_ms": age,
+                "fps": st.rate_hz(now),
+                "stale": age is None or age > stale_ms,
+                "size": st.size,
+            }
+        link = snap.get("link") or {}
+        pose_age = link.get("pose_age_ms")
+        link["stale"] = link.get("state") != "connected" or pose_age is None or pose_age > stale_ms
+        snap["link"] = link
+        if self.video == "sim" and link["stale"]:  # rendered from the follower's pose: no
+            for v in video.values():  # fresh pose, no live picture
+                v["stale"] = True
+        snap.update(
+            type="state",
+            video=video,
+            cine={"frozen": self.cine.frozen, "frames": len(self.cine)},
+            stale_after_ms=stale_ms,
+        )
+        return snap
+
+    # --- from the page --------------------------------------------------------------------
+
+    async def _handle(self, request: web.Request) -> web.StreamResponse:
+        if not origin_allowed(request):
+            self.refused["origin"] += 1
+            return web.Response(status=403, text="wrong origin\n")
+        if self._closing:
+            return web.Response(status=503, text="the expert daemon is stopping\n")
+        if len(self.clients) >= self.config.max_clients:
+            self.refused["second_console"] += 1
+            return web.Response(status=409, text="the console is open in another window\n")
+        ws = web.WebSocketResponse(heartbeat=5.0, max_msg_size=MAX_PAGE_MESSAGE)
+        await ws.prepare(request)
+        rate = self.config.page_rate_hz
+        client = _Client(ws, MessageBudget(rate, max(1, int(2 * rate))))
+        self.clients.add(client)
+        if len(self.clients) == 1 and self.on_demand is not None:
+            self.on_demand.start()
+        hello = {
+            "type": "hello",
+            "cine_seconds": self.config.cine_seconds,
+            "stale_after_ms": self.config.stale_after_s * 1000.0,
+            "video": self.video,
+        }
+        self._post_one(client, "hello", json.dumps(hello))
+        self._post_one(client, "state", json.dumps(_clean(self.state())))
+        if self.cine.frozen:
+            self._post_one(client, "cine", self._cine_index())
+        sender = asyncio.create_task(self._send_loop(client))
+        try:
+            async for msg in ws:
+                if msg.type == WSMsgType.ERROR:
+                    self.refused["socket_error"] += 1
+                    break
+                if not client.budget.take():
+                    self.refused["flood"] += 1
+                    client.flooding += 1
+                    if client.flooding >= FLOOD_CLOSE:
+                        self.refused["closed_flooding"] += 1
+                        await ws.close(message=b"flood")
+                        break
+                    continue
+                client.flooding = 0
+                if msg.type != WSMsgType.TEXT:
+                    self.refused["malformed"] += 1
+                    continue
+                try:
+                    self.on_page_message(client, msg.data)
+                except Exception:  # noqa: BLE001 - never let a page end the daemon
+                    self.refused["failed"] += 1
+                    log.exception("console: page message failed")
+        finally:
+            self.clients.discard(client)
+            self.disconnects += 1
+            sender.cancel()
+            await asyncio.gather(sender, return_exceptions=True)
+            if not self.clients and self.on_demand is not None:
+                await asyncio.to_thread(self.on_demand.stop)
+        return ws
+
+    def on_page_message(self, client: _Client, text: str) -> None:
+        arrival = self.clock()
+        try:
+            m = PAGE_MESSAGE.validate_json(text)
+        except ValidationError:
+            self.refused["malformed"] += 1
+            return
+        if isinstance(m, Drawn):
+            self._on_drawn(client, m, arrival)
+        elif isinstance(m, ScanCommand):
+            if m.action == "start":
+                self.session.start_scan()
+            else:
+                self.session.stop_scan()
+            self.events[f"scan_{m.action}"] += 1
+        elif isinstance(m, ClutchCommand):
+            self.session.set_clutch(m.on)
+            self.events["clutch_on" if m.on else "clutch_off"] += 1
+        elif isinstance(m, Freeze):
+            self._on_freeze(m.on)
+        elif isinstance(m, CineRequest):
+            self._on_cine(client, m.seq)
+        elif isinstance(m, Caliper | Annotation | Capture):
+            self._on_tool(client, m)
+
+    def _on_drawn(self, client: _Client, m: Drawn, arrival: float) -> None:
+        client.drawn(m.track, m.seq)
+        client.wake.set()
+        st = self.tracks[m.track]
+        times = st.times.get(m.seq)
+        if times is None:
+            self.refused["unknown_frame"] += 1
+            return
+        if m.seq <= client.last_drawn.get(m.track, -1):
+            self.refused["repeated_frame"] += 1
+            return
+        client.last_drawn[m.track] = m.seq
+        d = m.draw_to_send_ms / 1000.0
+        t_capture, t_seen = times
+        to_draw = arrival - d - t_seen
+        if not -0.001 <= to_draw <= 10.0:
+            self.refused["implausible"] += 1
+            return
+        st.drawn += 1
+        st.seen_to_draw.append(max(0.0, to_draw))
+        st.capture_to_draw.append(arrival - d - t_capture)
+
+    def _on_freeze(self, on: bool) -> None:
+        if on:
+            self.cine.freeze()
+        else:
+            self.cine.resume()
+        self.events["freeze" if on else "live"] += 1
+        newest = self.cine.newest()
+        self._record(
+            "freeze" if on else "live",
+            {} if newest is None else {"seq": newest.seq, "t_capture": newest.t_capture},
+        )
+        if on:
+            self._post("cine", self._cine_index())
+
+    def _cine_index(self) -> str:
+        t0 = self.cine.newest().t_capture if len(self.cine) else 0.0
+        frames = [[seq, round(t - t0, 4)] for seq, t in self.cine.index()]
+        return json.dumps({"type": "cine", "frozen": self.cine.frozen, "frames": frames})
+
+    def _on_cine(self, client: _Client, seq: int) -> None:
+        f = self.cine.get(seq)
+        if f is None:
+            self.refused["unknown_frame"] += 1
+            self._result(client, "cine", False, f"frame {seq} is no longer in the cine buffer")
+            return
+        header = frame_header(
+            "us", f.seq, f.t_capture, f.pixel_spacing_mm, f.width, f.height, cine=True
+        )
+        self._post_one(client, "frame:cine", header + f.jpeg)
+
+    def _on_tool(self, client: _Client, m: Caliper | Annotation | Capture) -> None:
+        f = self.cine.get(m.seq)
+        if f is None:
+            self.refused["unknown_frame"] += 1
+            self._result(client, m.type, False, f"frame {m.seq} is no longer in the cine buffer")
+            return
+        base = {"seq": f.seq, "t_capture": f.t_capture}
+        if isinstance(m, Caliper):
+            if f.pixel_spacing_mm is None:
+                self._result(
+                    client, "caliper", False,
+                    "no pixel spacing for this image: set [expert.console] us_pixel_spacing_mm",
+                )  # fmt: skip
+                return
+            row, col = f.pixel_spacing_mm
+            mm = math.hypot((m.b[0] - m.a[0]) * col, (m.b[1] - m.a[1]) * row)
+            self.events["caliper"] += 1
+            self._record("caliper", {**base, "mm": mm, "a_px": m.a, "b_px": m.b})
+            self._result(client, "caliper", True, f"{mm:.1f} mm", mm=mm, seq=f.seq)
+        elif isinstance(m, Annotation):
+            text = " ".join(m.text.split())
+            if not text:
+                self._result(client, "annotation", False, "empty text")
+                return
+            self.events["annotation"] += 1
+            self._record("annotation", {**base, "text": text, "a_px": m.at})
+            self._result(client, "annotation", True, text, seq=f.seq)
+        else:
+            self._capture(client, f, base)
+
+    def _capture(self, client: _Client, f: CineFrame, base: dict[str, Any]) -> None:
+        pose = self.session.pose_at(f.t_capture)
+        info: dict[str, Any] = {
+            "seq": f.seq,
+            "t_capture_s": f.t_capture,
+            "pixel_spacing_mm": f.pixel_spacing_mm,
+            "width": f.width,
+            "height": f.height,
+            "frame": "T_patient_probe: patient frame, m; quaternion (x, y, z, w)",
+            "pose": pose,
+        }
+        rec = self.session.recorder
+        if rec is not None:
+            info["session_id"] = rec.metadata.get("session_id")
+        try:
+            path = save_capture(Path(self.config.captures_dir).expanduser(), f.seq, f.jpeg, info)
+        except OSError as exc:
+            self.refused["capture_failed"] += 1
+            log.error("console: capture not saved: %s", exc)
+            self._result(client, "capture", False, f"not saved: {exc.strerror or exc}")
+            return
+        self.events["capture"] += 1
+        self.captures.append(str(path))
+        payload = {**base, "file": path.name}
+        if pose is not None:
+            payload.update({k: v for k, v in pose.items() if k in _POSE_FIELDS})
+        self._record("capture", payload)
+        if rec is not None and hasattr(rec, "attach"):
+            rec.attach(path.name, "image/jpeg", f.jpeg, f.t_capture)
+        self._result(client, "capture", True, path.name, seq=f.seq, file=str(path))
+
+    def _result(self, client: _Client, of: str, ok: bool, detail: str, **more: Any) -> None:
+        msg = {"type": "result", "of": of, "ok": ok, "detail": detail, **more}
+        self._post_one(client, f"result:{of}", json.dumps(_clean(msg)))
+
+    def _record(self, event: str, payload: dict[str, Any]) -> None:
+        rec = self.session.recorder
+        if rec is not None:
+            rec.write("/expert/console", self.clock(), {"event": event, **payload})
+
+    # --- figures --------------------------------------------------------------------------
+
+    def stats(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "url": self.url if self.port else None,
+            "clients": len(self.clients),
+            "sent": self.sent,
+            "coalesced": self.coalesced,
+            "refused": dict(self.refused),
+            "refused_total": sum(self.refused.values()),
+            "disconnects": self.disconnects,
+            "events": dict(self.events),
+            "cine_frames": len(self.cine),
+            "captures": len(self.captures),
+        }
+        for track, st in self.tracks.items():
+            out[track] = {
+                "frames": st.frames,
+                "drawn": st.drawn,
+                "encode_p50_ms": _pct(st.encode_s, 50),
+                "seen_to_draw_p50_ms": _pct(st.seen_to_draw, 50),
+                "seen_to_draw_p95_ms": _pct(st.seen_to_draw, 95),
+                "capture_to_draw_p50_ms": _pct(st.capture_to_draw, 50),
+                "capture_to_draw_p95_ms": _pct(st.capture_to_draw, 95),
+            }
+        return out
+
+
+_POSE_FIELDS = ("position", "quaternion", "virtual_position", "virtual_quaternion")
+
+
+def _hostname(host: str) -> str:
+    """The name in a ``Host`` header: ``[::1]:8767`` -> ``::1``, ``localhost:8767`` ->
+    ``localhost``."""
+    if host.startswith("["):
+        return host[1:].split("]", 1)[0]
+    return host.rsplit(":", 1)[0] if host.count(":") == 1 else host
+
+
+def _pct(values_s: deque[float], q: float) -> float | None:
+    return round(float(np.percentile(values_s, q)) * 1000.0, 2) if values_s else None
+
+
+def _clean(obj: Any) -> Any:
+    """JSON-able copy with non-finite floats as null (JSON has no NaN)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _clean(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return _clean(obj.item())
+    if hasattr(obj, "tolist"):
+        return _clean(obj.tolist())
+    return obj

@@ -1,0 +1,394 @@
+// The sonographer's console: the ultrasound image large, the follower's view, the force,
+// the session at a glance. One WebSocket to the expert daemon (same origin, /ws): binary
+// messages are video frames (32-byte header + JPEG), text messages JSON (see the daemon's
+// humantele.expert.console.messages). Nothing stale is shown as live: each panel greys out
+// when its data is older than the daemon's stale_after_ms, or when this page hears nothing.
+
+import { ForcePlot } from "./plot.js";
+import { Marks } from "./tools.js";
+
+const $ = (id) => document.getElementById(id);
+const TRACKS = ["us", "pov"];
+const LOST_AFTER_MS = 1500; // no state message for this long: the daemon is out of reach
+const FORCE_BAR_MAX_N = 20;
+
+const plot = new ForcePlot($("plot"), 10);
+
+const app = {
+  ws: null,
+  hello: null,
+  state: null,
+  stateAt: -Infinity, // performance.now() of the last state message
+  frames: { us: 0, pov: 0 }, // frames drawn
+  lastFrame: { us: null, pov: null }, // {seq, at (page ms), width, height, spacing}
+  frozen: false,
+  cine: [], // [[seq, t rel. newest (s)], ...]
+  shown: null, // the ultrasound frame on screen: {seq, width, height, spacing, cine}
+  pendingCine: null,
+  cineInFlight: false,
+  results: [],
+  closedReason: null,
+  rxToDraw: [], // ms from a frame's arrival at the page to its draw call (last 500)
+};
+window.consoleApp = app;
+app.plot = plot;
+
+// --- the connection -------------------------------------------------------------------------
+
+function connect() {
+  const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`);
+  ws.binaryType = "arraybuffer";
+  app.ws = ws;
+  ws.onmessage = (ev) => (typeof ev.data === "string" ? onText(JSON.parse(ev.data)) : onFrame(ev.data));
+  ws.onclose = (ev) => {
+    app.ws = null;
+    app.closedReason = ev.reason || null;
+    setTimeout(connect, 1000);
+  };
+  ws.onerror = () => {};
+}
+
+function send(msg) {
+  if (app.ws && app.ws.readyState === WebSocket.OPEN) { app.ws.send(JSON.stringify(msg)); return true; }
+  return false;
+}
+
+function onText(m) {
+  if (m.type === "state") { app.state = m; app.stateAt = performance.now(); renderState(); }
+  else if (m.type === "hello") onHello(m);
+  else if (m.type === "cine") onCineIndex(m);
+  else if (m.type === "result") onResult(m);
+}
+
+function onHello(m) {
+  app.hello = m;
+  const sim = m.video === "sim" ? " (simulated here from the follower's pose)" : "";
+  document.querySelector("#us-panel .name").textContent = `Ultrasound${sim}`;
+  document.querySelector("#pov-panel .name").textContent = `Follower's view${m.video === "sim" ? " (simulated)" : ""}`;
+  if (m.video === "none") for (const t of TRACKS) $(`${t}-stale`).querySelector("b").textContent = "No video on this console";
+}
+
+// --- video ----------------------------------------------------------------------------------
+
+function parseHeader(buf) {
+  const v = new DataView(buf);
+  return {
+    version: v.getUint8(0), track: TRACKS[v.getUint8(1)], cine: (v.getUint8(2) & 1) === 1,
+    seq: v.getUint32(4, true), tCapture: v.getFloat64(8, true),
+    spacing: [v.getFloat32(16, true), v.getFloat32(20, true)],
+    width: v.getUint16(24, true), height: v.getUint16(26, true),
+  };
+}
+
+const decoding = { us: false, pov: false, cine: false };
+const waiting = { us: null, pov: null, cine: null };
+
+function onFrame(buf) {
+  const h = parseHeader(buf);
+  h.rx = performance.now();
+  if (h.version !== 1 || !h.track) return;
+  const lane = h.cine ? "cine" : h.track;
+  if (decoding[lane]) { waiting[lane] = { buf, h }; return; } // latest wins while one decodes
+  decode(lane, buf, h);
+}
+
+async function decode(lane, buf, h) {
+  decoding[lane] = true;
+  try {
+    const bitmap = await createImageBitmap(new Blob([new Uint8Array(buf, 32)], { type: "image/jpeg" }));
+    if (lane === "cine" || !(lane === "us" && app.frozen)) draw(h, bitmap);
+    else app.lastFrame.us = { seq: h.seq, at: performance.now(), ...h }; // frozen: not drawn
+    bitmap.close();
+  } catch (e) {
+    console.warn("frame not decoded", e);
+  }
+  decoding[lane] = false;
+  const next = waiting[lane];
+  waiting[lane] = null;
+  if (next) decode(lane, next.buf, next.h);
+}
+
+function draw(h, bitmap) {
+  const canvas = $(h.track);
+  if (canvas.width !== h.width || canvas.height !== h.height) {
+    canvas.width = h.width; canvas.height = h.height; fit();
+  }
+  const t0 = performance.now();
+  // A CPU canvas: drawing a decoded frame is a copy, with no GPU upload and read-back (on a
+  // software GPU, as in the headless tests, a GPU canvas halved the frame rate).
+  canvas.getContext("2d", { willReadFrequently: true }).drawImage(bitmap, 0, 0);
+  if (h.rx !== undefined) app.rxToDraw.push(t0 - h.rx);
+  if (app.rxToDraw.length > 500) app.rxToDraw.shift();
+  if (!h.cine) {
+    app.frames[h.track] += 1;
+    app.lastFrame[h.track] = { seq: h.seq, at: t0, ...h };
+    send({ type: "drawn", track: h.track, seq: h.seq, draw_to_send_ms: performance.now() - t0 });
+  }
+  if (h.track === "us") {
+    const spacing = h.spacing[0] > 0 ? h.spacing : null;
+    app.shown = { seq: h.seq, width: h.width, height: h.height, spacing, cine: h.cine };
+    marks.setFrame(h.seq, h.width, h.height, spacing);
+    if (h.cine) showCineTime(h.seq);
+  }
+}
+
+// Canvases fill their box keeping the image's aspect ratio; the marks overlay follows.
+function fit() {
+  for (const id of TRACKS) {
+    const canvas = $(id), box = canvas.parentElement;
+    const bw = box.clientWidth, bh = box.clientHeight;
+    if (!bw || !bh) continue;
+    const s = Math.min(bw / canvas.width, bh / canvas.height);
+    canvas.style.width = `${Math.floor(canvas.width * s)}px`;
+    canvas.style.height = `${Math.floor(canvas.height * s)}px`;
+    if (id === "us") {
+      const o = $("us-marks");
+      o.style.width = canvas.style.width; o.style.height = canvas.style.height;
+      marks.draw();
+    }
+  }
+}
+window.addEventListener("resize", fit);
+const boxWatch = new ResizeObserver(() => fit());
+for (const id of TRACKS) boxWatch.observe($(`${id}-box`));
+
+// --- freeze and cine ------------------------------------------------------------------------
+
+function setFrozen(on) {
+  if (!send({ type: "freeze", on })) return;
+  app.frozen = on;
+  marks.visible = on;
+  $("us-marks").hidden = !on; // the marks layer exists on a frozen image only
+  document.body.dataset.frozen = String(on);
+  $("freeze").textContent = on ? "Live" : "Freeze";
+  $("freeze").dataset.frozen = String(on);
+  $("frozen-tag").hidden = !on;
+  for (const id of ["tool-caliper", "tool-note", "clear"]) $(id).disabled = !on;
+  $("cine").disabled = !on;
+  if (!on) {
+    setTool("none");
+    marks.clearAll();
+    app.cine = [];
+    $("cine").max = "0"; $("cine").value = "0";
+    $("cine-time").textContent = "live";
+  }
+}
+
+function onCineIndex(m) {
+  app.cine = m.frames;
+  const slider = $("cine");
+  slider.max = String(Math.max(0, m.frames.length - 1));
+  const shown = app.shown ? m.frames.findIndex((f) => f[0] === app.shown.seq) : -1;
+  slider.value = String(shown >= 0 ? shown : m.frames.length - 1);
+  if (shown < 0 && m.frames.length) requestCine(m.frames[m.frames.length - 1][0]);
+  else if (app.shown) showCineTime(app.shown.seq);
+}
+
+function requestCine(seq) {
+  if (app.cineInFlight) { app.pendingCine = seq; return; }
+  app.cineInFlight = true;
+  send({ type: "cine", seq });
+}
+
+function showCineTime(seq) {
+  app.cineInFlight = false;
+  if (app.pendingCine !== null && app.pendingCine !== seq) {
+    const s = app.pendingCine; app.pendingCine = null; requestCine(s);
+  }
+  const f = app.cine.find((e) => e[0] === seq);
+  if (f) $("cine-time").textContent = `${f[1].toFixed(2)} s`;
+}
+
+$("freeze").onclick = () => setFrozen(!app.frozen);
+$("cine").oninput = (ev) => {
+  const f = app.cine[Number(ev.target.value)];
+  if (f) requestCine(f[0]);
+};
+
+// --- calipers, annotations, capture ---------------------------------------------------------
+
+const marks = new Marks($("us-marks"), send);
+app.marks = marks;
+
+function setTool(tool) {
+  marks.tool = tool;
+  marks.cancel();
+  $("us-box").dataset.tool = tool;
+  $("tool-caliper").setAttribute("aria-pressed", String(tool === "caliper"));
+  $("tool-note").setAttribute("aria-pressed", String(tool === "note"));
+  $("note-input").hidden = true;
+}
+setTool("none");
+
+$("tool-caliper").onclick = () => setTool(marks.tool === "caliper" ? "none" : "caliper");
+$("tool-note").onclick = () => setTool(marks.tool === "note" ? "none" : "note");
+$("clear").onclick = () => marks.clearFrame();
+$("capture").onclick = () => capture();
+
+function capture() {
+  const f = app.frozen ? app.shown : app.lastFrame.us;
+  if (!f) { showResult({ of: "capture", ok: false, detail: "no ultrasound frame to capture" }); return; }
+  send({ type: "capture", seq: f.seq });
+}
+
+let notePoint = null;
+$("us-marks").addEventListener("click", (ev) => {
+  if (!app.frozen) return;
+  const p = marks.point(ev);
+  if (marks.tool === "caliper") marks.click(p);
+  else if (marks.tool === "note") {
+    notePoint = p;
+    const input = $("note-input"), box = $("us-box").getBoundingClientRect();
+    input.style.left = `${Math.min(ev.clientX - box.left, box.width - 230)}px`;
+    input.style.top = `${ev.clientY - box.top + 8}px`;
+    input.value = "";
+    input.hidden = false;
+    input.focus();
+  }
+});
+$("us-marks").addEventListener("mousemove", (ev) => {
+  if (marks.start) { marks.hover = marks.point(ev); marks.draw(); }
+});
+$("note-input").addEventListener("keydown", (ev) => {
+  ev.stopPropagation();
+  if (ev.key === "Enter") {
+    const text = ev.target.value.trim();
+    if (text && notePoint) marks.note(notePoint, text);
+    ev.target.hidden = true;
+  } else if (ev.key === "Escape") ev.target.hidden = true;
+});
+
+function onResult(m) {
+  if (m.of === "caliper" && m.ok) marks.confirm(m);
+  showResult(m);
+  app.results.push(m);
+}
+
+function showResult(m) {
+  const names = { caliper: "Caliper", annotation: "Annotation", capture: "Captured", cine: "Cine" };
+  const el = $("tool-result");
+  el.dataset.ok = String(m.ok);
+  el.textContent = `${names[m.of] || m.of}: ${m.detail}`;
+}
+
+document.addEventListener("keydown", (ev) => {
+  if (ev.target instanceof HTMLInputElement && ev.target.type === "text") return;
+  const k = ev.key.toLowerCase();
+  if (k === "f") setFrozen(!app.frozen);
+  else if (k === "c" && app.frozen) setTool(marks.tool === "caliper" ? "none" : "caliper");
+  else if (k === "a" && app.frozen) setTool(marks.tool === "note" ? "none" : "note");
+  else if (k === "s") capture();
+  else if (k === "escape") setTool("none");
+  else if ((k === "arrowleft" || k === "arrowright") && app.frozen) {
+    const s = $("cine"), v = Number(s.value) + (k === "arrowleft" ? -1 : 1);
+    if (v >= 0 && v <= Number(s.max)) { s.value = String(v); s.dispatchEvent(new Event("input")); }
+  }
+});
+
+// --- scan and clutch ------------------------------------------------------------------------
+
+// The button does what it says (its label is the state the sonographer saw when clicking).
+$("scan").onclick = () => send({ type: "scan", action: $("scan").dataset.scanning === "true" ? "stop" : "start" });
+$("clutch").onclick = () => {
+  const on = $("clutch").getAttribute("aria-pressed") !== "true";
+  if (send({ type: "clutch", on })) $("clutch").setAttribute("aria-pressed", String(on));
+};
+
+// --- the session at a glance ----------------------------------------------------------------
+
+// DOM writes only when a value changes: each write costs the page a style and layout pass
+// (and, on a software GPU, a repaint), which at display rate slowed the video.
+function setText(el, text) { if (el.textContent !== text) el.textContent = text; }
+function setData(el, key, value) { if (el.dataset[key] !== value) el.dataset[key] = value; }
+function setHidden(el, hidden) { if (el.hidden !== hidden) el.hidden = hidden; }
+
+const fmt = (v, digits = 1, unit = "") => (v === null || v === undefined ? "–" : `${Number(v).toFixed(digits)}${unit}`);
+
+function chip(id, level, text) {
+  const el = $(id);
+  setData(el, "level", level);
+  setText(el.querySelector(".v"), text);
+}
+
+function renderState() {
+  const s = app.state;
+  if (!s || s.error) return;
+  const link = s.link || {};
+  const connected = link.state === "connected";
+  chip("chip-link", !connected ? "bad" : link.stale ? "warn" : "ok",
+    !connected ? (link.state || "unknown")
+      : link.pose_age_ms == null ? "connected · no pose yet"
+      : link.stale ? `pose lost (${fmt(link.pose_age_ms / 1000, 1, " s")})`
+      : `connected · ${fmt(link.pose_age_ms, 0, " ms")}`);
+  const cal = s.calibration || {};
+  chip("chip-cal", cal.state === "calibrated" ? "ok" : cal.state === "calibrating" ? "warn" : "off",
+    cal.state === "calibrating" ? `press ${cal.landmark || "…"}` : cal.state || "–");
+  const al = s.alignment;
+  const alLevel = !al || link.stale ? "off" : al.mm <= 5 && al.deg <= 5 ? "ok" : al.mm <= 15 && al.deg <= 15 ? "warn" : "bad";
+  chip("chip-align", alLevel, !al || link.stale ? "–" : `${fmt(al.mm)} mm · ${fmt(al.deg)}°`);
+  const servo = s.servo || {};
+  chip("chip-servo", !servo.alive ? "bad" : servo.fault ? "bad" : "ok",
+    !servo.alive ? "servo stopped" : servo.fault ? `FAULT: ${servo.fault}` : `${fmt(servo.rate_hz, 0, " Hz")}`);
+  const rec = s.recording || {};
+  chip("chip-rec", rec.error ? "bad" : rec.on ? "rec" : "off", rec.error ? "FAILED" : rec.on ? "recording" : "off");
+  chip("chip-scan", s.scan ? "ok" : "off", s.scan ? `scan ${s.scan}` : "none");
+  setText($("scan"), s.scan ? `Stop scan ${s.scan}` : "Start scan");
+  setData($("scan"), "scanning", String(Boolean(s.scan)));
+  const clutch = s.clutch || {};
+  if ($("clutch").getAttribute("aria-pressed") !== String(Boolean(clutch.on))) {
+    $("clutch").setAttribute("aria-pressed", String(Boolean(clutch.on)));
+  }
+  setText($("clutch"), clutch.engaged ? "Clutch (engaged)" : "Clutch");
+  const f = s.force || {};
+  setText($("n-pose"), link.pose_age_ms == null ? "–" : link.stale ? "stale" : fmt(link.pose_age_ms, 0, " ms"));
+  setText($("n-fm"), link.stale ? "stale" : fmt(f.measured_n, 2, " N"));
+  setText($("n-fr"), fmt(f.rendered_n, 2, " N"));
+  setText($("n-servo"), servo.alive ? fmt(servo.rate_hz, 0, " Hz") : "stopped");
+  plot.add(performance.now(), link.stale ? null : f.measured_n ?? null, servo.alive ? f.rendered_n ?? null : null);
+  setData($("fbar"), "stale", String(Boolean(link.stale) || f.measured_n == null));
+  const width = `${Math.min(100, (100 * (f.measured_n || 0)) / FORCE_BAR_MAX_N).toFixed(1)}%`;
+  if ($("fbar-fill").style.width !== width) $("fbar-fill").style.width = width;
+  setText($("fbar-value"), link.stale || f.measured_n == null ? "–" : fmt(f.measured_n, 1, " N"));
+  plot.draw(performance.now());
+}
+
+
+function videoInfo(track) {
+  const s = app.state, v = s && s.video ? s.video[track] : null;
+  const last = app.lastFrame[track];
+  const staleMs = (app.hello && app.hello.stale_after_ms) || 1000;
+  const pageAge = last ? performance.now() - last.at : Infinity;
+  const stale = !v || v.stale || pageAge > staleMs || app.stateAge > LOST_AFTER_MS;
+  return { v, stale, pageAge, last };
+}
+
+// Ten times a second: staleness of the video and of the page's own link; the plot scrolls.
+function tick() {
+  const now = performance.now();
+  app.stateAge = now - app.stateAt;
+  const lost = app.stateAge > LOST_AFTER_MS;
+  setData(document.body, "conn", lost ? "lost" : "live");
+  setHidden($("lost"), !lost || (app.stateAt === -Infinity && !app.closedReason && now < 3000));
+  if (lost && app.closedReason) setText($("lost"), `The console is not connected: ${app.closedReason}`);
+  for (const track of TRACKS) {
+    const { v, stale, pageAge, last } = videoInfo(track);
+    const box = $(`${track}-box`), overlay = $(`${track}-stale`);
+    const frozenUs = track === "us" && app.frozen;
+    setData(box, "stale", String(stale && !frozenUs));
+    setHidden(overlay, !stale || frozenUs);
+    if (stale && !frozenUs) {
+      const age = v && v.age_ms != null ? v.age_ms / 1000 : last ? pageAge / 1000 : null;
+      setText(overlay.querySelector("span"), age === null ? "no frame received yet"
+        : `last frame ${age.toFixed(1)} s ago${lost ? " (daemon out of reach)" : ""}`);
+    }
+    const info = $(`${track}-info`);
+    if (frozenUs && app.shown) setText(info, `frozen · frame ${app.shown.seq}`);
+    else if (v && !stale) setText(info, `${fmt(v.fps, 0)} fps · ${fmt(v.age_ms, 0)} ms old`);
+    else setText(info, "not live");
+  }
+  if (lost) plot.draw(now); // no state messages: the plot still scrolls, with a gap
+}
+
+fit();
+connect();
+setInterval(tick, 100);

@@ -1,0 +1,56 @@
+"""``humantele demo`` with the sonographer's console open in headless Chromium (see
+scenarios/console_demo.py): the received videos play, the state is live, the scan button
+records scans,
+freeze + calipers measure right, tools are recorded, a second console is refused, and the
+page shows the daemons' end as not live."""
+
+import json
+import math
+
+import pytest
+
+
+@pytest.mark.slow
+def test_console_in_the_demo(browser_scenario):
+    run = browser_scenario("console_demo", timeout_s=900.0)
+    d = run.data
+    # The two received videos play: frames drawn, the picture changes, not black (the
+    # ultrasound is dark until the probe presses, but has its depth scale and counter).
+    for t, level in (("us", 0.0), ("pov", 10.0)):
+        before, after = d["pixels"]["before"][t], d["pixels"]["after"][t]
+        assert after["mean"] > level and before["hash"] != after["hash"], (t, before, after)
+    live = d["state_live"]
+    assert live["link"]["state"] == "connected" and live["servo"]["alive"]
+    assert live["recording"]["on"]  # calibration: whatever the follower has reported so far
+    assert live["calibration"]["state"] in ("not calibrated", "calibrating", "calibrated")
+    assert d["plot_draws"] > 10
+    # The scan button started and stopped scans, and the expert recorded them.
+    first, second = d["scans_clicked"]
+    assert d["scan_button"] == f"Stop scan {second}"
+    events = [(s["event"], s["scan"]) for s in d["recorded_scans"]]
+    assert ("start", first) in events and ("stop", first) in events
+    assert ("start", second) in events
+    # Freeze, cine, calipers: the distance is the pixel distance times the pixel spacing.
+    assert d["cine"]["frames"] > 5 and d["cine"]["time"].startswith("-")
+    c = d["caliper"]
+    assert c["server_mm"] == pytest.approx(c["page_mm"], rel=1e-6)  # f32 on the wire
+    assert c["server_mm"] == pytest.approx(c["asked_mm"], rel=0.01)
+    assert d["annotation"]["ok"] and d["capture"]["ok"]
+    rec = [e["event"] for e in d["recorded_console"]]
+    assert rec[:5] == ["freeze", "caliper", "annotation", "capture", "live"]
+    # A second console was refused and counted; the first went on.
+    assert d["second_state"] is True
+    stats = d["console_stats"]
+    assert stats["refused"].get("second_console", 0) >= 1
+    assert d["lost_overlay"] is True
+    us = stats["us"]
+    figure = {k: us[k] for k in ("seen_to_draw_p50_ms", "seen_to_draw_p95_ms",
+                                 "capture_to_draw_p50_ms", "capture_to_draw_p95_ms")}  # fmt: skip
+    figure["page_fps"] = d["page_fps"]
+    (run.out_dir / "console_latency.json").write_text(json.dumps(figure))
+    print(f"console: {figure}")
+    assert all(math.isfinite(v) for v in figure.values() if isinstance(v, float))
+    # The page logged nothing but the refused second console and its own reconnection
+    # attempts once the demo had stopped.
+    unexpected = [e for e in d["console_errors"] if "409" not in e and "REFUSED" not in e]
+    assert unexpected == []

@@ -1,0 +1,406 @@
+"""The console's server against sim video (real sim frames) and a session of our own: frames
+reach the page in order and readable, the state says what is stale, the tools measure, save
+and record, and bad input is refused and counted while the server goes on."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import time
+
+import aiohttp
+import cv2
+import numpy as np
+import pytest
+
+from humantele.expert.console import ConsoleConfig, ConsoleServer, SourceFrames
+from humantele.expert.console.cine import CineBuffer, CineFrame
+from humantele.expert.console.hook import PoseHistory, alignment
+from humantele.expert.console.messages import HEADER_SIZE, parse_header
+from humantele.geometry import Pose
+from humantele.recording import Recorder
+from humantele.recording.reader import read_recording
+from humantele.video.counter import read_counter
+from humantele.video.scene import DemoScene
+from humantele.video.sim_pov import SimPov, SimPovConfig
+from humantele.video.sim_ultrasound import SimUltrasound, SimUltrasoundConfig
+
+
+class FakeClock:
+    def __init__(self, t: float = 100.0) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+class Session:
+    """A session as the console sees it: fixed state, commands remembered."""
+
+    def __init__(self, recorder=None) -> None:
+        self.recorder = recorder
+        self.commands: list[tuple] = []
+        self.scan = None
+        self.link = {"state": "connected", "pose_age_ms": 12.0}
+
+    def snapshot(self) -> dict:
+        return {
+            "link": dict(self.link),
+            "scan": self.scan,
+            "force": {"measured_n": 4.0, "rendered_n": 1.5, "contact": True},
+            "alignment": {"mm": 3.0, "deg": math.nan},  # a NaN must reach the page as null
+        }
+
+    def pose_at(self, t: float):
+        return {"position": [0.01, 0.02, 0.03], "quaternion": [0.0, 0.0, 0.0, 1.0]}
+
+    def start_scan(self) -> int:
+        self.commands.append(("scan", "start"))
+        self.scan = 1
+        return 1
+
+    def stop_scan(self) -> None:
+        self.commands.append(("scan", "stop"))
+        self.scan = None
+
+    def set_clutch(self, on: bool) -> None:
+        self.commands.append(("clutch", on))
+
+
+class ManualFrames:
+    """A provider whose frames the test renders from the sim sources, one at a time."""
+
+    def __init__(self, clock: FakeClock) -> None:
+        scene = DemoScene(clock=clock)
+        self.us = SimUltrasound(SimUltrasoundConfig(width=320, height=240), scene, clock=clock)
+        self.pov = SimPov(SimPovConfig(width=320, height=180), scene, clock=clock)
+        self.scene = scene
+        self.frames: dict = {}
+
+    def next(self, track: str):
+        src = self.us if track == "us" else self.pov
+        self.frames[track] = src.render(self.scene())
+        return self.frames[track]
+
+    def latest(self, track: str):
+        return self.frames.get(track)
+
+
+async def serve(frames, session, tmp_path, clock=None, on_demand=None, **cfg) -> ConsoleServer:
+    config = ConsoleConfig(port=0, captures_dir=str(tmp_path / "captures"), **cfg)
+    server = ConsoleServer(config, frames, session, clock=clock or FakeClock(), on_demand=on_demand)
+    await server.start()
+    return server
+
+
+async def next_message(ws, want, timeout: float = 10.0):
+    """The next message satisfying ``want(kind, data)`` (kind "frame" with the parsed header
+    and the JPEG, or "json" with the object)."""
+    end = asyncio.get_running_loop().time() + timeout
+    while True:
+        msg = await ws.receive(timeout=max(0.01, end - asyncio.get_running_loop().time()))
+        if msg.type == aiohttp.WSMsgType.BINARY:
+            item = ("frame", (parse_header(msg.data), msg.data[HEADER_SIZE:]))
+        elif msg.type == aiohttp.WSMsgType.TEXT:
+            item = ("json", json.loads(msg.data))
+        else:
+            raise AssertionError(f"socket ended: {msg.type}")
+        if want(*item):
+            return item[1]
+
+
+def decode(jpeg: bytes) -> np.ndarray:
+    return cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+
+
+async def test_live_sim_frames_reach_the_page_readable_and_in_order(tmp_path):
+    """Both tracks from sim sources in their threads: each frame the page gets decodes, is
+    not black, carries its own number in the counter patch, and numbers only increase."""
+    scene = DemoScene()
+    frames = SourceFrames(
+        {
+            "us": SimUltrasound(SimUltrasoundConfig(width=320, height=240, fps=20.0), scene),
+            "pov": SimPov(SimPovConfig(width=320, height=180, fps=20.0), scene),
+        }
+    )
+    server = await serve(frames, Session(), tmp_path, clock=time.monotonic, on_demand=frames)
+    try:
+        assert not frames._threads  # no page, no rendering
+        async with aiohttp.ClientSession() as http, http.ws_connect(f"{server.url}ws") as ws:
+            seen: dict[str, list[int]] = {"us": [], "pov": []}
+            while min(len(v) for v in seen.values()) < 4:
+                h, jpeg = await next_message(ws, lambda k, d: k == "frame")
+                img = decode(jpeg)
+                assert img.shape[:2] == (h["height"], h["width"])
+                assert img.mean() > 5.0  # a picture, not a black frame
+                assert read_counter(img) == h["seq"]
+                if h["track"] == "us":
+                    assert h["spacing_mm"][0] > 0 and h["spacing_mm"][1] > 0
+                seen[h["track"]].append(h["seq"])
+            for seqs in seen.values():
+                assert seqs == sorted(set(seqs))
+        for _ in range(300):  # the page closed: the sources stop
+            if not frames._threads:
+                break
+            await asyncio.sleep(0.01)
+        assert not frames._threads
+    finally:
+        frames.stop()
+        await server.stop()
+    assert server.tracks["us"].frames >= 4 and server.tracks["pov"].frames >= 4
+
+
+async def test_state_marks_old_video_and_a_lost_link_as_stale(tmp_path):
+    clock = FakeClock()
+    frames = ManualFrames(clock)
+    session = Session()
+    server = await serve(frames, session, tmp_path, clock=clock, stale_after_s=1.0)
+    try:
+        state = server.state()
+        assert state["video"]["us"]["stale"] and state["video"]["us"]["age_ms"] is None
+        frames.next("us")
+        await asyncio.sleep(0.05)  # the pump takes it
+        state = server.state()
+        assert not state["video"]["us"]["stale"] and state["video"]["us"]["age_ms"] == 0.0
+        assert state["video"]["pov"]["stale"]  # never had a frame
+        assert not state["link"]["stale"]
+        clock.t += 1.5  # no new frame for 1.5 s
+        state = server.state()
+        assert state["video"]["us"]["stale"] and state["video"]["us"]["age_ms"] == 1500.0
+        session.link = {"state": "disconnected", "pose_age_ms": 40.0}
+        assert server.state()["link"]["stale"]
+        session.link = {"state": "connected", "pose_age_ms": 2500.0}
+        assert server.state()["link"]["stale"]
+        async with aiohttp.ClientSession() as http, http.ws_connect(f"{server.url}ws") as ws:
+            st = await next_message(ws, lambda k, d: k == "json" and d["type"] == "state")
+            assert st["alignment"] == {"mm": 3.0, "deg": None}  # NaN sent as null
+    finally:
+        await server.stop()
+
+
+async def test_freeze_cine_calipers_annotation_and_capture_are_measured_saved_recorded(
+    tmp_path,
+):
+    clock = FakeClock()
+    frames = ManualFrames(clock)
+    rec = Recorder(tmp_path / "s.expert.mcap", "expert")
+    session = Session(recorder=rec)
+    server = await serve(frames, session, tmp_path, clock=clock)
+    try:
+        async with aiohttp.ClientSession() as http, http.ws_connect(f"{server.url}ws") as ws:
+            for _ in range(5):  # five ultrasound frames, 50 ms apart, each drawn by the page
+                f = frames.next("us")
+                await next_message(ws, lambda k, d, s=f.seq: k == "frame" and d[0]["seq"] == s)
+                await ws.send_json({"type": "drawn", "track": "us", "seq": f.seq,
+                                    "draw_to_send_ms": 0.5})  # fmt: skip
+                clock.t += 0.05
+            spacing = f.pixel_spacing_mm
+            await ws.send_json({"type": "freeze", "on": True})
+            cine = await next_message(ws, lambda k, d: k == "json" and d["type"] == "cine")
+            assert [s for s, _ in cine["frames"]] == [1, 2, 3, 4, 5]
+            assert cine["frames"][-1][1] == 0.0 and cine["frames"][0][1] == pytest.approx(-0.2)
+            frames.next("us")  # a live frame while frozen is not kept
+            await asyncio.sleep(0.05)
+            assert len(server.cine) == 5
+            await ws.send_json({"type": "cine", "seq": 2})
+            h, jpeg = await next_message(ws, lambda k, d: k == "frame" and d[0]["cine"])
+            assert h["seq"] == 2 and read_counter(decode(jpeg)) == 2
+            # A 3-4-5 caliper of 30 x 40 px: 50 px when the pixels are square.
+            a, b = [100.0, 60.0], [130.0, 100.0]
+            await ws.send_json({"type": "caliper", "seq": 2, "a": a, "b": b})
+            r = await next_message(ws, lambda k, d: k == "json" and d["type"] == "result")
+            want = math.hypot(30 * spacing[1], 40 * spacing[0])
+            assert r["ok"] and r["of"] == "caliper" and r["mm"] == pytest.approx(want)
+            await ws.send_json({"type": "annotation", "seq": 2, "at": a, "text": " left  kidney "})
+            r = await next_message(ws, lambda k, d: k == "json" and d["type"] == "result")
+            assert r["ok"] and r["detail"] == "left kidney"
+            await ws.send_json({"type": "capture", "seq": 2})
+            r = await next_message(ws, lambda k, d: k == "json" and d["type"] == "result")
+            assert r["ok"] and r["of"] == "capture"
+            await ws.send_json({"type": "capture", "seq": 99})  # not in the buffer
+            r = await next_message(ws, lambda k, d: k == "json" and d["type"] == "result")
+            assert not r["ok"] and "no longer" in r["detail"]
+            await ws.send_json({"type": "freeze", "on": False})
+            await ws.send_json({"type": "scan", "action": "start"})
+            await ws.send_json({"type": "clutch", "on": True})
+            for _ in range(100):
+                if len(session.commands) == 2:
+                    break
+                await asyncio.sleep(0.01)
+    finally:
+        await server.stop()
+        rec.close()
+    assert session.commands == [("scan", "start"), ("clutch", True)]
+    saved = sorted((tmp_path / "captures").iterdir())
+    assert [p.suffix for p in saved] == [".jpg", ".json"]
+    info = json.loads(saved[1].read_text())
+    assert info["seq"] == 2 and info["pose"]["position"] == [0.01, 0.02, 0.03]
+    assert read_counter(decode(saved[0].read_bytes())) == 2  # the frame scrolled back to
+    events = read_recording(tmp_path / "s.expert.mcap").samples("/expert/console")
+    assert [e["event"] for e in events] == ["freeze", "caliper", "annotation", "capture", "live"]
+    assert events[1]["mm"] == pytest.approx(want) and events[1]["a_px"] == a
+    assert events[2]["text"] == "left kidney"
+    assert events[3]["file"] == saved[0].name and events[3]["position"] == [0.01, 0.02, 0.03]
+    from mcap.reader import make_reader
+
+    with open(tmp_path / "s.expert.mcap", "rb") as fh:
+        attachments = list(make_reader(fh).iter_attachments())
+    assert [a.name for a in attachments] == [saved[0].name]
+    assert attachments[0].data == saved[0].read_bytes()
+
+
+async def test_bad_pages_are_refused_and_counted_and_the_server_goes_on(tmp_path):
+    clock = FakeClock()
+    frames = ManualFrames(clock)
+    server = await serve(frames, Session(), tmp_path, clock=clock, page_rate_hz=50.0)
+    url = f"{server.url}ws"
+    async with aiohttp.ClientSession() as http:
+        with pytest.raises(aiohttp.WSServerHandshakeError) as other:
+            async with http.ws_connect(url, headers={"Origin": "http://evil.example"}):
+                pass
+        assert other.value.status == 403
+    async with aiohttp.ClientSession() as http:
+        resp = await http.get(server.url, headers={"Host": f"rebind.example:{server.port}"})
+        assert resp.status == 403  # DNS rebinding: a loopback server answering another name
+        resp = await http.get(server.url)
+        assert resp.status == 200 and "console" in await resp.text()
+        assert "frame-ancestors 'none'" in resp.headers["Content-Security-Policy"]
+        async with http.ws_connect(url, origin=server.url.rstrip("/")) as ws:
+            with pytest.raises(aiohttp.WSServerHandshakeError) as second:
+                async with http.ws_connect(url):
+                    pass
+            assert second.value.status == 409
+            for bad in (
+                "not json",
+                json.dumps({"type": "launch"}),
+                json.dumps({"type": "caliper", "seq": 1, "a": [0, 0], "b": [1e308, 0]}),
+                json.dumps({"type": "annotation", "seq": 1, "at": [0, 0], "text": "x" * 500}),
+                json.dumps({"type": "drawn", "track": "us", "seq": 12345, "draw_to_send_ms": 1}),
+                json.dumps({"type": "scan", "action": "start", "extra": 1}),
+            ):
+                await ws.send_str(bad)
+            await ws.send_bytes(b"\x00\x01")
+            for _ in range(200):  # a flood: beyond the budget, dropped and counted
+                await ws.send_str("{}")
+            await ws.send_str("y" * 5000)  # too big: the socket is closed
+            msg = await ws.receive(timeout=5)
+            while msg.type not in (aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSED):
+                msg = await ws.receive(timeout=5)
+        for _ in range(100):
+            if not server.clients:
+                break
+            await asyncio.sleep(0.01)
+        async with http.ws_connect(url) as ws:  # the tab closed: a new console is let in
+            frames.next("us")
+            h, _ = await next_message(ws, lambda k, d: k == "frame")
+            assert h["track"] == "us"
+    await server.stop()
+    r = server.refused
+    assert r["origin"] == 1 and r["host"] == 1 and r["second_console"] == 1
+    assert r["malformed"] >= 5 and r["unknown_frame"] == 1 and r["flood"] > 0
+
+
+async def test_a_slow_page_gets_the_newest_frame_not_a_queue(tmp_path):
+    """At most two frames of a track go to a page before it says it drew one; the others
+    wait, newest wins, so a slow page is never behind by a socket full of frames."""
+    clock = FakeClock()
+    frames = ManualFrames(clock)
+    server = await serve(frames, Session(), tmp_path, clock=clock)
+    server.in_flight_timeout_s = 60.0  # a page that echoes nothing: not within this test
+    rendered = [frames.next("us") for _ in range(6)]
+    frames.frames.clear()
+    try:
+        async with aiohttp.ClientSession() as http, http.ws_connect(f"{server.url}ws") as ws:
+            got = []
+            for f in rendered:
+                frames.frames["us"] = f
+                while server.tracks["us"].seq != f.seq:  # the server has taken it
+                    await asyncio.sleep(0.005)
+            while len(got) < 2:
+                h, _ = await next_message(ws, lambda k, d: k == "frame")
+                got.append(h["seq"])
+            assert got == [1, 2]  # then nothing until the page draws
+            with pytest.raises(asyncio.TimeoutError):
+                await next_message(ws, lambda k, d: k == "frame", timeout=0.2)
+            await ws.send_json({"type": "drawn", "track": "us", "seq": 2, "draw_to_send_ms": 0})
+            h, _ = await next_message(ws, lambda k, d: k == "frame")
+            assert h["seq"] == 6  # the newest, frames 3-5 skipped
+        assert server.coalesced >= 3
+        assert server.tracks["us"].drawn == 1
+    finally:
+        await server.stop()
+
+
+def test_console_is_served_on_loopback_only():
+    with pytest.raises(ValueError, match="loopback only"):
+        ConsoleConfig(host="0.0.0.0")
+    assert ConsoleConfig(host="::1").host == "::1"
+
+
+def test_cine_buffer_keeps_the_last_seconds_and_holds_still_when_frozen():
+    cine = CineBuffer(seconds=10.0, max_frames=1000)
+    for i in range(1, 301):  # 15 s at 20 fps
+        cine.add(CineFrame(i, i * 0.05, b"j", 4, 4, (0.3, 0.3)))
+    idx = cine.index()
+    assert idx[-1][0] == 300 and idx[-1][1] - idx[0][1] <= 10.0 and len(idx) == 201
+    cine.add(CineFrame(300, 99.0, b"j", 4, 4, None))  # not newer: ignored
+    assert cine.newest().t_capture == 15.0
+    cine.freeze()
+    cine.add(CineFrame(301, 15.05, b"j", 4, 4, None))
+    assert cine.newest().seq == 300 and cine.get(100) is not None
+    cine.resume()
+    cine.add(CineFrame(302, 15.1, b"j", 4, 4, None))
+    assert cine.newest().seq == 302
+    small = CineBuffer(seconds=10.0, max_frames=3)
+    for i in range(1, 6):
+        small.add(CineFrame(i, i * 0.05, b"j", 4, 4, None))
+    assert [s for s, _ in small.index()] == [3, 4, 5]
+
+
+def test_alignment_and_pose_history():
+    a = Pose([0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0])
+    s = math.sin(math.radians(10) / 2)
+    b = Pose([0.003, 0.004, 0.0], [0.0, 0.0, s, math.cos(math.radians(10) / 2)])
+    al = alignment(a, b)
+    assert al["mm"] == pytest.approx(5.0) and al["deg"] == pytest.approx(10.0)
+    h = PoseHistory(seconds=1.0)
+    for i in range(30):
+        h.add(i * 0.1, Pose([i * 0.001, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]))
+    assert h.at(2.52).position[0] == pytest.approx(0.025)
+    assert h.at(1.0) is None  # older than the history keeps
+    assert h.at(10.0) is None  # nothing near
+
+
+def test_received_frames_number_and_time_the_receivers_frames():
+    """The adapter over the WebRTC receiver: the counter's number, else the next one; the
+    capture time, else the decode time; spacing on the ultrasound only; one object per frame."""
+    from types import SimpleNamespace
+
+    from humantele.expert.console.frames import ReceivedFrames
+
+    img = np.zeros((48, 64, 3), np.uint8)
+
+    def frame(seq, t_capture, t_received):
+        return SimpleNamespace(seq=seq, t_capture=t_capture, t_received=t_received,
+                               width=64, height=48, image=lambda: img)  # fmt: skip
+
+    latest = {"us": None, "pov": None}
+    rf = ReceivedFrames(SimpleNamespace(latest=lambda t: latest[t]), (0.3, 0.4))
+    assert rf.latest("us") is None
+    latest["us"] = frame(7, 10.0, 10.05)
+    a = rf.latest("us")
+    assert (a.seq, a.t_capture, a.pixel_spacing_mm, a.width) == (7, 10.0, (0.3, 0.4), 64)
+    assert rf.latest("us") is a and a.image is img
+    latest["us"] = frame(None, None, 10.2)  # the counter did not read, no capture time
+    b = rf.latest("us")
+    assert (b.seq, b.t_capture) == (8, 10.2)
+    latest["pov"] = frame(3, 9.0, 9.1)
+    assert rf.latest("pov").pixel_spacing_mm is None
+
+
+def test_console_config_checks_the_pixel_spacing():
+    assert ConsoleConfig(us_pixel_spacing_mm=(0.39, 0.39)).us_pixel_spacing_mm == (0.39, 0.39)
+    for bad in ((0.0, 0.3), (math.nan, 0.3), (50.0, 0.3)):
+        with pytest.raises(ValueError, match="pixel spacing|finite"):
+            ConsoleConfig(us_pixel_spacing_mm=bad)
