@@ -39,6 +39,8 @@ def test_bad_emulator_options_fail_before_starting_anything(capsys):
     assert "--loss 150" in capsys.readouterr().err
     assert main([*base, "--delay-ms", "-3"]) == 2
     assert "--delay-ms -3" in capsys.readouterr().err
+    assert main([*base, "--load", "-1"]) == 2
+    assert "--load -1" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(
@@ -48,6 +50,8 @@ def test_bad_emulator_options_fail_before_starting_anything(capsys):
         (["--turn"], "TURN (coturn)"),
         (["--delay-ms", "4", "--jitter-ms", "1.5"], "TURN + 4 +- 1.5 ms, 0 % loss"),
         (["--loss", "2"], "TURN + 0 ms, 2 % loss"),
+        (["--delay-ms", "4", "--loss", "1", "--load", "4"], "TURN + 4 ms, 1 % loss, load 4"),
+        (["--load", "2", "--fifo"], "loopback, load 2, FIFO sender"),
     ],
 )
 def test_link_labels_name_the_link(flags, label):

@@ -16,11 +16,11 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
-import os
 import re
 import time
 from typing import Any
 
+from humantele.bench.cpuload import cpu_load
 from humantele.haptics.demo_patient import demo_model
 from humantele.haptics.devices import SimDeviceConfig
 from humantele.haptics.servo import ServoProcess
@@ -40,15 +40,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the simulated hand")
     p.add_argument("--json", action="store_true", help="print only the JSON summary line")
     p.add_argument("--no-write", action="store_true", help="do not update docs/benchmarks.md")
-
-
-def _burn(parent: int, until: float) -> None:
-    """Keep one core busy until ``until`` (monotonic) or the parent's death."""
-    n = 0
-    while True:
-        n += 1
-        if n % 200000 == 0 and (os.getppid() != parent or time.monotonic() > until):
-            return
 
 
 def _bare_loop(config_json: str, seconds: float, conn) -> None:
@@ -103,26 +94,18 @@ def measure_floor(cfg: ServoConfig, seconds: float) -> dict[str, Any]:
 def measure(seconds: float, load: bool, seed: int = 0) -> dict[str, Any]:
     """Run the servo for ``seconds`` and return its figures (see module docstring)."""
     cfg = ServoConfig(device=SimDeviceConfig(seed=seed))
-    burner = None
-    if load:
-        ctx = mp.get_context("spawn")
-        burner = ctx.Process(target=_burn, args=(os.getpid(), time.monotonic() + seconds + 60))
-        burner.daemon = True
-        burner.start()
     sp = ServoProcess(cfg, demo_model())
-    try:
-        sp.start()
-        cpu0, t0 = process_cpu_seconds(sp.pid), time.monotonic()
-        time.sleep(seconds)
-        cpu1, t1 = process_cpu_seconds(sp.pid), time.monotonic()
-        sp.stop()
-        st = sp.stats()
-        floor = measure_floor(cfg, seconds)  # same load, same timing, no work
-    finally:
-        sp.stop()
-        if burner is not None:
-            burner.terminate()
-            burner.join(5)
+    with cpu_load(1 if load else 0, time.monotonic() + seconds + 60):
+        try:
+            sp.start()
+            cpu0, t0 = process_cpu_seconds(sp.pid), time.monotonic()
+            time.sleep(seconds)
+            cpu1, t1 = process_cpu_seconds(sp.pid), time.monotonic()
+            sp.stop()
+            st = sp.stats()
+            floor = measure_floor(cfg, seconds)  # same load, same timing, no work
+        finally:
+            sp.stop()
     period_us = 1e6 / cfg.rate_hz
     res = {
         "seconds": round(st.elapsed_s, 3),

@@ -53,6 +53,12 @@ class LinkConfig(ConfigModel):
     # pose/state bytes allowed to wait in the sender (~28 poses): newer ones are dropped beyond
     # it, so a stall never turns into a backlog of stale poses
     max_buffered_bytes: int = Field(2048, ge=100)
+    # once SCTP holds more than newest_only_above_bytes of unsent poses/states (~2 poses: a
+    # stall, not a burst), keep only the newest in one slot, sent when the buffer drains back,
+    # instead of queueing each behind the last; False: plain FIFO up to max_buffered_bytes
+    # (the old behaviour, for comparison in `bench session --fifo`)
+    send_newest_only: bool = True
+    newest_only_above_bytes: int = Field(200, ge=0, le=65536)
 
     @model_validator(mode="after")
     def _consistent(self) -> Self:

@@ -29,6 +29,12 @@ Behaviour:
 - Heartbeats every ``heartbeat_interval_s`` on ``control``; with no message at all from the
   peer for ``heartbeat_timeout_s`` the link is declared lost, even when ICE has not noticed.
 - Clock sync: ping/pong on ``control`` (``clock``: a :class:`ClockSync`, offset and rtt).
+- Poses and states never queue behind a stall: once aiortc holds more than
+  ``newest_only_above_bytes`` of unsent ones (SCTP's congestion window is full, e.g. after a
+  loss), the newest waits in a one-message slot and goes out as soon as the buffer drains
+  back; the one it replaces is counted as ``"<channel>:superseded"``. A stalled transport
+  therefore delays the stream by at most a couple of messages, and when it resumes the
+  freshest pose goes next.
 - Messages that fail to parse or validate, arrive late (an older sequence than one already
   delivered), or cannot be sent (not connected, send buffer full, NaN) are dropped and
   counted in ``counters.dropped`` under ``"<channel>:<reason>"``; nothing raises into the loop.
@@ -131,6 +137,7 @@ class _Peer:
         self.offer_id = 0
         self.started = 0.0
         self.last_seq: dict[str, int | None] = {"pose": None, "state": None}
+        self.pending: dict[str, bytes] = {}  # newest pose/state waiting for the buffer to drain
         self.open = False
 
 
@@ -436,12 +443,29 @@ class PeerLink:
         peer = _Peer(pc, channels)
         peer.started = self.now()
         self._peer = peer
-        channels["pose"].on("message", lambda d: self._on_binary(peer, "pose", d))
-        channels["state"].on("message", lambda d: self._on_binary(peer, "state", d))
+        for name in ("pose", "state"):
+            self._watch_binary(peer, name)
         channels["control"].on("message", lambda d: self._on_control(peer, d))
         channels["control"].on("open", lambda: self._on_open(peer))
         pc.on("connectionstatechange", lambda: self._on_pc_state(peer))
         return peer
+
+    def _watch_binary(self, peer: _Peer, name: str) -> None:
+        """Receive on channel ``name`` and send its pending message when its buffer drains."""
+        ch = peer.channels[name]
+        ch.bufferedAmountLowThreshold = self.config.newest_only_above_bytes
+        ch.on("message", lambda d: self._on_binary(peer, name, d))
+        ch.on("bufferedamountlow", lambda: self._send_pending(peer, name))
+
+    def _send_pending(self, peer: _Peer, name: str) -> None:
+        data = peer.pending.pop(name, None)
+        if data is None or peer is not self._peer:
+            return
+        ch = self._channel(name)
+        if ch is None:
+            self.counters.dropped[f"{name}:not_connected"] += 1
+            return
+        self._send_now(ch, name, data)
 
     def _on_open(self, peer: _Peer) -> None:
         if peer is not self._peer or peer.open:
@@ -498,14 +522,24 @@ class PeerLink:
         if ch is None:
             self.counters.dropped[f"{name}:not_connected"] += 1
             return False
-        if ch.bufferedAmount > self.config.max_buffered_bytes:
-            self.counters.dropped[f"{name}:backpressure"] += 1
-            return False
         try:
             data = msg.encode()
         except WireError as exc:
             self.counters.dropped[f"{name}:invalid_{exc.reason}"] += 1
             return False
+        if self.config.send_newest_only:
+            if ch.bufferedAmount > self.config.newest_only_above_bytes:  # stalled: replace
+                peer = self._peer
+                if peer.pending.get(name) is not None:
+                    self.counters.dropped[f"{name}:superseded"] += 1
+                peer.pending[name] = data
+                return True
+        elif ch.bufferedAmount > self.config.max_buffered_bytes:
+            self.counters.dropped[f"{name}:backpressure"] += 1
+            return False
+        return self._send_now(ch, name, data)
+
+    def _send_now(self, ch: RTCDataChannel, name: str, data: bytes) -> bool:
         try:
             ch.send(data)
         except Exception as exc:
