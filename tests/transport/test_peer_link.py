@@ -56,7 +56,7 @@ async def test_streams_control_and_clock_sync_with_an_injected_offset(server):
                     StateMessage(i, follower.now(), (0, 0, 0), Q, TrackingStatus.TRACKED, (0, 1, 0))
                 )
             await asyncio.sleep(0.002)
-        model = {"center": [0, 0.1, 0], "semi_axes": [0.15, 0.1, 10.0], "heading": 0.0}
+        model = {"center": [0, 0.1, 0], "semi_axes": [10.0, 0.1, 0.15], "heading": 0.0}
         assert expert.send_control(EllipsoidModel(model=model))
         assert expert.send_control(Scan(action="start"))
         await until(lambda: len(poses) >= 195 and len(controls) >= 3 and follower.clock.synced)
