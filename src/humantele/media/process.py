@@ -87,8 +87,13 @@ def _frame_bytes(width: int, height: int) -> int:
 
 def _watch_parent(parent_pid: int, stop: Any) -> None:
     """Set ``stop`` when the follower (``parent_pid``) is gone, then end the process if its
-    threads have not ended by themselves: a video process never outlives its follower."""
-    while not stop.wait(0.5):
+    threads have not ended by themselves: a video process never outlives its follower.
+
+    It polls with ``time.sleep``, never ``stop.wait``: a daemon thread that dies at exit while
+    inside the shared event's lock would leave that lock held, and the follower's
+    ``stop.set()`` would then wait forever."""
+    while True:
+        time.sleep(0.5)
         if os.getppid() != parent_pid:  # the follower died without stopping us
             stop.set()
             time.sleep(3.0)
