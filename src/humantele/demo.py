@@ -288,8 +288,9 @@ STREAM_COUNTS = {"expert": ("poses_sent", "states_received"),
 
 class CountWindow:
     """After a daemon restarts, the stream counts of the summary cover the same window at both
-    ends: from the restarted daemon's first stats on, the other daemon's counts are taken
-    relative to what they were then (its earlier figures would not match the new process's).
+    ends: from the restart on, the other daemon's counts are taken relative to its last
+    figures before the new process could have connected (taken as the restart is seen, not at
+    the new process's first stats, which may come after its link is up and messages flow).
     ``since_s``: the window's start (s after the demo started), None without a restart."""
 
     def __init__(self) -> None:
@@ -299,7 +300,7 @@ class CountWindow:
 
     def update(self, daemons: dict, stats: dict[str, dict], t: float) -> None:
         for role, d in daemons.items():
-            if d.restarts != self._restarts_seen[role] and stats[role]:  # its first stats
+            if d.restarts != self._restarts_seen[role]:  # restarted since the last look
                 self._restarts_seen[role] = d.restarts
                 other = "follower" if role == "expert" else "expert"
                 self.baseline[role] = {}

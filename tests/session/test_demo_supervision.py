@@ -131,3 +131,25 @@ def test_sigkill_of_the_follower_during_a_demo_it_comes_back_and_poses_flow_agai
     # One window at both ends: nothing received that was not sent.
     assert 0 < s["poses_received"] <= s["poses_sent"]
     assert s["states_received"] <= s["states_sent"]
+
+
+def test_count_window_starts_at_the_restart_not_at_the_new_process_first_stats():
+    class D:
+        def __init__(self, restarts):
+            self.restarts = restarts
+
+    w = CountWindow()
+    # The follower has just been restarted: no stats of the new process yet (its old file was
+    # moved aside). The expert's count now is the baseline: nothing can have reached the new
+    # process before it.
+    w.update(
+        {"expert": D(0), "follower": D(1)}, {"expert": {"poses_sent": 900}, "follower": {}}, 7.0
+    )
+    assert w.since_s == 7.0
+    # By its first stats the new follower had already received 40 poses; the window counts them.
+    e = {"poses_sent": 960, "states_received": 0}
+    f = {"poses_received": 40, "states_sent": 0}
+    w.update({"expert": D(0), "follower": D(1)}, {"expert": e, "follower": f}, 9.0)
+    e2, f2 = w.adjusted({"expert": e, "follower": f})
+    assert w.since_s == 7.0
+    assert f2["poses_received"] <= e2["poses_sent"] == 60
