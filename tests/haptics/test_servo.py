@@ -12,12 +12,13 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from servo_helpers import pressing_config, wait_for
 
 from humantele.config import ConfigError, validate_config
 from humantele.geometry import Pose, quat_from_axis_angle
 from humantele.haptics.demo_patient import demo_model
-from humantele.haptics.devices import DeviceState, SimDeviceConfig
-from humantele.haptics.devices.sim import SimFault, SimHandConfig
+from humantele.haptics.devices import DeviceState
+from humantele.haptics.devices.sim import SimFault
 from humantele.haptics.ellipsoid import Ellipsoid
 from humantele.haptics.renderer import (
     FAULT_BAD_DATA,
@@ -155,26 +156,13 @@ def test_config_errors_name_the_field():
 
 
 # ------------------------------------------------------------------ the servo process
-def _wait(pred, timeout=10.0):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        v = pred()
-        if v:
-            return v
-        time.sleep(0.01)
-    raise AssertionError("condition not reached in time")
-
-
-def _pressing_config(**kw) -> ServoConfig:
-    hand = SimHandConfig(path="hold", hold_target_m=(0.0, -0.05, 0.0), tremor_n=0.0)
-    return ServoConfig(device=SimDeviceConfig(hand=hand, **kw), realtime_priority=0)
 
 
 def test_process_runs_swaps_model_and_stops_cleanly():
-    sp = ServoProcess(_pressing_config(), MODEL)
+    sp = ServoProcess(pressing_config(), MODEL)
     sp.start()
     try:
-        s = _wait(lambda: (x := sp.latest()) and x.tick > 300 and x.ramp == 1.0 and x)
+        s = wait_for(lambda: (x := sp.latest()) and x.tick > 300 and x.ramp == 1.0 and x)
         assert s.force[1] > 0.5 and s.depth > 0 and s.fault == ""
         assert s.force[1] == pytest.approx(300 * s.depth, rel=0.1)
         assert (
@@ -183,8 +171,8 @@ def test_process_runs_swaps_model_and_stops_cleanly():
             and s.t <= time.monotonic()
         )
         sp.set_model(None)
-        _wait(lambda: (x := sp.latest()) and x.force == (0.0, 0.0, 0.0))
-        st_ = _wait(lambda: (x := sp.stats()) and x.ticks > 0 and x)
+        wait_for(lambda: (x := sp.latest()) and x.force == (0.0, 0.0, 0.0))
+        st_ = wait_for(lambda: (x := sp.stats()) and x.ticks > 0 and x)
         assert st_.rate_hz > 0 and st_.period_p50_us > 0 and st_.period_max_us >= st_.period_p50_us
         assert st_.nonfinite_forces == 0
     finally:
@@ -194,12 +182,12 @@ def test_process_runs_swaps_model_and_stops_cleanly():
 
 
 def test_process_stale_fault_zeroes_force_then_recovers():
-    cfg = _pressing_config(faults=[SimFault(kind="stale", start_s=0.6, duration_s=0.4)])
+    cfg = pressing_config(faults=[SimFault(kind="stale", start_s=0.6, duration_s=0.4)])
     with ServoProcess(cfg, MODEL) as sp:
-        _wait(lambda: (x := sp.latest()) and x.force[1] > 1.0)
-        s = _wait(lambda: (x := sp.latest()) and "stale" in x.fault and x)
+        wait_for(lambda: (x := sp.latest()) and x.force[1] > 1.0)
+        s = wait_for(lambda: (x := sp.latest()) and "stale" in x.fault and x)
         assert s.force == (0.0, 0.0, 0.0) and s.force_device == (0.0, 0.0, 0.0)
-        _wait(lambda: (x := sp.latest()) and x.fault == "" and x.force[1] > 1.0)
+        wait_for(lambda: (x := sp.latest()) and x.fault == "" and x.force[1] > 1.0)
         assert sp.stats().fault_episodes >= 1
         assert sp.stats().stale_ticks > 0
 
@@ -211,12 +199,12 @@ def test_process_reports_device_errors_at_start():
 
 
 def test_sigterm_stops_the_servo_with_force_zeroed():
-    sp = ServoProcess(_pressing_config(), MODEL)
+    sp = ServoProcess(pressing_config(), MODEL)
     sp.start()
     try:
-        _wait(lambda: (x := sp.latest()) and x.force[1] > 1.0)
+        wait_for(lambda: (x := sp.latest()) and x.force[1] > 1.0)
         os.kill(sp.pid, signal.SIGTERM)
-        _wait(lambda: not sp.alive, 5.0)
+        wait_for(lambda: not sp.alive, 5.0)
         assert sp._proc.exitcode == 0
         assert sp.latest().force == (0.0, 0.0, 0.0)
     finally:
@@ -256,7 +244,7 @@ def test_parent_death_stops_the_servo(tmp_path):
             with open(f"/proc/{child}/stat") as fh:
                 return fh.read().split()[2] == "Z"
 
-        _wait(gone, 5.0)
+        wait_for(gone, 5.0)
     finally:
         parent.kill()
 
@@ -327,31 +315,31 @@ def test_seqlock_try_read_never_waits_on_a_write_in_progress():
 def test_servo_survives_a_daemon_preempted_mid_write():
     """A normal-priority daemon can be preempted inside a command write; the SCHED_FIFO servo
     keeps its last command (it used to spin 10 ms, then die with TimeoutError)."""
-    sp = ServoProcess(_pressing_config(), MODEL)
+    sp = ServoProcess(pressing_config(), MODEL)
     sp.start()
     try:
-        _wait(lambda: (x := sp.latest()) and x.tick > 100 and x.force[1] > 0.0)
+        wait_for(lambda: (x := sp.latest()) and x.tick > 100 and x.force[1] > 0.0)
         sp._cmd._a[0] += 1.0  # odd: a write "in progress" for much longer than 10 ms
         tick0 = sp.latest().tick
         # Still rendering (a late tick on a loaded machine may zero one sample: wait for one).
-        _wait(lambda: (x := sp.latest()) and x.tick > tick0 + 100 and x.force[1] > 0.0)
+        wait_for(lambda: (x := sp.latest()) and x.tick > tick0 + 100 and x.force[1] > 0.0)
         assert sp.alive
         sp._cmd._a[0] += 1.0  # the write completes; new commands take effect again
         sp.set_model(None)
-        _wait(lambda: (x := sp.latest()) and x.force == (0.0, 0.0, 0.0))
+        wait_for(lambda: (x := sp.latest()) and x.force == (0.0, 0.0, 0.0))
     finally:
         sp.stop()
     assert not sp.alive
 
 
 def test_daemon_side_reads_survive_a_servo_killed_mid_write():
-    sp = ServoProcess(_pressing_config(), MODEL)
+    sp = ServoProcess(pressing_config(), MODEL)
     sp.start()
     try:
-        s0 = _wait(lambda: (x := sp.latest()) and x.tick > 50 and x)
-        st0 = _wait(lambda: (x := sp.stats()) and x.ticks > 0 and x)
+        s0 = wait_for(lambda: (x := sp.latest()) and x.tick > 50 and x)
+        st0 = wait_for(lambda: (x := sp.stats()) and x.ticks > 0 and x)
         os.kill(sp.pid, signal.SIGKILL)
-        _wait(lambda: not sp.alive)
+        wait_for(lambda: not sp.alive)
         sp._out._a[0] += 1.0 if int(sp._out._a[0]) % 2 == 0 else 0.0  # left odd by the death
         sp._st._a[0] += 1.0 if int(sp._st._a[0]) % 2 == 0 else 0.0
         s1, st1 = sp.latest(), sp.stats()  # no TimeoutError into the daemon

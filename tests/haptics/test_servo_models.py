@@ -10,18 +10,17 @@ from __future__ import annotations
 import json
 import math
 import os
-import time
 
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from servo_helpers import pressing_config, wait_for
 
 from humantele.demo import _status_line
 from humantele.expert.daemon import ExpertConfig, ExpertDaemon
 from humantele.haptics.demo_patient import demo_model
-from humantele.haptics.devices import SimDeviceConfig
-from humantele.haptics.devices.sim import ManualClock, SimHandConfig, SimTouchX
+from humantele.haptics.devices.sim import ManualClock, SimTouchX
 from humantele.haptics.ellipsoid import Ellipsoid, body_problem
 from humantele.haptics.renderer import FAULT_MODEL, ForceRenderer
 from humantele.haptics.servo import ServoProcess
@@ -38,21 +37,6 @@ TALL = (10.0, 20.0, 0.15)  # the issue's 20 m: every expert pose was out of rang
 def _msg(center=(0.0, 0.0, 0.0), semi_axes=(10.0, 0.11, 0.15), heading=0.0) -> str:
     model = {"center": list(center), "semi_axes": list(semi_axes), "heading": heading}
     return json.dumps({"type": "ellipsoid", "model": model})
-
-
-def _pressing_config() -> ServoConfig:
-    hand = SimHandConfig(path="hold", hold_target_m=(0.0, -0.05, 0.0), tremor_n=0.0)
-    return ServoConfig(device=SimDeviceConfig(hand=hand), realtime_priority=0)
-
-
-def _wait(pred, timeout=10.0):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        v = pred()
-        if v:
-            return v
-        time.sleep(0.01)
-    raise AssertionError("condition not reached in time")
 
 
 # --- the wire schema -------------------------------------------------------------------------
@@ -102,7 +86,7 @@ def _cmd(values: tuple[float, ...], gen: float) -> np.ndarray:
 def _lockstep(r: ForceRenderer, n: int, t0: float = 0.0, dev: SimTouchX | None = None):
     """``n`` servo ticks on the sim device; returns the commanded forces (N, device frame)."""
     clock = ManualClock(t0)
-    dev = dev or SimTouchX(_pressing_config().device, clock=clock)
+    dev = dev or SimTouchX(pressing_config().device, clock=clock)
     dev._clock = clock  # noqa: SLF001 - the sim reads this clock
     dev.open()
     out = []
@@ -116,7 +100,7 @@ def _lockstep(r: ForceRenderer, n: int, t0: float = 0.0, dev: SimTouchX | None =
 
 
 def test_servo_refuses_the_tiny_model_and_keeps_the_last_good_one():
-    r = ForceRenderer(_pressing_config())
+    r = ForceRenderer(pressing_config())
     apply_commands(r, _cmd(tuple(MODEL.as_array()), 1.0), 0.0)
     f_good = _lockstep(r, 400)
     apply_commands(r, _cmd((0.0, 0.0, 0.0, *TINY, 0.0), 2.0), 0.4)
@@ -137,7 +121,7 @@ class _Breaks(Ellipsoid):
 
 
 def test_a_tick_that_raises_zeroes_the_force_and_falls_back_to_the_last_good_model():
-    r = ForceRenderer(_pressing_config())
+    r = ForceRenderer(pressing_config())
     r.set_model(MODEL, 0.0)
     _lockstep(r, 300)
     bad = _Breaks(MODEL.center, MODEL.semi_axes, MODEL.heading)
@@ -162,7 +146,7 @@ def test_a_tick_that_raises_zeroes_the_force_and_falls_back_to_the_last_good_mod
     )
 )
 def test_no_command_array_kills_the_servo_or_escapes_the_force_limit(v):
-    cfg = _pressing_config()
+    cfg = pressing_config()
     r = ForceRenderer(cfg)
     apply_commands(r, _cmd(tuple(MODEL.as_array()), 1.0), 0.0)
     apply_commands(r, _cmd(tuple(v), 2.0), 0.0)
@@ -204,7 +188,7 @@ def _control_texts():
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(texts=st.lists(_control_texts(), min_size=1, max_size=4))
 def test_fuzz_control_message_to_expert_to_servo(texts):
-    d = ExpertDaemon(ExpertConfig(), _pressing_config())  # its servo process is not started
+    d = ExpertDaemon(ExpertConfig(), pressing_config())  # its servo process is not started
     r = ForceRenderer(d.servo_config)
     d.on_control(parse_control(_msg()))  # a good model first
     apply_commands(r, d.servo._cmd_values.copy(), 0.0)  # noqa: SLF001 - what the servo reads
@@ -225,7 +209,7 @@ def test_fuzz_control_message_to_expert_to_servo(texts):
 
 
 def test_expert_refuses_the_issue_s_models_that_bypass_the_schema():
-    d = ExpertDaemon(ExpertConfig(), _pressing_config())
+    d = ExpertDaemon(ExpertConfig(), pressing_config())
     d.on_control(parse_control(_msg()))
     good = d.model
     params = EllipsoidParams.model_construct(center=(0.0, 0.0, 0.0), semi_axes=TINY, heading=0.0)
@@ -243,18 +227,18 @@ def test_expert_refuses_the_issue_s_models_that_bypass_the_schema():
 
 def test_servo_process_survives_the_tiny_model_and_keeps_pressing():
     # Late or stale ticks on a loaded machine are not what this test is about: tolerate them.
-    cfg = _pressing_config().model_copy(update={"late_after_s": 1.0, "stale_after_s": 1.0})
+    cfg = pressing_config().model_copy(update={"late_after_s": 1.0, "stale_after_s": 1.0})
     with ServoProcess(cfg, MODEL) as sp:
-        _wait(lambda: (x := sp.latest()) and x.ramp == 1.0 and x.force[1] > 0.5, timeout=30.0)
+        wait_for(lambda: (x := sp.latest()) and x.ramp == 1.0 and x.force[1] > 0.5, timeout=30.0)
         with sp._lock:  # noqa: SLF001 - a command no daemon check stands between
             v = sp._cmd_values  # noqa: SLF001
             v[C_MODEL_GEN] += 1.0
             v[C_MODEL : C_MODEL + 7] = (0.0, 0.0, 0.0, *TINY, 0.0)
             sp._push()  # noqa: SLF001
-        _wait(lambda: sp.stats().models_refused == 1, timeout=30.0)
+        wait_for(lambda: sp.stats().models_refused == 1, timeout=30.0)
         # Still pressing on the kept model (a late tick under load may fault a moment: wait).
         tick = sp.latest().tick
-        _wait(lambda: (x := sp.latest()) and x.tick > tick + 200 and x.fault == ""
+        wait_for(lambda: (x := sp.latest()) and x.tick > tick + 200 and x.fault == ""
               and x.force[1] > 0.5, timeout=30.0)  # fmt: skip
         assert sp.alive and sp.stats().tick_errors == 0
 
