@@ -30,7 +30,12 @@ device = "/dev/video97"
         stdin=asyncio.subprocess.DEVNULL, stdout=asyncio.subprocess.PIPE,
         stderr=asyncio.subprocess.PIPE,
     )  # fmt: skip
-    out, err = await asyncio.wait_for(proc.communicate(), 90)
+    try:
+        out, err = await asyncio.wait_for(proc.communicate(), 90)
+    finally:
+        if proc.returncode is None:  # it hung: leave nothing running behind the test
+            proc.kill()
+            await proc.wait()
     text = (out + err).decode()
     assert proc.returncode == 2, text
     assert "/dev/video97" in text and "Traceback" not in text
