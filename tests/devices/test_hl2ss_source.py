@@ -2,6 +2,7 @@
 project's simulated AHAT frames: same frames, same tracking figures; bad packets, a dropped
 connection and an unreachable headset handled."""
 
+import contextlib
 import math
 import socket
 import struct
@@ -51,7 +52,8 @@ class ReplayServer:
                         break
                     conn.sendall(p)
                 else:
-                    conn.recv(1)  # keep it open until the client leaves
+                    with contextlib.suppress(ConnectionError):  # a client may reset it
+                        conn.recv(1)  # keep it open until the client leaves
 
     def close(self) -> None:
         self.sock.close()

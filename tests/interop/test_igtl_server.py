@@ -21,8 +21,6 @@ from humantele.interop.igtl import (
 )
 from humantele.video.scan import ScanGeometry
 
-pytestmark = pytest.mark.asyncio
-
 
 async def started(**kw) -> IgtlServer:
     srv = IgtlServer(IgtlConfig(enabled=True, port=0, **kw))
