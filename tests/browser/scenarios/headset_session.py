@@ -59,7 +59,11 @@ async def run(ctx) -> dict:
         await hud_when(ctx, page, f"{LIVE} && parseFloat(h.mm) < 25", timeout=30)
     except AssertionError:
         pass
-    data["view"] = await capture(ctx, page, "session_following")
+    for _ in range(3):  # the picture of a live guide: a pose gap or a clutch greys it for a moment
+        await hud_when(ctx, page, LIVE)
+        data["view"] = await capture(ctx, page, "session_following")
+        if data["view"]["hud"]["cue"] in ("green", "amber", "red"):
+            break
 
     # 3. The expert killed: the guide greys out and says why; the expert back: live again.
     await s.kill("expert")
