@@ -152,8 +152,10 @@ def descendants(pid: int) -> set[int]:
 
 @dataclass
 class DemoRun:
-    """One ``humantele demo --json --record`` run, ended by SIGTERM once it has recorded a
-    scan long enough to analyse: what the tests of that run check."""
+    """One ``humantele demo --json --record`` run, ended by a terminal's Ctrl-C (SIGINT to its
+    process group: the demo, both daemons and the servo at once) once it has recorded a scan
+    long enough to analyse: what the tests of that run check. (The supervision test ends its
+    demo with SIGTERM to the demo alone.)"""
 
     tmp: Path
     returncode: int | None
@@ -162,7 +164,7 @@ class DemoRun:
     err: str
     status: list[str] = field(default_factory=list)
     seen: set[int] = field(default_factory=set)  # the demo's descendants while it ran
-    stop_s: float = math.inf  # from SIGTERM to the demo's exit
+    stop_s: float = math.inf  # from Ctrl-C to the demo's exit
 
     @property
     def recordings(self) -> tuple[Path, Path]:
@@ -184,9 +186,9 @@ def demo_run(tmp_path_factory) -> DemoRun:
     proc = subprocess.Popen(
         [sys.executable, "-m", "humantele", "demo", "--duration", "120", "--json",
          "--record", str(tmp / "demo.mcap")],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, start_new_session=True,
     )  # fmt: skip
-    watchdog = threading.Timer(180.0, proc.kill)  # never hang the suite
+    watchdog = threading.Timer(180.0, os.killpg, (proc.pid, signal.SIGKILL))  # never hang
     watchdog.start()
     status: list[str] = []
     seen: set[int] = set()
@@ -203,14 +205,14 @@ def demo_run(tmp_path_factory) -> DemoRun:
                 scan_since = scan_since or time.monotonic()
                 if time.monotonic() - scan_since >= SCAN_S:
                     break
-        t_term = time.monotonic()
-        proc.send_signal(signal.SIGTERM)
+        t_stop = time.monotonic()
+        os.killpg(proc.pid, signal.SIGINT)
         out, err = proc.communicate(timeout=60)
-        stop_s = time.monotonic() - t_term
+        stop_s = time.monotonic() - t_stop
     finally:
         watchdog.cancel()
         if proc.poll() is None:
-            proc.kill()
+            os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
     out_text = out.decode()
     lines = out_text.strip().splitlines()

@@ -1,4 +1,5 @@
-"""``humantele demo`` end to end: --json summary fields, SIGTERM ends everything cleanly."""
+"""``humantele demo`` end to end: --json summary fields; a terminal's Ctrl-C ends everything
+cleanly (SIGTERM: test_demo_supervision.py)."""
 
 import time
 
@@ -10,12 +11,12 @@ from humantele.runtime.stats import percentile_ms
 
 
 @pytest.mark.slow
-def test_demo_json_and_sigterm_leave_no_process(demo_run):
-    """The shared demo run (session_helpers.demo_run): SIGTERM once calibrated and scanning."""
+def test_demo_json_and_ctrl_c_leave_no_process(demo_run):
+    """The shared demo run (session_helpers.demo_run): Ctrl-C once calibrated and scanning."""
     seen, status = demo_run.seen, demo_run.status
     assert len(seen) >= 3, (seen, status)
     assert demo_run.returncode == 0, demo_run.err[-2000:]
-    assert demo_run.stop_s < 20  # SIGTERM ended it, not --duration
+    assert demo_run.stop_s < 20  # Ctrl-C ended it, not --duration
     summary = demo_run.summary
     for key in ("poses_sent", "poses_received", "pose_age_p50_ms", "pose_age_p99_ms",
                 "servo_rate_hz", "servo_overruns", "calibrated", "dropped_messages",
@@ -33,6 +34,16 @@ def test_demo_json_and_sigterm_leave_no_process(demo_run):
             break
         time.sleep(0.1)
     assert not [p for p in seen if pid_alive(p)]
+
+
+@pytest.mark.slow
+def test_ctrl_c_to_the_process_group_stops_the_demo_with_exit_0(demo_run):
+    """A terminal's Ctrl-C: SIGINT to the demo, both daemons and the servo at once."""
+    assert demo_run.returncode == 0, "".join(demo_run.status[-5:]) + demo_run.err[-3000:]
+    summary = demo_run.summary
+    assert summary["exit_codes"] == {"expert": 0, "follower": 0}, summary
+    assert summary["servo_restarts"] == 0 and summary["servo_state"] == "stopped"
+    assert "Traceback" not in demo_run.err and "KeyboardInterrupt" not in demo_run.err
 
 
 def test_summary_sums_and_percentiles():

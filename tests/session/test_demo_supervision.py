@@ -11,6 +11,7 @@ import sys
 import time
 
 import pytest
+from session_helpers import descendants, pid_alive
 
 from humantele.demo import CountWindow
 from humantele.runtime.supervise import SupervisedDaemon
@@ -97,6 +98,7 @@ def test_sigkill_of_the_follower_during_a_demo_it_comes_back_and_poses_flow_agai
         start_new_session=True,
     )  # fmt: skip
     lines: list[str] = []
+    seen: set[int] = set()  # the demo's descendants while it ran
     killed = None
     try:
         t_end = time.monotonic() + 300.0  # generous: a loaded 2-core machine starts slowly
@@ -104,6 +106,7 @@ def test_sigkill_of_the_follower_during_a_demo_it_comes_back_and_poses_flow_agai
             line = proc.stderr.readline()
             assert line, "demo ended early:\n" + "".join(lines[-10:])
             lines.append(line)
+            seen |= descendants(proc.pid)
             flowing = "link connected" in line and "poses 0 Hz" not in line
             if killed is None and flowing:
                 killed = _child(proc.pid, "follower")
@@ -116,7 +119,8 @@ def test_sigkill_of_the_follower_during_a_demo_it_comes_back_and_poses_flow_agai
             pytest.fail("the follower did not rejoin:\n" + "".join(lines[-10:]))
         new = _child(proc.pid, "follower")
         assert new is not None and new != killed
-        proc.send_signal(signal.SIGTERM)
+        seen |= descendants(proc.pid)
+        proc.send_signal(signal.SIGTERM)  # to the demo alone (Ctrl-C: test_demo_command.py)
         out, err = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
@@ -131,6 +135,13 @@ def test_sigkill_of_the_follower_during_a_demo_it_comes_back_and_poses_flow_agai
     # One window at both ends: nothing received that was not sent.
     assert 0 < s["poses_received"] <= s["poses_sent"]
     assert s["states_received"] <= s["states_sent"]
+    # SIGTERM left no process: the daemons (both followers), the servo, their children.
+    assert len(seen) >= 4, seen
+    for _ in range(50):
+        if not any(pid_alive(p) for p in seen):
+            break
+        time.sleep(0.1)
+    assert not [p for p in seen if pid_alive(p)]
 
 
 def test_count_window_starts_at_the_restart_not_at_the_new_process_first_stats():
