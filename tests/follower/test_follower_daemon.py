@@ -54,6 +54,28 @@ def test_calibrates_then_follows_the_virtual_probe(tmp_path):
     assert np.linalg.norm(np.array(last.position) - pose(t + 6.0).position) < 0.03
 
 
+def test_the_sim_technician_presses_once_the_sensing_process_measures(tmp_path):
+    """A press while the sensing process starts would not be seen: the person waits above the
+    first landmark, and presses once the tracker images are measured."""
+    d = make(tmp_path)
+
+    class Starting:  # the sensing process still importing: its tracker images are skipped
+        running, ready = True, False
+
+    d.sensing_proc = Starting()
+    d.start_calibration()
+    d.script_t0 = 0.0
+    forces, t = [], 0.0
+    for _ in range(500):  # 5 s, more than two presses' time
+        d.tick(t)
+        forces.append(float(np.linalg.norm(d.world.force_world)))
+        t += 0.01
+    assert max(forces) == 0.0 and d.sensing_starting > 0 and d.calibrator.presses == 0
+    d.sensing_proc = None  # measured in line from now
+    run_ticks(d, t, 8.0)
+    assert d.calibration is not None and d.calibrator.refusals == 0
+
+
 def test_stale_without_poses_and_model_resent_on_hello(tmp_path):
     d = make(tmp_path)
     d.start_calibration()

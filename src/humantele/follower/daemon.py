@@ -549,7 +549,10 @@ class FollowerDaemon(Daemon):
     def tick(self, t: float) -> None:
         virtual = self.virtual_world()
         if self.script is not None and self.calibrator.step is not None:
-            # The scripted technician presses the landmark asked for (again if refused).
+            # The scripted technician presses the landmark asked for (again if refused), once
+            # the follower measures: a press while the sensing process starts is not seen.
+            if not self.measuring():
+                self.script_t0 = t
             target = self.script.target(self.calibrator.step, t - self.script_t0)
             if target is None:
                 self.script_t0 = t
@@ -607,6 +610,11 @@ class FollowerDaemon(Daemon):
             rec.write(topic, t, payload)
 
     # --- measurements (sensing worker thread -> loop) -------------------------------------
+
+    def measuring(self) -> bool:
+        """False while the sensing process starts (its tracker images are skipped)."""
+        proc = self.sensing_proc
+        return proc is None or not proc.running or proc.ready
 
     def start_measurement(self, frame: TrackerImage) -> None:
         """Measure one tracker image: on the sensing worker when the daemon runs (the result
