@@ -15,6 +15,8 @@ from pathlib import Path
 
 import pytest
 
+from humantele.follower.calibration import CALIBRATION_FILE, build_calibration
+from humantele.follower.sim_human import SimPatient
 from humantele.signaling.server import SignalConfig, SignalingServer
 
 
@@ -53,6 +55,11 @@ class Session:
 
     def stats(self, role: str) -> dict:
         return read_json(self.stats_path(role))
+
+    def save_calibration(self) -> None:
+        """Save the calibration of the sim patient's true landmarks where the follower looks
+        for it: it starts calibrated (no presses), for tests of what comes after calibrating."""
+        build_calibration(SimPatient().landmarks()).save(self.state_dir / CALIBRATION_FILE)
 
     async def start(self, role: str, *extra: str) -> asyncio.subprocess.Process:
         self.runs += 1

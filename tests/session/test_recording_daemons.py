@@ -5,7 +5,6 @@ import asyncio
 import sys
 import time
 
-import numpy as np
 import pytest
 
 from humantele.analysis.cli import analyze
@@ -48,6 +47,7 @@ async def test_sigkill_of_the_expert_keeps_its_recording_to_half_a_second(sessio
         return ["--record", str(paths[role]), "--session-id", "k01",
                 "--follower-id", "F1", "--sonographer-id", "S1"]  # fmt: skip
 
+    session.save_calibration()  # calibrating is tested in test_session_daemons.py
     await session.start("follower", *rec_args("follower"))
     await session.start("expert", *rec_args("expert"))
     await session.wait(
@@ -55,7 +55,13 @@ async def test_sigkill_of_the_expert_keeps_its_recording_to_half_a_second(sessio
         lambda e, f: f.get("calibrated") and e.get("scan") == 1 and f.get("scan") == 1,
         timeout=90,
     )
-    await asyncio.sleep(1.5)
+    # A scan long enough to analyse: the follower measures ~45 tracker images a second.
+    frames = session.stats("follower")["measurements"] + 60
+    await session.wait("a scan to analyse", lambda e, f: f["measurements"] >= frames)
+    # What the expert had on disk at its last stats write before the kill (fsync'ed).
+    uptime = session.stats("expert")["uptime_s"]
+    await session.wait("expert stats", lambda e, f: e.get("uptime_s", 0) > uptime)
+    flushed = session.stats("expert")["recording"]["written"]
     t_kill = time.monotonic()  # the daemons' clock (CLOCK_MONOTONIC is system-wide)
     await session.kill("expert")
     await session.wait("follower notices", lambda e, f: f.get("link_state") != "connected")
@@ -65,7 +71,9 @@ async def test_sigkill_of_the_expert_keeps_its_recording_to_half_a_second(sessio
     assert not expert.complete  # killed: no footer, read all the same
     t = expert.times("/expert/pose")
     assert t[-1] >= t_kill - 0.5, f"lost {t_kill - t[-1]:.3f} s before the kill"
-    assert np.max(np.diff(t[t > t_kill - 5.0])) < 0.1  # and nothing missing before that
+    # And nothing missing before that: every sample it had written is read back. (Gaps in
+    # time are no measure of that: a starved expert publishes nothing for a while.)
+    assert sum(expert.count(topic) for topic in expert.topics) >= flushed > 100
     assert expert.count("/expert/force") == len(t)
     assert [s["event"] for s in expert.samples("/expert/scan")] == ["start"]
     follower = read_recording(paths["follower"])
