@@ -2,9 +2,9 @@
 
 Builds a wheel of this checkout (from a copy, so the checkout gets no build/ or egg-info),
 installs it without dependencies into a fresh venv that sees the system's site-packages (the
-dependencies are installed there already), and runs ``humantele demo --duration 5 --json``
-from a directory far from the checkout, without PYTHONPATH: the named definitions (the probe's
-tool, ...) must come from the installed package's data, not from the repository.
+dependencies are installed there already), and runs ``humantele demo --json`` until poses flow
+from a directory far from the checkout, without PYTHONPATH: the named definitions (the
+probe's tool, ...) must come from the installed package's data, not from the repository.
 """
 
 from __future__ import annotations
@@ -12,8 +12,10 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import threading
 import venv
 import zipfile
 from pathlib import Path
@@ -99,13 +101,26 @@ def test_installed_wheel_runs_the_demo_outside_the_checkout(wheel: Path, tmp_pat
     ).stdout.split()  # fmt: skip
     assert Path(where[0]).is_relative_to(env_dir), where  # the wheel's copy, not the checkout
     assert where[1:] == ["(4,", "3)"]
-    res = _run(
-        [str(env_dir / "bin" / "humantele"), "demo", "--duration", "5", "--json"],
-        work,
-        env,
-        timeout=180,
-    )
-    summary = json.loads(res.stdout.strip().splitlines()[-1])
+    # The installed demo, stopped (SIGTERM) once the status line shows poses flowing.
+    demo = subprocess.Popen(
+        [str(env_dir / "bin" / "humantele"), "demo", "--duration", "120", "--json"],
+        cwd=work, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    watchdog = threading.Timer(180.0, demo.kill)  # never hang the suite
+    watchdog.start()
+    try:
+        for line in demo.stderr:  # every 2 s; ends early if the demo does
+            if "link connected" in line and "poses 0 Hz" not in line:
+                break
+        demo.send_signal(signal.SIGTERM)
+        out, err = demo.communicate(timeout=60)
+    finally:
+        watchdog.cancel()
+        if demo.poll() is None:
+            demo.kill()
+            demo.wait()
+    assert demo.returncode == 0, f"{out[-3000:]}\n{err[-3000:]}"
+    summary = json.loads(out.strip().splitlines()[-1])
     assert summary["exit_codes"] == {"expert": 0, "follower": 0}
     assert summary["poses_sent"] > 0 and summary["poses_received"] > 0
     assert not (work / "configs").exists()
