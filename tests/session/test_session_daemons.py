@@ -59,7 +59,8 @@ async def test_session_calibrates_survives_kills_and_rejoins(session):
     await session.kill("follower")
     ticks_before = session.stats("expert")["uptime_s"]
     await session.wait("expert notices", lambda e, f: e.get("link_state") != "connected")
-    await asyncio.sleep(1.0)
+    noticed = session.stats("expert")["uptime_s"]
+    await session.wait("expert runs on", lambda e, f: e["uptime_s"] > noticed)  # next stats
     e = session.stats("expert")
     assert session.procs["expert"].returncode is None and e["uptime_s"] > ticks_before
     assert pid_alive(servo_pid) and e["has_model"] and e["servo_fault"] == ""
