@@ -1,3 +1,22 @@
 """Shared by every test folder: this folder is on ``sys.path`` (pytest's prepend import mode
 puts a conftest's folder there), so tests import the daemons' doubles from
-``daemon_doubles``."""
+``daemon_doubles``.
+
+The suite runs on two pytest-xdist workers (``-n 2 --dist loadgroup``, pyproject.toml). Tests
+that run real processes for seconds (the daemons, the servo, the demo, coturn, a browser) must
+not run two at a time on a 2-core machine, or they starve each other's real-time loops: they
+all go to one worker, one after the other (the xdist group ``processes``), and the other tests
+run on the other worker beside them. Such a test is marked ``slow`` or uses a fixture that
+starts those processes.
+"""
+
+import pytest
+
+PROCESS_FIXTURES = {"session", "demo_run", "browser_scenario"}
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
+def pytest_collection_modifyitems(items):
+    for item in items:
+        if item.get_closest_marker("slow") or PROCESS_FIXTURES & set(item.fixturenames):
+            item.add_marker(pytest.mark.xdist_group("processes"))
