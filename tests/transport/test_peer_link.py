@@ -66,12 +66,14 @@ async def test_streams_control_and_clock_sync_with_an_injected_offset(server):
         assert [type(c).__name__ for c in controls[1:3]] == ["EllipsoidModel", "Scan"]
         assert [p.seq for p in poses] == sorted(p.seq for p in poses)
         assert len(states) >= 45
-        # clock sync finds the injected offset (loopback: sub-millisecond) from both sides
-        assert follower.clock.offset == pytest.approx(-offset, abs=2e-3)
-        assert expert.clock.offset == pytest.approx(offset, abs=2e-3)
+        # clock sync finds the injected offset from both sides, within half the round trip
+        # of the exchange it uses (NTP's bound: sub-millisecond on an idle loopback)
+        assert abs(follower.clock.offset + offset) <= follower.clock.rtt / 2
+        assert abs(expert.clock.offset - offset) <= expert.clock.rtt / 2
         # a pose the expert stamps now is (about) zero seconds old on the follower
+        t0 = time.monotonic()
         age = follower.age_of(expert.now())
-        assert age == pytest.approx(0.0, abs=2e-3)
+        assert abs(age) <= follower.clock.rtt / 2 + (time.monotonic() - t0)
         assert expert.counters.dropped == {} and follower.counters.dropped == {}
         assert follower.counters.received["pose"] == len(poses)
 

@@ -105,7 +105,7 @@ async def test_links_connect_through_turn_only_and_poses_arrive(signaling, turn)
     assert pairs[0]["local"].port == pairs[1]["remote"].port
     assert pairs[1]["local"].port == pairs[0]["remote"].port
     assert statistics.median(ages) < 0.05  # loopback through coturn: well under 50 ms
-    assert abs(offset) < 0.005  # one machine: the true offset is 0
+    assert abs(offset) <= rtt / 2  # one machine: the true offset is 0 (NTP's error bound)
     # coturn really allocated relays for both peers (its own log)
     assert turn.log_tail(200_000).count("ALLOCATE processed, success") >= 2
 
