@@ -1,6 +1,7 @@
 """Helpers for tests that run the daemons as real OS processes over loopback WebRTC."""
 
 import asyncio
+import contextlib
 import json
 import math
 import os
@@ -17,6 +18,7 @@ import pytest
 
 from humantele.follower.calibration import CALIBRATION_FILE, build_calibration
 from humantele.follower.sim_human import SimPatient
+from humantele.recording import read_recording
 from humantele.signaling.server import SignalConfig, SignalingServer
 
 
@@ -181,12 +183,36 @@ class DemoRun:
 SCAN_S = 10.0  # scan 1 runs this long before the demo is stopped: long enough that the
 # mean alignment error of the recorded scan settles on the sim offset (4 s gave 1.9-2.3 mm for
 # a 5 mm offset: the lag of a short stretch of motion dominated it)
+SCAN_POSES = 150  # and the follower has recorded this many tracked probe poses in it (the
+# analysis test wants more than 50): on a busy machine the sensing process (niced) measures
+# fewer of its 45 tracker images a second, and 10 s gave as few as 6
+
+
+def scan_recorded(path: Path) -> bool:
+    """Scan 1 is in the follower's recording (being written) for ``SCAN_S``, with
+    ``SCAN_POSES`` tracked probe poses."""
+    try:
+        rec = read_recording(path, ["/follower/scan", "/follower/probe_pose"])
+    except OSError:  # not there yet
+        return False
+    starts = [s["t"] for s in rec.samples("/follower/scan") if s["event"] == "start"]
+    if not starts:
+        return False
+    tracked = [s["t"] for s in rec.samples("/follower/probe_pose") if s["tracked"]]
+    tracked = [t for t in tracked if t >= starts[0]]
+    return len(tracked) >= SCAN_POSES and tracked[-1] - starts[0] >= SCAN_S
+
+
+def _read_lines(stream, lines: list[str]) -> None:
+    for raw in stream:
+        lines.append(raw.decode())
 
 
 @pytest.fixture(scope="session")
 def demo_run(tmp_path_factory) -> DemoRun:
-    """The demo run shared by the tests that check one run: it ends on its condition (link
-    connected, calibrated, scan 1 recorded for ``SCAN_S``), not after a fixed duration."""
+    """The demo run shared by the tests that check one run: it ends on its condition (scan 1
+    recorded, after the calibration, for ``SCAN_S`` with ``SCAN_POSES`` tracked probe poses),
+    not after a fixed duration."""
     tmp = tmp_path_factory.mktemp("demo")
     env = dict(os.environ)
     env.pop("HUMANTELE_TOKEN", None)
@@ -197,25 +223,21 @@ def demo_run(tmp_path_factory) -> DemoRun:
     )  # fmt: skip
     watchdog = threading.Timer(180.0, os.killpg, (proc.pid, signal.SIGKILL))  # never hang
     watchdog.start()
-    status: list[str] = []
+    status: list[str] = []  # the status lines (stderr with --json, every 2 s)
+    reader = threading.Thread(target=_read_lines, args=(proc.stderr, status), daemon=True)
+    reader.start()
     seen: set[int] = set()
-    scan_since = None
     try:
-        while True:
-            # The status line (stderr with --json, every 2 s) says when each step is done.
-            line = proc.stderr.readline().decode()
-            if not line:
-                break  # the demo ended early: the tests say how
-            status.append(line)
+        while proc.poll() is None and not scan_recorded(tmp / "demo.follower.mcap"):
             seen |= descendants(proc.pid)  # expert, follower, the servo process
-            if ", calibrated |" in line and "link connected" in line and "| scan 1" in line:
-                scan_since = scan_since or time.monotonic()
-                if time.monotonic() - scan_since >= SCAN_S:
-                    break
+            time.sleep(0.5)
         t_stop = time.monotonic()
-        os.killpg(proc.pid, signal.SIGINT)
-        out, err = proc.communicate(timeout=60)
+        with contextlib.suppress(ProcessLookupError):  # the demo ended early: the tests say how
+            os.killpg(proc.pid, signal.SIGINT)
+        out = proc.stdout.read()
+        proc.wait(60)
         stop_s = time.monotonic() - t_stop
+        reader.join(10)
     finally:
         watchdog.cancel()
         if proc.poll() is None:
@@ -227,5 +249,4 @@ def demo_run(tmp_path_factory) -> DemoRun:
         summary = json.loads(lines[-1]) if lines else {}
     except ValueError:
         summary = {}
-    return DemoRun(tmp, proc.returncode, summary, out_text, "".join(status) + err.decode(),
-                   status, seen, stop_s)  # fmt: skip
+    return DemoRun(tmp, proc.returncode, summary, out_text, "".join(status), status, seen, stop_s)
