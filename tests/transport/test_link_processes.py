@@ -63,7 +63,8 @@ async def test_rejoin_after_the_follower_process_is_killed_and_restarted():
         # the echo carries our sequence back: the other process really got our poses
         assert all(e.seq <= seq for e in echoes)
         await until(lambda: expert.clock.synced, 10)
-        assert abs(expert.clock.offset) < 5e-3  # one machine: the true offset is ~0
+        # one machine: the true offset is 0, found within half the round trip (NTP's bound)
+        assert abs(expert.clock.offset) <= expert.clock.rtt / 2
         first_connections = expert.counters.connections
 
         procs[0].send_signal(signal.SIGKILL)
