@@ -578,6 +578,9 @@ class ExpertDaemon(Daemon):
             async for t in self.loop_ticks(self.config.link.pose_rate_hz, duration_s, link_task):
                 self.check_servo(t)
                 self.publish_pose(t)
+                # aiortc sends from a task of its own: let the pose go before the rest of the
+                # tick (OpenIGTLink, scans, recording reports) instead of after it.
+                await asyncio.sleep(0)
                 self.guarded(self.publish_igtl, t)
                 self.guarded(self.script_scans, t)
                 self.guarded(self.record_reports, t)

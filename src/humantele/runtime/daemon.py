@@ -24,7 +24,7 @@ from humantele.runtime.session import (
     open_daemon_recording,
     session_overrides,
 )
-from humantele.runtime.stats import CpuMeter, write_stats
+from humantele.runtime.stats import CpuMeter, StatsFile
 from humantele.transport.link import link_refusal
 
 log = logging.getLogger(__name__)
@@ -40,6 +40,7 @@ class Daemon:
     def __init__(self, config: Any, stats_file: str | None = None) -> None:
         self.config = config
         self.stats_file = stats_file
+        self.stats_out = StatsFile(stats_file)
         self.cpu = CpuMeter()
         self.t_start = time.monotonic()
         self.clock: Callable[[], float] = time.monotonic  # the loop's clock (s); tests replace it
@@ -53,7 +54,8 @@ class Daemon:
         raise NotImplementedError
 
     def write_stats(self) -> None:
-        write_stats(self.stats_file, self.stats())
+        """Hand the current stats to the stats file's writer thread (every 0.5 s)."""
+        self.stats_out.write(self.stats())
 
     def stop(self) -> None:
         """End :meth:`run` at its next tick (as SIGINT or SIGTERM do)."""
@@ -112,7 +114,7 @@ class Daemon:
     def finish_run(self) -> None:
         """The end of :meth:`run`: the recording closed, the final stats written."""
         self.close_recording()
-        self.write_stats()
+        self.stats_out.close(self.stats())
 
 
 # --- command line ---------------------------------------------------------------------------
