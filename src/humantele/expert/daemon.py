@@ -76,9 +76,9 @@ from humantele.runtime.daemon import (
     Daemon,
     add_daemon_arguments,
     daemon_overrides,
+    run_daemon_process,
     setup_logging,
 )
-from humantele.runtime.process import ignore_stop_signals
 from humantele.runtime.session import SessionConfig, recorder_stats
 from humantele.runtime.stats import SortedWindow, percentile_ms, process_cpu_seconds
 from humantele.transport import LinkConfig, PeerLink
@@ -511,6 +511,7 @@ class ExpertDaemon(Daemon):
             "dropped": dict(self.link.counters.dropped),
             "dropped_total": sum(self.link.counters.dropped.values()),
             "cpu_percent": self.cpu.overall(),
+            "loop_priority": self.loop_priority,
             "cpu_percent_servo": self.servo_cpu_percent(),
             "scan": self.scan,
             "scans_started": self.scans_started,
@@ -639,7 +640,4 @@ def configs_from_args(args: argparse.Namespace) -> tuple[ExpertConfig, ServoConf
 def run(args: argparse.Namespace) -> int:
     setup_logging("expert", args.log_level)
     config, servo = configs_from_args(args)
-    try:
-        return asyncio.run(ExpertDaemon(config, servo, args.stats_file).run(args.duration))
-    finally:
-        ignore_stop_signals()
+    return run_daemon_process(ExpertDaemon(config, servo, args.stats_file), args.duration)

@@ -16,7 +16,11 @@ from typing import Any
 from humantele.cliargs import EXIT_OK, EXIT_REFUSED, duration_s, log_level
 from humantele.recording import Recorder
 from humantele.runtime.pacing import daemon_ticks
-from humantele.runtime.process import on_stop_signals
+from humantele.runtime.process import (
+    ignore_stop_signals,
+    on_stop_signals,
+    realtime_loop_thread,
+)
 from humantele.runtime.session import (
     ClockSyncLog,
     add_session_arguments,
@@ -49,6 +53,7 @@ class Daemon:
         self.rec: Recorder | None = None
         self.clock_log = ClockSyncLog(f"/{self.role}/clock_sync")
         self._last_report = -math.inf
+        self.loop_priority = "off"  # the event loop thread's scheduling (start_run sets it)
 
     def stats(self) -> dict:
         raise NotImplementedError
@@ -115,6 +120,20 @@ class Daemon:
         """The end of :meth:`run`: the recording closed, the final stats written."""
         self.close_recording()
         self.stats_out.close(self.stats())
+
+
+def run_daemon_process(daemon: Daemon, duration_s: float | None) -> int:
+    """A daemon's process: its thread becomes the event loop's, at ``[<role>.link]
+    realtime_priority`` (:func:`~humantele.runtime.process.realtime_loop_thread`), and runs
+    :meth:`Daemon.run` to its exit code. (Tests run daemons on their own loop, unchanged.)"""
+    daemon.loop_priority = realtime_loop_thread(daemon.config.link.realtime_priority)
+    if daemon.loop_priority.startswith("refused"):
+        log.warning("%s: event loop at normal priority (SCHED_FIFO %s)", daemon.role,
+                    daemon.loop_priority)  # fmt: skip
+    try:
+        return asyncio.run(daemon.run(duration_s))
+    finally:
+        ignore_stop_signals()
 
 
 # --- command line ---------------------------------------------------------------------------
