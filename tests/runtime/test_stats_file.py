@@ -62,3 +62,27 @@ def test_no_path_writes_nothing():
     out.write({"i": 1})
     out.close({"i": 2})
     assert out._thread is None
+
+
+def test_cpu_percent_is_over_the_process_s_own_life():
+    """A process that has burnt CPU before it was noticed is not a 13968 % process."""
+    import subprocess
+    import sys
+
+    from humantele.runtime.stats import process_cpu_percent
+
+    busy = subprocess.Popen(
+        [sys.executable, "-c", "import time\nt = time.process_time()\n"
+         "while time.process_time() - t < 0.3: pass\nimport sys; sys.stdin.read()"],
+        stdin=subprocess.PIPE,
+    )  # fmt: skip
+    try:
+        while (process_cpu_percent(busy.pid) or 0.0) == 0.0:
+            pass
+        pct = process_cpu_percent(busy.pid)
+        assert 0.0 < pct <= 120.0  # one thread: at most a core (plus clock-tick rounding)
+    finally:
+        busy.stdin.close()
+        busy.wait()
+    assert process_cpu_percent(busy.pid) is None  # gone
+    assert process_cpu_percent(None) is None
