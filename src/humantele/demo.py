@@ -252,6 +252,7 @@ def summarize(
         "cpu_percent_follower": f.get("cpu_percent"),
         "cpu_percent_sensing": f.get("cpu_percent_sensing"),
         "follower_tick_late_p99_ms": f.get("tick_late_p99_ms"),
+        "loop_priority": {"expert": e.get("loop_priority"), "follower": f.get("loop_priority")},
         "scans": e.get("scans_started", 0),
         "recording": recording or None,
         "video": video_summary(e.get("video"), f.get("video")),
