@@ -52,8 +52,8 @@ class Session:
             "alignment": {"mm": 3.0, "deg": math.nan},  # a NaN must reach the page as null
         }
 
-    def pose_at(self, t: float):
-        return {"position": [0.01, 0.02, 0.03], "quaternion": [0.0, 0.0, 0.0, 1.0]}
+    def pose_at(self, t: float):  # numpy arrays, as the daemon's poses are
+        return {"position": np.array([0.01, 0.02, 0.03]), "quaternion": np.array([0, 0, 0, 1.0])}
 
     def start_scan(self) -> int:
         self.commands.append(("scan", "start"))

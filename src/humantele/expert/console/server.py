@@ -520,7 +520,9 @@ class ConsoleServer:
         if rec is not None:
             info["session_id"] = rec.metadata.get("session_id")
         try:
-            path = save_capture(Path(self.config.captures_dir).expanduser(), f.seq, f.jpeg, info)
+            path = save_capture(
+                Path(self.config.captures_dir).expanduser(), f.seq, f.jpeg, _clean(info)
+            )
         except OSError as exc:
             self.refused["capture_failed"] += 1
             log.error("console: capture not saved: %s", exc)
