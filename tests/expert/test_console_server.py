@@ -16,9 +16,9 @@ import pytest
 
 from humantele.expert.console import ConsoleConfig, ConsoleServer, SourceFrames
 from humantele.expert.console.cine import CineBuffer, CineFrame
-from humantele.expert.console.hook import PoseHistory, alignment
+from humantele.expert.console.hook import PoseHistory, alignment, pressing_n
 from humantele.expert.console.messages import HEADER_SIZE, parse_header
-from humantele.geometry import Pose
+from humantele.geometry import Pose, quat_from_axis_angle
 from humantele.recording import Recorder
 from humantele.recording.reader import read_recording
 from humantele.video.counter import read_counter
@@ -404,3 +404,12 @@ def test_console_config_checks_the_pixel_spacing():
     for bad in ((0.0, 0.3), (math.nan, 0.3), (50.0, 0.3)):
         with pytest.raises(ValueError, match="pixel spacing|finite"):
             ConsoleConfig(us_pixel_spacing_mm=bad)
+
+
+def test_force_along_the_beam_is_the_pressing_force():
+    """A probe pointing down (beam, tip +z, along world -y), pressed into the patient: the
+    patient pushes it up and a little sideways; along the beam that is +8 N pressing, the
+    sideways push left out; pulled away from the patient it is negative."""
+    down = Pose([0.1, 0.2, 0.0], quat_from_axis_angle((1.0, 0.0, 0.0), math.pi / 2))
+    assert pressing_n(down.inverse().rotate([3.0, 8.0, 0.0])) == pytest.approx(8.0)
+    assert pressing_n(down.inverse().rotate([0.0, -2.0, 1.0])) == pytest.approx(-2.0)

@@ -346,7 +346,7 @@ function renderState() {
   setText($("n-servo"), servo.alive ? fmt(servo.rate_hz, 0, " Hz") : "stopped");
   plot.add(performance.now(), link.stale ? null : f.measured_n ?? null, servo.alive ? f.rendered_n ?? null : null);
   setData($("fbar"), "stale", String(Boolean(link.stale) || f.measured_n == null));
-  const width = `${Math.min(100, (100 * (f.measured_n || 0)) / FORCE_BAR_MAX_N).toFixed(1)}%`;
+  const width = `${Math.max(0, Math.min(100, (100 * (f.measured_n || 0)) / FORCE_BAR_MAX_N)).toFixed(1)}%`;
   if ($("fbar-fill").style.width !== width) $("fbar-fill").style.width = width;
   setText($("fbar-value"), link.stale || f.measured_n == null ? "–" : fmt(f.measured_n, 1, " N"));
   plot.draw(performance.now());
