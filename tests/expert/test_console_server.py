@@ -135,8 +135,12 @@ async def test_live_sim_frames_reach_the_page_readable_and_in_order(tmp_path):
                 assert img.shape[:2] == (h["height"], h["width"])
                 assert img.mean() > 5.0  # a picture, not a black frame
                 assert read_counter(img) == h["seq"]
-                if h["track"] == "us":
-                    assert h["spacing_mm"][0] > 0 and h["spacing_mm"][1] > 0
+                if h["track"] == "us":  # the scale: the sim's own pixel spacing and depth 0
+                    g = frames.sources["us"].geometry
+                    assert h["spacing_mm"] == pytest.approx(g.pixel_spacing_mm, rel=1e-6)
+                    assert h["depth_origin_row"] == pytest.approx(g.depth_origin_row, rel=1e-6)
+                else:
+                    assert h["depth_origin_row"] is None
                 seen[h["track"]].append(h["seq"])
             for seqs in seen.values():
                 assert seqs == sorted(set(seqs))

@@ -185,7 +185,7 @@ def make_console(daemon: ExpertDaemon) -> tuple[ConsoleServer, ProcessFrames | N
     cfg = daemon.config.console
     received: FrameProvider | None = None
     if daemon.config.video.enabled:
-        received = ReceivedFrames(daemon.video, cfg.us_pixel_spacing_mm)
+        received = ReceivedFrames(daemon.video, cfg.us_pixel_spacing_mm, cfg.us_depth_origin_row)
     mode = cfg.video
     if mode == "auto":
         mode = "received" if received is not None else "sim"

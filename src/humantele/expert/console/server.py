@@ -88,6 +88,13 @@ class ConsoleConfig(ConfigModel):
         "calipers (a sim or local source gives its own)",
     )
     jpeg_quality: int = Field(88, ge=30, le=100)
+    us_depth_origin_row: float | None = Field(
+        None,
+        ge=-10000.0,
+        le=10000.0,
+        description="row (px) of depth 0 (the skin under the probe's face) in the received "
+        "ultrasound frames: with the pixel spacing, the depth scale's cm labels; None: none",
+    )
     poll_hz: float = Field(250.0, gt=0, le=2000, description="how often new frames are looked for")
     state_rate_hz: float = Field(20.0, gt=0, le=100)
     stale_after_s: float = Field(1.0, gt=0, le=60, description="older video or pose: stale")
@@ -324,10 +331,17 @@ class ConsoleServer:
         spacing = frame.pixel_spacing_mm
         if spacing is not None and not all(math.isfinite(s) and s > 0 for s in spacing):
             spacing = None
-        header = frame_header(track, frame.seq, frame.t_capture, spacing, frame.width, frame.height)
+        depth0 = getattr(frame, "depth_origin_row", None)
+        if depth0 is not None and not math.isfinite(depth0):
+            depth0 = None
+        header = frame_header(
+            track, frame.seq, frame.t_capture, spacing, frame.width, frame.height, depth0=depth0
+        )
         cine = None
         if track == "us":
-            cine = CineFrame(frame.seq, frame.t_capture, jpeg, frame.width, frame.height, spacing)
+            cine = CineFrame(
+                frame.seq, frame.t_capture, jpeg, frame.width, frame.height, spacing, depth0
+            )
         return header + jpeg, cine
 
     async def _pump_state(self) -> None:
@@ -471,8 +485,9 @@ class ConsoleServer:
             self._result(client, "cine", False, f"frame {seq} is no longer in the cine buffer")
             return
         header = frame_header(
-            "us", f.seq, f.t_capture, f.pixel_spacing_mm, f.width, f.height, cine=True
-        )
+            "us", f.seq, f.t_capture, f.pixel_spacing_mm, f.width, f.height, cine=True,
+            depth0=f.depth_origin_row,
+        )  # fmt: skip
         client.post("frame:cine", header + f.jpeg)
 
     def _on_tool(self, client: _Client, m: Caliper | Annotation | Capture) -> None:

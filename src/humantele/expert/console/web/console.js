@@ -5,14 +5,17 @@
 // when its data is older than the daemon's stale_after_ms, or when this page hears nothing.
 
 import { ForcePlot } from "./plot.js";
+import { DepthScale } from "./scale.js";
 import { Marks } from "./tools.js";
 
 const $ = (id) => document.getElementById(id);
 const TRACKS = ["us", "pov"];
 const LOST_AFTER_MS = 1500; // no state message for this long: the daemon is out of reach
 const FORCE_BAR_MAX_N = 20;
+const SCALE_GUTTER_PX = 30; // right of the ultrasound image: its depth scale
 
 const plot = new ForcePlot($("plot"), 10);
+const depthScale = new DepthScale($("us-scale"));
 
 const app = {
   ws: null,
@@ -32,6 +35,7 @@ const app = {
 };
 window.consoleApp = app;
 app.plot = plot;
+app.depthScale = depthScale;
 
 // --- the connection -------------------------------------------------------------------------
 
@@ -77,6 +81,7 @@ function parseHeader(buf) {
     seq: v.getUint32(4, true), tCapture: v.getFloat64(8, true),
     spacing: [v.getFloat32(16, true), v.getFloat32(20, true)],
     width: v.getUint16(24, true), height: v.getUint16(26, true),
+    depth0: v.getFloat32(28, true), // the image row of depth 0 (NaN: unknown)
   };
 }
 
@@ -86,7 +91,7 @@ const waiting = { us: null, pov: null, cine: null };
 function onFrame(buf) {
   const h = parseHeader(buf);
   h.rx = performance.now();
-  if (h.version !== 1 || !h.track) return;
+  if (h.version !== 2 || !h.track) return;
   const lane = h.cine ? "cine" : h.track;
   if (decoding[lane]) { waiting[lane] = { buf, h }; return; } // latest wins while one decodes
   decode(lane, buf, h);
@@ -128,23 +133,33 @@ function draw(h, bitmap) {
     const spacing = h.spacing[0] > 0 ? h.spacing : null;
     app.shown = { seq: h.seq, width: h.width, height: h.height, spacing, cine: h.cine };
     marks.setFrame(h.seq, h.width, h.height, spacing);
+    depthScale.set(spacing ? spacing[0] : 0, h.depth0, h.height);
     if (h.cine) showCineTime(h.seq);
   }
 }
 
-// Canvases fill their box keeping the image's aspect ratio; the marks overlay follows.
+// Canvases fill their box keeping the image's aspect ratio (the ultrasound leaves a gutter
+// on its right for the depth scale); the marks overlay and the scale follow.
 function fit() {
   for (const id of TRACKS) {
     const canvas = $(id), box = canvas.parentElement;
-    const bw = box.clientWidth, bh = box.clientHeight;
-    if (!bw || !bh) continue;
+    const gutter = id === "us" ? SCALE_GUTTER_PX : 0;
+    const bw = box.clientWidth - gutter, bh = box.clientHeight;
+    if (bw <= 0 || !bh) continue;
     const s = Math.min(bw / canvas.width, bh / canvas.height);
     canvas.style.width = `${Math.floor(canvas.width * s)}px`;
     canvas.style.height = `${Math.floor(canvas.height * s)}px`;
+    canvas.style.marginRight = `${gutter}px`;
     if (id === "us") {
+      const left = `${canvas.offsetLeft}px`, top = `${canvas.offsetTop}px`;
       const o = $("us-marks");
       o.style.width = canvas.style.width; o.style.height = canvas.style.height;
+      o.style.left = left; o.style.top = top;
+      const sc = $("us-scale");
+      sc.style.left = `${canvas.offsetLeft + canvas.offsetWidth}px`; sc.style.top = top;
+      sc.style.width = `${gutter}px`; sc.style.height = canvas.style.height;
       marks.draw();
+      depthScale.draw();
     }
   }
 }
