@@ -87,6 +87,30 @@ class ManualFrames:
         return self.frames.get(track)
 
 
+class ReceivedManualFrames(ManualFrames):
+    """As received frames are: decoded 30 ms after their capture (``t_received``), there for
+    the console 40 ms after it."""
+
+    def __init__(self, clock: FakeClock) -> None:
+        super().__init__(clock)
+        self.clock = clock
+
+    def next(self, track: str):
+        src = self.us if track == "us" else self.pov
+        f = src.render(self.scene())
+        self.clock.t += 0.04
+        self.frames[track] = Received(f, f.t_capture + 0.03)
+        return self.frames[track]
+
+
+class Received:
+    def __init__(self, frame, t_received: float) -> None:
+        self.__dict__.update({k: getattr(frame, k) for k in (
+            "image", "seq", "t_capture", "pixel_spacing_mm", "depth_origin_row", "width",
+            "height")})  # fmt: skip
+        self.t_received = t_received
+
+
 async def serve(frames, session, tmp_path, clock=None, on_demand=None, **cfg) -> ConsoleServer:
     config = ConsoleConfig(port=0, captures_dir=str(tmp_path / "captures"), **cfg)
     server = ConsoleServer(config, frames, session, clock=clock or FakeClock(), on_demand=on_demand)
@@ -153,6 +177,41 @@ async def test_live_sim_frames_reach_the_page_readable_and_in_order(tmp_path):
         frames.stop()
         await server.stop()
     assert server.tracks["us"].frames >= 4 and server.tracks["pov"].frames >= 4
+
+
+async def test_glass_to_glass_from_the_counter_the_page_read(tmp_path):
+    """The page echoes the counter it read back from its canvas: the capture-to-draw figure
+    is that frame's (not the header's), on the expert's clock; a counter that did not read,
+    or reads a frame not sent, is counted and left out. Seen-to-draw starts at the frame's
+    receipt (the receiver's decode time) when the provider gives one."""
+    clock = FakeClock()
+    frames = ReceivedManualFrames(clock)
+    server = await serve(frames, Session(), tmp_path, clock=clock)
+    sent = []
+    try:
+        async with aiohttp.ClientSession() as http, http.ws_connect(f"{server.url}ws") as ws:
+            for _ in range(3):  # captured at t, 0.05 s apart; the page draws them at t + 0.2
+                f = frames.next("us")
+                await next_message(ws, lambda k, d, s=f.seq: k == "frame" and d[0]["seq"] == s)
+                sent.append(f)
+                clock.t += 0.05
+            clock.t = sent[-1].t_capture + 0.2
+            # Frame 3's header, and the page read frame 2's counter off its canvas.
+            for seq, counter in ((1, None), (2, 999), (3, sent[1].seq)):
+                await ws.send_json({"type": "drawn", "track": "us", "seq": seq,
+                                    "counter": counter, "draw_to_send_ms": 0.0})  # fmt: skip
+            for _ in range(200):
+                if server.tracks["us"].drawn == 3:
+                    break
+                await asyncio.sleep(0.01)
+    finally:
+        await server.stop()
+    st = server.tracks["us"]
+    assert (st.counter_read, st.counter_unread, st.counter_unmatched) == (1, 1, 1)
+    assert list(st.capture_to_draw) == [pytest.approx(clock.t - sent[1].t_capture)]
+    assert list(st.capture_to_seen) == [pytest.approx(0.03)]  # the receiver's decode
+    receipts = [f.t_received for f in sent]
+    assert list(st.seen_to_draw) == pytest.approx([clock.t - t for t in receipts])
 
 
 async def test_state_marks_old_video_and_a_lost_link_as_stale(tmp_path):

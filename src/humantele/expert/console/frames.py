@@ -221,7 +221,7 @@ class _Received:
     """A received frame as the console reads it (``image`` converted when first read, in the
     console's encoding thread)."""
 
-    __slots__ = ("_frame", "seq", "t_capture", "pixel_spacing_mm", "depth_origin_row")
+    __slots__ = ("_frame", "seq", "t_capture", "t_received", "pixel_spacing_mm", "depth_origin_row")
 
     def __init__(
         self, frame: Any, seq: int, spacing: tuple[float, float] | None, depth0: float | None
@@ -230,6 +230,7 @@ class _Received:
         self.seq = seq
         # Capture time mapped onto the expert's clock; the decode time when it is unknown.
         self.t_capture = frame.t_capture if frame.t_capture is not None else frame.t_received
+        self.t_received = frame.t_received  # decoded by the expert's receiver (its clock)
         self.pixel_spacing_mm = spacing
         self.depth_origin_row = depth0
 

@@ -78,12 +78,15 @@ Seq = Annotated[int, Field(ge=0, le=0xFFFFFFFF)]
 
 class Drawn(_Msg):
     """Frame ``seq`` of ``track`` was drawn (first time), and this was sent
-    ``draw_to_send_ms`` after the draw call."""
+    ``draw_to_send_ms`` after the draw call; ``counter``: the frame counter
+    (:mod:`humantele.video.counter`, 24 bits) the page read back from the canvas it drew,
+    None when it did not read."""
 
     type: Literal["drawn"]
     track: Literal["us", "pov"]
     seq: Seq
     draw_to_send_ms: float = Field(ge=0.0, le=10_000.0, allow_inf_nan=False)
+    counter: Annotated[int, Field(ge=0, le=0xFFFFFF)] | None = None
 
 
 class ScanCommand(_Msg):

@@ -58,6 +58,7 @@ from humantele.expert.console.messages import (
 from humantele.expert.console.session import ConsoleSession
 from humantele.signaling.messages import is_loopback
 from humantele.video.base import VideoFrame
+from humantele.video.counter import unwrap
 from humantele.web.guard import MessageBudget
 from humantele.web.pagesocket import PageClient, PageLimits, PageSockets, validated
 
@@ -87,7 +88,6 @@ class ConsoleConfig(ConfigModel):
         description="(row, col) mm per pixel of the received ultrasound frames; None: no "
         "calipers (a sim or local source gives its own)",
     )
-    jpeg_quality: int = Field(88, ge=30, le=100)
     us_depth_origin_row: float | None = Field(
         None,
         ge=-10000.0,
@@ -95,6 +95,7 @@ class ConsoleConfig(ConfigModel):
         description="row (px) of depth 0 (the skin under the probe's face) in the received "
         "ultrasound frames: with the pixel spacing, the depth scale's cm labels; None: none",
     )
+    jpeg_quality: int = Field(88, ge=30, le=100)
     poll_hz: float = Field(250.0, gt=0, le=2000, description="how often new frames are looked for")
     state_rate_hz: float = Field(20.0, gt=0, le=100)
     stale_after_s: float = Field(1.0, gt=0, le=60, description="older video or pose: stale")
@@ -160,7 +161,11 @@ class _Track:
         self.encode_s: deque[float] = deque(maxlen=500)
         self.capture_to_draw: deque[float] = deque(maxlen=LATENCIES_KEPT)
         self.seen_to_draw: deque[float] = deque(maxlen=LATENCIES_KEPT)
+        self.capture_to_seen: deque[float] = deque(maxlen=LATENCIES_KEPT)  # of those drawn
         self.drawn = 0
+        self.counter_read = 0  # drawn frames whose counter the page read from its canvas
+        self.counter_unread = 0  # ... did not read (no counter, or a smeared one)
+        self.counter_unmatched = 0  # ... read a number whose frame is not known here
 
     def rate_hz(self, now: float, window_s: float = 2.0) -> float:
         n = sum(1 for t in self.arrivals if now - t <= window_s)
@@ -301,6 +306,10 @@ class ConsoleServer:
             if frame is None or frame.seq == st.seq:
                 continue
             seen = self.clock()
+            # When the frame was there: the receiver's decode time (the expert's receipt of a
+            # received frame), else now.
+            there = getattr(frame, "t_received", None)
+            there = seen if there is None or not math.isfinite(there) or there > seen else there
             try:
                 packet, cine = await asyncio.to_thread(self._encode, track, frame)
             except (cv2.error, ValueError) as exc:
@@ -311,7 +320,7 @@ class ConsoleServer:
             st.encode_s.append(self.clock() - seen)
             st.seq, st.t_capture, st.t_seen = frame.seq, frame.t_capture, seen
             st.size, st.spacing = (frame.width, frame.height), frame.pixel_spacing_mm
-            st.times[frame.seq] = (frame.t_capture, seen)
+            st.times[frame.seq] = (frame.t_capture, there)
             while len(st.times) > SEQS_KEPT:
                 st.times.popitem(last=False)
             st.arrivals.append(seen)
@@ -450,14 +459,25 @@ class ConsoleServer:
             return
         client.last_drawn[m.track] = m.seq
         d = m.draw_to_send_ms / 1000.0
-        t_capture, t_seen = times
+        _, t_seen = times
         to_draw = arrival - d - t_seen
         if not -0.001 <= to_draw <= 10.0:
             self.refused["implausible"] += 1
             return
         st.drawn += 1
         st.seen_to_draw.append(max(0.0, to_draw))
-        st.capture_to_draw.append(arrival - d - t_capture)
+        # Glass to glass as the page shows it: the counter read back from the page's canvas,
+        # matched to that frame's capture time.
+        if m.counter is None:
+            st.counter_unread += 1
+            return
+        drawn = st.times.get(unwrap(m.counter, m.seq))
+        if drawn is None:
+            st.counter_unmatched += 1
+            return
+        st.counter_read += 1
+        st.capture_to_draw.append(arrival - d - drawn[0])
+        st.capture_to_seen.append(drawn[1] - drawn[0])
 
     def _on_freeze(self, on: bool) -> None:
         if on:
@@ -586,6 +606,11 @@ class ConsoleServer:
                 "seen_to_draw_p95_ms": _pct(st.seen_to_draw, 95),
                 "capture_to_draw_p50_ms": _pct(st.capture_to_draw, 50),
                 "capture_to_draw_p95_ms": _pct(st.capture_to_draw, 95),
+                "capture_to_seen_p50_ms": _pct(st.capture_to_seen, 50),
+                "capture_to_seen_p95_ms": _pct(st.capture_to_seen, 95),
+                "counter_read": st.counter_read,
+                "counter_unread": st.counter_unread,
+                "counter_unmatched": st.counter_unmatched,
             }
         return out
 

@@ -4,6 +4,7 @@
 // humantele.expert.console.messages). Nothing stale is shown as live: each panel greys out
 // when its data is older than the daemon's stale_after_ms, or when this page hears nothing.
 
+import { readCounter } from "./counter.js";
 import { ForcePlot } from "./plot.js";
 import { DepthScale } from "./scale.js";
 import { Marks } from "./tools.js";
@@ -32,6 +33,7 @@ const app = {
   results: [],
   closedReason: null,
   rxToDraw: [], // ms from a frame's arrival at the page to its draw call (last 500)
+  counters: { us: null, pov: null }, // the counter read from each track's last drawn frame
 };
 window.consoleApp = app;
 app.plot = plot;
@@ -121,13 +123,17 @@ function draw(h, bitmap) {
   const t0 = performance.now();
   // A CPU canvas: drawing a decoded frame is a copy, with no GPU upload and read-back (on a
   // software GPU, as in the headless tests, a GPU canvas halved the frame rate).
-  canvas.getContext("2d", { willReadFrequently: true }).drawImage(bitmap, 0, 0);
+  const g = canvas.getContext("2d", { willReadFrequently: true });
+  g.drawImage(bitmap, 0, 0);
   if (h.rx !== undefined) app.rxToDraw.push(t0 - h.rx);
   if (app.rxToDraw.length > 500) app.rxToDraw.shift();
   if (!h.cine) {
     app.frames[h.track] += 1;
     app.lastFrame[h.track] = { seq: h.seq, at: t0, ...h };
-    send({ type: "drawn", track: h.track, seq: h.seq, draw_to_send_ms: performance.now() - t0 });
+    // The frame as drawn: its counter, read back from the canvas (glass-to-glass latency).
+    const counter = readCounter(g);
+    app.counters[h.track] = counter;
+    send({ type: "drawn", track: h.track, seq: h.seq, counter, draw_to_send_ms: performance.now() - t0 });
   }
   if (h.track === "us") {
     const spacing = h.spacing[0] > 0 ? h.spacing : null;
