@@ -14,6 +14,7 @@ const TRACKS = ["us", "pov"];
 const LOST_AFTER_MS = 1500; // no state message for this long: the daemon is out of reach
 const FORCE_BAR_MAX_N = 20;
 const SCALE_GUTTER_PX = 30; // right of the ultrasound image: its depth scale
+const COUNTER_PX = [64, 32]; // the frame counter's patch, top left of a frame (image px)
 
 const plot = new ForcePlot($("plot"), 10);
 const depthScale = new DepthScale($("us-scale"));
@@ -68,9 +69,11 @@ function onText(m) {
 
 function onHello(m) {
   app.hello = m;
-  const sim = m.video === "sim" ? " (simulated here from the follower's pose)" : "";
-  document.querySelector("#us-panel .name").textContent = `Ultrasound${sim}`;
-  document.querySelector("#pov-panel .name").textContent = `Follower's view${m.video === "sim" ? " (simulated)" : ""}`;
+  const sim = m.video === "sim";
+  document.body.dataset.video = m.video;
+  document.querySelector("#us-panel .name").textContent = sim ? "Ultrasound: SIMULATED" : "Ultrasound";
+  document.querySelector("#pov-panel .name").textContent = sim ? "Follower's view: SIMULATED" : "Follower's view";
+  for (const t of TRACKS) $(`${t}-sim`).hidden = !sim;
   if (m.video === "none") for (const t of TRACKS) $(`${t}-stale`).querySelector("b").textContent = "No video on this console";
 }
 
@@ -133,6 +136,7 @@ function draw(h, bitmap) {
     // The frame as drawn: its counter, read back from the canvas (glass-to-glass latency).
     const counter = readCounter(g);
     app.counters[h.track] = counter;
+    setHidden($(`${h.track}-counter`), counter === null);
     send({ type: "drawn", track: h.track, seq: h.seq, counter, draw_to_send_ms: performance.now() - t0 });
   }
   if (h.track === "us") {
@@ -156,6 +160,12 @@ function fit() {
     canvas.style.width = `${Math.floor(canvas.width * s)}px`;
     canvas.style.height = `${Math.floor(canvas.height * s)}px`;
     canvas.style.marginRight = `${gutter}px`;
+    // The frame counter is read from the canvas, and covered on screen: a flickering patch
+    // is nothing a sonographer should have to look at.
+    const mask = $(`${id}-counter`);
+    mask.style.left = `${canvas.offsetLeft}px`; mask.style.top = `${canvas.offsetTop}px`;
+    mask.style.width = `${Math.ceil(COUNTER_PX[0] * s)}px`;
+    mask.style.height = `${Math.ceil(COUNTER_PX[1] * s)}px`;
     if (id === "us") {
       const left = `${canvas.offsetLeft}px`, top = `${canvas.offsetTop}px`;
       const o = $("us-marks");
@@ -404,7 +414,10 @@ function tick() {
     }
     const info = $(`${track}-info`);
     if (frozenUs && app.shown) setText(info, `frozen · frame ${app.shown.seq}`);
-    else if (v && !stale) setText(info, `${fmt(v.fps, 0)} fps · ${fmt(v.age_ms, 0)} ms old`);
+    else if (v && !stale) {
+      const sim = app.hello && app.hello.video === "sim" ? "simulated · " : "";
+      setText(info, `${sim}${fmt(v.fps, 0)} fps · ${fmt(v.age_ms, 0)} ms old`);
+    }
     else setText(info, "not live");
   }
   if (lost) plot.draw(now); // no state messages: the plot still scrolls, with a gap
