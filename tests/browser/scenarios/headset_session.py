@@ -59,11 +59,10 @@ async def run(ctx) -> dict:
         await hud_when(ctx, page, f"{LIVE} && parseFloat(h.mm) < 25", timeout=30)
     except AssertionError:
         pass
-    for _ in range(3):  # the picture of a live guide: a pose gap or a clutch greys it for a moment
-        await hud_when(ctx, page, LIVE)
-        data["view"] = await capture(ctx, page, "session_following")
-        if data["view"]["hud"]["cue"] in ("green", "amber", "red"):
-            break
+    # Frozen while live (a pose gap or a clutch greys the guide for a moment).
+    data["view"] = await capture(
+        ctx, page, "session_following", alone=("virtual", "ghost"), when=LIVE
+    )
 
     # 3. The expert killed: the guide greys out and says why; the expert back: live again.
     await s.kill("expert")
