@@ -115,6 +115,14 @@ class Ctx:
             await asyncio.sleep(0.05)
         raise AssertionError(f"page: {expression!r} still {value!r} after {timeout} s")
 
+    async def wait(self, what: str, pred, timeout: float = 30.0) -> None:
+        """Poll ``pred()`` (here, in the scenario) until it is true."""
+        end = time.monotonic() + timeout
+        while not pred():
+            if time.monotonic() > end:
+                raise AssertionError(f"still waiting for {what} after {timeout} s")
+            await asyncio.sleep(0.02)
+
     async def close_page(self, page: Page) -> None:
         """Close a page as a user closing the tab would."""
         await page.context.close()

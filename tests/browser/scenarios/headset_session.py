@@ -29,6 +29,7 @@ async def run(ctx) -> dict:
     still = ctx.out / "no_presses.toml"
     still.write_text("[follower]\nauto_calibrate = false\n")
     await s.start("follower", "--config", str(still), "--feed-port", str(PORT))
+    await s.start("expert")  # starting meanwhile (it joins whichever follower is there)
     await s.wait("the headset page", lambda e, f: (f.get("feed") or {}).get("page_url"))
     data["follower_feed"] = feed_stats(s)
     url = page_url(s.stats("follower"))
@@ -36,16 +37,18 @@ async def run(ctx) -> dict:
     data["calibrating"] = await hud_when(ctx, page, "h.cue === 'calibrating'")
     await next_frames(ctx, page)
     await ctx.shot(page, "session_calibrating")
+    ctx.mark("calibration prompt")
 
-    # 2. The follower again (same port), pressing, and the expert: calibration, then following.
+    # 2. The follower again (same port), pressing: calibration, then following.
     await s.terminate("follower")
     await s.start("follower", "--feed-port", str(PORT))
-    await s.start("expert")
     data["steps_seen"] = []
     for _ in range(900):  # the page reconnects by itself; watch the prompts go by
         h = await page.evaluate("headset.hud()")
         if h["cue"] == "calibrating" and h["headline"] not in data["steps_seen"]:
             data["steps_seen"].append(h["headline"])
+            if "3 of 4" in h["headline"]:
+                await ctx.shot(page, "session_calibrating_3")  # a picture for the README
         if h["cue"] != "calibrating" and h["cue"] != "stale" and h["guide"]["live"]:
             break
         await asyncio.sleep(0.1)
@@ -54,15 +57,18 @@ async def run(ctx) -> dict:
         return f.get("calibrated") and f.get("link_state") == "connected"
 
     await s.wait("calibrated and following", following)
+    ctx.mark("calibrated")
     data["following"] = await hud_when(ctx, page, f"{LIVE} && headset.state.model")
     try:  # a picture once the novice has caught up (the checks do not need it)
-        await hud_when(ctx, page, f"{LIVE} && parseFloat(h.mm) < 25", timeout=30)
+        await hud_when(ctx, page, f"{LIVE} && parseFloat(h.mm) < 25", timeout=10)
     except AssertionError:
         pass
     # Frozen while live (a pose gap or a clutch greys the guide for a moment).
     data["view"] = await capture(
         ctx, page, "session_following", alone=("virtual", "ghost"), when=LIVE
     )
+
+    ctx.mark("following captured")
 
     # 3. The expert killed: the guide greys out and says why; the expert back: live again.
     await s.kill("expert")
@@ -73,6 +79,7 @@ async def run(ctx) -> dict:
     await ctx.shot(page, "session_stale")
     await s.start("expert")
     data["rejoined"] = await hud_when(ctx, page, LIVE, timeout=90)
+    ctx.mark("rejoined")
 
     # 4. WebXR under Meta's emulator (a Quest 3): immersive-ar is offered and entered.
     xr_page = await ctx.page(url, iwer=True)
@@ -84,6 +91,7 @@ async def run(ctx) -> dict:
     data["xr_hud"] = await xr_page.evaluate("headset.hud()")
     data["xr_error"] = await xr_page.evaluate("headset.xr.error")
     await ctx.close_page(xr_page)
+    ctx.mark("webxr")
 
     # 5. Bad input from pages; a tab closed mid-stream: counted, the follower goes on.
     wss = url.replace("https://", "wss://") + "feed"
@@ -100,7 +108,7 @@ async def run(ctx) -> dict:
 
     await s.wait("the refusals counted", counted)
     uptime = s.stats("follower")["uptime_s"]
-    await s.wait("the follower going on", lambda e, f: f.get("uptime_s", 0) > uptime + 1.0)
+    await s.wait("the follower going on", lambda e, f: f.get("uptime_s", 0) > uptime)
     data["still_live"] = await hud_when(ctx, page, LIVE)
     data["follower"] = s.stats("follower")
     return data
