@@ -66,7 +66,7 @@ def test_page_draws_the_expert_pose_with_ghost_and_outline(run):
     assert min(hits) > 0.5, hits
     outline = changed(shot["all"], shot["outline"], OUTLINE_LEVEL)
     assert outline.sum() > 2000
-    assert view["hud"]["cue"] in ("green", "amber", "red")
+    assert view["hud"]["cue"] in ("green", "amber", "red") and float(view["hud"]["mm"][:-3]) < 50
 
 
 @pytest.mark.slow
@@ -93,7 +93,7 @@ def test_bad_page_input_counted_by_the_follower_which_goes_on(run):
     assert run.data["bad_input_close_code"] == 1009 and run.data["cross_origin"] == "refused"
     assert refused.get("malformed", 0) >= 5 and refused.get("flood", 0) >= 1
     assert refused.get("origin") == 1 and refused.get("too_big") == 1
-    assert feed["disconnects"] >= 3  # the bad page, the IWER page, the closed tab
+    assert feed["disconnects"] >= 3  # the bad page, the first page, the IWER tab closed
     assert run.data["still_live"]["guide"]["live"]
     assert run.data["follower"]["tick_errors"] == 0
     errors = [e for e in run.data["console_errors"]

@@ -59,14 +59,13 @@ async def run(ctx) -> dict:
     await s.wait("calibrated and following", following)
     ctx.mark("calibrated")
     data["following"] = await hud_when(ctx, page, f"{LIVE} && headset.state.model")
-    try:  # a picture once the novice has caught up (the checks do not need it)
-        await hud_when(ctx, page, f"{LIVE} && parseFloat(h.mm) < 25", timeout=10)
-    except AssertionError:
-        pass
-    # Frozen while live (a pose gap or a clutch greys the guide for a moment).
+    # Frozen while live (a pose gap or a clutch greys the guide for a moment) with the
+    # novice's probe within 5 cm: the view follows the virtual probe, and a novice lagging far
+    # behind (at times 20 cm and more) has the real one at the picture's edge or beyond it.
     data["view"] = await capture(
-        ctx, page, "session_following", alone=("virtual", "ghost"), when=LIVE
-    )
+        ctx, page, "session_following", alone=("virtual", "ghost"),
+        when=f"{LIVE} && parseFloat(h.mm) < 50",
+    )  # fmt: skip
 
     ctx.mark("following captured")
 
@@ -81,7 +80,17 @@ async def run(ctx) -> dict:
     data["rejoined"] = await hud_when(ctx, page, LIVE, timeout=90)
     ctx.mark("rejoined")
 
-    # 4. WebXR under Meta's emulator (a Quest 3): immersive-ar is offered and entered.
+    # 4. Bad input from pages: counted (below), the follower goes on.
+    wss = url.replace("https://", "wss://") + "feed"
+    data["bad_input_close_code"] = await page.evaluate(BAD_INPUT_JS, wss)
+    other = await ctx.other_site()
+    data["cross_origin"] = await other.evaluate(CROSS_ORIGIN_JS, wss)
+    await ctx.close_page(other)
+    await ctx.close_page(page)  # one headset page at a time from here (software WebGL)
+    ctx.mark("bad input")
+
+    # 5. WebXR under Meta's emulator (a Quest 3): immersive-ar is offered and entered; the
+    # guide is live there after the bad input; then the tab is closed mid-stream.
     xr_page = await ctx.page(url, iwer=True)
     data["xr_supported"] = await ctx.until(xr_page, "headset.xr.supported", timeout=20)
     await xr_page.click("#enter-ar")
@@ -90,25 +99,18 @@ async def run(ctx) -> dict:
     await ctx.until(xr_page, f"headset.frames > {f0 + 10}", timeout=20)
     data["xr_hud"] = await xr_page.evaluate("headset.hud()")
     data["xr_error"] = await xr_page.evaluate("headset.xr.error")
+    data["still_live"] = await hud_when(ctx, xr_page, LIVE)
     await ctx.close_page(xr_page)
     ctx.mark("webxr")
 
-    # 5. Bad input from pages; a tab closed mid-stream: counted, the follower goes on.
-    wss = url.replace("https://", "wss://") + "feed"
-    data["bad_input_close_code"] = await page.evaluate(BAD_INPUT_JS, wss)
-    other = await ctx.other_site()
-    data["cross_origin"] = await other.evaluate(CROSS_ORIGIN_JS, wss)
-    tab = await ctx.page(url)
-    await ctx.until(tab, "headset.frames > 5 && headset.state.messages > 5")
-    await ctx.close_page(tab)
-
-    def counted(e, f):
-        refused = (f.get("feed") or {}).get("refused", {})
-        return refused.get("origin", 0) >= 1 and refused.get("too_big", 0) >= 1
+    def counted(e, f):  # the refusals, and the pages gone: the bad one, the first, the XR tab
+        feed = f.get("feed") or {}
+        refused = feed.get("refused", {})
+        gone = feed.get("disconnects", 0) >= 3
+        return refused.get("origin", 0) >= 1 and refused.get("too_big", 0) >= 1 and gone
 
     await s.wait("the refusals counted", counted)
     uptime = s.stats("follower")["uptime_s"]
     await s.wait("the follower going on", lambda e, f: f.get("uptime_s", 0) > uptime)
-    data["still_live"] = await hud_when(ctx, page, LIVE)
     data["follower"] = s.stats("follower")
     return data
