@@ -93,6 +93,7 @@ async def run(ctx) -> dict:
 
     # The headset page, for a while (then closed: one page at a time on the machine's CPU).
     data["headset"] = await headset_page(ctx, demo)
+    await ctx.shot(page, "console_sim")  # following now: the stand-in pictures, labelled
     ctx.mark("headset page")
 
     # 3. The scan button: start a scan, stop it, start the next (recorded by the expert).

@@ -24,6 +24,7 @@ import os
 import time
 from pathlib import Path
 
+from session_helpers import descendants  # tests/session (stage.py puts it on the path)
 from stage import page_url
 
 from humantele.runtime.stats import process_cpu_seconds
@@ -31,25 +32,6 @@ from humantele.runtime.stats import process_cpu_seconds
 REPO = Path(__file__).resolve().parents[3]
 LIVE = "(() => { const h = headset.hud(); return ['green', 'amber', 'red'].includes(h.cue)" \
        " && h.guide.live; })()"  # fmt: skip
-
-
-def descendants(pid: int) -> set[int]:
-    """The live descendants of ``pid`` (from /proc)."""
-    children: dict[int, list[int]] = {}
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                continue
-            children.setdefault(ppid, []).append(int(d.name))
-    out, todo = set(), [pid]
-    while todo:
-        for c in children.get(todo.pop(), []):
-            if c not in out:
-                out.add(c)
-                todo.append(c)
-    return out
 
 
 def browser_pids() -> set[int]:
