@@ -629,6 +629,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="mm per pixel of the received ultrasound image, for the console's calipers",
     )  # fmt: skip
     parser.add_argument(
+        "--us-depth-origin-row", type=float, metavar="ROW",
+        help="row (px) of depth 0 of the received ultrasound image, for the console's depth scale",
+    )  # fmt: skip
+    parser.add_argument(
         "--igtl-port",
         type=port,
         help="serve OpenIGTLink on this port (0 picks one; 18944 Slicer's)",
@@ -645,6 +649,8 @@ def configs_from_args(args: argparse.Namespace) -> tuple[ExpertConfig, ServoConf
         data["console"]["enabled"] = False
     if getattr(args, "us_pixel_spacing_mm", None):
         data["console"]["us_pixel_spacing_mm"] = tuple(args.us_pixel_spacing_mm)
+    if getattr(args, "us_depth_origin_row", None) is not None:
+        data["console"]["us_depth_origin_row"] = args.us_depth_origin_row
     if getattr(args, "igtl_port", None) is not None:
         data["igtl"].update(enabled=True, port=args.igtl_port)
     daemon_overrides(args, data)
