@@ -2,11 +2,12 @@
 through the user-space delay relay in front of it (the WAN emulation of the 750 km link)."""
 
 import asyncio
+import contextlib
 import statistics
 import time
 
 import pytest
-from link_helpers import running_links
+from link_helpers import running_links, until
 
 from humantele.signaling.server import SignalConfig, SignalingServer
 from humantele.transport import LinkConfig, PeerLink
@@ -73,7 +74,8 @@ async def _stream_poses(expert: PeerLink, follower: PeerLink, ages: list, n: int
     for i in range(n):
         expert.send_pose(PoseMessage(i, expert.now(), (0.0, 0.1, 0.0), Q))
         await asyncio.sleep(0.002)
-    await asyncio.sleep(0.5)
+    with contextlib.suppress(TimeoutError):  # all in, or 0.5 s (unreliable: a few may be lost)
+        await until(lambda: len(ages) >= n, timeout=0.5)
 
 
 async def _run(signaling, expert_ice, follower_ice, n=200):
