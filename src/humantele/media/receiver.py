@@ -39,8 +39,10 @@ import numpy as np
 from aiortc import RTCPeerConnection, RTCRtpSender
 from aiortc.mediastreams import MediaStreamError
 
+from humantele.media.aiortc_hooks import newest_frame, use_jitter_buffer
 from humantele.media.config import TRACKS, ExpertVideoConfig
 from humantele.media.frameinfo import FrameInfo, FrameInfoError
+from humantele.media.jitter import KEYFRAME_TESTS, BoundedJitterBuffer
 from humantele.media.sender import VIDEO_CHANNEL_ID
 from humantele.runtime.stats import percentile_ms
 from humantele.transport.clocksync import ClockSync
@@ -178,6 +180,7 @@ class VideoReceiver:
         self._seq_at: dict[str, OrderedDict[int, int]] = {n: OrderedDict() for n in TRACKS}
         self._events = {name: asyncio.Event() for name in TRACKS}
         self._pc: RTCPeerConnection | None = None
+        self._jitter: dict[str, BoundedJitterBuffer] = {}  # the current connection's
         self._tasks: set[asyncio.Task] = set()
 
     # --- what the console reads ---------------------------------------------------------------
@@ -207,16 +210,22 @@ class VideoReceiver:
             self.stats_by_track[name].anchor = None  # and its RTP timestamps start anew
             self._infos[name].clear()
             self._seq_at[name].clear()
+        # The codec alone, without RTX: aiortc routes an RTX packet by its payload type when
+        # its SSRC is unknown, and with two video tracks sharing that payload type it drops
+        # every retransmission. Without RTX a retransmission is the original packet, routed
+        # by its SSRC (docs/video.md, "Loss").
         codec = f"video/{self.config.codec}"
-        prefs = [
-            c
-            for c in RTCRtpSender.getCapabilities("video").codecs
-            if c.mimeType.lower() in (codec, "video/rtx")
-        ]
+        prefs = [c for c in RTCRtpSender.getCapabilities("video").codecs
+                 if c.mimeType.lower() == codec]  # fmt: skip
         names = {}
         for name in TRACKS:
             transceiver = pc.addTransceiver("video", direction="recvonly")
             transceiver.setCodecPreferences(prefs)
+            buffer = BoundedJitterBuffer(
+                KEYFRAME_TESTS[self.config.codec], self.config.loss_wait_ms / 1000.0
+            )
+            use_jitter_buffer(transceiver.receiver, buffer)
+            self._jitter[name] = buffer
             names[id(transceiver.receiver)] = name
         channel = pc.createDataChannel(
             "video", negotiated=True, id=VIDEO_CHANNEL_ID, ordered=False, maxRetransmits=0
@@ -271,17 +280,12 @@ class VideoReceiver:
         self.tracks_started += 1
         while pc is self._pc:
             try:
-                frame = await track.recv()
-                # Decoded frames wait in the track's queue when this loop was held up: keep
-                # only the newest (aiortc has no public way to ask; the queue is its own).
-                queue = getattr(track, "_queue", None)
-                while queue is not None and queue.qsize() > 0:
-                    newer = queue.get_nowait()
-                    if newer is None:  # the track ended
-                        return
-                    self.stats_by_track[name].stale_dropped += 1
-                    frame = newer
+                # decoded frames that waited while this loop was held up: only the newest
+                frame, skipped = newest_frame(track, await track.recv())
             except MediaStreamError:
+                return
+            self.stats_by_track[name].stale_dropped += skipped
+            if frame is None:  # the track ended
                 return
             if pc is not self._pc:
                 return
@@ -341,6 +345,8 @@ class VideoReceiver:
     def stats(self) -> dict[str, Any]:
         now = self.now()
         out: dict[str, Any] = {name: s.as_dict(now) for name, s in self.stats_by_track.items()}
+        for name, buffer in self._jitter.items():
+            out[name]["jitter"] = buffer.counters.as_dict()
         out["infos_bad"] = self.infos_bad
         out["tracks_started"] = self.tracks_started
         return out
