@@ -3,8 +3,10 @@ each with its capture time on the expert's clock.
 
 :meth:`VideoReceiver.prepare` is the expert link's media hook: before each offer it adds two
 receive-only video transceivers (``us`` first, then ``pov``) offering only the configured
-codec, and the ``video`` data channel (id 3) on which the follower sends each frame's
-:class:`~humantele.media.frameinfo.FrameInfo`. For each track a task on the loop takes the
+codec (no RTX: see :meth:`prepare`), each with our jitter buffer
+(:mod:`humantele.media.jitter`), and the ``video`` data channel (id 3) on which the follower
+sends each frame's :class:`~humantele.media.frameinfo.FrameInfo`. For each track a task on the
+loop takes the
 decoded frames (aiortc decodes in its own thread), reads the frame counter from the luma
 plane's top-left corner (64 x 32 px, a fraction of a millisecond), finds the frame's capture
 time (follower clock) and maps it to the expert's with the link's clock sync.
@@ -12,9 +14,9 @@ time (follower clock) and maps it to the expert's with the link's clock sync.
 The sender's frame ``pts`` is its capture time on the 90 kHz RTP clock, and aiortc gives each
 decoded frame the RTP timestamp counted from the first frame received: so the two differ by a
 constant per stream, learnt from any frame whose counter reads and whose record arrived (the
-"anchor"). After that every frame's capture time is known, including frames whose counter the
-codec smeared (aiortc's VP8 runs at constant bit rate with a denoiser, and at low bit rates
-leaves an occasional 16 x 16 block of the counter from the previous frame). Nothing on the
+"anchor"). After that every frame's capture time is known, including a frame whose counter
+does not read (none with the follower's encoders; aiortc's own VP8 settings left stale blocks
+in it, :mod:`humantele.media.encoders`). Nothing on the
 loop converts or copies the picture: :meth:`ReceivedFrame.image` does that for whoever shows
 it, in its own thread.
 
