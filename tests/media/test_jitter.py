@@ -7,6 +7,8 @@ A frame here is a list of payload chunks; its first chunk starts with b"K" for a
 from __future__ import annotations
 
 from aiortc.rtp import RtpPacket
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from humantele.media.jitter import BEHIND_RELEASES, BoundedJitterBuffer
 
@@ -196,3 +198,30 @@ def test_overflow_gives_up_like_a_timeout():
     feed(buf, s.frame([b"d1", b"x"])[1:])
     out = feed(buf, s.frame([b"d", b"2", b"3", b"4", b"5", b"6", b"7", b"8"]))
     assert any(p for p, _ in out) and buf.counters.gaps_given_up == 1 and len(buf) <= 8
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(
+        st.tuples(
+            st.integers(0, 65535),
+            st.integers(0, 2**32 - 1),
+            st.booleans(),
+            st.binary(max_size=12),
+            st.floats(0.0, 0.3),
+        ),  # fmt: skip
+        max_size=300,
+    )
+)
+def test_any_packets_never_raise_and_the_buffer_stays_bounded(packets):
+    """Whatever arrives (jumps, wraps, repeats, no markers, keyframe-looking bytes), the
+    buffer neither raises nor grows beyond its capacity (and one packet)."""
+    clock = Clock()
+    buf = make(clock, capacity=64)
+    for seq, ts, marker, data, dt in packets:
+        clock.t += dt
+        p = RtpPacket(sequence_number=seq, timestamp=ts, marker=int(marker))
+        p._data = data
+        pli, frame = buf.add(p)
+        assert isinstance(pli, bool) and len(buf) <= 65
+        assert frame is None or isinstance(frame.data, bytes)
