@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 
 import numpy as np
@@ -144,6 +145,7 @@ def run(args: argparse.Namespace) -> int:
     import cv2
 
     cv2.setNumThreads(1)
+    load = os.getloadavg()[0]
     n, seed = max(args.frames, 5), args.seed
     renders, rows = {}, []
     for kind, sizes in (("us", US_SIZES), ("pov", POV_SIZES)):
@@ -178,7 +180,8 @@ def run(args: argparse.Namespace) -> int:
         md = "\n\n".join(
             [
                 "## Video sources",
-                machine_line() + f" {n} frames per row, seed {seed}, `humantele bench video`.",
+                machine_line() + f" {n} frames per row, seed {seed}, `humantele bench video`; "
+                f"load average {load:.1f} at the start (above 1.5 the times are provisional).",
                 "Render cost of the sim sources per frame (one OpenCV thread, the demo scene's "
                 "probe sweeping; the US image at 20 fps and the POV at 25 fps beside the 1 kHz "
                 "servo). Default sizes: US 640x480, POV 960x540.",

@@ -218,15 +218,22 @@ def chart(points: list[dict[str, Any]], path: Path) -> None:
         q.plot(x, [p["ssim"] for p in mine], "o-", label=f"US {size}")
         (line,) = lat.plot(x, [p["age_p95_ms"] for p in mine], "o-", label=f"US {size} p95")
         lat.plot(x, [p["age_p50_ms"] for p in mine], "o--", color=line.get_color(), alpha=0.6)
+    from matplotlib.ticker import NullFormatter, ScalarFormatter
+
     for ax in (q, lat):
         ax.set_xscale("log")
+        ax.set_xticks(sorted({p["kbps_set"] for p in points}))
+        ax.xaxis.set_major_formatter(ScalarFormatter())
+        ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_xlabel("US bit rate sent (kbit/s)")
         ax.grid(True, which="both", alpha=0.3)
     q.set_ylabel("SSIM, decoded vs source frame (grey)")
     q.set_title("Quality of the US image over the link")
     lat.set_ylabel("capture to decoded (ms): p95 solid, p50 dashed")
     lat.axhline(100, color="gray", ls=":", lw=0.8)
-    lat.set_title("Latency of the US image")
+    lat.set_title(
+        f"Latency of the US image (load {points[0]['load']:g}-{max(p['load'] for p in points):g})"
+    )
     q.legend(fontsize=8)
     lat.legend(fontsize=8)
     fig.tight_layout()
