@@ -46,6 +46,8 @@ SECTION = "video-link"
 TARGETS = {"us_p95_ms": 100.0, "pov_p95_ms": 150.0, "us_fps": 15.0, "pov_fps": 20.0}
 MATRIX = [
     [],
+    ["--us-kbps", "1000", "--pov-kbps", "800"],
+    ["--us-kbps", "2500", "--pov-kbps", "2000"],
     ["--codec", "h264"],
     ["--us-size", "320x240", "--pov-size", "640x360"],
     ["--turn", "--delay-ms", "4", "--jitter-ms", "1.5"],
@@ -65,6 +67,8 @@ def add_link_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--codec", choices=["vp8", "h264"], default="vp8")
     p.add_argument("--us-size", default="640x480", help="US image WxH (default 640x480)")
     p.add_argument("--pov-size", default="960x540", help="POV WxH (default 960x540)")
+    p.add_argument("--us-kbps", type=int, help="fix the US bit rate (kbit/s; default: REMB)")
+    p.add_argument("--pov-kbps", type=int, help="fix the POV bit rate (kbit/s; default: REMB)")
     p.add_argument("--turn", action="store_true", help="relay through a coturn turnserver")
     p.add_argument("--delay-ms", type=float, default=0.0, help="one-way delay (ms; --turn)")
     p.add_argument("--jitter-ms", type=float, default=0.0, help="delay std dev (ms; --turn)")
@@ -95,6 +99,8 @@ def _size(text: str) -> tuple[int, int]:
 
 def label(args: argparse.Namespace) -> str:
     parts = [args.codec, f"US {args.us_size}", f"POV {args.pov_size}"]
+    if args.us_kbps or args.pov_kbps:
+        parts.append(f"fixed {args.us_kbps or 'REMB'} / {args.pov_kbps or 'REMB'} kbit/s")
     if args.turn or args.delay_ms or args.loss:
         link = "TURN"
         if args.delay_ms:
@@ -139,6 +145,11 @@ def write_configs(d: Path, args: argparse.Namespace, ice: object | None) -> Path
         f"record_us_hz = 0.0\nrecord_pov_hz = 0.0\n"
         f'[follower.video.us]\nbackend = "sim"\nwidth = {uw}\nheight = {uh}\nfps = 20.0\n'
         f'[follower.video.pov]\nbackend = "sim"\nwidth = {pw}\nheight = {ph}\nfps = 25.0\n'
+        + "".join(
+            f"[follower.video.{name}_bitrate]\nstart_kbps = {k}\nmin_kbps = {k}\nmax_kbps = {k}\n"
+            for name, k in (("us", args.us_kbps), ("pov", args.pov_kbps))
+            if k
+        )
     )
     (d / "demo.toml").write_text(
         f"[demo]\nexpert_config = {_toml_str(str(d / 'expert.toml'))}\n"
