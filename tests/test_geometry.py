@@ -102,3 +102,38 @@ def test_tuple_product_matches_array_product(q1, q2):
     q1, q2 = quat_normalize(q1), quat_normalize(q2)
     fast = quat_multiply_tuple(tuple(map(float, q1)), tuple(map(float, q2)))
     np.testing.assert_allclose(fast, quat_multiply(q1, q2), atol=1e-12)
+
+
+@settings(max_examples=200, deadline=None)
+@given(quats, quats, vecs)
+def test_single_vectors_match_the_batch_path(q1, q2, v):
+    """The scalar fast paths (one quaternion, one vector) give what broadcasting gives."""
+    q1n, q2n = quat_normalize(q1), quat_normalize(q2)
+    np.testing.assert_allclose(q1n, quat_normalize(np.array([q1]))[0], atol=1e-15)
+    np.testing.assert_allclose(quat_normalize(list(q1)), q1n, atol=0)
+    np.testing.assert_allclose(
+        quat_rotate(q1n, v), quat_rotate(q1n[None], np.array([v]))[0], atol=1e-15
+    )
+    np.testing.assert_allclose(
+        quat_multiply(q1n, q2n), quat_multiply(q1n[None], q2n[None])[0], atol=1e-15
+    )
+    pose = Pose(np.array(v), q1n)
+    np.testing.assert_allclose(pose.apply(v), Pose(np.array([v]), q1n).apply(np.array([v]))[0])
+
+
+def test_rotation_angle_is_exact_near_zero():
+    q = quat_from_axis_angle([0.2, 1.0, -0.3], 0.7)
+    assert rotation_angle(q, q) < 1e-15
+    for angle in (1e-12, 1e-9, 1e-6):
+        dq = quat_from_axis_angle([1.0, 2.0, 3.0], angle)
+        assert rotation_angle(q, quat_multiply(q, dq)) == pytest.approx(angle, rel=1e-6)
+
+
+def test_a_pose_holds_a_copy_of_its_position():
+    p = np.array([1.0, 2.0, 3.0])
+    pose = Pose(p, [0, 0, 0, 1])
+    p[0] = 9.0
+    assert pose.position[0] == 1.0
+    assert (
+        pose.position.dtype == np.float64 and Pose([1, 2, 3], (0, 0, 0, 1)).position.dtype == float
+    )

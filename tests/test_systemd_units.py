@@ -13,6 +13,7 @@ import pytest
 from humantele.cli import build_parser
 from humantele.cliargs import FATAL_EXIT_CODES
 from humantele.haptics.servo_config import ServoConfig
+from humantele.transport.config import LinkConfig
 
 UNITS = Path(__file__).resolve().parents[1] / "examples" / "systemd"
 NAMES = ("humantele-signal", "humantele-expert", "humantele-follower")
@@ -41,6 +42,14 @@ def test_expert_unit_allows_the_servo_s_realtime_priority():
     svc = _unit("humantele-expert")["Service"]
     assert int(svc["LimitRTPRIO"]) >= ServoConfig().realtime_priority
     assert svc["KillMode"] == "mixed"  # SIGTERM to the daemon; it stops the servo itself
+    assert svc["LimitRTTIME"]
+
+
+@pytest.mark.parametrize("name", ["humantele-expert", "humantele-follower"])
+def test_daemon_units_allow_the_event_loop_s_realtime_priority(name):
+    svc = _unit(name)["Service"]
+    assert int(svc["LimitRTPRIO"]) >= LinkConfig().realtime_priority > 0
+    assert LinkConfig().realtime_priority < ServoConfig().realtime_priority  # the servo first
     assert svc["LimitRTTIME"]
 
 

@@ -191,9 +191,10 @@ def _recording_status(e: dict[str, Any], f: dict[str, Any]) -> str:
     return text
 
 
-def us_pixel_spacing(follower_config: str | None) -> tuple[float, float] | None:
-    """(row, col) mm per pixel of the follower's ultrasound when it is the sim one (the demo
-    tells the expert's console, whose calipers need it); None for a real source."""
+def us_scale(follower_config: str | None) -> tuple[tuple[float, float], float] | None:
+    """(row, col) mm per pixel and the row (px) of depth 0 of the follower's ultrasound when
+    it is the sim one (the demo tells the expert's console: its calipers and its depth
+    scale); None for a real source."""
     from humantele.config import load_config
     from humantele.follower.daemon import FollowerConfig
     from humantele.video.scan import ScanGeometry
@@ -205,7 +206,7 @@ def us_pixel_spacing(follower_config: str | None) -> tuple[float, float] | None:
         return None
     g = ScanGeometry(c.probe, c.width, c.height, c.depth_m, c.fov_deg, c.radius_m,
                      c.aperture_m, c.beams, c.samples)  # fmt: skip
-    return g.pixel_spacing_mm
+    return g.pixel_spacing_mm, g.depth_origin_row
 
 
 def _page_urls(e: dict[str, Any], f: dict[str, Any]) -> dict[str, str]:
@@ -252,6 +253,7 @@ def summarize(
         "cpu_percent_follower": f.get("cpu_percent"),
         "cpu_percent_sensing": f.get("cpu_percent_sensing"),
         "follower_tick_late_p99_ms": f.get("tick_late_p99_ms"),
+        "loop_priority": {"expert": e.get("loop_priority"), "follower": f.get("loop_priority")},
         "scans": e.get("scans_started", 0),
         "recording": recording or None,
         "video": video_summary(e.get("video"), f.get("video")),
@@ -356,9 +358,11 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
     for role, path in child_configs.items():
         if path:
             cmds[role] += ["--config", path]
-    spacing = us_pixel_spacing(child_configs["follower"])
-    if spacing is not None:  # the console's calipers on the follower's sim ultrasound
-        cmds["expert"] += ["--us-pixel-spacing-mm", *(f"{v:.9g}" for v in spacing)]
+    scale = us_scale(child_configs["follower"])
+    if scale is not None:  # the console's calipers and depth scale on the sim ultrasound
+        spacing, depth0 = scale
+        cmds["expert"] += ["--us-pixel-spacing-mm", *(f"{v:.9g}" for v in spacing),
+                           "--us-depth-origin-row", f"{depth0:.6g}"]  # fmt: skip
     if rec_paths:  # one file per daemon, one session id
         ids = ["--session-id", secrets.token_hex(6), "--follower-id", cfg.follower_id,
                "--sonographer-id", cfg.sonographer_id]  # fmt: skip

@@ -75,3 +75,45 @@ async def measure(ctx, page, a: tuple[float, float], b: tuple[float, float]) -> 
         "page_mm": mm(mark["a"], mark["b"]),
         "label": mark.get("mm"),
     }
+
+
+async def use_frozen_tools(
+    ctx,
+    page,
+    min_frames: int,
+    cine_index,
+    caliper: tuple[tuple[float, float], tuple[float, float]],
+    note_at: tuple[float, float],
+    note: str,
+    shot: str,
+) -> dict:
+    """Freeze, scroll the cine to ``cine_index(n)`` of its ``n`` (> ``min_frames``) frames,
+    measure a caliper between two points and place an annotation at ``note_at`` (fractions of
+    the image's width and height), capture; a screenshot ``shot``; live again. What the page
+    showed and the daemon answered: ``cine`` (frames, seq shown, its time label),
+    ``caliper`` (see :func:`measure`), ``annotation``, ``capture`` (the results)."""
+    out: dict = {}
+    await page.click("#freeze")
+    await ctx.until(page, f"consoleApp.cine.length > {min_frames}", 15)
+    n = await page.evaluate("consoleApp.cine.length")
+    seq = await scroll_cine(ctx, page, cine_index(n))
+    out["cine"] = {"frames": n, "seq": seq, "label": await page.text_content("#cine-time")}
+    shown = await page.evaluate("consoleApp.shown")
+    w, h = shown["width"], shown["height"]
+    await page.click("#tool-caliper")
+    (ax, ay), (bx, by) = caliper
+    out["caliper"] = await measure(ctx, page, (ax * w, ay * h), (bx * w, by * h))
+    await page.click("#tool-note")
+    x, y = await image_point(page, note_at[0] * w, note_at[1] * h)
+    await page.mouse.click(x, y)
+    await page.keyboard.type(note)
+    await page.keyboard.press("Enter")
+    out["annotation"] = await result(ctx, page, "annotation", 1)
+    await page.click("#capture")
+    out["capture"] = await result(ctx, page, "capture", 1)
+    await ctx.shot(page, shot)
+    # Live again (a DOM click: playwright's scroll-into-view step once hung for 30 s on a
+    # loaded machine).
+    await page.evaluate("document.getElementById('freeze').click()")
+    await ctx.until(page, "!consoleApp.frozen", 5)
+    return out

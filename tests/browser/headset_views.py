@@ -8,6 +8,7 @@ from typing import Any
 from playwright.async_api import Page
 
 OBJECTS = ("virtual", "ghost", "outline")
+ALL_DRAWN = (*OBJECTS, "arrow", "label")
 
 
 async def next_frames(ctx: Any, page: Page, n: int = 3) -> None:
@@ -16,11 +17,21 @@ async def next_frames(ctx: Any, page: Page, n: int = 3) -> None:
     await ctx.until(page, f"headset.frames >= {start + n}")
 
 
-async def capture(ctx: Any, page: Page, prefix: str) -> dict[str, Any]:
-    """Freeze the page; screenshots ``<prefix>`` (as a user sees it), and of the 3D view
-    alone ``<prefix>_all`` and ``<prefix>_no_<object>``; the camera, the poses drawn (the
-    feed's objects) and each object's matrixWorld."""
-    await page.evaluate("headset.freeze(true)")
+async def capture(
+    ctx: Any, page: Page, prefix: str, alone: tuple[str, ...] = (), when: str = "true"
+) -> dict[str, Any]:
+    """Freeze the page as soon as ``when`` (JavaScript on ``h``, the HUD) holds (checked and
+    frozen in one step); screenshots ``<prefix>`` (as a user sees it), and of the 3D view
+    alone ``<prefix>_all`` and ``<prefix>_no_<object>``; with ``alone``, also
+    ``<prefix>_none`` (nothing drawn but the room) and ``<prefix>_only_<object>`` for each
+    object in it (drawn with nothing in front of it: in a live session the see-through ghost
+    is in front of the virtual probe, or behind it, as the novice's hand happens to be); the
+    camera, the poses drawn (the feed's objects) and each object's matrixWorld."""
+    freeze = (
+        f"(() => {{ const h = headset.hud(); if (!({when})) return false;"
+        " headset.freeze(true); return true; })()"
+    )
+    await ctx.until(page, freeze, 60)
     await next_frames(ctx, page)
     seen = await ctx.shot(page, prefix)
     await page.evaluate("headset.showHud(false)")
@@ -41,10 +52,25 @@ async def capture(ctx: Any, page: Page, prefix: str) -> dict[str, Any]:
         await next_frames(ctx, page)
         out["shots"][name] = await ctx.shot(page, f"{prefix}_no_{name}")
         await page.evaluate(f"headset.show('{name}', true)")
+    if alone:
+        await _show(page, ALL_DRAWN, False)
+        await next_frames(ctx, page)
+        out["shots"]["none"] = await ctx.shot(page, f"{prefix}_none")
+        for name in alone:
+            await _show(page, [name], True)
+            await next_frames(ctx, page)
+            out["shots"][f"only_{name}"] = await ctx.shot(page, f"{prefix}_only_{name}")
+            await _show(page, [name], False)
+        await _show(page, ALL_DRAWN, True)
     await page.evaluate("headset.showHud(true)")
     await page.evaluate("headset.freeze(false)")
     await next_frames(ctx, page)
     return out
+
+
+async def _show(page: Page, names, on: bool) -> None:
+    for name in names:
+        await page.evaluate(f"headset.show('{name}', {'true' if on else 'false'})")
 
 
 # Bad input from a page: run in the page, against the feed at `url` (same origin).

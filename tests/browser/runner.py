@@ -42,6 +42,8 @@ async def main(name: str, out_dir: Path) -> dict:
     async with Ctx(out_dir, args) as ctx:
         data = await module.run(ctx)
         data.setdefault("console_errors", ctx.console_errors)
+        ctx.mark("end")
+        data.setdefault("marks", ctx.marks)
         return data
 
 

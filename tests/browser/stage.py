@@ -52,6 +52,8 @@ class Ctx:
         self.args = args
         self.browser: Browser | None = None
         self.console_errors: list[str] = []
+        self.t0 = time.monotonic()
+        self.marks: list[tuple[str, float]] = []  # (step, s since the scenario started)
         self._contexts: list[BrowserContext] = []
         self._services = contextlib.AsyncExitStack()
         self._pw = None
@@ -73,6 +75,10 @@ class Ctx:
             await self.browser.close()
         if self._pw is not None:
             await self._pw.stop()
+
+    def mark(self, step: str) -> None:
+        """Note that ``step`` is done, and when (the result's ``marks``: where time goes)."""
+        self.marks.append((step, round(time.monotonic() - self.t0, 2)))
 
     # --- the browser ----------------------------------------------------------------------
 
@@ -108,6 +114,14 @@ class Ctx:
                 return value
             await asyncio.sleep(0.05)
         raise AssertionError(f"page: {expression!r} still {value!r} after {timeout} s")
+
+    async def wait(self, what: str, pred, timeout: float = 30.0) -> None:
+        """Poll ``pred()`` (here, in the scenario) until it is true."""
+        end = time.monotonic() + timeout
+        while not pred():
+            if time.monotonic() > end:
+                raise AssertionError(f"still waiting for {what} after {timeout} s")
+            await asyncio.sleep(0.02)
 
     async def close_page(self, page: Page) -> None:
         """Close a page as a user closing the tab would."""

@@ -3,6 +3,8 @@
 
 import pytest
 
+from humantele.video.sim_ultrasound import SimUltrasound, SimUltrasoundConfig
+
 
 @pytest.mark.slow
 def test_console_page(browser_scenario):
@@ -37,6 +39,21 @@ def test_console_page(browser_scenario):
     r = d["stats"]["refused"]
     assert r["second_console"] >= 1 and r["origin"] >= 1 and r["malformed"] >= 3
     assert d["stats"]["us"]["drawn"] > 10
+    # The page reads the frame counter back from what it drew (the glass-to-glass figure),
+    # and covers the patch on screen.
+    us = d["stats"]["us"]
+    assert us["counter_read"] > 10 and us["counter_read"] >= 0.9 * us["drawn"]
+    assert us["capture_to_draw_p95_ms"] is not None and d["counters"]["masked"]
+    # The depth scale: 0 cm at the row of the probe's face, then every cm (on this screen),
+    # where the sim's scan geometry puts each depth.
+    c = d["counters"]
+    labels = dict(c["scale"])
+    assert sorted(labels)[:3] == [0, 1, 2] and max(labels) >= 15
+    g = SimUltrasound(SimUltrasoundConfig()).geometry
+    px = c["scale_h"] / c["image_h"]  # screen px per image row
+    for cm in (0, 5, 10, 15):
+        row = g.tip_to_pixel(0.0, cm / 100.0)[0]
+        assert labels[cm] == pytest.approx((row + 0.5) * px, abs=0.5), cm
     # The console page itself logged no error (the refused second console and the other
     # site's page log their refusals, which is the point).
     page_errors = [e for e in d["console_errors"] if e.startswith(d["stats"]["url"])]

@@ -3,7 +3,15 @@ the expert killed and rejoining, WebXR entry under IWER, bad page input counted.
 
 import numpy as np
 import pytest
-from pixels import changed, changed_near, handle_point, matrix, project
+from pixels import (
+    GHOST_LEVEL,
+    OUTLINE_LEVEL,
+    changed,
+    changed_near,
+    handle_point,
+    matrix,
+    project,
+)
 
 from humantele.geometry import Pose
 
@@ -28,10 +36,6 @@ def test_calibration_prompt_shows_the_landmark(run):
 
 
 @pytest.mark.slow
-@pytest.mark.skip(
-    reason="flaky: about 1 run in 2 on a quiet 2-core machine the pixels near the projected "
-    "virtual probe do not change when it is hidden (hits 0.0-0.17); to be fixed, see stop 14's note"
-)
 def test_page_draws_the_expert_pose_with_ghost_and_outline(run):
     view = run.data["view"]
     v, p = view["virtual"], view["probe"]
@@ -40,16 +44,29 @@ def test_page_draws_the_expert_pose_with_ghost_and_outline(run):
         Pose(v["position"], v["quaternion"]).as_matrix(),
         atol=1e-6,
     )
+    assert np.allclose(
+        matrix(view["matrix"]["ghost"]), Pose(p["position"], p["quaternion"]).as_matrix(), atol=1e-6
+    )
     assert view["visible"] == {"virtual": True, "ghost": True, "outline": True}
     cam = view["camera"]
-    mask = changed(run.path(view["shots"]["all"]), run.path(view["shots"]["virtual"]))
-    hits = [changed_near(mask, project(cam, handle_point(v, up)), 4) for up in (0.05, 0.08, 0.11)]
+    shot = {k: run.path(f) for k, f in view["shots"].items()}
+    # Each probe drawn alone, up its handle, at the projected points.
+    virtual = changed(shot["none"], shot["only_virtual"])
+    ups = (0.05, 0.08, 0.11)
+    hits = [changed_near(virtual, project(cam, handle_point(v, up)), 4) for up in ups]
     assert min(hits) > 0.5, hits
-    ghost = changed(run.path(view["shots"]["all"]), run.path(view["shots"]["ghost"]), 8)
-    assert changed_near(ghost, project(cam, handle_point(p, 0.11)), 6) > 0.2
-    outline = changed(run.path(view["shots"]["all"]), run.path(view["shots"]["outline"]), 20)
+    ghost = changed(shot["none"], shot["only_ghost"], GHOST_LEVEL)
+    hits = [changed_near(ghost, project(cam, handle_point(p, up)), 4) for up in (0.05, 0.11)]
+    assert min(hits) > 0.5, hits
+    # As the novice sees it, with the ghost and the arrow: hiding the virtual probe changes
+    # the picture there. The novice's probe is in front of it about half the time, and
+    # through the see-through ghost the change is that of a see-through object.
+    seen = changed(shot["all"], shot["virtual"], GHOST_LEVEL)
+    hits = [changed_near(seen, project(cam, handle_point(v, up)), 12) for up in ups]
+    assert min(hits) > 0.5, hits
+    outline = changed(shot["all"], shot["outline"], OUTLINE_LEVEL)
     assert outline.sum() > 2000
-    assert view["hud"]["cue"] in ("green", "amber", "red")
+    assert view["hud"]["cue"] in ("green", "amber", "red") and float(view["hud"]["mm"][:-3]) < 50
 
 
 @pytest.mark.slow
@@ -76,7 +93,7 @@ def test_bad_page_input_counted_by_the_follower_which_goes_on(run):
     assert run.data["bad_input_close_code"] == 1009 and run.data["cross_origin"] == "refused"
     assert refused.get("malformed", 0) >= 5 and refused.get("flood", 0) >= 1
     assert refused.get("origin") == 1 and refused.get("too_big") == 1
-    assert feed["disconnects"] >= 3  # the bad page, the IWER page, the closed tab
+    assert feed["disconnects"] >= 3  # the bad page, the first page, the IWER tab closed
     assert run.data["still_live"]["guide"]["live"]
     assert run.data["follower"]["tick_errors"] == 0
     errors = [e for e in run.data["console_errors"]

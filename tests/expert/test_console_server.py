@@ -16,9 +16,9 @@ import pytest
 
 from humantele.expert.console import ConsoleConfig, ConsoleServer, SourceFrames
 from humantele.expert.console.cine import CineBuffer, CineFrame
-from humantele.expert.console.hook import PoseHistory, alignment
+from humantele.expert.console.hook import PoseHistory, alignment, pressing_n
 from humantele.expert.console.messages import HEADER_SIZE, parse_header
-from humantele.geometry import Pose
+from humantele.geometry import Pose, quat_from_axis_angle
 from humantele.recording import Recorder
 from humantele.recording.reader import read_recording
 from humantele.video.counter import read_counter
@@ -52,8 +52,8 @@ class Session:
             "alignment": {"mm": 3.0, "deg": math.nan},  # a NaN must reach the page as null
         }
 
-    def pose_at(self, t: float):
-        return {"position": [0.01, 0.02, 0.03], "quaternion": [0.0, 0.0, 0.0, 1.0]}
+    def pose_at(self, t: float):  # numpy arrays, as the daemon's poses are
+        return {"position": np.array([0.01, 0.02, 0.03]), "quaternion": np.array([0, 0, 0, 1.0])}
 
     def start_scan(self) -> int:
         self.commands.append(("scan", "start"))
@@ -85,6 +85,30 @@ class ManualFrames:
 
     def latest(self, track: str):
         return self.frames.get(track)
+
+
+class ReceivedManualFrames(ManualFrames):
+    """As received frames are: decoded 30 ms after their capture (``t_received``), there for
+    the console 40 ms after it."""
+
+    def __init__(self, clock: FakeClock) -> None:
+        super().__init__(clock)
+        self.clock = clock
+
+    def next(self, track: str):
+        src = self.us if track == "us" else self.pov
+        f = src.render(self.scene())
+        self.clock.t += 0.04
+        self.frames[track] = Received(f, f.t_capture + 0.03)
+        return self.frames[track]
+
+
+class Received:
+    def __init__(self, frame, t_received: float) -> None:
+        self.__dict__.update({k: getattr(frame, k) for k in (
+            "image", "seq", "t_capture", "pixel_spacing_mm", "depth_origin_row", "width",
+            "height")})  # fmt: skip
+        self.t_received = t_received
 
 
 async def serve(frames, session, tmp_path, clock=None, on_demand=None, **cfg) -> ConsoleServer:
@@ -135,8 +159,12 @@ async def test_live_sim_frames_reach_the_page_readable_and_in_order(tmp_path):
                 assert img.shape[:2] == (h["height"], h["width"])
                 assert img.mean() > 5.0  # a picture, not a black frame
                 assert read_counter(img) == h["seq"]
-                if h["track"] == "us":
-                    assert h["spacing_mm"][0] > 0 and h["spacing_mm"][1] > 0
+                if h["track"] == "us":  # the scale: the sim's own pixel spacing and depth 0
+                    g = frames.sources["us"].geometry
+                    assert h["spacing_mm"] == pytest.approx(g.pixel_spacing_mm, rel=1e-6)
+                    assert h["depth_origin_row"] == pytest.approx(g.depth_origin_row, rel=1e-6)
+                else:
+                    assert h["depth_origin_row"] is None
                 seen[h["track"]].append(h["seq"])
             for seqs in seen.values():
                 assert seqs == sorted(set(seqs))
@@ -149,6 +177,41 @@ async def test_live_sim_frames_reach_the_page_readable_and_in_order(tmp_path):
         frames.stop()
         await server.stop()
     assert server.tracks["us"].frames >= 4 and server.tracks["pov"].frames >= 4
+
+
+async def test_glass_to_glass_from_the_counter_the_page_read(tmp_path):
+    """The page echoes the counter it read back from its canvas: the capture-to-draw figure
+    is that frame's (not the header's), on the expert's clock; a counter that did not read,
+    or reads a frame not sent, is counted and left out. Seen-to-draw starts at the frame's
+    receipt (the receiver's decode time) when the provider gives one."""
+    clock = FakeClock()
+    frames = ReceivedManualFrames(clock)
+    server = await serve(frames, Session(), tmp_path, clock=clock)
+    sent = []
+    try:
+        async with aiohttp.ClientSession() as http, http.ws_connect(f"{server.url}ws") as ws:
+            for _ in range(3):  # captured at t, 0.05 s apart; the page draws them at t + 0.2
+                f = frames.next("us")
+                await next_message(ws, lambda k, d, s=f.seq: k == "frame" and d[0]["seq"] == s)
+                sent.append(f)
+                clock.t += 0.05
+            clock.t = sent[-1].t_capture + 0.2
+            # Frame 3's header, and the page read frame 2's counter off its canvas.
+            for seq, counter in ((1, None), (2, 999), (3, sent[1].seq)):
+                await ws.send_json({"type": "drawn", "track": "us", "seq": seq,
+                                    "counter": counter, "draw_to_send_ms": 0.0})  # fmt: skip
+            for _ in range(200):
+                if server.tracks["us"].drawn == 3:
+                    break
+                await asyncio.sleep(0.01)
+    finally:
+        await server.stop()
+    st = server.tracks["us"]
+    assert (st.counter_read, st.counter_unread, st.counter_unmatched) == (1, 1, 1)
+    assert list(st.capture_to_draw) == [pytest.approx(clock.t - sent[1].t_capture)]
+    assert list(st.capture_to_seen) == [pytest.approx(0.03)]  # the receiver's decode
+    receipts = [f.t_received for f in sent]
+    assert list(st.seen_to_draw) == pytest.approx([clock.t - t for t in receipts])
 
 
 async def test_state_marks_old_video_and_a_lost_link_as_stale(tmp_path):
@@ -404,3 +467,12 @@ def test_console_config_checks_the_pixel_spacing():
     for bad in ((0.0, 0.3), (math.nan, 0.3), (50.0, 0.3)):
         with pytest.raises(ValueError, match="pixel spacing|finite"):
             ConsoleConfig(us_pixel_spacing_mm=bad)
+
+
+def test_force_along_the_beam_is_the_pressing_force():
+    """A probe pointing down (beam, tip +z, along world -y), pressed into the patient: the
+    patient pushes it up and a little sideways; along the beam that is +8 N pressing, the
+    sideways push left out; pulled away from the patient it is negative."""
+    down = Pose([0.1, 0.2, 0.0], quat_from_axis_angle((1.0, 0.0, 0.0), math.pi / 2))
+    assert pressing_n(down.inverse().rotate([3.0, 8.0, 0.0])) == pytest.approx(8.0)
+    assert pressing_n(down.inverse().rotate([0.0, -2.0, 1.0])) == pytest.approx(-2.0)

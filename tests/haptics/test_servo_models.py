@@ -7,9 +7,11 @@ a fault in the status (not ``force None``). Fuzzed along control message -> expe
 
 from __future__ import annotations
 
+import asyncio
 import json
 import math
 import os
+import threading
 
 import numpy as np
 import pytest
@@ -285,10 +287,13 @@ def test_no_shared_memory_leaks_when_the_process_cannot_be_spawned(monkeypatch):
     assert [n for n in names if os.path.exists(f"/dev/shm/{n.lstrip('/')}")] == []
 
 
-def test_a_servo_that_cannot_run_is_a_fault_in_the_status_not_force_none():
+async def test_a_servo_that_cannot_run_is_a_fault_in_the_status_not_force_none():
     d = ExpertDaemon(ExpertConfig(), ServoConfig(device={"backend": "touchx", "library": "/x"}))
     d.check_servo(0.0)  # not running: noticed
-    d.check_servo(10.0)  # restart attempt: fails on the missing driver
+    d.check_servo(10.0)  # restart attempt (off the loop): fails on the missing driver
+    assert d.servo_restarting
+    d.check_servo(20.0)  # one restart at a time
+    await d._servo_restart
     s = d.stats()
     assert s["servo_state"].startswith("down: servo did not start") and "libHD" in s["servo_state"]
     assert s["force_n"] == 0.0 and s["servo_fault"] == s["servo_state"]
@@ -296,3 +301,32 @@ def test_a_servo_that_cannot_run_is_a_fault_in_the_status_not_force_none():
     assert "servo DOWN (servo did not start" in line and "force 0.00 N" in line
     assert d.servo_restarts == 0
     assert math.isfinite(s["force_n"])
+
+
+async def test_a_dead_servo_is_restarted_off_the_event_loop(monkeypatch):
+    """Starting a servo process takes 0.5-2 s (spawn, device): the expert's loop (link
+    heartbeats, console, the follower's state) goes on meanwhile; the new servo gets the
+    model the expert has when it is swapped in."""
+    d = ExpertDaemon(ExpertConfig(), ServoConfig())
+    entered, release = threading.Event(), threading.Event()
+    real_start = ServoProcess.start
+
+    def gated_start(self, *args, **kwargs):
+        entered.set()
+        assert release.wait(30.0)
+        real_start(self, *args, **kwargs)
+
+    monkeypatch.setattr(ServoProcess, "start", gated_start)
+    d.check_servo(0.0)  # never started: noticed as dead
+    d.check_servo(10.0)  # the restart begins
+    assert await asyncio.to_thread(entered.wait, 30.0)
+    assert d.servo_restarting and d.servo_restarts == 0  # the loop runs while it starts
+    d.model = demo_model()  # a model arrives meanwhile
+    release.set()
+    await d._servo_restart
+    try:
+        assert d.servo.alive and d.servo_restarts == 1 and d.servo_down == ""
+        assert d.servo._cmd_values[C_MODEL_ON] == 1.0  # the model that came meanwhile
+        assert wait_for(lambda: d.servo.latest() is not None, 10.0)
+    finally:
+        d.servo.stop()

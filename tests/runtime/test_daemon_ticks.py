@@ -71,3 +71,20 @@ async def test_ticks_stop_when_running_turns_false_or_the_demo_is_gone(clock, mo
     monkeypatch.setenv(PARENT_PID_ENV, "1")  # not our parent: the demo is gone
     gone = [t async for t in daemon_ticks(1000.0, None, lambda: True, lambda: None, clock=clock)]
     assert len(gone) == 1
+
+
+async def test_what_a_tick_sent_leaves_before_the_report():
+    """aiortc transmits from a task of its own (ensure_future): that task runs before the
+    tick's report, not after it (a report took 1-2 ms, the pose waited)."""
+    order = []
+
+    async def transmit():
+        order.append("sent")
+
+    ticks = 0
+    async for _ in daemon_ticks(1000.0, None, lambda: True, lambda: order.append("report")):
+        ticks += 1
+        if ticks == 2:
+            break
+        asyncio.ensure_future(transmit())  # the first tick sends; its report follows
+    assert order == ["sent", "report"]

@@ -41,6 +41,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import bisect
+import contextlib
 import logging
 import math
 import os
@@ -76,11 +77,11 @@ from humantele.runtime.daemon import (
     Daemon,
     add_daemon_arguments,
     daemon_overrides,
+    run_daemon_process,
     setup_logging,
 )
-from humantele.runtime.process import ignore_stop_signals
 from humantele.runtime.session import SessionConfig, recorder_stats
-from humantele.runtime.stats import SortedWindow, percentile_ms, process_cpu_seconds
+from humantele.runtime.stats import SortedWindow, percentile_ms, process_cpu_percent
 from humantele.transport import LinkConfig, PeerLink
 from humantele.wire import (
     CalibrationProgress,
@@ -188,7 +189,7 @@ class ExpertDaemon(Daemon):
         self.last_sample_t = -math.inf
         self.servo_restarts = 0
         self._servo_dead_since: float | None = None
-        self.servo_started: float | None = None
+        self._servo_restart: asyncio.Future | None = None
         self._servo_cpu_last: float | None = None
         # Scans.
         self.scan: int | None = None  # the scan in progress
@@ -429,20 +430,35 @@ class ExpertDaemon(Daemon):
             if not self.servo_down:
                 self.servo_down = f"servo process exited with code {self.servo.returncode}"
             log.error("expert: %s; restarting it", self.servo_down)
-        if t - self._servo_dead_since < self.config.servo_restart_s:
+        if t - self._servo_dead_since < self.config.servo_restart_s or self.servo_restarting:
             return
         self._servo_dead_since = t
-        self.servo.stop()
-        self.servo = ServoProcess(self.servo_config, self.model)
+        self._servo_restart = asyncio.ensure_future(self.restart_servo())
+
+    @property
+    def servo_restarting(self) -> bool:
+        return self._servo_restart is not None and not self._servo_restart.done()
+
+    async def restart_servo(self) -> None:
+        """Replace the dead servo process with a new one, started off the event loop: spawning
+        it and opening the device take 0.5-2 s (up to the 30 s start timeout), and the link's
+        heartbeats, the console and the follower's state must go on meanwhile."""
+        loop = asyncio.get_running_loop()
+        new = ServoProcess(self.servo_config, None if self.mapping.clutched else self.model)
         try:
-            self.servo.start()
+            await loop.run_in_executor(None, self.servo.stop)
+            await loop.run_in_executor(None, new.start)
         except ServoError as exc:
             self.servo_down = str(exc)
             log.error("expert: %s", exc)
             return
+        if self.servo_stopped:  # the daemon ended while this one started
+            await loop.run_in_executor(None, new.stop)
+            return
+        self.servo = new
+        new.set_model(None if self.mapping.clutched else self.model)  # it may have changed
         self.servo_down = ""
         self.servo_restarts += 1
-        self.servo_started = time.monotonic()
         self.push_registration()
 
     def servo_state(self, latest: ServoSample | None) -> str:
@@ -458,12 +474,9 @@ class ExpertDaemon(Daemon):
 
     def servo_cpu_percent(self) -> float | None:
         """CPU use (% of one core) of the servo process since it started."""
-        pid = self.servo.pid
-        cpu = process_cpu_seconds(pid)
-        if cpu is None or self.servo_started is None:
-            return self._servo_cpu_last
-        wall = time.monotonic() - self.servo_started
-        self._servo_cpu_last = round(100.0 * cpu / wall, 1) if wall > 0 else None
+        cpu = process_cpu_percent(self.servo.pid)
+        if cpu is not None:
+            self._servo_cpu_last = cpu
         return self._servo_cpu_last
 
     def pose_rate_hz(self, window_s: float = 1.0) -> float:
@@ -511,6 +524,7 @@ class ExpertDaemon(Daemon):
             "dropped": dict(self.link.counters.dropped),
             "dropped_total": sum(self.link.counters.dropped.values()),
             "cpu_percent": self.cpu.overall(),
+            "loop_priority": self.loop_priority,
             "cpu_percent_servo": self.servo_cpu_percent(),
             "scan": self.scan,
             "scans_started": self.scans_started,
@@ -567,7 +581,6 @@ class ExpertDaemon(Daemon):
             print(f"humantele expert: {exc}", file=sys.stderr)
             self.close_recording()
             return 1
-        self.servo_started = time.monotonic()
         self.push_registration()
         await self.start_console()
         await self.igtl.start()
@@ -578,6 +591,9 @@ class ExpertDaemon(Daemon):
             async for t in self.loop_ticks(self.config.link.pose_rate_hz, duration_s, link_task):
                 self.check_servo(t)
                 self.publish_pose(t)
+                # aiortc sends from a task of its own: let the pose go before the rest of the
+                # tick (OpenIGTLink, scans, recording reports) instead of after it.
+                await asyncio.sleep(0)
                 self.guarded(self.publish_igtl, t)
                 self.guarded(self.script_scans, t)
                 self.guarded(self.record_reports, t)
@@ -588,6 +604,9 @@ class ExpertDaemon(Daemon):
             await self.video.close()
             self.servo_cpu_percent()
             self.servo_stopped = True
+            if self._servo_restart is not None:  # a restart in flight stops what it started
+                with contextlib.suppress(Exception):
+                    await self._servo_restart
             self.servo.stop()
             await self.igtl.stop()
             self.finish_run()
@@ -610,6 +629,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="mm per pixel of the received ultrasound image, for the console's calipers",
     )  # fmt: skip
     parser.add_argument(
+        "--us-depth-origin-row", type=float, metavar="ROW",
+        help="row (px) of depth 0 of the received ultrasound image, for the console's depth scale",
+    )  # fmt: skip
+    parser.add_argument(
         "--igtl-port",
         type=port,
         help="serve OpenIGTLink on this port (0 picks one; 18944 Slicer's)",
@@ -626,6 +649,8 @@ def configs_from_args(args: argparse.Namespace) -> tuple[ExpertConfig, ServoConf
         data["console"]["enabled"] = False
     if getattr(args, "us_pixel_spacing_mm", None):
         data["console"]["us_pixel_spacing_mm"] = tuple(args.us_pixel_spacing_mm)
+    if getattr(args, "us_depth_origin_row", None) is not None:
+        data["console"]["us_depth_origin_row"] = args.us_depth_origin_row
     if getattr(args, "igtl_port", None) is not None:
         data["igtl"].update(enabled=True, port=args.igtl_port)
     daemon_overrides(args, data)
@@ -636,7 +661,4 @@ def configs_from_args(args: argparse.Namespace) -> tuple[ExpertConfig, ServoConf
 def run(args: argparse.Namespace) -> int:
     setup_logging("expert", args.log_level)
     config, servo = configs_from_args(args)
-    try:
-        return asyncio.run(ExpertDaemon(config, servo, args.stats_file).run(args.duration))
-    finally:
-        ignore_stop_signals()
+    return run_daemon_process(ExpertDaemon(config, servo, args.stats_file), args.duration)

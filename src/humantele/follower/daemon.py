@@ -96,9 +96,9 @@ from humantele.runtime.daemon import (
     Daemon,
     add_daemon_arguments,
     daemon_overrides,
+    run_daemon_process,
     setup_logging,
 )
-from humantele.runtime.process import ignore_stop_signals
 from humantele.runtime.session import SessionConfig, recorder_stats
 from humantele.runtime.stats import SortedWindow, percentile_ms
 from humantele.tracking.tool import load_tool
@@ -810,6 +810,7 @@ class FollowerDaemon(Daemon):
                 None if self.sensing_proc is None else self.sensing_proc.cpu_percent()
             ),
             "cpu_percent": self.cpu.overall(),
+            "loop_priority": self.loop_priority,
             "igtl": self.igtl.stats(),
             "video": None if self.video is None else self.video.stats(),
         }
@@ -980,7 +981,4 @@ def run(args: argparse.Namespace) -> int:
     if args.recalibrate:
         daemon.calibration = None
         daemon.loaded_calibration = False
-    try:
-        return asyncio.run(daemon.run(args.duration))
-    finally:
-        ignore_stop_signals()
+    return run_daemon_process(daemon, args.duration)

@@ -46,7 +46,6 @@ import base64
 import hashlib
 import ipaddress
 import json
-import logging
 import math
 import re
 import time
@@ -55,23 +54,21 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Literal
 
-from aiohttp import WSCloseCode, WSMsgType, web
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from aiohttp import web
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from humantele.config import ConfigModel
 from humantele.runtime.stats import percentile_ms
 from humantele.signaling.messages import is_loopback
-from humantele.web.guard import MessageBudget, origin_allowed
+from humantele.web.guard import MessageBudget
+from humantele.web.pagesocket import PageClient, PageLimits, PageSockets, validated
 from humantele.web.tls import Certificate, ensure_certificate, local_hosts
-
-log = logging.getLogger(__name__)
 
 WEB_DIR = Path(str(resources.files("humantele.follower") / "web"))
 TLS_SUBDIR = "tls"
 MAX_PAGE_MESSAGE = 512  # bytes: a "drawn" echo is ~60
 ORIGINS_KEPT = 1024  # pose ids whose receipt time is kept for the echoes
 LATENCIES_KEPT = 20000
-FLOOD_CLOSE = 600  # a page refused this many times in a row for flooding is closed
 
 
 class FeedConfig(ConfigModel):
@@ -135,14 +132,12 @@ def model_fields(ellipsoid: Any) -> dict[str, Any]:
     }
 
 
-class _Client:
+class _Client(PageClient):
+    """A headset page: the last pose id it echoed."""
+
     def __init__(self, ws: web.WebSocketResponse, budget: MessageBudget) -> None:
-        self.ws = ws
-        self.budget = budget
-        self.pending: dict[str, str] = {}
-        self.wake = asyncio.Event()
+        super().__init__(ws, budget)
         self.last_echo = 0
-        self.flooding = 0
 
 
 class RendererFeed:
@@ -159,11 +154,12 @@ class RendererFeed:
         self.certificate: Certificate | None = None
         self.port: int | None = None
         self.latest: dict[str, str] = {}
-        self.clients: set[_Client] = set()
-        self.sent = 0
-        self.coalesced = 0
         self.refused: Counter[str] = Counter()
-        self.disconnects = 0
+        self.pages = PageSockets(
+            PageLimits(self.config.max_clients, self.config.page_rate_hz, MAX_PAGE_MESSAGE),
+            self.refused,
+            _Client,
+        )
         self.echoes = 0
         self.latencies: deque[float] = deque(maxlen=LATENCIES_KEPT)  # s, receipt to draw
         self.pose_id = 0
@@ -174,6 +170,21 @@ class RendererFeed:
         self._csp = ""
 
     # --- addresses ------------------------------------------------------------------------
+
+    @property
+    def clients(self) -> set[PageClient]:
+        """The pages open now."""
+        return self.pages.clients
+
+    @property
+    def disconnects(self) -> int:
+        """Pages that have gone (closed, dropped or refused after opening)."""
+        return self.pages.disconnects
+
+    @property
+    def coalesced(self) -> int:
+        """Unsent objects replaced by newer ones of the same type."""
+        return self.pages.coalesced
 
     @property
     def scheme(self) -> str:
@@ -240,8 +251,7 @@ class RendererFeed:
         self.port = site._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
 
     async def stop(self) -> None:
-        for c in list(self.clients):
-            await c.ws.close()
+        await self.pages.close_all()
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None
@@ -274,72 +284,21 @@ class RendererFeed:
             obj["pose_id"] = self.pose_id
         text = json.dumps(obj, separators=(",", ":"))
         self.latest[kind] = text
-        for c in self.clients:
-            if kind in c.pending:
-                self.coalesced += 1
-            c.pending[kind] = text
-            c.wake.set()
-
-    async def _send_loop(self, client: _Client) -> None:
-        try:
-            while not client.ws.closed:
-                await client.wake.wait()
-                client.wake.clear()
-                batch, client.pending = client.pending, {}
-                for text in batch.values():
-                    await client.ws.send_str(text)
-                    self.sent += 1
-        except (ConnectionError, RuntimeError) as exc:
-            log.debug("feed client gone: %s", exc)
+        self.pages.post(kind, text)
 
     # --- from the pages -------------------------------------------------------------------
 
     async def _handle(self, request: web.Request) -> web.StreamResponse:
-        if not origin_allowed(request):
-            self.refused["origin"] += 1
-            return web.Response(status=403, text="wrong origin\n")
-        if len(self.clients) >= self.config.max_clients:
-            self.refused["too_many_clients"] += 1
-            return web.Response(status=503, text="too many pages open\n")
-        ws = web.WebSocketResponse(heartbeat=5.0, max_msg_size=MAX_PAGE_MESSAGE)
-        await ws.prepare(request)
-        rate = self.config.page_rate_hz
-        client = _Client(ws, MessageBudget(rate, max(1, int(2 * rate))))
-        client.pending.update(self.latest)
-        client.wake.set()
-        self.clients.add(client)
-        sender = asyncio.create_task(self._send_loop(client))
-        try:
-            async for msg in ws:
-                if msg.type == WSMsgType.ERROR:
-                    self.refused["too_big" if _too_big(ws) else "socket_error"] += 1
-                    break
-                if not client.budget.take():
-                    self.refused["flood"] += 1
-                    client.flooding += 1
-                    if client.flooding >= FLOOD_CLOSE:
-                        self.refused["closed_flooding"] += 1
-                        await ws.close(code=WSCloseCode.POLICY_VIOLATION, message=b"flood")
-                        break
-                    continue
-                client.flooding = 0
-                if msg.type != WSMsgType.TEXT:
-                    self.refused["malformed"] += 1
-                    continue
-                self._on_page_message(client, msg.data)
-        finally:
-            self.clients.discard(client)
-            self.disconnects += 1
-            sender.cancel()
-            await asyncio.gather(sender, return_exceptions=True)
-        return ws
+        def on_open(client: PageClient) -> None:
+            for kind, text in self.latest.items():  # a new page first gets the latest of each
+                client.post(kind, text)
+
+        return await self.pages.serve(request, self._on_page_message, on_open)
 
     def _on_page_message(self, client: _Client, text: str) -> None:
         arrival = time.monotonic()
-        try:
-            echo = DrawnEcho.model_validate_json(text)
-        except ValidationError:
-            self.refused["malformed"] += 1
+        echo = validated(DrawnEcho, text, self.refused)
+        if echo is None:
             return
         t_origin = self._origins.get(echo.pose_id)
         if t_origin is None:
@@ -365,7 +324,7 @@ class RendererFeed:
             "url": self.url if self.port else None,
             "page_url": self.page_url if self.port else None,
             "certificate_sha256": self.fingerprint,
-            "sent": self.sent,
+            "sent": self.pages.sent,
             "coalesced": self.coalesced,
             "echoes": self.echoes,
             "draw_latency_p50_ms": percentile_ms(self.latencies, 50),
@@ -374,11 +333,6 @@ class RendererFeed:
             "refused_total": sum(self.refused.values()),
             "disconnects": self.disconnects,
         }
-
-
-def _too_big(ws: web.WebSocketResponse) -> bool:
-    exc = ws.exception()
-    return getattr(exc, "code", None) == WSCloseCode.MESSAGE_TOO_BIG
 
 
 def _url_host(host: str) -> str:

@@ -36,6 +36,8 @@ from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
+from humantele.runtime.stats import process_cpu_percent
+
 log = logging.getLogger(__name__)
 
 NICE = 10  # the child's nice: the loops it shares the CPU with wake first (it is a batch job)
@@ -107,7 +109,6 @@ class SensingProcess:
         self.failed = False
         self.error: str | None = None
         self.pid: int | None = None
-        self._started: float | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._proc: mp.process.BaseProcess | None = None
         self._conn: Connection | None = None
@@ -143,7 +144,6 @@ class SensingProcess:
             daemon=True,
         )
         self._proc.start()
-        self._started = time.monotonic()
         child.close()
         self._errors_before = self.child_errors
         self._conn = parent
@@ -153,16 +153,9 @@ class SensingProcess:
 
     def cpu_percent(self) -> float | None:
         """The running child's CPU use since it started, % of one core (Linux; else None)."""
-        if self._proc is None or self.pid is None or self._started is None:
+        if self._proc is None or self.pid is None:
             return None
-        try:
-            with open(f"/proc/{self.pid}/stat") as f:
-                fields = f.read().rsplit(")", 1)[1].split()
-        except OSError:
-            return None
-        ticks = int(fields[11]) + int(fields[12])  # utime + stime
-        wall = time.monotonic() - self._started
-        return round(100.0 * ticks / os.sysconf("SC_CLK_TCK") / max(wall, 1e-3), 1)
+        return process_cpu_percent(self.pid)
 
     def submit(self, job: int, truth: Any) -> bool:
         """Send one frame to measure; False (nothing sent) if one is in flight or no child."""

@@ -64,6 +64,7 @@ class SimPatient:
         center = np.array([c.center_xz_m[0], c.bed_height_m + c.half_height_m, c.center_xz_m[1]])
         # Ellipsoid frame: x head to feet, y up, z to the patient's right (the paper's axes).
         self.T_world_body = Pose(center, quat_from_axis_angle(UP, yaw))
+        self.T_body_world = self.T_world_body.inverse()
 
     def ellipsoid(self):  # -> humantele.haptics.ellipsoid.Ellipsoid
         """The true abdomen as an Ellipsoid (world frame, m), e.g. for the sim ultrasound."""
@@ -89,7 +90,7 @@ class SimPatient:
         p = np.asarray(point_world, dtype=float)
         if p[1] <= self.config.bed_height_m + 1e-3:
             return UP.copy()
-        q = self.T_world_body.inverse().apply(p)
+        q = self.T_body_world.apply(p)
         n = q / self.semi_axes**2
         norm = float(np.linalg.norm(n))
         return UP.copy() if norm < 1e-9 else self.T_world_body.rotate(n / norm)
@@ -99,7 +100,7 @@ class SimPatient:
         c = self.config
         p = np.asarray(tip_world, dtype=float)
         f = np.zeros(3)
-        q = self.T_world_body.inverse().apply(p)
+        q = self.T_body_world.apply(p)
         r = float(np.sqrt(np.sum((q / self.semi_axes) ** 2)))
         if 1e-9 < r < 1.0:
             depth = float(np.linalg.norm(q)) * (1.0 / r - 1.0)  # along the ray from the centre

@@ -16,7 +16,11 @@ from typing import Any
 from humantele.cliargs import EXIT_OK, EXIT_REFUSED, duration_s, log_level
 from humantele.recording import Recorder
 from humantele.runtime.pacing import daemon_ticks
-from humantele.runtime.process import on_stop_signals
+from humantele.runtime.process import (
+    ignore_stop_signals,
+    on_stop_signals,
+    realtime_loop_thread,
+)
 from humantele.runtime.session import (
     ClockSyncLog,
     add_session_arguments,
@@ -24,7 +28,7 @@ from humantele.runtime.session import (
     open_daemon_recording,
     session_overrides,
 )
-from humantele.runtime.stats import CpuMeter, write_stats
+from humantele.runtime.stats import CpuMeter, StatsFile
 from humantele.transport.link import link_refusal
 
 log = logging.getLogger(__name__)
@@ -40,6 +44,7 @@ class Daemon:
     def __init__(self, config: Any, stats_file: str | None = None) -> None:
         self.config = config
         self.stats_file = stats_file
+        self.stats_out = StatsFile(stats_file)
         self.cpu = CpuMeter()
         self.t_start = time.monotonic()
         self.clock: Callable[[], float] = time.monotonic  # the loop's clock (s); tests replace it
@@ -48,12 +53,14 @@ class Daemon:
         self.rec: Recorder | None = None
         self.clock_log = ClockSyncLog(f"/{self.role}/clock_sync")
         self._last_report = -math.inf
+        self.loop_priority = "off"  # the event loop thread's scheduling (start_run sets it)
 
     def stats(self) -> dict:
         raise NotImplementedError
 
     def write_stats(self) -> None:
-        write_stats(self.stats_file, self.stats())
+        """Hand the current stats to the stats file's writer thread (every 0.5 s)."""
+        self.stats_out.write(self.stats())
 
     def stop(self) -> None:
         """End :meth:`run` at its next tick (as SIGINT or SIGTERM do)."""
@@ -112,7 +119,21 @@ class Daemon:
     def finish_run(self) -> None:
         """The end of :meth:`run`: the recording closed, the final stats written."""
         self.close_recording()
-        self.write_stats()
+        self.stats_out.close(self.stats())
+
+
+def run_daemon_process(daemon: Daemon, duration_s: float | None) -> int:
+    """A daemon's process: its thread becomes the event loop's, at ``[<role>.link]
+    realtime_priority`` (:func:`~humantele.runtime.process.realtime_loop_thread`), and runs
+    :meth:`Daemon.run` to its exit code. (Tests run daemons on their own loop, unchanged.)"""
+    daemon.loop_priority = realtime_loop_thread(daemon.config.link.realtime_priority)
+    if daemon.loop_priority.startswith("refused"):
+        log.warning("%s: event loop at normal priority (SCHED_FIFO %s)", daemon.role,
+                    daemon.loop_priority)  # fmt: skip
+    try:
+        return asyncio.run(daemon.run(duration_s))
+    finally:
+        ignore_stop_signals()
 
 
 # --- command line ---------------------------------------------------------------------------

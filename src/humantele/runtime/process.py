@@ -28,3 +28,25 @@ def parent_gone() -> bool:
     """True when this process was started by a demo (``HUMANTELE_PARENT_PID``) that is gone."""
     want = os.environ.get(PARENT_PID_ENV)
     return bool(want) and str(os.getppid()) != want
+
+
+def realtime_loop_thread(priority: int) -> str:
+    """Run the calling thread (a daemon's event loop, which carries the pose stream) at
+    SCHED_FIFO ``priority``; threads and processes it starts later get the normal policy back
+    (SCHED_RESET_ON_FORK: aiortc's encoder and decoder threads, the video and sensing
+    processes, the servo, which asks for its own higher priority).
+
+    Why: on 2 cores shared with the 1 kHz servo, the video process and the sensing process, a
+    pose arriving while both cores run other work waited for a time slice; that wait was the
+    pose age's tail under load (docs/benchmarks.md). Returns ``"fifo <priority>"``, ``"off"``
+    (priority 0) or ``"refused: <reason>"`` (no privilege: the daemon runs at normal priority;
+    systemd's ``LimitRTPRIO`` grants it without root, see examples/systemd/).
+    """
+    if priority <= 0:
+        return "off"
+    try:
+        policy = os.SCHED_FIFO | os.SCHED_RESET_ON_FORK
+        os.sched_setscheduler(0, policy, os.sched_param(priority))
+    except (OSError, AttributeError) as exc:
+        return f"refused: {exc}"
+    return f"fifo {priority}"

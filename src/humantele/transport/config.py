@@ -59,6 +59,10 @@ class LinkConfig(ConfigModel):
     # (the old behaviour, for comparison in `bench session --fifo`)
     send_newest_only: bool = True
     newest_only_above_bytes: int = Field(200, ge=0, le=65536)
+    # SCHED_FIFO priority of the daemon's event-loop thread, which sends and receives the
+    # poses (below the servo's 80); 0: normal priority. Refused without the privilege (the
+    # daemon then runs at normal priority and says so in its stats, `loop_priority`).
+    realtime_priority: int = Field(10, ge=0, le=79)
 
     @model_validator(mode="after")
     def _consistent(self) -> Self:

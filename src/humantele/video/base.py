@@ -56,7 +56,9 @@ class VideoFrame:
     device maps the device's capture time onto it when it can, else stamps the arrival);
     ``pixel_spacing_mm``: (row, col) size of a pixel in mm when the source knows it (the US
     image), else None; ``meta``: source-specific known answers (the sim US image quality, see
-    :mod:`humantele.video.sim_ultrasound`).
+    :mod:`humantele.video.sim_ultrasound`); ``depth_origin_row``: the row (px, fractional) of
+    depth 0 of a US image (the skin line under the centre of the probe's face) when the source
+    knows it: with the pixel spacing, where each depth is on the image.
     """
 
     image: NDArray[np.uint8]
@@ -64,6 +66,7 @@ class VideoFrame:
     t_capture: float
     pixel_spacing_mm: tuple[float, float] | None = None
     meta: Mapping[str, Any] = field(default_factory=dict)
+    depth_origin_row: float | None = None
 
     @property
     def width(self) -> int:

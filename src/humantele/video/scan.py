@@ -99,6 +99,12 @@ class ScanGeometry:
         """(row, col) pixel size in mm (square pixels)."""
         return (self.spacing_m * 1e3, self.spacing_m * 1e3)
 
+    @property
+    def depth_origin_row(self) -> float:
+        """The image row (px, fractional) of depth 0: the centre of the probe's face (the tip
+        origin), where the depth scale starts."""
+        return self.tip_to_pixel(0.0, 0.0)[0]
+
     def pixel_to_tip(self, row: float, col: float) -> tuple[float, float]:
         """Tip-frame (x, z) in m of the centre of pixel (row, col)."""
         return (self.origin_m[0] + col * self.spacing_m, self.origin_m[1] + row * self.spacing_m)

@@ -166,6 +166,9 @@ class SimUltrasound(SimVideoSource):
     def _spacing_mm(self) -> tuple[float, float]:
         return self.geometry.pixel_spacing_mm
 
+    def _depth_origin_row(self) -> float:
+        return self.geometry.depth_origin_row
+
     # ------------------------------------------------------------------ input
     def _usable(self, s: SceneSnapshot) -> bool:
         if not super()._usable(s):

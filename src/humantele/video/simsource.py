@@ -127,9 +127,12 @@ class SimVideoSource(VideoSource):
         if self.config.counter:
             draw_counter(image, self._seq)
         self.counters.frames += 1
-        return VideoFrame(image, self._seq, t, self._spacing_mm(), meta)
+        return VideoFrame(image, self._seq, t, self._spacing_mm(), meta, self._depth_origin_row())
 
     def _spacing_mm(self) -> tuple[float, float] | None:
+        return None
+
+    def _depth_origin_row(self) -> float | None:
         return None
 
     def _usable(self, s: SceneSnapshot) -> bool:

@@ -6,12 +6,11 @@ clear again, and bad pages are refused and counted."""
 
 from __future__ import annotations
 
-import asyncio
 import math
 import threading
 import time
 
-from console_views import image_point, measure, pixels, result, scroll_cine
+from console_views import pixels, use_frozen_tools
 
 from humantele.expert.console import SourceFrames
 from humantele.video.scene import DemoScene
@@ -105,6 +104,11 @@ async def run(ctx) -> dict:
     await ctx.until(page, "consoleApp.plot.samples.length > 40", 30)
     data["force_samples"] = await page.evaluate("consoleApp.plot.samples.map(s => s[1])")
     data["live_info"] = await page.text_content("#us-info")
+    data["counters"] = await page.evaluate(
+        "({...consoleApp.counters, masked: !document.getElementById('us-counter').hidden,"
+        " scale: consoleApp.depthScale.labels, scale_h: consoleApp.depthScale.canvas.clientHeight,"
+        " image_h: document.getElementById('us').height})"
+    )
     await ctx.shot(page, "console_page_live")
 
     # 2. The buttons reach the session, and the page follows its state.
@@ -118,26 +122,11 @@ async def run(ctx) -> dict:
     data["commands"] = list(session.commands)
 
     # 3. Freeze, scroll back, caliper between known image pixels, annotation, capture.
-    await page.click("#freeze")
-    await ctx.until(page, "consoleApp.cine.length > 10", 10)
-    n = await page.evaluate("consoleApp.cine.length")
-    seq = await scroll_cine(ctx, page, n // 3)
-    data["cine"] = {"frames": n, "seq": seq, "label": await page.text_content("#cine-time")}
-    shown = await page.evaluate("consoleApp.shown")
-    w, h = shown["width"], shown["height"]
-    await page.click("#tool-caliper")
-    data["caliper"] = await measure(ctx, page, (0.30 * w, 0.30 * h), (0.62 * w, 0.80 * h))
-    await page.click("#tool-note")
-    x, y = await image_point(page, 0.55 * w, 0.45 * h)
-    await page.mouse.click(x, y)
-    await page.keyboard.type("lower pole, right kidney")
-    await page.keyboard.press("Enter")
-    data["annotation"] = await result(ctx, page, "annotation", 1)
-    await page.click("#capture")
-    data["capture"] = await result(ctx, page, "capture", 1)
-    await ctx.shot(page, "console_page_frozen")
-    await page.evaluate("document.getElementById('freeze').click()")  # back to live
-    await ctx.until(page, "!consoleApp.frozen", 5)
+    tools = await use_frozen_tools(
+        ctx, page, 10, lambda n: n // 3, ((0.30, 0.30), (0.62, 0.80)), (0.55, 0.45),
+        "lower pole, right kidney", "console_page_frozen",
+    )  # fmt: skip
+    data.update(tools)
     frames_live = await page.evaluate("consoleApp.frames.us")
     await ctx.until(page, f"consoleApp.frames.us > {frames_live + 3}", 20)
 
@@ -163,7 +152,7 @@ async def run(ctx) -> dict:
 
     # 5. A second console is refused; a page of another site cannot open the socket.
     second = await ctx.page(server.url, width=640, height=480)
-    await asyncio.sleep(1.5)
+    await ctx.wait("the second console refused", lambda: server.refused["second_console"] > 0)
     data["second_has_state"] = await second.evaluate("consoleApp.state !== null")
     await ctx.close_page(second)
     other = await ctx.other_site()
@@ -177,7 +166,7 @@ async def run(ctx) -> dict:
                    ws.send(JSON.stringify({type: 'caliper', seq: 1, a: [0, 0], b: ['x', 0]}));
                    return 3; }"""
     )
-    await asyncio.sleep(0.5)
+    await ctx.wait("the nonsense counted", lambda: server.refused["malformed"] >= 3)
     data["still_live"] = await page.evaluate("consoleApp.frames.us")
     data["stats"] = server.stats()
     data["captures"] = sorted(p.name for p in (ctx.out / "captures").iterdir())

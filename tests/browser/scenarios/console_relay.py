@@ -25,6 +25,7 @@ import numpy as np
 from aiohttp import WSMsgType, web
 
 from humantele.expert.console.frames import ProcessFrames
+from humantele.expert.console.server import WEB_DIR
 from humantele.video.counter import MODULUS, unwrap
 from humantele.video.scene import DemoScene
 from humantele.video.sim_ultrasound import SimUltrasoundConfig
@@ -102,6 +103,7 @@ async def relay_mode(ctx, frames, seconds: float) -> dict:
 
     app = web.Application()
     app.router.add_get("/", page)
+    app.router.add_get("/counter.js", lambda _r: web.FileResponse(WEB_DIR / "counter.js"))
     app.router.add_post("/offer", offer)
     app.router.add_get("/echo", echo)
     runner = web.AppRunner(app, access_log=None)

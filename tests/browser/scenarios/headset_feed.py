@@ -158,11 +158,11 @@ async def run(ctx) -> dict:
     await ctx.until(tab, "headset.frames > 5 && headset.state.messages > 5")
     disconnects = feed.disconnects
     await ctx.close_page(tab)
-    await asyncio.sleep(0.5)
+    await ctx.wait("the closed tab noticed", lambda: feed.disconnects > disconnects, 10)
     data["closed_tab_disconnects"] = feed.disconnects - disconnects
     data["refused_before"] = before
     m0 = await page.evaluate("headset.state.messages")
-    await asyncio.sleep(0.5)
+    await ctx.until(page, f"headset.state.messages > {m0}")
     data["messages_after"] = await page.evaluate("headset.state.messages") - m0
     data["feed"] = feed.stats()
     data["latencies_ms"] = [round(v * 1000.0, 3) for v in feed.latencies]

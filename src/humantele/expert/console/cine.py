@@ -22,6 +22,7 @@ class CineFrame:
     width: int
     height: int
     pixel_spacing_mm: tuple[float, float] | None
+    depth_origin_row: float | None = None
 
 
 class CineBuffer:

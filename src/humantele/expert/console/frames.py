@@ -168,13 +168,13 @@ class ProcessFrames:
                 continue
             except (EOFError, OSError):
                 return
-            track, image, seq, t, spacing, error = item
+            track, image, seq, t, spacing, depth0, error = item
             if error:
                 self.errors[track] = error
                 log.error("console: %s sim source stopped: %s", track, error)
                 continue
             with self._lock:
-                self._latest[track] = VideoFrame(image, seq, t, spacing)
+                self._latest[track] = VideoFrame(image, seq, t, spacing, {}, depth0)
 
 
 def _render_child(configs: Mapping[str, Any], scene_q: Any, out_q: Any, stop: Any) -> None:
@@ -201,11 +201,12 @@ def _render_child(configs: Mapping[str, Any], scene_q: Any, out_q: Any, stop: An
                 f = source.read()
                 if f is None:
                     continue
-                item = (track, f.image, f.seq, f.t_capture, f.pixel_spacing_mm, "")
+                item = (track, f.image, f.seq, f.t_capture, f.pixel_spacing_mm,
+                        f.depth_origin_row, "")  # fmt: skip
                 with contextlib.suppress(queue.Full):
                     out_q.put(item, True, 0.5)
         except VideoSourceError as exc:
-            out_q.put((track, None, 0, 0.0, None, str(exc)))
+            out_q.put((track, None, 0, 0.0, None, None, str(exc)))
         finally:
             source.close()
 
@@ -220,14 +221,18 @@ class _Received:
     """A received frame as the console reads it (``image`` converted when first read, in the
     console's encoding thread)."""
 
-    __slots__ = ("_frame", "seq", "t_capture", "pixel_spacing_mm")
+    __slots__ = ("_frame", "seq", "t_capture", "t_received", "pixel_spacing_mm", "depth_origin_row")
 
-    def __init__(self, frame: Any, seq: int, spacing: tuple[float, float] | None) -> None:
+    def __init__(
+        self, frame: Any, seq: int, spacing: tuple[float, float] | None, depth0: float | None
+    ) -> None:
         self._frame = frame
         self.seq = seq
         # Capture time mapped onto the expert's clock; the decode time when it is unknown.
         self.t_capture = frame.t_capture if frame.t_capture is not None else frame.t_received
+        self.t_received = frame.t_received  # decoded by the expert's receiver (its clock)
         self.pixel_spacing_mm = spacing
+        self.depth_origin_row = depth0
 
     @property
     def image(self) -> Any:
@@ -247,11 +252,18 @@ class ReceivedFrames:
     (:class:`humantele.media.receiver.VideoReceiver`): its latest decoded frame of each track,
     numbered by the frame counter the follower stamped (a frame whose counter did not read
     gets the next number), with ``us_spacing_mm`` (row, col; mm per pixel of the frames as
-    received, from ``[expert.console] us_pixel_spacing_mm``) on the ultrasound frames."""
+    received, from ``[expert.console] us_pixel_spacing_mm``) and ``us_depth_origin_row``
+    (``[expert.console] us_depth_origin_row``) on the ultrasound frames."""
 
-    def __init__(self, receiver: Any, us_spacing_mm: tuple[float, float] | None) -> None:
+    def __init__(
+        self,
+        receiver: Any,
+        us_spacing_mm: tuple[float, float] | None,
+        us_depth_origin_row: float | None = None,
+    ) -> None:
         self.receiver = receiver
         self.us_spacing_mm = us_spacing_mm
+        self.us_depth_origin_row = us_depth_origin_row
         self._last: dict[str, tuple[Any, _Received]] = {}
 
     def latest(self, track: str) -> _Received | None:
@@ -262,6 +274,9 @@ class ReceivedFrames:
         if last is not None and last[0] is f:
             return last[1]
         seq = f.seq if f.seq is not None else (0 if last is None else last[1].seq + 1)
-        out = _Received(f, seq, self.us_spacing_mm if track == "us" else None)
+        us = track == "us"
+        out = _Received(
+            f, seq, self.us_spacing_mm if us else None, self.us_depth_origin_row if us else None
+        )
         self._last[track] = (f, out)
         return out

@@ -44,6 +44,13 @@ def alignment(a: Pose, b: Pose) -> dict[str, float]:
     return {"mm": mm, "deg": deg}
 
 
+def pressing_n(force_tip: Any) -> float:
+    """The contact force along the beam (N, > 0 pressing into the patient) of a force on the
+    probe in its tip frame (+z along the beam, into the patient): the patient pushes the probe
+    back along -z."""
+    return -float(force_tip[2])
+
+
 class PoseHistory:
     """Timed poses (s, the expert's clock) of the last ``seconds``; ``at(t)`` the nearest."""
 
@@ -111,8 +118,10 @@ class DaemonSession:
             "scan": d.scan,
             "clutch": {"on": d.console_clutch, "engaged": d.mapping.clutched},
             "force": {
-                "measured_n": None if st is None else float(np.linalg.norm(st.force)),
-                "rendered_n": None if latest is None else float(np.linalg.norm(latest.force)),
+                "measured_n": None if st is None else pressing_n(st.force),
+                "rendered_n": None
+                if latest is None
+                else pressing_n(latest.T_patient_stylus.inverse().rotate(latest.force)),
                 "contact": None if st is None else bool(st.contact),
             },
         }
@@ -176,7 +185,7 @@ def make_console(daemon: ExpertDaemon) -> tuple[ConsoleServer, ProcessFrames | N
     cfg = daemon.config.console
     received: FrameProvider | None = None
     if daemon.config.video.enabled:
-        received = ReceivedFrames(daemon.video, cfg.us_pixel_spacing_mm)
+        received = ReceivedFrames(daemon.video, cfg.us_pixel_spacing_mm, cfg.us_depth_origin_row)
     mode = cfg.video
     if mode == "auto":
         mode = "received" if received is not None else "sim"

@@ -3,9 +3,10 @@
 To the page
     Binary: one video frame, a 32-byte little-endian header then the JPEG bytes::
 
-        u8 version (1) | u8 track (0 us, 1 pov) | u8 flags (1: a cine frame, not live) | u8 0
+        u8 version (2) | u8 track (0 us, 1 pov) | u8 flags (1: a cine frame, not live) | u8 0
         u32 seq | f64 t_capture (s, the expert's clock) | f32 spacing_row_mm |
-        f32 spacing_col_mm (0 when unknown) | u16 width | u16 height | u32 0
+        f32 spacing_col_mm (0 when unknown) | u16 width | u16 height |
+        f32 depth_origin_row (px: the row of depth 0 on a US image; NaN when unknown)
 
     Text: JSON objects with a ``type``: ``state`` (the session at a glance, about 20 times a
     second), ``cine`` (the frozen loop's frame numbers and times), ``result`` (what became of
@@ -22,15 +23,16 @@ From the page (:data:`PageMessage`; anything else is refused and counted)
 
 from __future__ import annotations
 
+import math
 import struct
 from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
 
-FRAME_VERSION = 1
+FRAME_VERSION = 2
 TRACK_IDS = {"us": 0, "pov": 1}
 FLAG_CINE = 1
-_HEADER = struct.Struct("<BBBBIdffHHI")
+_HEADER = struct.Struct("<BBBBIdffHHf")
 HEADER_SIZE = _HEADER.size  # 32
 MAX_PAGE_MESSAGE = 1024  # bytes: the longest is an annotation (text up to 200 characters)
 
@@ -43,22 +45,25 @@ def frame_header(
     width: int,
     height: int,
     cine: bool = False,
+    depth0: float | None = None,
 ) -> bytes:
     """The 32-byte header of a frame message (see the module docstring)."""
     row, col = spacing_mm if spacing_mm is not None else (0.0, 0.0)
     return _HEADER.pack(
         FRAME_VERSION, TRACK_IDS[track], FLAG_CINE if cine else 0, 0,
-        seq & 0xFFFFFFFF, t_capture, row, col, width, height, 0,
+        seq & 0xFFFFFFFF, t_capture, row, col, width, height,
+        math.nan if depth0 is None else depth0,
     )  # fmt: skip
 
 
 def parse_header(data: bytes) -> dict:
     """The header's fields (for tests and tools)."""
-    v, track, flags, _, seq, t, row, col, w, h, _ = _HEADER.unpack_from(data)
+    v, track, flags, _, seq, t, row, col, w, h, depth0 = _HEADER.unpack_from(data)
     names = {i: n for n, i in TRACK_IDS.items()}
     return {
         "version": v, "track": names[track], "cine": bool(flags & FLAG_CINE), "seq": seq,
         "t_capture": t, "spacing_mm": (row, col), "width": w, "height": h,
+        "depth_origin_row": None if math.isnan(depth0) else depth0,
     }  # fmt: skip
 
 
@@ -73,12 +78,15 @@ Seq = Annotated[int, Field(ge=0, le=0xFFFFFFFF)]
 
 class Drawn(_Msg):
     """Frame ``seq`` of ``track`` was drawn (first time), and this was sent
-    ``draw_to_send_ms`` after the draw call."""
+    ``draw_to_send_ms`` after the draw call; ``counter``: the frame counter
+    (:mod:`humantele.video.counter`, 24 bits) the page read back from the canvas it drew,
+    None when it did not read."""
 
     type: Literal["drawn"]
     track: Literal["us", "pov"]
     seq: Seq
     draw_to_send_ms: float = Field(ge=0.0, le=10_000.0, allow_inf_nan=False)
+    counter: Annotated[int, Field(ge=0, le=0xFFFFFF)] | None = None
 
 
 class ScanCommand(_Msg):

@@ -24,7 +24,6 @@ are malformed, unknown or too many; all are counted in ``refused`` and the daemo
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import logging
 import math
@@ -36,8 +35,8 @@ from typing import Any
 
 import cv2
 import numpy as np
-from aiohttp import WSMsgType, web
-from pydantic import Field, ValidationError, field_validator
+from aiohttp import web
+from pydantic import Field, field_validator
 
 from humantele.config import ConfigModel
 from humantele.expert.console.captures import save_capture
@@ -59,7 +58,9 @@ from humantele.expert.console.messages import (
 from humantele.expert.console.session import ConsoleSession
 from humantele.signaling.messages import is_loopback
 from humantele.video.base import VideoFrame
-from humantele.web.guard import MessageBudget, origin_allowed
+from humantele.video.counter import unwrap
+from humantele.web.guard import MessageBudget
+from humantele.web.pagesocket import PageClient, PageLimits, PageSockets, validated
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +69,6 @@ LATENCIES_KEPT = 20000
 IN_FLIGHT = 2  # frames of a track sent to a page and not yet drawn; more wait (latest wins)
 IN_FLIGHT_TIMEOUT_S = 0.5  # a page that echoes nothing for this long gets the next frame
 SEQS_KEPT = 256  # frames per track whose times are kept for the page's echoes
-FLOOD_CLOSE = 600
 
 
 class ConsoleConfig(ConfigModel):
@@ -87,6 +87,13 @@ class ConsoleConfig(ConfigModel):
         None,
         description="(row, col) mm per pixel of the received ultrasound frames; None: no "
         "calipers (a sim or local source gives its own)",
+    )
+    us_depth_origin_row: float | None = Field(
+        None,
+        ge=-10000.0,
+        le=10000.0,
+        description="row (px) of depth 0 (the skin under the probe's face) in the received "
+        "ultrasound frames: with the pixel spacing, the depth scale's cm labels; None: none",
     )
     jpeg_quality: int = Field(88, ge=30, le=100)
     poll_hz: float = Field(250.0, gt=0, le=2000, description="how often new frames are looked for")
@@ -117,13 +124,11 @@ class ConsoleConfig(ConfigModel):
         return v
 
 
-class _Client:
+class _Client(PageClient):
+    """A console page: the frames it was sent and has drawn."""
+
     def __init__(self, ws: web.WebSocketResponse, budget: MessageBudget) -> None:
-        self.ws = ws
-        self.budget = budget
-        self.pending: dict[str, str | bytes] = {}
-        self.wake = asyncio.Event()
-        self.flooding = 0
+        super().__init__(ws, budget)
         self.last_drawn: dict[str, int] = {}
         # Frames sent and not yet drawn, per track (seq, when sent): a page that draws slower
         # than frames come gets the newest when it is ready, not a queue in the socket.
@@ -156,7 +161,11 @@ class _Track:
         self.encode_s: deque[float] = deque(maxlen=500)
         self.capture_to_draw: deque[float] = deque(maxlen=LATENCIES_KEPT)
         self.seen_to_draw: deque[float] = deque(maxlen=LATENCIES_KEPT)
+        self.capture_to_seen: deque[float] = deque(maxlen=LATENCIES_KEPT)  # of those drawn
         self.drawn = 0
+        self.counter_read = 0  # drawn frames whose counter the page read from its canvas
+        self.counter_unread = 0  # ... did not read (no counter, or a smeared one)
+        self.counter_unmatched = 0  # ... read a number whose frame is not known here
 
     def rate_hz(self, now: float, window_s: float = 2.0) -> float:
         n = sum(1 for t in self.arrivals if now - t <= window_s)
@@ -185,20 +194,30 @@ class ConsoleServer:
         self.session = session
         self.clock = clock
         self.port: int | None = None
-        self.clients: set[_Client] = set()
         self.tracks = {t: _Track() for t in TRACKS}
         self.cine = CineBuffer(config.cine_seconds)
-        self.sent = 0
-        self.coalesced = 0
         self.refused: Counter[str] = Counter()
-        self.disconnects = 0
+        limits = PageLimits(
+            config.max_clients, config.page_rate_hz, MAX_PAGE_MESSAGE,
+            "second_console", 409, "the console is open in another window\n",
+        )  # fmt: skip
+        self.pages = PageSockets(limits, self.refused, _Client)
         self.events: Counter[str] = Counter()
         self.captures: list[str] = []
         self._runner: web.AppRunner | None = None
         self._tasks: list[asyncio.Task] = []
-        self._closing = False
         self.in_flight_timeout_s = IN_FLIGHT_TIMEOUT_S
         self._index = (WEB_DIR / "index.html").read_bytes()
+
+    @property
+    def clients(self) -> set[PageClient]:
+        """The console pages open now (at most ``max_clients``)."""
+        return self.pages.clients
+
+    @property
+    def coalesced(self) -> int:
+        """Unsent messages replaced by newer ones (frames a slow page skipped)."""
+        return self.pages.coalesced
 
     @property
     def url(self) -> str:
@@ -227,14 +246,12 @@ class ConsoleServer:
         self._tasks.append(asyncio.create_task(self._pump_state()))
 
     async def stop(self) -> None:
-        self._closing = True  # a page reconnecting now is turned away (cleanup waits for pages)
+        self.pages.closing = True  # a page reconnecting now is turned away (cleanup waits)
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
         self._tasks.clear()
-        for c in list(self.clients):
-            with contextlib.suppress(Exception):
-                await c.ws.close()
+        await self.pages.close_all()
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None
@@ -263,42 +280,17 @@ class ConsoleServer:
 
     # --- to the page ----------------------------------------------------------------------
 
-    def _post(self, key: str, data: str | bytes) -> None:
-        for c in self.clients:
-            if key in c.pending:
-                self.coalesced += 1
-            c.pending[key] = data
-            c.wake.set()
-
-    def _post_one(self, client: _Client, key: str, data: str | bytes) -> None:
-        client.pending[key] = data
-        client.wake.set()
-
-    async def _send_loop(self, client: _Client) -> None:
-        try:
-            while not client.ws.closed:
-                try:
-                    await asyncio.wait_for(client.wake.wait(), self.in_flight_timeout_s)
-                except TimeoutError:
-                    pass
-                client.wake.clear()
-                now = time.monotonic()
-                batch, client.pending = client.pending, {}
-                for key, data in batch.items():
-                    track = key[6:] if key.startswith("frame:") else None
-                    if track in TRACKS:
-                        if not client.can_take(track, now, self.in_flight_timeout_s):
-                            client.pending[key] = data  # held until the page draws one
-                            continue
-                        seq = int.from_bytes(data[4:8], "little")
-                        client.in_flight[track].append((seq, now))
-                    if isinstance(data, bytes):
-                        await client.ws.send_bytes(data)
-                    else:
-                        await client.ws.send_str(data)
-                    self.sent += 1
-        except (ConnectionError, RuntimeError) as exc:
-            log.debug("console page gone: %s", exc)
+    def _hold(self, client: PageClient, key: str, data: str | bytes) -> bool:
+        """Whether a frame waits: its page has ``IN_FLIGHT`` frames of the track not yet
+        drawn (the newest is sent when it draws one, or after the in-flight timeout)."""
+        track = key[6:] if key.startswith("frame:") else None
+        if track not in TRACKS or not isinstance(client, _Client):
+            return False
+        now = time.monotonic()
+        if not client.can_take(track, now, self.in_flight_timeout_s):
+            return True
+        client.in_flight[track].append((int.from_bytes(data[4:8], "little"), now))
+        return False
 
     async def _pump_video(self, track: str) -> None:
         """Look for a new frame of ``track`` ``poll_hz`` times a second; encode, send, keep."""
@@ -314,6 +306,10 @@ class ConsoleServer:
             if frame is None or frame.seq == st.seq:
                 continue
             seen = self.clock()
+            # When the frame was there: the receiver's decode time (the expert's receipt of a
+            # received frame), else now.
+            there = getattr(frame, "t_received", None)
+            there = seen if there is None or not math.isfinite(there) or there > seen else there
             try:
                 packet, cine = await asyncio.to_thread(self._encode, track, frame)
             except (cv2.error, ValueError) as exc:
@@ -324,14 +320,14 @@ class ConsoleServer:
             st.encode_s.append(self.clock() - seen)
             st.seq, st.t_capture, st.t_seen = frame.seq, frame.t_capture, seen
             st.size, st.spacing = (frame.width, frame.height), frame.pixel_spacing_mm
-            st.times[frame.seq] = (frame.t_capture, seen)
+            st.times[frame.seq] = (frame.t_capture, there)
             while len(st.times) > SEQS_KEPT:
                 st.times.popitem(last=False)
             st.arrivals.append(seen)
             st.frames += 1
             if cine is not None:
                 self.cine.add(cine)
-            self._post(f"frame:{track}", packet)
+            self.pages.post(f"frame:{track}", packet)
 
     def _encode(self, track: str, frame: VideoFrame) -> tuple[bytes, CineFrame | None]:
         image = frame.image
@@ -344,10 +340,17 @@ class ConsoleServer:
         spacing = frame.pixel_spacing_mm
         if spacing is not None and not all(math.isfinite(s) and s > 0 for s in spacing):
             spacing = None
-        header = frame_header(track, frame.seq, frame.t_capture, spacing, frame.width, frame.height)
+        depth0 = getattr(frame, "depth_origin_row", None)
+        if depth0 is not None and not math.isfinite(depth0):
+            depth0 = None
+        header = frame_header(
+            track, frame.seq, frame.t_capture, spacing, frame.width, frame.height, depth0=depth0
+        )
         cine = None
         if track == "us":
-            cine = CineFrame(frame.seq, frame.t_capture, jpeg, frame.width, frame.height, spacing)
+            cine = CineFrame(
+                frame.seq, frame.t_capture, jpeg, frame.width, frame.height, spacing, depth0
+            )
         return header + jpeg, cine
 
     async def _pump_state(self) -> None:
@@ -362,7 +365,7 @@ class ConsoleServer:
                 self.refused["snapshot_error"] += 1
                 log.exception("console: session snapshot failed")
                 snap = {"type": "state", "error": "the expert daemon's state is unavailable"}
-            self._post("state", json.dumps(_clean(snap), separators=(",", ":")))
+            self.pages.post("state", json.dumps(_clean(snap), separators=(",", ":")))
 
     def state(self) -> dict[str, Any]:
         """The ``state`` message: the session's snapshot, each track's age, the console's."""
@@ -397,19 +400,12 @@ class ConsoleServer:
     # --- from the page --------------------------------------------------------------------
 
     async def _handle(self, request: web.Request) -> web.StreamResponse:
-        if not origin_allowed(request):
-            self.refused["origin"] += 1
-            return web.Response(status=403, text="wrong origin\n")
-        if self._closing:
-            return web.Response(status=503, text="the expert daemon is stopping\n")
-        if len(self.clients) >= self.config.max_clients:
-            self.refused["second_console"] += 1
-            return web.Response(status=409, text="the console is open in another window\n")
-        ws = web.WebSocketResponse(heartbeat=5.0, max_msg_size=MAX_PAGE_MESSAGE)
-        await ws.prepare(request)
-        rate = self.config.page_rate_hz
-        client = _Client(ws, MessageBudget(rate, max(1, int(2 * rate))))
-        self.clients.add(client)
+        return await self.pages.serve(
+            request, self.on_page_message, self._on_open, self._on_close,
+            hold=self._hold, wake_every_s=self.in_flight_timeout_s,
+        )  # fmt: skip
+
+    def _on_open(self, client: PageClient) -> None:
         if len(self.clients) == 1 and self.on_demand is not None:
             self.on_demand.start()
         hello = {
@@ -418,48 +414,19 @@ class ConsoleServer:
             "stale_after_ms": self.config.stale_after_s * 1000.0,
             "video": self.video,
         }
-        self._post_one(client, "hello", json.dumps(hello))
-        self._post_one(client, "state", json.dumps(_clean(self.state())))
+        client.post("hello", json.dumps(hello))
+        client.post("state", json.dumps(_clean(self.state())))
         if self.cine.frozen:
-            self._post_one(client, "cine", self._cine_index())
-        sender = asyncio.create_task(self._send_loop(client))
-        try:
-            async for msg in ws:
-                if msg.type == WSMsgType.ERROR:
-                    self.refused["socket_error"] += 1
-                    break
-                if not client.budget.take():
-                    self.refused["flood"] += 1
-                    client.flooding += 1
-                    if client.flooding >= FLOOD_CLOSE:
-                        self.refused["closed_flooding"] += 1
-                        await ws.close(message=b"flood")
-                        break
-                    continue
-                client.flooding = 0
-                if msg.type != WSMsgType.TEXT:
-                    self.refused["malformed"] += 1
-                    continue
-                try:
-                    self.on_page_message(client, msg.data)
-                except Exception:  # noqa: BLE001 - never let a page end the daemon
-                    self.refused["failed"] += 1
-                    log.exception("console: page message failed")
-        finally:
-            self.clients.discard(client)
-            self.disconnects += 1
-            sender.cancel()
-            await asyncio.gather(sender, return_exceptions=True)
-            if not self.clients and self.on_demand is not None:
-                await asyncio.to_thread(self.on_demand.stop)
-        return ws
+            client.post("cine", self._cine_index())
+
+    async def _on_close(self, client: PageClient) -> None:
+        if not self.clients and self.on_demand is not None:
+            await asyncio.to_thread(self.on_demand.stop)
 
     def on_page_message(self, client: _Client, text: str) -> None:
         arrival = self.clock()
-        try:
-            m = PAGE_MESSAGE.validate_json(text)
-        except ValidationError:
-            self.refused["malformed"] += 1
+        m = validated(PAGE_MESSAGE, text, self.refused)
+        if m is None:
             return
         if isinstance(m, Drawn):
             self._on_drawn(client, m, arrival)
@@ -492,14 +459,25 @@ class ConsoleServer:
             return
         client.last_drawn[m.track] = m.seq
         d = m.draw_to_send_ms / 1000.0
-        t_capture, t_seen = times
+        _, t_seen = times
         to_draw = arrival - d - t_seen
         if not -0.001 <= to_draw <= 10.0:
             self.refused["implausible"] += 1
             return
         st.drawn += 1
         st.seen_to_draw.append(max(0.0, to_draw))
-        st.capture_to_draw.append(arrival - d - t_capture)
+        # Glass to glass as the page shows it: the counter read back from the page's canvas,
+        # matched to that frame's capture time.
+        if m.counter is None:
+            st.counter_unread += 1
+            return
+        drawn = st.times.get(unwrap(m.counter, m.seq))
+        if drawn is None:
+            st.counter_unmatched += 1
+            return
+        st.counter_read += 1
+        st.capture_to_draw.append(arrival - d - drawn[0])
+        st.capture_to_seen.append(drawn[1] - drawn[0])
 
     def _on_freeze(self, on: bool) -> None:
         if on:
@@ -513,7 +491,7 @@ class ConsoleServer:
             {} if newest is None else {"seq": newest.seq, "t_capture": newest.t_capture},
         )
         if on:
-            self._post("cine", self._cine_index())
+            self.pages.post("cine", self._cine_index())
 
     def _cine_index(self) -> str:
         t0 = self.cine.newest().t_capture if len(self.cine) else 0.0
@@ -527,9 +505,10 @@ class ConsoleServer:
             self._result(client, "cine", False, f"frame {seq} is no longer in the cine buffer")
             return
         header = frame_header(
-            "us", f.seq, f.t_capture, f.pixel_spacing_mm, f.width, f.height, cine=True
-        )
-        self._post_one(client, "frame:cine", header + f.jpeg)
+            "us", f.seq, f.t_capture, f.pixel_spacing_mm, f.width, f.height, cine=True,
+            depth0=f.depth_origin_row,
+        )  # fmt: skip
+        client.post("frame:cine", header + f.jpeg)
 
     def _on_tool(self, client: _Client, m: Caliper | Annotation | Capture) -> None:
         f = self.cine.get(m.seq)
@@ -576,7 +555,9 @@ class ConsoleServer:
         if rec is not None:
             info["session_id"] = rec.metadata.get("session_id")
         try:
-            path = save_capture(Path(self.config.captures_dir).expanduser(), f.seq, f.jpeg, info)
+            path = save_capture(
+                Path(self.config.captures_dir).expanduser(), f.seq, f.jpeg, _clean(info)
+            )
         except OSError as exc:
             self.refused["capture_failed"] += 1
             log.error("console: capture not saved: %s", exc)
@@ -594,7 +575,7 @@ class ConsoleServer:
 
     def _result(self, client: _Client, of: str, ok: bool, detail: str, **more: Any) -> None:
         msg = {"type": "result", "of": of, "ok": ok, "detail": detail, **more}
-        self._post_one(client, f"result:{of}", json.dumps(_clean(msg)))
+        client.post(f"result:{of}", json.dumps(_clean(msg)))
 
     def _record(self, event: str, payload: dict[str, Any]) -> None:
         rec = self.session.recorder
@@ -607,11 +588,11 @@ class ConsoleServer:
         out: dict[str, Any] = {
             "url": self.url if self.port else None,
             "clients": len(self.clients),
-            "sent": self.sent,
-            "coalesced": self.coalesced,
+            "sent": self.pages.sent,
+            "coalesced": self.pages.coalesced,
             "refused": dict(self.refused),
             "refused_total": sum(self.refused.values()),
-            "disconnects": self.disconnects,
+            "disconnects": self.pages.disconnects,
             "events": dict(self.events),
             "cine_frames": len(self.cine),
             "captures": len(self.captures),
@@ -625,6 +606,11 @@ class ConsoleServer:
                 "seen_to_draw_p95_ms": _pct(st.seen_to_draw, 95),
                 "capture_to_draw_p50_ms": _pct(st.capture_to_draw, 50),
                 "capture_to_draw_p95_ms": _pct(st.capture_to_draw, 95),
+                "capture_to_seen_p50_ms": _pct(st.capture_to_seen, 50),
+                "capture_to_seen_p95_ms": _pct(st.capture_to_seen, 95),
+                "counter_read": st.counter_read,
+                "counter_unread": st.counter_unread,
+                "counter_unmatched": st.counter_unmatched,
             }
         return out
 

@@ -17,8 +17,10 @@ not known, shown as such)::
     recording         {"on": bool, "error": text or None, "written": samples}
     scan              the scan in progress (number) or None
     clutch            {"on": the console's clutch, "engaged": the mapping's clutch}
-    force             {"measured_n": |F| the follower's sensor measures, "rendered_n": |F| the
-                       servo renders to the sonographer's hand, "contact": bool} (N)
+    force             the contact force along the beam (N, > 0 pressing into the patient):
+                      {"measured_n": the follower's sensor, along its probe's beam,
+                       "rendered_n": the servo's force on the sonographer's hand, along the
+                       stylus's beam (the virtual probe's), "contact": bool}
 """
 
 from __future__ import annotations

@@ -4,15 +4,20 @@
 // humantele.expert.console.messages). Nothing stale is shown as live: each panel greys out
 // when its data is older than the daemon's stale_after_ms, or when this page hears nothing.
 
+import { readCounter } from "./counter.js";
 import { ForcePlot } from "./plot.js";
+import { DepthScale } from "./scale.js";
 import { Marks } from "./tools.js";
 
 const $ = (id) => document.getElementById(id);
 const TRACKS = ["us", "pov"];
 const LOST_AFTER_MS = 1500; // no state message for this long: the daemon is out of reach
 const FORCE_BAR_MAX_N = 20;
+const SCALE_GUTTER_PX = 30; // right of the ultrasound image: its depth scale
+const COUNTER_PX = [64, 32]; // the frame counter's patch, top left of a frame (image px)
 
 const plot = new ForcePlot($("plot"), 10);
+const depthScale = new DepthScale($("us-scale"));
 
 const app = {
   ws: null,
@@ -29,9 +34,11 @@ const app = {
   results: [],
   closedReason: null,
   rxToDraw: [], // ms from a frame's arrival at the page to its draw call (last 500)
+  counters: { us: null, pov: null }, // the counter read from each track's last drawn frame
 };
 window.consoleApp = app;
 app.plot = plot;
+app.depthScale = depthScale;
 
 // --- the connection -------------------------------------------------------------------------
 
@@ -62,9 +69,11 @@ function onText(m) {
 
 function onHello(m) {
   app.hello = m;
-  const sim = m.video === "sim" ? " (simulated here from the follower's pose)" : "";
-  document.querySelector("#us-panel .name").textContent = `Ultrasound${sim}`;
-  document.querySelector("#pov-panel .name").textContent = `Follower's view${m.video === "sim" ? " (simulated)" : ""}`;
+  const sim = m.video === "sim";
+  document.body.dataset.video = m.video;
+  document.querySelector("#us-panel .name").textContent = sim ? "Ultrasound: SIMULATED" : "Ultrasound";
+  document.querySelector("#pov-panel .name").textContent = sim ? "Follower's view: SIMULATED" : "Follower's view";
+  for (const t of TRACKS) $(`${t}-sim`).hidden = !sim;
   if (m.video === "none") for (const t of TRACKS) $(`${t}-stale`).querySelector("b").textContent = "No video on this console";
 }
 
@@ -77,6 +86,7 @@ function parseHeader(buf) {
     seq: v.getUint32(4, true), tCapture: v.getFloat64(8, true),
     spacing: [v.getFloat32(16, true), v.getFloat32(20, true)],
     width: v.getUint16(24, true), height: v.getUint16(26, true),
+    depth0: v.getFloat32(28, true), // the image row of depth 0 (NaN: unknown)
   };
 }
 
@@ -86,7 +96,7 @@ const waiting = { us: null, pov: null, cine: null };
 function onFrame(buf) {
   const h = parseHeader(buf);
   h.rx = performance.now();
-  if (h.version !== 1 || !h.track) return;
+  if (h.version !== 2 || !h.track) return;
   const lane = h.cine ? "cine" : h.track;
   if (decoding[lane]) { waiting[lane] = { buf, h }; return; } // latest wins while one decodes
   decode(lane, buf, h);
@@ -116,35 +126,56 @@ function draw(h, bitmap) {
   const t0 = performance.now();
   // A CPU canvas: drawing a decoded frame is a copy, with no GPU upload and read-back (on a
   // software GPU, as in the headless tests, a GPU canvas halved the frame rate).
-  canvas.getContext("2d", { willReadFrequently: true }).drawImage(bitmap, 0, 0);
+  const g = canvas.getContext("2d", { willReadFrequently: true });
+  g.drawImage(bitmap, 0, 0);
   if (h.rx !== undefined) app.rxToDraw.push(t0 - h.rx);
   if (app.rxToDraw.length > 500) app.rxToDraw.shift();
   if (!h.cine) {
     app.frames[h.track] += 1;
     app.lastFrame[h.track] = { seq: h.seq, at: t0, ...h };
-    send({ type: "drawn", track: h.track, seq: h.seq, draw_to_send_ms: performance.now() - t0 });
+    // The frame as drawn: its counter, read back from the canvas (glass-to-glass latency).
+    const counter = readCounter(g);
+    app.counters[h.track] = counter;
+    setHidden($(`${h.track}-counter`), counter === null);
+    send({ type: "drawn", track: h.track, seq: h.seq, counter, draw_to_send_ms: performance.now() - t0 });
   }
   if (h.track === "us") {
     const spacing = h.spacing[0] > 0 ? h.spacing : null;
     app.shown = { seq: h.seq, width: h.width, height: h.height, spacing, cine: h.cine };
     marks.setFrame(h.seq, h.width, h.height, spacing);
+    depthScale.set(spacing ? spacing[0] : 0, h.depth0, h.height);
     if (h.cine) showCineTime(h.seq);
   }
 }
 
-// Canvases fill their box keeping the image's aspect ratio; the marks overlay follows.
+// Canvases fill their box keeping the image's aspect ratio (the ultrasound leaves a gutter
+// on its right for the depth scale); the marks overlay and the scale follow.
 function fit() {
   for (const id of TRACKS) {
     const canvas = $(id), box = canvas.parentElement;
-    const bw = box.clientWidth, bh = box.clientHeight;
-    if (!bw || !bh) continue;
+    const gutter = id === "us" ? SCALE_GUTTER_PX : 0;
+    const bw = box.clientWidth - gutter, bh = box.clientHeight;
+    if (bw <= 0 || !bh) continue;
     const s = Math.min(bw / canvas.width, bh / canvas.height);
     canvas.style.width = `${Math.floor(canvas.width * s)}px`;
     canvas.style.height = `${Math.floor(canvas.height * s)}px`;
+    canvas.style.marginRight = `${gutter}px`;
+    // The frame counter is read from the canvas, and covered on screen: a flickering patch
+    // is nothing a sonographer should have to look at.
+    const mask = $(`${id}-counter`);
+    mask.style.left = `${canvas.offsetLeft}px`; mask.style.top = `${canvas.offsetTop}px`;
+    mask.style.width = `${Math.ceil(COUNTER_PX[0] * s)}px`;
+    mask.style.height = `${Math.ceil(COUNTER_PX[1] * s)}px`;
     if (id === "us") {
+      const left = `${canvas.offsetLeft}px`, top = `${canvas.offsetTop}px`;
       const o = $("us-marks");
       o.style.width = canvas.style.width; o.style.height = canvas.style.height;
+      o.style.left = left; o.style.top = top;
+      const sc = $("us-scale");
+      sc.style.left = `${canvas.offsetLeft + canvas.offsetWidth}px`; sc.style.top = top;
+      sc.style.width = `${gutter}px`; sc.style.height = canvas.style.height;
       marks.draw();
+      depthScale.draw();
     }
   }
 }
@@ -346,7 +377,7 @@ function renderState() {
   setText($("n-servo"), servo.alive ? fmt(servo.rate_hz, 0, " Hz") : "stopped");
   plot.add(performance.now(), link.stale ? null : f.measured_n ?? null, servo.alive ? f.rendered_n ?? null : null);
   setData($("fbar"), "stale", String(Boolean(link.stale) || f.measured_n == null));
-  const width = `${Math.min(100, (100 * (f.measured_n || 0)) / FORCE_BAR_MAX_N).toFixed(1)}%`;
+  const width = `${Math.max(0, Math.min(100, (100 * (f.measured_n || 0)) / FORCE_BAR_MAX_N)).toFixed(1)}%`;
   if ($("fbar-fill").style.width !== width) $("fbar-fill").style.width = width;
   setText($("fbar-value"), link.stale || f.measured_n == null ? "–" : fmt(f.measured_n, 1, " N"));
   plot.draw(performance.now());
@@ -383,7 +414,10 @@ function tick() {
     }
     const info = $(`${track}-info`);
     if (frozenUs && app.shown) setText(info, `frozen · frame ${app.shown.seq}`);
-    else if (v && !stale) setText(info, `${fmt(v.fps, 0)} fps · ${fmt(v.age_ms, 0)} ms old`);
+    else if (v && !stale) {
+      const sim = app.hello && app.hello.video === "sim" ? "simulated · " : "";
+      setText(info, `${sim}${fmt(v.fps, 0)} fps · ${fmt(v.age_ms, 0)} ms old`);
+    }
     else setText(info, "not live");
   }
   if (lost) plot.draw(now); // no state messages: the plot still scrolls, with a gap

@@ -1,5 +1,6 @@
-// The force plot: the follower's measured force and the force rendered to the sonographer's
-// hand, the last `seconds`, on one canvas. Samples taken while the data is stale are gaps.
+// The force plot: the contact force along the beam (N, > 0 pressing into the patient) the
+// follower's probe measures and the one rendered to the sonographer's stylus, the last
+// `seconds`, on one canvas. Samples taken while the data is stale are gaps.
 
 const GAP_MS = 500;
 
@@ -26,17 +27,22 @@ export class ForcePlot {
     const g = c.getContext("2d");
     g.clearRect(0, 0, w, h);
     const padL = 34 * dpr, padB = 16 * dpr, padT = 6 * dpr, padR = 6 * dpr;
-    let top = 5;
-    for (const [, m, r] of this.samples) top = Math.max(top, m ?? 0, r ?? 0);
+    let top = 5, low = 0;
+    for (const [, m, r] of this.samples) {
+      top = Math.max(top, m ?? 0, r ?? 0);
+      low = Math.min(low, m ?? 0, r ?? 0);
+    }
     top = Math.ceil(top * 1.15 / 5) * 5;
+    const step = top <= 10 ? 2 : top <= 25 ? 5 : 10;
+    const bottom = low < 0 ? -Math.ceil((-low * 1.15) / step) * step : 0; // pulling: below 0
     const x = (t) => padL + (w - padL - padR) * (1 - (nowMs - t) / (this.seconds * 1000));
-    const y = (v) => h - padB - (h - padB - padT) * (v / top);
+    const y = (v) => h - padB - (h - padB - padT) * ((v - bottom) / (top - bottom));
     g.font = `${11 * dpr}px "Liberation Sans", Arial, sans-serif`;
     g.fillStyle = "#7d8793";
     g.strokeStyle = "#262c34";
     g.lineWidth = 1;
-    const step = top <= 10 ? 2 : top <= 25 ? 5 : 10;
-    for (let v = 0; v <= top; v += step) {
+    for (let v = bottom; v <= top; v += step) {
+      g.strokeStyle = v === 0 ? "#3a424c" : "#262c34";
       g.beginPath(); g.moveTo(padL, y(v)); g.lineTo(w - padR, y(v)); g.stroke();
       g.fillText(`${v} N`, 2 * dpr, y(v) + 4 * dpr);
     }

@@ -1,0 +1,209 @@
+"""The WebSocket that a daemon's browser pages hold open: accept, send, listen, count.
+
+Both daemons' pages (the expert's console, the follower's headset page) use one
+:class:`PageSockets`: it refuses a page of another origin (403) and pages beyond
+``max_clients``, gives each accepted page a :class:`PageClient` (a message budget and what
+waits to be sent to it, latest per key: a slow page gets the newest, never a backlog), runs a
+sender task per page, and reads what the page sends. A message over the budget is dropped
+(``flood``; a page flooding ``FLOOD_CLOSE`` times in a row is closed), a binary one is
+``malformed``, one over ``max_message`` bytes closes the page (``too_big``); a text message
+goes to the server's handler, whose exception is counted (``failed``), never raised. When a
+page goes (closed tab, network gone) its sender is cancelled and ``disconnects`` counts it.
+Everything refused is counted in the server's ``refused`` counter; the daemon goes on.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections import Counter
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from typing import Any
+
+from aiohttp import WSCloseCode, WSMsgType, web
+from pydantic import BaseModel, TypeAdapter, ValidationError
+
+from humantele.web.guard import MessageBudget, origin_allowed
+
+log = logging.getLogger(__name__)
+
+FLOOD_CLOSE = 600  # a page refused this many times in a row for flooding is closed
+HEARTBEAT_S = 5.0  # a page that answers no ping for this long is gone
+
+
+@dataclass(frozen=True)
+class PageLimits:
+    """What a server takes from its pages: ``max_clients`` open at once (one more is refused
+    with ``full_status``/``full_text`` and counted as ``full_reason``), ``rate_hz`` messages
+    a second each (bursts of twice that), ``max_message`` bytes a message."""
+
+    max_clients: int
+    rate_hz: float
+    max_message: int
+    full_reason: str = "too_many_clients"
+    full_status: int = 503
+    full_text: str = "too many pages open\n"
+
+
+class PageClient:
+    """One open page: its socket, its message budget and what waits to be sent to it
+    (``pending``, key -> text or bytes, latest per key)."""
+
+    def __init__(self, ws: web.WebSocketResponse, budget: MessageBudget) -> None:
+        self.ws = ws
+        self.budget = budget
+        self.pending: dict[str, str | bytes] = {}
+        self.wake = asyncio.Event()
+        self.flooding = 0
+
+    def post(self, key: str, data: str | bytes) -> None:
+        """Send ``data`` to this page (replacing unsent data of the same ``key``)."""
+        self.pending[key] = data
+        self.wake.set()
+
+
+class PageSockets:
+    """The pages of one server (see the module docstring). ``refused``: the server's refusal
+    counter; ``make_client(ws, budget)``: a :class:`PageClient` (or a subclass with the
+    server's per-page state). ``sent`` counts messages sent, ``coalesced`` unsent ones
+    replaced by newer ones."""
+
+    def __init__(
+        self,
+        limits: PageLimits,
+        refused: Counter[str],
+        make_client: Callable[[web.WebSocketResponse, MessageBudget], PageClient] = PageClient,
+    ) -> None:
+        self.limits = limits
+        self.refused = refused
+        self.make_client = make_client
+        self.clients: set[PageClient] = set()
+        self.closing = False  # a page (re)connecting now is turned away
+        self.sent = 0
+        self.coalesced = 0
+        self.disconnects = 0
+
+    def post(self, key: str, data: str | bytes) -> None:
+        """Send ``data`` to every page (latest per ``key`` wins)."""
+        for c in self.clients:
+            if key in c.pending:
+                self.coalesced += 1
+            c.post(key, data)
+
+    async def serve(
+        self,
+        request: web.Request,
+        on_text: Callable[[PageClient, str], None],
+        on_open: Callable[[PageClient], None] | None = None,
+        on_close: Callable[[PageClient], Awaitable[None]] | None = None,
+        hold: Callable[[PageClient, str, str | bytes], bool] | None = None,
+        wake_every_s: float | None = None,
+    ) -> web.StreamResponse:
+        """Handle one page's WebSocket request to its end. ``on_open(client)`` when accepted
+        (post its first messages there), ``on_text(client, text)`` for each text message
+        within the budget, ``await on_close(client)`` once it has gone; ``hold`` and
+        ``wake_every_s`` as in :meth:`send_loop`."""
+        lim = self.limits
+        if not origin_allowed(request):
+            self.refused["origin"] += 1
+            return web.Response(status=403, text="wrong origin\n")
+        if self.closing:
+            return web.Response(status=503, text="the daemon is stopping\n")
+        if len(self.clients) >= lim.max_clients:
+            self.refused[lim.full_reason] += 1
+            return web.Response(status=lim.full_status, text=lim.full_text)
+        ws = web.WebSocketResponse(heartbeat=HEARTBEAT_S, max_msg_size=lim.max_message)
+        await ws.prepare(request)
+        client = self.make_client(ws, MessageBudget(lim.rate_hz, max(1, int(2 * lim.rate_hz))))
+        self.clients.add(client)
+        sender = None
+        try:
+            if on_open is not None:
+                on_open(client)
+            sender = asyncio.create_task(self.send_loop(client, hold, wake_every_s))
+            async for msg in ws:
+                if msg.type == WSMsgType.ERROR:
+                    self.refused["too_big" if _too_big(ws) else "socket_error"] += 1
+                    break
+                if not client.budget.take():
+                    self.refused["flood"] += 1
+                    client.flooding += 1
+                    if client.flooding >= FLOOD_CLOSE:
+                        self.refused["closed_flooding"] += 1
+                        await ws.close(code=WSCloseCode.POLICY_VIOLATION, message=b"flood")
+                        break
+                    continue
+                client.flooding = 0
+                if msg.type != WSMsgType.TEXT:
+                    self.refused["malformed"] += 1
+                    continue
+                try:
+                    on_text(client, msg.data)
+                except Exception:  # noqa: BLE001 - never let a page end the daemon
+                    self.refused["failed"] += 1
+                    log.exception("page message failed")
+        finally:
+            self.clients.discard(client)
+            self.disconnects += 1
+            if sender is not None:
+                sender.cancel()
+                await asyncio.gather(sender, return_exceptions=True)
+            if on_close is not None:
+                await on_close(client)
+        return ws
+
+    async def send_loop(
+        self,
+        client: PageClient,
+        hold: Callable[[PageClient, str, str | bytes], bool] | None = None,
+        wake_every_s: float | None = None,
+    ) -> None:
+        """Send what is pending to ``client`` whenever there is some, until it goes.
+        ``hold(client, key, data)`` True keeps that message pending (sent when the page is
+        woken again); ``wake_every_s``: look again at least this often (held messages)."""
+        try:
+            while not client.ws.closed:
+                if wake_every_s is None:
+                    await client.wake.wait()
+                else:
+                    with contextlib.suppress(TimeoutError):
+                        await asyncio.wait_for(client.wake.wait(), wake_every_s)
+                client.wake.clear()
+                batch, client.pending = client.pending, {}
+                for key, data in batch.items():
+                    if hold is not None and hold(client, key, data):
+                        client.pending[key] = data
+                        continue
+                    if isinstance(data, bytes):
+                        await client.ws.send_bytes(data)
+                    else:
+                        await client.ws.send_str(data)
+                    self.sent += 1
+        except (ConnectionError, RuntimeError) as exc:
+            log.debug("page gone: %s", exc)
+
+    async def close_all(self) -> None:
+        """Turn new pages away and close the open ones."""
+        self.closing = True
+        for c in list(self.clients):
+            with contextlib.suppress(Exception):
+                await c.ws.close()
+
+
+def validated(model: type[BaseModel] | TypeAdapter, text: str, refused: Counter[str]) -> Any:
+    """``text`` as a page message of ``model`` (a pydantic model or a TypeAdapter), or None
+    with ``refused["malformed"]`` counted."""
+    try:
+        if isinstance(model, TypeAdapter):
+            return model.validate_json(text)
+        return model.model_validate_json(text)
+    except ValidationError:
+        refused["malformed"] += 1
+        return None
+
+
+def _too_big(ws: web.WebSocketResponse) -> bool:
+    exc = ws.exception()
+    return getattr(exc, "code", None) == WSCloseCode.MESSAGE_TOO_BIG

@@ -1,0 +1,203 @@
+"""The two pages' figures (issue 11 §4), from one ``humantele demo`` with the video tracks on
+(``configs/demo.toml``: the follower's sim ultrasound and POV over WebRTC), each page open in
+headless Chromium in turn for ``seconds``:
+
+- the console: ultrasound glass to glass as the page shows it (the follower's capture time to
+  the page's draw call, for the frame whose counter the page read back from its own canvas),
+  what the console adds over the expert's receipt (the receiver's decode to the draw call),
+  the page's frame rate; the expert's receipt alone (capture to decode, the receiver's);
+- the headset page: the follower's receipt of a pose to the page's draw call of it (the
+  page's echoes, see :mod:`humantele.follower.feed`);
+- for each, CPU (% of one core) of the browser (all its processes), the expert daemon, its
+  servo, the follower daemon and the follower's child processes (video, sensing), with the
+  servo's rate and overruns over the same window, and the machine's load average.
+
+    python tests/browser/netns.py pages_bench --arg seconds=30 --arg write=1
+
+(``write=1``: the table goes to docs/benchmarks.md, section ``pages``.)
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import time
+from pathlib import Path
+
+from session_helpers import descendants  # tests/session (stage.py puts it on the path)
+from stage import page_url
+
+from humantele.runtime.stats import process_cpu_seconds
+
+REPO = Path(__file__).resolve().parents[3]
+LIVE = "(() => { const h = headset.hud(); return ['green', 'amber', 'red'].includes(h.cue)" \
+       " && h.guide.live; })()"  # fmt: skip
+
+
+def browser_pids() -> set[int]:
+    """Chromium's processes (this runner's descendants named chromium)."""
+    out = set()
+    for pid in descendants(os.getpid()):
+        try:
+            if "chromium" in Path(f"/proc/{pid}/comm").read_text():
+                out.add(pid)
+        except OSError:
+            pass
+    return out
+
+
+class Window:
+    """CPU seconds of the processes that matter, and the servo's counters, at one instant."""
+
+    def __init__(self, demo) -> None:
+        e, f = demo.stats("expert"), demo.stats("follower")
+        self.t = time.monotonic()
+        self.load = os.getloadavg()[0]
+        kids = descendants(f["pid"])
+        self.cpu = {
+            "browser": _sum(browser_pids()),
+            "expert": process_cpu_seconds(e["pid"]) or 0.0,
+            "servo": process_cpu_seconds(e["servo_pid"]) or 0.0,
+            "follower": process_cpu_seconds(f["pid"]) or 0.0,
+            "follower children": _sum(kids),
+        }
+        self.overruns = e.get("servo_overruns", 0)
+        self.servo_hz = e.get("servo_rate_hz")
+
+    def to(self, later: Window) -> dict:
+        dt = later.t - self.t
+        cpu = {k: round(100.0 * (later.cpu[k] - v) / dt, 1) for k, v in self.cpu.items()}
+        return {"seconds": round(dt, 1), "cpu_percent": cpu, "servo_rate_hz": later.servo_hz,
+                "servo_overruns": later.overruns - self.overruns,
+                "load": [round(self.load, 2), round(later.load, 2)]}  # fmt: skip
+
+
+def _sum(pids) -> float:
+    return sum(process_cpu_seconds(p) or 0.0 for p in pids)
+
+
+async def console_phase(ctx, demo, seconds: float) -> dict:
+    url = (demo.stats("expert").get("console") or {})["url"]
+    page = await ctx.page(url, width=1440, height=900)
+    await ctx.until(page, "window.consoleApp && consoleApp.frames.us > 10", 90)
+    f0 = await page.evaluate("({...consoleApp.frames})")
+    w0 = Window(demo)
+    await asyncio.sleep(seconds)
+    w1 = Window(demo)
+    f1 = await page.evaluate("({...consoleApp.frames})")
+    e = demo.stats("expert")
+    await ctx.shot(page, "bench_console")
+    await ctx.close_page(page)
+    dt = w1.t - w0.t
+    return {
+        **w0.to(w1),
+        "page_fps": {t: round((f1[t] - f0[t]) / dt, 1) for t in f0},
+        "console": {t: e["console"][t] for t in ("us", "pov")},
+        "receiver": e.get("video"),
+    }
+
+
+async def headset_phase(ctx, demo, seconds: float) -> dict:
+    page = await ctx.page(page_url(demo.stats("follower")))
+    await ctx.until(page, LIVE, 90)
+    fr0 = await page.evaluate("headset.frames")
+    w0 = Window(demo)
+    await asyncio.sleep(seconds)
+    w1 = Window(demo)
+    fr1 = await page.evaluate("headset.frames")
+    feed = demo.stats("follower").get("feed") or {}
+    await ctx.shot(page, "bench_headset")
+    await ctx.close_page(page)
+    return {**w0.to(w1), "page_fps": round((fr1 - fr0) / (w1.t - w0.t), 1), "feed": feed}
+
+
+async def run(ctx) -> dict:
+    seconds = float(ctx.args.get("seconds", 30.0))
+    demo = await ctx.demo("--config", str(REPO / "configs" / "demo.toml"), "--duration", "3600")
+
+    def ready(e, f):
+        following = f.get("calibrated") and f.get("link_state") == "connected"
+        us = (e.get("video") or {}).get("us") or {}
+        return following and (e.get("console") or {}).get("url") and us.get("frames", 0) > 20
+
+    await demo.wait("calibrated, following, video received", ready, timeout=180)
+    ctx.mark("demo ready")
+    data: dict = {"seconds": seconds, "started_load": round(os.getloadavg()[0], 2)}
+    data["console"] = await console_phase(ctx, demo, seconds)
+    ctx.mark("console")
+    data["headset"] = await headset_phase(ctx, demo, seconds)
+    ctx.mark("headset")
+    data["load_note"] = load_note(data)
+    if ctx.args.get("write"):
+        write_benchmarks(data)
+    return data
+
+
+def load_note(data: dict) -> str:
+    """What the load says about the figures (2 cores: above about 1.5, other work's)."""
+    loads = [x for ph in (data["console"], data["headset"]) for x in ph["load"]]
+    lo, hi = min(loads), max(loads)
+    if hi <= 1.5:
+        return f"Load {lo:g}-{hi:g}: a quiet machine."
+    return (f"Load {lo:g}-{hi:g} on 2 cores: other work was running, so these figures are"
+            " provisional (rerun on a quiet machine).")  # fmt: skip
+
+
+CPU_COLUMNS = ["window", "browser", "expert", "servo", "follower", "follower children",
+               "servo Hz", "servo overruns", "load"]  # fmt: skip
+
+
+def _ms(v) -> str:
+    return "-" if v is None else f"{v:.1f}"
+
+
+def write_benchmarks(data: dict) -> None:
+    from humantele.report import machine_line, markdown_table, write_section
+
+    c, h = data["console"], data["headset"]
+    us, pov, feed = c["console"]["us"], c["console"]["pov"], h["feed"]
+    rows = [
+        ["console: US glass to glass (capture at the follower to the page's draw, counter "
+         "read from the page's canvas), p50 / p95 ms",
+         f"{_ms(us['capture_to_draw_p50_ms'])} / {_ms(us['capture_to_draw_p95_ms'])}"
+         f" ({us['counter_read']} frames; counter unread {us['counter_unread']}, "
+         f"unmatched {us['counter_unmatched']})"],
+        ["console: US, what the console adds (the expert's receipt to the page's draw), "
+         "p50 / p95 ms",
+         f"{_ms(us['seen_to_draw_p50_ms'])} / {_ms(us['seen_to_draw_p95_ms'])}"],
+        ["console: US, the expert's receipt of the same frames (capture at the follower to"
+         " decoded at the expert), p50 / p95 ms",
+         f"{_ms(us['capture_to_seen_p50_ms'])} / {_ms(us['capture_to_seen_p95_ms'])}"],
+        ["console: POV glass to glass, p50 / p95 ms",
+         f"{_ms(pov['capture_to_draw_p50_ms'])} / {_ms(pov['capture_to_draw_p95_ms'])}"],
+        ["console: page draws, US / POV fps", f"{c['page_fps']['us']} / {c['page_fps']['pov']}"],
+        ["headset page: pose receipt (follower) to the page's draw call, p50 / p95 ms",
+         f"{_ms(feed.get('draw_latency_p50_ms'))} / {_ms(feed.get('draw_latency_p95_ms'))}"
+         f" ({feed.get('echoes')} echoes)"],
+        ["headset page: frames drawn per second", f"{h['page_fps']}"],
+    ]  # fmt: skip
+    cpu_rows = []
+    for name, ph in (("console open", c), ("headset page open", h)):
+        cp = ph["cpu_percent"]
+        cpu_rows.append([name, cp["browser"], cp["expert"], cp["servo"], cp["follower"],
+                         cp["follower children"], _ms(ph["servo_rate_hz"]), ph["servo_overruns"],
+                         f"{ph['load'][0]} / {ph['load'][1]}"])  # fmt: skip
+    text = (
+        "## The pages: console and headset (`python tests/browser/netns.py pages_bench --arg"
+        " seconds=S --arg write=1`)\n\n"
+        f"One `humantele demo --config configs/demo.toml` (both daemons on sim devices, the"
+        " follower's sim ultrasound 640 x 480 and POV over WebRTC, VP8, loopback), calibrated"
+        " and following; then the console open in headless Chromium (software GPU, 1440 x 900)"
+        f" for {data['seconds']:g} s, then the headset page (1280 x 800, no WebXR) for"
+        f" {data['seconds']:g} s. Latencies are on one machine's monotonic clock (the"
+        " follower's capture times mapped onto the expert's by the link's clock sync);"
+        " a draw is the page's draw call, echoed to its daemon with the time between draw"
+        " and echo taken off (the echo's transit, under 1 ms on loopback, is included).\n\n"
+        + markdown_table(["figure", "value"], rows)
+        + "\n\nCPU in % of one core over the same windows (the browser: all its processes;"
+        " the follower's children: its video process and sensing process), the 1 kHz"
+        " servo's mean rate since it started and its overruns (periods over 1.5 ms) in the"
+        " window, and the machine's 1-minute load average at the start / end of the window."
+        f" {load_note(data)}\n\n" + markdown_table(CPU_COLUMNS, cpu_rows) + "\n\n" + machine_line()
+    )
+    write_section("pages", text)
