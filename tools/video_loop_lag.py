@@ -30,13 +30,13 @@ VARIANTS = ("none", "render", "250", "2500")
 
 
 async def follower(url: str, variant: str, seconds: float) -> None:
-    from humantele.media.config import BitrateConfig, FollowerVideoConfig
+    from humantele.media.config import FollowerVideoConfig
     from humantele.media.sender import VideoSender
     from humantele.transport import LinkConfig, PeerLink
     from humantele.video.scene import DEFAULT_PATIENT, DemoScene
 
     kbps = int(variant) if variant.isdigit() else 1000
-    rate = BitrateConfig(start_kbps=kbps, min_kbps=kbps, max_kbps=kbps)
+    rate = {"start_kbps": kbps, "min_kbps": kbps, "max_kbps": kbps}
     config = FollowerVideoConfig(enabled=True, record_us_hz=0.0, record_pov_hz=0.0,
                                  us_bitrate=rate, pov_bitrate=rate)  # fmt: skip
     sender = None if variant == "none" else VideoSender(config, None, None, DEFAULT_PATIENT)

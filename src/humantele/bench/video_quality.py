@@ -64,7 +64,7 @@ async def follower(url: str, room: str, out: Path, width: int, height: int, kbps
                    seconds: float) -> None:  # fmt: skip
     """Send both tracks for ``seconds`` after the link is up; save every EVERY-th US frame's
     luma as handed to the encoder (``out/<seq>.npy``) and the bytes sent (``out/sent.json``)."""
-    from humantele.media.config import BitrateConfig, FollowerVideoConfig
+    from humantele.media.config import FollowerVideoConfig
     from humantele.media.sender import VideoSender
     from humantele.transport import LinkConfig, PeerLink
     from humantele.video.scene import DEFAULT_PATIENT, DemoScene
@@ -73,7 +73,7 @@ async def follower(url: str, room: str, out: Path, width: int, height: int, kbps
     config = FollowerVideoConfig(
         enabled=True, record_us_hz=0.0, record_pov_hz=0.0,
         us=SimUltrasoundConfig(width=width, height=height),
-        us_bitrate=BitrateConfig(start_kbps=kbps, min_kbps=kbps, max_kbps=kbps),
+        us_bitrate={"start_kbps": kbps, "min_kbps": kbps, "max_kbps": kbps},
     )  # fmt: skip
 
     class Saving(VideoSender):
