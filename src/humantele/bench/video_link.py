@@ -21,8 +21,8 @@ Prints each row and, last, one JSON object.
 Recovery: with ``--loss-window A,B`` the loss applies only from A to B s after the video
 started to flow (200 kB forwarded to the expert). The expert then records its received frames
 (``/expert/video_frame``, every frame's age) and the row is split into three phases: before
-(from 2 s after the first frame to A), during, after (B to the end), each with its latency,
-rate and longest freeze; they go in a second table of the same section.
+(from 2 s after the first frame to A), during, the first 5 s after B, and the rest, each with
+its latency, rate and longest freeze; they go in a second table of the same section.
 """
 
 from __future__ import annotations
@@ -268,7 +268,12 @@ def phases(record: Path, switches: list[float]) -> dict:
             continue
         t = [float(s["t"]) for s in mine]
         ages = [float(s.get("age_s", float("nan"))) for s in mine]
-        bounds = {"before": (t[0] + WARMUP_S, on), "during": (on, off), "after": (off, t[-1])}
+        bounds = {
+            "before": (t[0] + WARMUP_S, on),
+            "during": (on, off),
+            "after, first 5 s": (off, off + 5.0),
+            "after, rest": (off + 5.0, t[-1]),
+        }
         out[name] = {k: phase_figures(t, ages, a, b) for k, (a, b) in bounds.items() if b > a}
     return out
 
@@ -337,7 +342,7 @@ def phase_rows(s: dict) -> list[list[str]]:
     """The recovery table's rows of one run: before, during, after the loss window."""
     out = []
     ph = s.get("phases") or {}
-    for phase in ("before", "during", "after"):
+    for phase in ("before", "during", "after, first 5 s", "after, rest"):
         us = (ph.get("us") or {}).get(phase) or {}
         pov = (ph.get("pov") or {}).get(phase) or {}
         if us or pov:
@@ -389,7 +394,8 @@ def markdown(rows: list[list[str]], recovery: list[list[str]]) -> str:
         parts += [
             "Recovery (`--loss-window A,B`): the loss only from A to B s after the video "
             f"started to flow; before: from {WARMUP_S:g} s after the first frame to A; after: "
-            "B to the end. From the expert's recording of every frame it decoded.",
+            "the first 5 s after B (the recovery), then the rest of the run (where other work "
+            "on the machine also shows). From the expert's recording of every frame it decoded.",
             markdown_table(PHASE_HEADER, recovery),
         ]
     return "\n\n".join(parts)
@@ -415,11 +421,14 @@ def run_link(args: argparse.Namespace) -> int:
         summaries.append(s)
         r = row(s)
         rows[r[0]] = r
-        for pr in phase_rows(s):
+        new_phases = phase_rows(s)
+        if new_phases:  # this setting's phases replace all of its earlier ones
+            recovery = {k: v for k, v in recovery.items() if k[0] != r[0]}
+        for pr in new_phases:
             recovery[(pr[0], pr[1])] = pr
         if not args.json:
             print(" | ".join(r), flush=True)
-            for pr in phase_rows(s):
+            for pr in new_phases:
                 print("  " + " | ".join(pr[1:]), flush=True)
         if not args.no_write:
             md = markdown(list(rows.values()), list(recovery.values()))
