@@ -12,11 +12,11 @@ target has moved by more than 10 %; ``restarts`` counts the openings.
 **VP8 settings.** aiortc's real-time libvpx settings less two: ``noise-sensitivity`` (aiortc 4,
 here 0: no temporal denoiser) and ``static-thresh`` (aiortc 1, here 0: no encode breakout).
 With both on, libvpx's real-time mode decision skips the residual of some macroblocks whose
-source changed, so the decoded block is the previous frame's; its only guard is the chroma
-error (``2 * sse_uv < static-thresh``), which is exactly 0 on grey content. The US image is grey,
-and its frame counter (black and white 8 px cells on black) read wrong on 10-16 % of frames
-through aiortc's encoder offline (25 % in the demo), always one cell of the previous frame's
-number; either setting at 0 gives 0 of 200, and so does a counter with chroma noise
+source changed, so the decoded block is the previous frame's; the encode breakout's chroma
+test (``2 * sse_uv < static-thresh``) always passes on exactly grey content. The US image is
+grey, and its frame counter (black and white 8 px cells on black) read wrong on 10-16 % of
+frames through aiortc's encoder offline (25 % in the demo), always one cell of the previous
+frame's number; either setting at 0 gives 0 of 200, and so does a counter with chroma noise
 (``humantele bench video``, docs/video.md). Speckle is the image, not noise to smooth away.
 
 H.264 keeps aiortc's settings (libx264 zerolatency, Baseline); only its limits are ours.
