@@ -271,7 +271,7 @@ def video_summary(e: dict[str, Any] | None, f: dict[str, Any] | None) -> dict[st
         return None
     out: dict[str, Any] = {}
     keys = ("frames", "fps", "fps_mean", "gap_max_ms", "age_p50_ms", "age_p95_ms", "age_max_ms",
-            "unreadable", "no_info")  # fmt: skip
+            "unreadable", "no_info", "stale_dropped", "jitter")  # fmt: skip
     for name in ("us", "pov"):
         t = e.get(name) or {}
         out[name] = {k: t.get(k) for k in (*keys, "size")}

@@ -55,19 +55,26 @@ async def test_both_tracks_arrive_with_counter_and_capture_time(server, codec):
             st = rx.stats_by_track[name]
             await until(lambda n=name: rx.latest(n).seq is not None)  # its number is known
             f = rx.latest(name)
-            # the counter reads (mostly: the codec may smear one), goes forward in order, and
-            # every frame after the first anchored one has its capture time
+            # the counter reads on every frame, goes forward in order, and every frame after
+            # the first anchored one has its capture time
             assert st.out_of_order == 0
-            assert st.unreadable <= st.frames // 2
+            assert st.unreadable == 0
             assert len(st.ages) >= st.frames - 3
-            assert all(0.0 <= a < 5.0 for a in st.ages)
+            # one process, one clock: an age below 0 is the clock sync's error (within the
+            # round trip of its best exchange, ms on loopback); a wrong capture time is seconds
+            assert all(-0.05 <= a < 5.0 for a in st.ages), (min(st.ages), max(st.ages))
             assert f.t_capture is not None and f.t_capture <= f.t_received
         assert (rx.latest("us").width, rx.latest("us").height) == (320, 240)
         assert (rx.latest("pov").width, rx.latest("pov").height) == (320, 180)
         # the decoded picture is the source's: the US image is not the POV
         img = await asyncio.to_thread(rx.latest("us").image)
         assert img.shape == (240, 320, 3)
-        assert tx.stats()["us"]["sent"] >= 15 and tx.infos_sent >= 30
+        assert tx.stats()["us"]["sent"] >= 15 and tx.infos_sent + tx.infos_dropped >= 30
+        # aiortc encoded with our encoders and assembled frames with our jitter buffers
+        rx_stats, tx_stats = rx.stats(), tx.stats()
+        for name in ("us", "pov"):
+            assert tx_stats[name]["encoder"]["restarts"] >= 1
+            assert rx_stats[name]["jitter"]["frames"] >= rx.stats_by_track[name].frames
     finally:
         await follower.close()
         await expert.close()

@@ -7,9 +7,9 @@ H.264 with libx264 ultrafast), US 640x480 at 20 fps, POV 960x540 at 25 fps.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from humantele.config import ConfigModel
 from humantele.video.sim_pov import SimPovConfig
@@ -17,7 +17,46 @@ from humantele.video.sim_ultrasound import SimUltrasoundConfig
 from humantele.video.sources import PovSourceConfig, UltrasoundSourceConfig
 
 TRACKS = ("us", "pov")
+MIN_KBPS, MAX_KBPS = 50, 20_000  # the bit rates a track's encoder may be set to
 Codec = Literal["vp8", "h264"]
+
+
+def _kbps(default: int, what: str) -> Any:
+    return Field(default, ge=MIN_KBPS, le=MAX_KBPS, description=what)
+
+
+class BitrateConfig(ConfigModel):
+    """One track's encoder bit rate (kbit/s): it starts at ``start_kbps``; the expert's
+    congestion feedback (REMB) then moves it, but never below ``min_kbps`` nor above
+    ``max_kbps``. ``min_kbps = max_kbps`` fixes it (REMB ignored)."""
+
+    start_kbps: int = _kbps(1000, "target at start")
+    min_kbps: int = _kbps(250, "REMB never goes below")
+    max_kbps: int = _kbps(2500, "REMB never goes above")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> BitrateConfig:
+        if not self.min_kbps <= self.start_kbps <= self.max_kbps:
+            raise ValueError(
+                f"min_kbps ({self.min_kbps}) <= start_kbps ({self.start_kbps}) <= max_kbps "
+                f"({self.max_kbps}) does not hold"
+            )
+        return self
+
+
+class UsBitrateConfig(BitrateConfig):
+    """The US track's: its floor is the higher one. Below ~500 kbit/s the 640x480 US image's
+    SSIM falls under 0.83 (bench video quality), and REMB also reads a loaded CPU as
+    congestion; the POV gives way first."""
+
+    min_kbps: int = _kbps(500, "REMB never goes below")
+
+
+class PovBitrateConfig(BitrateConfig):
+    """The POV track's (the published system's POV: 1-2 Mbit/s H.264)."""
+
+    start_kbps: int = _kbps(800, "target at start")
+    max_kbps: int = _kbps(2000, "REMB never goes above")
 
 
 class DegradeConfig(ConfigModel):
@@ -52,6 +91,8 @@ class FollowerVideoConfig(ConfigModel):
         True, description="draw the frame counter (64x32 px, top left) into every frame sent"
     )
     degrade: DegradeConfig = DegradeConfig()
+    us_bitrate: UsBitrateConfig = UsBitrateConfig()
+    pov_bitrate: PovBitrateConfig = PovBitrateConfig()
     process: bool = Field(
         True, description="render/capture in a separate, lower-priority process (not threads)"
     )
@@ -77,4 +118,9 @@ class ExpertVideoConfig(ConfigModel):
         False, description="receive the us and pov tracks (configs/expert.toml turns it on)"
     )
     codec: Codec = Field("vp8", description="vp8 (default, cheapest on 2 cores) or h264")
+    loss_wait_ms: float = Field(
+        100.0, ge=0.0, le=2000.0,
+        description="a lost packet is waited for this long (its retransmission) before the "
+        "frames up to the next keyframe are dropped and a keyframe asked for",
+    )  # fmt: skip
     record_frames: bool = Field(True, description="record every received frame's timestamps")

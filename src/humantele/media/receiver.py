@@ -3,8 +3,10 @@ each with its capture time on the expert's clock.
 
 :meth:`VideoReceiver.prepare` is the expert link's media hook: before each offer it adds two
 receive-only video transceivers (``us`` first, then ``pov``) offering only the configured
-codec, and the ``video`` data channel (id 3) on which the follower sends each frame's
-:class:`~humantele.media.frameinfo.FrameInfo`. For each track a task on the loop takes the
+codec (no RTX: see :meth:`prepare`), each with our jitter buffer
+(:mod:`humantele.media.jitter`), and the ``video`` data channel (id 3) on which the follower
+sends each frame's :class:`~humantele.media.frameinfo.FrameInfo`. For each track a task on the
+loop takes the
 decoded frames (aiortc decodes in its own thread), reads the frame counter from the luma
 plane's top-left corner (64 x 32 px, a fraction of a millisecond), finds the frame's capture
 time (follower clock) and maps it to the expert's with the link's clock sync.
@@ -12,9 +14,9 @@ time (follower clock) and maps it to the expert's with the link's clock sync.
 The sender's frame ``pts`` is its capture time on the 90 kHz RTP clock, and aiortc gives each
 decoded frame the RTP timestamp counted from the first frame received: so the two differ by a
 constant per stream, learnt from any frame whose counter reads and whose record arrived (the
-"anchor"). After that every frame's capture time is known, including frames whose counter the
-codec smeared (aiortc's VP8 runs at constant bit rate with a denoiser, and at low bit rates
-leaves an occasional 16 x 16 block of the counter from the previous frame). Nothing on the
+"anchor"). After that every frame's capture time is known, including a frame whose counter
+does not read (none with the follower's encoders; aiortc's own VP8 settings left stale blocks
+in it, :mod:`humantele.media.encoders`). Nothing on the
 loop converts or copies the picture: :meth:`ReceivedFrame.image` does that for whoever shows
 it, in its own thread.
 
@@ -39,8 +41,10 @@ import numpy as np
 from aiortc import RTCPeerConnection, RTCRtpSender
 from aiortc.mediastreams import MediaStreamError
 
+from humantele.media.aiortc_hooks import newest_frame, use_jitter_buffer
 from humantele.media.config import TRACKS, ExpertVideoConfig
 from humantele.media.frameinfo import FrameInfo, FrameInfoError
+from humantele.media.jitter import KEYFRAME_TESTS, BoundedJitterBuffer
 from humantele.media.sender import VIDEO_CHANNEL_ID
 from humantele.runtime.stats import percentile_ms
 from humantele.transport.clocksync import ClockSync
@@ -178,6 +182,7 @@ class VideoReceiver:
         self._seq_at: dict[str, OrderedDict[int, int]] = {n: OrderedDict() for n in TRACKS}
         self._events = {name: asyncio.Event() for name in TRACKS}
         self._pc: RTCPeerConnection | None = None
+        self._jitter: dict[str, BoundedJitterBuffer] = {}  # the current connection's
         self._tasks: set[asyncio.Task] = set()
 
     # --- what the console reads ---------------------------------------------------------------
@@ -207,16 +212,22 @@ class VideoReceiver:
             self.stats_by_track[name].anchor = None  # and its RTP timestamps start anew
             self._infos[name].clear()
             self._seq_at[name].clear()
+        # The codec alone, without RTX: aiortc routes an RTX packet by its payload type when
+        # its SSRC is unknown, and with two video tracks sharing that payload type it drops
+        # every retransmission. Without RTX a retransmission is the original packet, routed
+        # by its SSRC (docs/video.md, "Loss").
         codec = f"video/{self.config.codec}"
-        prefs = [
-            c
-            for c in RTCRtpSender.getCapabilities("video").codecs
-            if c.mimeType.lower() in (codec, "video/rtx")
-        ]
+        prefs = [c for c in RTCRtpSender.getCapabilities("video").codecs
+                 if c.mimeType.lower() == codec]  # fmt: skip
         names = {}
         for name in TRACKS:
             transceiver = pc.addTransceiver("video", direction="recvonly")
             transceiver.setCodecPreferences(prefs)
+            buffer = BoundedJitterBuffer(
+                KEYFRAME_TESTS[self.config.codec], self.config.loss_wait_ms / 1000.0
+            )
+            use_jitter_buffer(transceiver.receiver, buffer)
+            self._jitter[name] = buffer
             names[id(transceiver.receiver)] = name
         channel = pc.createDataChannel(
             "video", negotiated=True, id=VIDEO_CHANNEL_ID, ordered=False, maxRetransmits=0
@@ -271,17 +282,12 @@ class VideoReceiver:
         self.tracks_started += 1
         while pc is self._pc:
             try:
-                frame = await track.recv()
-                # Decoded frames wait in the track's queue when this loop was held up: keep
-                # only the newest (aiortc has no public way to ask; the queue is its own).
-                queue = getattr(track, "_queue", None)
-                while queue is not None and queue.qsize() > 0:
-                    newer = queue.get_nowait()
-                    if newer is None:  # the track ended
-                        return
-                    self.stats_by_track[name].stale_dropped += 1
-                    frame = newer
+                # decoded frames that waited while this loop was held up: only the newest
+                frame, skipped = newest_frame(track, await track.recv())
             except MediaStreamError:
+                return
+            self.stats_by_track[name].stale_dropped += skipped
+            if frame is None:  # the track ended
                 return
             if pc is not self._pc:
                 return
@@ -341,6 +347,8 @@ class VideoReceiver:
     def stats(self) -> dict[str, Any]:
         now = self.now()
         out: dict[str, Any] = {name: s.as_dict(now) for name, s in self.stats_by_track.items()}
+        for name, buffer in self._jitter.items():
+            out[name]["jitter"] = buffer.counters.as_dict()
         out["infos_bad"] = self.infos_bad
         out["tracks_started"] = self.tracks_started
         return out

@@ -30,8 +30,11 @@ import av
 import cv2
 import numpy as np
 from aiortc import MediaStreamTrack, RTCPeerConnection
+from aiortc.sdp import SessionDescription
 
+from humantele.media.aiortc_hooks import use_encoder
 from humantele.media.config import TRACKS, FollowerVideoConfig
+from humantele.media.encoders import make_encoder
 from humantele.media.frameinfo import FrameInfo
 from humantele.media.policy import DegradationPolicy, Health
 from humantele.media.slot import LatestSlot
@@ -247,6 +250,22 @@ class SlotTrack(MediaStreamTrack):
         return cf.frame
 
 
+def offered_codecs(pc: RTCPeerConnection) -> list[str | None]:
+    """The codec each video m-line of the remote offer puts first (its MIME type, e.g.
+    ``video/VP8``; None when it offers none we encode), in m-line order."""
+    out: list[str | None] = []
+    if pc.remoteDescription is None:
+        return out
+    for media in SessionDescription.parse(pc.remoteDescription.sdp).media:
+        if media.kind == "video":
+            mimes = [c.mimeType for c in media.rtp.codecs]
+            out.append(next((m for m in mimes if m.lower() in ENCODED), None))
+    return out
+
+
+ENCODED = ("video/vp8", "video/h264")
+
+
 class VideoSender:
     """The follower's two tracks. ``scene`` feeds the sim sources; ``record(topic, t, payload)``
     records (any thread), ``clock`` is the follower's (ClockSync's) clock."""
@@ -298,6 +317,7 @@ class VideoSender:
         self.attached = 0
         self._channel: Any = None
         self._senders: dict[str, Any] = {}
+        self._encoders: dict[str, Any] = {}  # the current peer connection's, per track
         self._last_counts: dict[str, int] = {"captured": 0, "sent": 0}
         self._last_check: float | None = None
         self._started = False
@@ -348,12 +368,16 @@ class VideoSender:
         self._channel = pc.createDataChannel(
             "video", negotiated=True, id=VIDEO_CHANNEL_ID, ordered=False, maxRetransmits=0
         )
-        self._senders = {}
+        self._senders, self._encoders = {}, {}
         videos = [t for t in pc.getTransceivers() if t.kind == "video"]
-        for name, transceiver in zip(TRACKS, videos, strict=False):
+        limits = {"us": self.config.us_bitrate, "pov": self.config.pov_bitrate}
+        for name, transceiver, mime in zip(TRACKS, videos, offered_codecs(pc), strict=False):
             transceiver.sender.replaceTrack(SlotTrack(name, self.captures[name], self._on_sent))
             transceiver.direction = "sendonly"
             self._senders[name] = transceiver.sender
+            if mime is not None:  # our encoder, with this track's bit-rate limits
+                self._encoders[name] = make_encoder(mime, limits[name])
+                use_encoder(transceiver.sender, self._encoders[name])
         self.attached += 1
 
     def _on_sent(self, name: str, cf: CapturedFrame) -> None:
@@ -434,4 +458,7 @@ class VideoSender:
                 "prepare_ms_p50": round(1e3 * prep[len(prep) // 2], 2) if prep else None,
                 "invalid_scene": cap.source.counters.invalid,
             }
+            encoder = self._encoders.get(name)
+            if encoder is not None:
+                out[name]["encoder"] = encoder.figures()
         return out

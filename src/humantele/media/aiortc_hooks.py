@@ -1,0 +1,78 @@
+"""Every place where humantele reaches into aiortc's private state, kept in this one module.
+
+aiortc (1.16) has no supported way to do these three things, each needed for the video
+(docs/video.md says why, with the measurements):
+
+1. :func:`use_encoder`: give an ``RTCRtpSender`` our encoder. aiortc makes its own on the
+   first frame, with libvpx options that leave stale blocks in a grey image (the frame counter
+   failed to read on ~25 % of US frames) and bit-rate limits fixed in the module
+   (``humantele.media.encoders``). Set before the sender's first frame, ours is used, and
+   aiortc still drives it: keyframes on PLI/FIR (``encode(frame, force_keyframe)``) and REMB
+   (``encoder.target_bitrate = ...``).
+2. :func:`use_jitter_buffer`: give an ``RTCRtpReceiver`` a jitter buffer whose delay is
+   bounded (``humantele.media.jitter``); aiortc's waits for a lost packet until 512 packets
+   have piled up and then stays that far behind.
+3. :func:`newest_frame`: the newest decoded frame of a remote track, dropping the older ones
+   queued while the event loop was held up (aiortc's track has only ``recv()``, one by one).
+
+``tests/media/test_aiortc_hooks.py`` fails if aiortc renames or retypes what these touch.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from aiortc import RTCRtpReceiver, RTCRtpSender
+from aiortc.codecs.base import Encoder
+from aiortc.jitterbuffer import JitterBuffer
+
+_SENDER_ENCODER = "_RTCRtpSender__encoder"
+_RECEIVER_JITTER = "_RTCRtpReceiver__jitter_buffer"
+_TRACK_QUEUE = "_queue"
+
+
+class AiortcChanged(RuntimeError):
+    """aiortc no longer has the private attribute a hook relies on (see the module doc)."""
+
+
+def _check(obj: object, name: str, expected: tuple[type, ...] | type | None) -> None:
+    if not hasattr(obj, name):
+        raise AiortcChanged(f"{type(obj).__name__} has no {name} (aiortc changed)")
+    value = getattr(obj, name)
+    if expected is not None and not isinstance(value, expected):
+        raise AiortcChanged(f"{type(obj).__name__}.{name} is a {type(value).__name__}")
+
+
+def use_encoder(sender: RTCRtpSender, encoder: Encoder) -> None:
+    """Make ``sender`` encode with ``encoder`` (call before its first frame)."""
+    _check(sender, _SENDER_ENCODER, (type(None), Encoder))
+    setattr(sender, _SENDER_ENCODER, encoder)
+
+
+def sender_encoder(sender: RTCRtpSender) -> Encoder | None:
+    """The encoder ``sender`` uses (None before its first frame unless one was given)."""
+    _check(sender, _SENDER_ENCODER, (type(None), Encoder))
+    return getattr(sender, _SENDER_ENCODER)
+
+
+def use_jitter_buffer(receiver: RTCRtpReceiver, buffer: Any) -> None:
+    """Make ``receiver`` assemble frames with ``buffer`` (call before packets arrive);
+    ``buffer.add(packet) -> (pli, JitterFrame | None)`` as aiortc's ``JitterBuffer``."""
+    _check(receiver, _RECEIVER_JITTER, JitterBuffer)
+    setattr(receiver, _RECEIVER_JITTER, buffer)
+
+
+def newest_frame(track: Any, frame: Any) -> tuple[Any, int]:
+    """``frame`` (just taken with ``await track.recv()``) or, if newer decoded frames are
+    already waiting in the track's queue, the newest of them: (frame, frames skipped). The
+    frame is None if the track ended meanwhile."""
+    _check(track, _TRACK_QUEUE, None)
+    queue = getattr(track, _TRACK_QUEUE)
+    skipped = 0
+    while queue.qsize() > 0:
+        newer = queue.get_nowait()
+        if newer is None:  # the track ended
+            return None, skipped
+        skipped += 1
+        frame = newer
+    return frame, skipped

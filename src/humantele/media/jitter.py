@@ -1,0 +1,244 @@
+"""A video jitter buffer whose delay is bounded in time, in place of aiortc's.
+
+aiortc's video ``JitterBuffer`` (aiortc 1.16, ``aiortc/jitterbuffer.py``, 512 packets) has two
+faults measured here (docs/video.md, "Loss"):
+
+- it releases a frame only when the first packet of the *next* frame arrives: every frame
+  waits one frame interval (50 ms at 20 fps) for nothing;
+- a frame with a lost packet holds back every later frame until 512 packets have piled up
+  behind it; then it drops just enough to fit, and so stays 512 packets behind for good (26 s
+  of the US track at ~20 packets/s), long after the loss has ended.
+
+This buffer (same interface: ``add(packet) -> (pli, frame or None)``, called by the receiver
+for every RTP packet, the payload already depayloaded into ``packet._data``):
+
+- releases a frame as soon as its last packet (RTP marker bit) is in and no packet since the
+  previous frame is missing;
+- lets a missing packet be waited for ``max_wait_s`` after the first later packet arrived (time
+  for a NACK and its retransmission); after that, or beyond ``capacity`` packets, it drops the
+  frames up to the next keyframe, asks the sender for one (``pli``, again every
+  ``pli_interval_s`` while waiting) and releases nothing in between: a frame decoded without
+  its reference would show a corrupt picture, a freeze is honest;
+- at most one frame per ``add`` (the receiver's interface): frames completed together leave
+  on the next packets; if that backlog does not drain (one-packet frames), it asks for a
+  keyframe, whose many packets drain it.
+
+Sequence numbers are unwrapped from 16 bits; duplicates and packets older than the last
+released frame are ignored. Frames: consecutive packets with one RTP timestamp; a frame starts
+after the previous frame's marker packet (or where the timestamp changes).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from aiortc.jitterbuffer import JitterFrame
+
+KeyframeTest = Callable[[bytes], bool]
+_SEQ_MOD = 1 << 16
+# Frames released one per packet added: after a repaired gap, complete frames queue behind the
+# released one and a stream of one-packet frames never catches up. After this many releases
+# in a row with another complete frame waiting, a keyframe is asked for (it has many packets).
+BEHIND_RELEASES = 3
+
+
+def vp8_is_keyframe(data: bytes) -> bool:
+    """A VP8 key frame: frame tag bit 0 clear and the start code 9d 01 2a (RFC 6386 9.1)."""
+    return len(data) >= 10 and not data[0] & 1 and data[3:6] == b"\x9d\x01\x2a"
+
+
+def h264_is_keyframe(data: bytes) -> bool:
+    """An H.264 access unit (Annex B, as aiortc depayloads it) with an IDR slice or an SPS."""
+    i = data.find(b"\x00\x00\x01")
+    while i != -1 and i + 3 < len(data):
+        if data[i + 3] & 0x1F in (5, 7):
+            return True
+        i = data.find(b"\x00\x00\x01", i + 3)
+    return False
+
+
+KEYFRAME_TESTS: dict[str, KeyframeTest] = {"vp8": vp8_is_keyframe, "h264": h264_is_keyframe}
+
+
+@dataclass
+class JitterCounters:
+    """What the buffer did: frames released and dropped, gaps given up, keyframes asked."""
+
+    frames: int = 0  # frames released to the decoder
+    dropped_frames: int = 0  # complete frames dropped while waiting for a keyframe
+    gaps_given_up: int = 0  # missing packets waited for max_wait_s in vain (or overflow)
+    plis: int = 0  # keyframe requests
+    late_packets: int = 0  # packets older than the last released frame (ignored)
+    duplicates: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return asdict(self)
+
+
+class BoundedJitterBuffer:
+    """See the module docstring. ``is_keyframe`` judges a frame's bytes (see
+    :data:`KEYFRAME_TESTS`); ``clock`` gives s (monotonic)."""
+
+    def __init__(
+        self,
+        is_keyframe: KeyframeTest,
+        max_wait_s: float = 0.1,
+        capacity: int = 1024,
+        pli_interval_s: float = 0.5,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.is_keyframe = is_keyframe
+        self.max_wait_s = max_wait_s
+        self._capacity = capacity
+        self.pli_interval_s = pli_interval_s
+        self.clock = clock
+        self.counters = JitterCounters()
+        self._packets: dict[int, Any] = {}  # extended sequence number -> RtpPacket
+        self._arrived: dict[int, float] = {}
+        self._next: int | None = None  # the first sequence number not released or dropped
+        self._max: int | None = None  # the highest extended sequence number seen
+        self._want_key = True  # the decoder needs a keyframe (at start, after a drop)
+        self._pli_at: float | None = None  # when a keyframe was last asked for
+        self._started: float | None = None  # the first packet's arrival
+        self._behind = 0  # releases in a row after which another frame was already complete
+
+    @property
+    def capacity(self) -> int:
+        return self._capacity
+
+    @property
+    def waiting_for_keyframe(self) -> bool:
+        return self._want_key
+
+    def __len__(self) -> int:
+        return len(self._packets)
+
+    def add(self, packet: Any) -> tuple[bool, JitterFrame | None]:
+        """Take one RTP packet; (ask for a keyframe?, the next frame to decode or None)."""
+        now = self.clock()
+        seq = self._extend(packet.sequence_number)
+        if self._next is None:
+            self._next, self._started = seq, now
+        if seq < self._next:
+            self.counters.late_packets += 1
+        elif seq in self._packets:
+            self.counters.duplicates += 1
+        else:
+            self._packets[seq] = packet
+            self._arrived[seq] = now
+        frame = self._pop(now)
+        return self._pli(now), frame
+
+    # --- internals ----------------------------------------------------------------------------
+
+    def _extend(self, seq16: int) -> int:
+        """The 16-bit sequence number as the nearest value to the highest seen so far."""
+        if self._max is None:
+            self._max = seq16
+            return seq16
+        delta = (seq16 - self._max) % _SEQ_MOD
+        if delta >= _SEQ_MOD // 2:
+            delta -= _SEQ_MOD
+        seq = self._max + delta
+        self._max = max(self._max, seq)
+        return seq
+
+    def _pli(self, now: float) -> bool:
+        """Ask for a keyframe while waiting for one (at once, then every pli_interval_s) or
+        while frames keep leaving later than they could (:meth:`_pop`)."""
+        if not (self._want_key or self._behind >= BEHIND_RELEASES) or self._started is None:
+            return False
+        if self._pli_at is not None and now - self._pli_at < self.pli_interval_s:
+            return False
+        if self.counters.frames == 0 and now - self._started <= self.max_wait_s:
+            return False  # the stream's start: its first frame is a keyframe, unless late
+        self._pli_at = now
+        self.counters.plis += 1
+        return True
+
+    def _head(self) -> tuple[int, int | None]:
+        """The head frame from ``_next``: (its start, its last sequence number), the last None
+        while incomplete (a packet missing or its marker not yet in)."""
+        assert self._next is not None
+        start = self._next
+        p = self._packets.get(start)
+        if p is None:
+            return start, None
+        ts, seq = p.timestamp, start
+        while True:
+            q = self._packets.get(seq)
+            if q is None:
+                return start, None
+            if q.timestamp != ts:  # no marker on the previous packet: the frame ended there
+                return start, seq - 1
+            if q.marker:
+                return start, seq
+            seq += 1
+
+    def _first_missing(self) -> int:
+        assert self._next is not None
+        seq = self._next
+        while seq in self._packets:
+            seq += 1
+        return seq
+
+    def _gap_age(self, now: float) -> float:
+        """How long the first missing packet has been known missing (s): since the first packet
+        after it arrived; 0 while none has (the frame may still be arriving)."""
+        gap = self._first_missing()
+        later = [t for s, t in self._arrived.items() if s > gap]
+        return now - min(later) if later else 0.0
+
+    def _drop_through(self, last: int) -> None:
+        for seq in [s for s in self._packets if s <= last]:
+            del self._packets[seq]
+            del self._arrived[seq]
+        self._next = last + 1
+
+    def _skip_to_next_start(self) -> None:
+        """Drop the head (incomplete) up to the next packet known to start a frame: one after
+        a marker packet or where the timestamp changes; without one, drop everything."""
+        assert self._next is not None
+        for seq in sorted(self._packets):
+            prev = self._packets.get(seq - 1)
+            if (
+                seq > self._next
+                and prev is not None
+                and (prev.marker or prev.timestamp != self._packets[seq].timestamp)
+            ):
+                self._drop_through(seq - 1)
+                return
+        self._drop_through(self._max if self._max is not None else self._next)
+
+    def _give_up(self) -> None:
+        self.counters.gaps_given_up += 1
+        self._want_key = True
+        self._pli_at = None
+        self._skip_to_next_start()
+
+    def _pop(self, now: float) -> JitterFrame | None:
+        while self._packets:
+            start, last = self._head()
+            if last is None:
+                if len(self._packets) <= self._capacity and self._gap_age(now) <= self.max_wait_s:
+                    return None
+                self._give_up()
+                continue
+            packets = [self._packets[s] for s in range(start, last + 1)]
+            data = b"".join(p._data for p in packets)
+            self._drop_through(last)
+            if self._want_key and not self.is_keyframe(data):
+                self.counters.dropped_frames += 1
+                continue
+            if self._want_key:
+                self._want_key, self._behind, self._pli_at = False, 0, None
+            elif self._packets and self._head()[1] is not None:
+                self._behind += 1  # the next frame is complete too: it leaves one add late
+            else:
+                self._behind = 0
+            self.counters.frames += 1
+            return JitterFrame(data=data, timestamp=packets[0].timestamp)
+        return None

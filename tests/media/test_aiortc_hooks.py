@@ -1,0 +1,95 @@
+"""humantele.media.aiortc_hooks, the one module that touches aiortc's private state: these
+fail if aiortc renames or retypes what it relies on. That aiortc really uses what the hooks
+install is checked on a live link (test_video_link: our encoders' and jitter buffers'
+counters move)."""
+
+from __future__ import annotations
+
+import asyncio
+
+import av
+import numpy as np
+import pytest
+from aiortc import RTCPeerConnection
+from aiortc.codecs.vpx import Vp8Encoder as AiortcVp8Encoder
+from aiortc.jitterbuffer import JitterBuffer
+from aiortc.rtcrtpreceiver import RemoteStreamTrack
+
+from humantele.media import aiortc_hooks
+from humantele.media.aiortc_hooks import (
+    AiortcChanged,
+    newest_frame,
+    sender_encoder,
+    use_encoder,
+    use_jitter_buffer,
+)
+from humantele.media.config import BitrateConfig, ExpertVideoConfig
+from humantele.media.encoders import Vp8Encoder
+from humantele.media.jitter import BoundedJitterBuffer, vp8_is_keyframe
+from humantele.media.receiver import VideoReceiver
+from humantele.transport.clocksync import ClockSync
+from humantele.video.counter import draw_counter
+
+
+async def test_a_new_sender_and_receiver_have_what_the_hooks_replace():
+    pc = RTCPeerConnection()
+    try:
+        t = pc.addTransceiver("video")
+        # aiortc 1.16: the sender makes its encoder on the first frame; the receiver's video
+        # jitter buffer is its JitterBuffer
+        assert sender_encoder(t.sender) is None
+        assert isinstance(getattr(t.receiver, aiortc_hooks._RECEIVER_JITTER), JitterBuffer)
+        encoder = Vp8Encoder(BitrateConfig())
+        use_encoder(t.sender, encoder)
+        assert sender_encoder(t.sender) is encoder
+        buffer = BoundedJitterBuffer(vp8_is_keyframe)
+        use_jitter_buffer(t.receiver, buffer)
+        assert getattr(t.receiver, aiortc_hooks._RECEIVER_JITTER) is buffer
+        assert isinstance(encoder, AiortcVp8Encoder)  # aiortc's packetisation is kept
+    finally:
+        await pc.close()
+
+
+def test_a_hook_on_an_object_without_the_attribute_is_a_clear_error():
+    with pytest.raises(AiortcChanged, match="aiortc changed"):
+        use_encoder(object(), Vp8Encoder(BitrateConfig()))  # type: ignore[arg-type]
+    with pytest.raises(AiortcChanged, match="aiortc changed"):
+        use_jitter_buffer(object(), BoundedJitterBuffer(vp8_is_keyframe))  # type: ignore[arg-type]
+    with pytest.raises(AiortcChanged, match="aiortc changed"):
+        newest_frame(object(), None)
+
+
+def _frame(seq: int) -> av.VideoFrame:
+    img = np.zeros((64, 96, 3), np.uint8)
+    draw_counter(img, seq)
+    frame = av.VideoFrame.from_ndarray(img, format="bgr24").reformat(format="yuv420p")
+    frame.pts = seq * 4500
+    return frame
+
+
+async def test_a_receiver_that_fell_behind_takes_the_newest_decoded_frame():
+    """Three frames decoded while the expert's loop was busy: it handles only the newest."""
+    rx = VideoReceiver(ExpertVideoConfig(enabled=True), ClockSync())
+    pc = object()
+    rx._pc = pc  # type: ignore[assignment]
+    track = RemoteStreamTrack(kind="video")
+    for seq in (1, 2, 3):  # as aiortc's decoder thread delivers them
+        track._queue.put_nowait(_frame(seq))
+    task = asyncio.ensure_future(rx._consume(pc, "us", track))  # type: ignore[arg-type]
+    try:
+        for _ in range(200):
+            if rx.stats_by_track["us"].frames:
+                break
+            await asyncio.sleep(0.01)
+        st = rx.stats_by_track["us"]
+        assert st.frames == 1 and st.stale_dropped == 2
+        assert rx.latest("us").seq == 3
+        track._queue.put_nowait(_frame(4))  # one more, with nothing queued behind it
+        for _ in range(200):
+            if st.frames == 2:
+                break
+            await asyncio.sleep(0.01)
+        assert rx.latest("us").seq == 4 and st.stale_dropped == 2
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)

@@ -1,0 +1,227 @@
+"""The expert's video jitter buffer (humantele.media.jitter): frames leave on their last packet,
+a lost packet is waited for a bounded time, then the buffer skips to a keyframe and asks for
+one; nothing old is ever queued for long. Packets are aiortc's RtpPacket; time is a fake clock.
+
+A frame here is a list of payload chunks; its first chunk starts with b"K" for a keyframe."""
+
+from __future__ import annotations
+
+from aiortc.rtp import RtpPacket
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from humantele.media.jitter import BEHIND_RELEASES, BoundedJitterBuffer
+
+WAIT = 0.1  # s, max_wait_s of the buffers below
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def is_key(data: bytes) -> bool:
+    return data.startswith(b"K")
+
+
+class Stream:
+    """A sender: frames of n packets, sequence numbers and 90 kHz timestamps going up."""
+
+    def __init__(self, seq: int = 1000) -> None:
+        self.seq = seq
+        self.ts = 90_000
+
+    def frame(self, chunks: list[bytes]) -> list[RtpPacket]:
+        out = []
+        for i, chunk in enumerate(chunks):
+            p = RtpPacket(sequence_number=self.seq % 65536, timestamp=self.ts,
+                          marker=int(i == len(chunks) - 1))  # fmt: skip
+            p._data = chunk
+            out.append(p)
+            self.seq += 1
+        self.ts += 4500
+        return out
+
+
+def make(clock: Clock, **kw) -> BoundedJitterBuffer:
+    return BoundedJitterBuffer(is_key, max_wait_s=WAIT, clock=clock, **kw)
+
+
+def feed(buf: BoundedJitterBuffer, packets: list[RtpPacket]) -> list[tuple[bool, bytes | None]]:
+    out = []
+    for p in packets:
+        pli, frame = buf.add(p)
+        out.append((pli, None if frame is None else frame.data))
+    return out
+
+
+def test_a_frame_leaves_on_its_last_packet_not_with_the_next_frame():
+    clock, s = Clock(), Stream()
+    buf = make(clock)
+    assert feed(buf, s.frame([b"K1", b"a", b"b"])) == [(False, None), (False, None),
+                                                       (False, b"K1ab")]  # fmt: skip
+    assert feed(buf, s.frame([b"d2"])) == [(False, b"d2")]
+    assert len(buf) == 0 and buf.counters.frames == 2
+
+
+def test_a_retransmitted_packet_within_the_wait_releases_the_frames_in_order():
+    clock, s = Clock(), Stream()
+    buf = make(clock)
+    feed(buf, s.frame([b"K0"]))
+    f1, f2, f3 = s.frame([b"d1", b"x"]), s.frame([b"d2", b"y"]), s.frame([b"d3", b"z"])
+    lost = f1[0]
+    assert feed(buf, [f1[1], *f2]) == [(False, None)] * 3  # d1 waits for its first packet
+    clock.t += 0.9 * WAIT
+    assert feed(buf, [lost]) == [(False, b"d1x")]  # the retransmission arrives in time
+    # d2 was complete already: it leaves with the next packet, then d3 on its own
+    assert feed(buf, f3) == [(False, b"d2y"), (False, b"d3z")]
+    assert buf.counters.gaps_given_up == 0 and buf.counters.plis == 0
+
+
+def test_a_packet_never_retransmitted_costs_a_bounded_freeze_then_a_keyframe():
+    clock, s = Clock(), Stream()
+    buf = make(clock)
+    feed(buf, s.frame([b"K0"]))
+    f1 = s.frame([b"d1", b"x"])
+    feed(buf, [f1[1]])  # f1[0] is lost for good
+    released = []
+    for _ in range(2):  # delta frames arrive meanwhile: none may leave (they need d1)
+        clock.t += 0.04
+        released += [f for _, f in feed(buf, s.frame([b"dn", b"y"])) if f]
+    assert released == []
+    clock.t += 0.04  # now WAIT has passed since the gap was known
+    out = feed(buf, s.frame([b"dn", b"y"]))
+    assert any(pli for pli, _ in out)  # a keyframe is asked for, at once
+    assert all(f is None for _, f in out) and buf.waiting_for_keyframe
+    assert len(buf) == 0  # nothing kept while waiting for the keyframe
+    # more delta frames are dropped (their reference is gone), the keyframe leaves at once
+    assert all(f is None for _, f in feed(buf, s.frame([b"dn", b"y"])))
+    assert feed(buf, s.frame([b"K9", b"q"]))[-1] == (False, b"K9q")
+    assert feed(buf, s.frame([b"d10"])) == [(False, b"d10")]  # and the stream goes on
+    assert buf.counters.gaps_given_up == 1 and buf.counters.plis == 1
+    assert buf.counters.dropped_frames == 4
+
+
+def test_while_waiting_for_a_keyframe_it_is_asked_for_again_every_interval():
+    clock, s = Clock(), Stream()
+    buf = make(clock, pli_interval_s=0.5)
+    feed(buf, s.frame([b"K0"]))
+    feed(buf, s.frame([b"d1", b"x"])[1:])
+    clock.t += 2 * WAIT
+    plis = 0
+    for _ in range(30):  # 1.5 s of delta frames, no keyframe
+        plis += sum(p for p, _ in feed(buf, s.frame([b"dn", b"y"])))
+        clock.t += 0.05
+    assert plis == 3  # at once, then at 0.5 s and 1.0 s
+
+
+def test_latency_is_bounded_under_steady_loss_and_recovers_when_it_ends():
+    """Every 7th packet lost, none retransmitted: the buffer never holds a frame longer than
+    the wait plus a frame, and once loss ends every frame leaves on its last packet."""
+    clock, s = Clock(), Stream()
+    buf = make(clock)
+    sent_at: dict[bytes, float] = {}
+    ages = []
+    n = 0
+    for i in range(400):
+        key = i % 40 == 0  # the sender answers keyframe requests only every 2 s here
+        name = (b"K" if key else b"d") + str(i).encode()
+        sent_at[name + b"x"] = clock.t
+        for p in s.frame([name, b"x"]):
+            n += 1
+            if i < 300 and n % 7 == 0:
+                continue
+            _, frame = buf.add(p)
+            if frame is not None:
+                ages.append((i, clock.t - sent_at[frame.data]))
+        clock.t += 0.05
+    assert max(a for _, a in ages) <= WAIT + 0.05 + 1e-9
+    assert len(buf) <= 4
+    after = [a for i, a in ages if i >= 310]  # loss over, the next keyframe (320) in
+    assert len(after) >= 80 and max(after) == 0.0
+
+
+def test_sequence_numbers_wrap():
+    clock, s = Clock(), Stream(seq=65534)
+    buf = make(clock)
+    assert feed(buf, s.frame([b"K0", b"a", b"b", b"c"]))[-1] == (False, b"K0abc")
+    assert feed(buf, s.frame([b"d1", b"e"]))[-1] == (False, b"d1e")
+
+
+def test_duplicates_and_late_packets_are_ignored_and_counted():
+    clock, s = Clock(), Stream()
+    buf = make(clock)
+    f0 = s.frame([b"K0", b"a"])
+    feed(buf, f0)
+    f1 = s.frame([b"d1", b"b"])
+    feed(buf, f1[:1])
+    assert feed(buf, f1[:1]) == [(False, None)]  # a duplicate
+    assert feed(buf, f0[:1]) == [(False, None)]  # a packet of a frame already released
+    assert feed(buf, f1[1:]) == [(False, b"d1b")]
+    assert buf.counters.duplicates == 1 and buf.counters.late_packets == 1
+
+
+def test_the_start_waits_for_a_keyframe_and_asks_if_it_is_late():
+    clock, s = Clock(), Stream()
+    buf = make(clock)
+    s.frame([b"K0", b"a"])  # the first keyframe is lost whole
+    assert feed(buf, s.frame([b"d1", b"b"])) == [(False, None)] * 2  # not asked yet
+    clock.t += 2 * WAIT
+    assert feed(buf, s.frame([b"d2", b"c"]))[0][0] is True
+    assert feed(buf, s.frame([b"K3", b"d"]))[-1] == (False, b"K3d")
+
+
+def test_a_backlog_of_one_packet_frames_asks_for_a_keyframe():
+    """Released one frame per packet, one-packet frames queued behind a late packet never
+    catch up: the buffer asks for a keyframe, whose packets drain the queue."""
+    clock, s = Clock(), Stream()
+    buf = make(clock)
+    feed(buf, s.frame([b"K0"]))
+    f1, f2, f3 = s.frame([b"d1"]), s.frame([b"d2"]), s.frame([b"d3"])
+    feed(buf, [f2[0], f3[0]])
+    assert feed(buf, f1) == [(False, b"d1")]  # d1 retransmitted: d2, d3 now wait
+    plis = []
+    for _ in range(BEHIND_RELEASES + 1):
+        plis += [p for p, _ in feed(buf, s.frame([b"dn"]))]
+    assert any(plis)
+    out = feed(buf, s.frame([b"K", b"1", b"2", b"3", b"4"]))
+    assert out[-1] == (False, b"K1234") and len(buf) == 0
+
+
+def test_overflow_gives_up_like_a_timeout():
+    clock, s = Clock(), Stream()
+    buf = make(clock, capacity=8)
+    feed(buf, s.frame([b"K0"]))
+    feed(buf, s.frame([b"d1", b"x"])[1:])
+    out = feed(buf, s.frame([b"d", b"2", b"3", b"4", b"5", b"6", b"7", b"8"]))
+    assert any(p for p, _ in out) and buf.counters.gaps_given_up == 1 and len(buf) <= 8
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(
+        st.tuples(
+            st.integers(0, 65535),
+            st.integers(0, 2**32 - 1),
+            st.booleans(),
+            st.binary(max_size=12),
+            st.floats(0.0, 0.3),
+        ),  # fmt: skip
+        max_size=300,
+    )
+)
+def test_any_packets_never_raise_and_the_buffer_stays_bounded(packets):
+    """Whatever arrives (jumps, wraps, repeats, no markers, keyframe-looking bytes), the
+    buffer neither raises nor grows beyond its capacity (and one packet)."""
+    clock = Clock()
+    buf = make(clock, capacity=64)
+    for seq, ts, marker, data, dt in packets:
+        clock.t += dt
+        p = RtpPacket(sequence_number=seq, timestamp=ts, marker=int(marker))
+        p._data = data
+        pli, frame = buf.add(p)
+        assert isinstance(pli, bool) and len(buf) <= 65
+        assert frame is None or isinstance(frame.data, bytes)
