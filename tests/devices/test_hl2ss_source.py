@@ -47,11 +47,17 @@ class ReplayServer:
                 while len(cfg) < 10:
                     cfg += conn.recv(10 - len(cfg))
                 self.configs.append(cfg)
+                cut = False  # None in the turn: the server drops the connection there
                 for p in packets:
-                    if p is None:
+                    try:
+                        if p is None:
+                            cut = True
+                            break
+                        conn.sendall(p)
+                    except ConnectionError:  # the client may leave before the last packet
+                        cut = True
                         break
-                    conn.sendall(p)
-                else:
+                if not cut:
                     with contextlib.suppress(ConnectionError):  # a client may reset it
                         conn.recv(1)  # keep it open until the client leaves
 

@@ -63,7 +63,9 @@ def pose_is_finite(pose: object) -> bool:
         return False
     if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
         return False
-    return abs(float(q @ q) - 1.0) < 1e-6 and float(np.max(np.abs(p))) < 1e6
+    if float(np.max(np.abs(p))) >= 1e6 or float(np.max(np.abs(q))) > 2.0:
+        return False  # checked before the norm, which would overflow for huge components
+    return abs(float(q @ q) - 1.0) < 1e-6
 
 
 # ---------------------------------------------------------------------------- a default scene
