@@ -91,6 +91,9 @@ class CpuMeter:
         return round(100.0 * (time.process_time() - self._start_cpu) / wall, 1) if wall > 0 else 0.0
 
 
+_CLK_TCK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+
+
 def _proc_stat(pid: int | None) -> list[str] | None:
     """The fields of /proc/<pid>/stat after the command name (Linux), or None."""
     if pid is None:
@@ -101,11 +104,16 @@ def _proc_stat(pid: int | None) -> list[str] | None:
         return None
 
 
+def _cpu_seconds(fields: list[str]) -> float:
+    """utime + stime (s) from /proc/<pid>/stat's fields (:func:`_proc_stat`)."""
+    return (int(fields[11]) + int(fields[12])) / _CLK_TCK
+
+
 def process_cpu_seconds(pid: int | None) -> float | None:
     """CPU time (s) used so far by process ``pid`` (Linux /proc), or None."""
     fields = _proc_stat(pid)
     try:
-        return None if fields is None else (int(fields[11]) + int(fields[12])) / _CLK_TCK
+        return None if fields is None else _cpu_seconds(fields)
     except (ValueError, IndexError):
         return None
 
@@ -120,21 +128,12 @@ def process_cpu_percent(pid: int | None) -> float | None:
     try:
         if fields is None:
             return None
-        cpu = (int(fields[11]) + int(fields[12])) / _CLK_TCK
+        cpu = _cpu_seconds(fields)
         started = int(fields[19]) / _CLK_TCK  # s after boot
         uptime = float(Path("/proc/uptime").read_text().split()[0])
     except (OSError, ValueError, IndexError):
         return None
     return round(100.0 * cpu / max(uptime - started, 1.0 / _CLK_TCK), 1)
-
-
-_CLK_TCK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
-
-
-def write_stats(path: str | Path | None, stats: dict[str, Any]) -> None:
-    """Atomically replace the JSON stats file a daemon shares with its parent (if any)."""
-    if path:
-        _replace(Path(path), _encode(stats))
 
 
 def _encode(stats: dict[str, Any]) -> str:
