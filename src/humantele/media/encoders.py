@@ -152,11 +152,15 @@ class H264Encoder(_Limits, h264.H264Encoder):
         return out
 
 
+ENCODERS: dict[str, type[Vp8Encoder | H264Encoder]] = {
+    "video/vp8": Vp8Encoder,
+    "video/h264": H264Encoder,
+}  # the codecs we encode, by lower-case MIME type
+
+
 def make_encoder(mime_type: str, limits: BitrateConfig) -> Encoder:
     """Our encoder for a negotiated codec (``video/VP8`` or ``video/H264``, any case)."""
-    name = mime_type.lower()
-    if name == "video/vp8":
-        return Vp8Encoder(limits)
-    if name == "video/h264":
-        return H264Encoder(limits)
-    raise ValueError(f"no encoder for {mime_type}")
+    encoder = ENCODERS.get(mime_type.lower())
+    if encoder is None:
+        raise ValueError(f"no encoder for {mime_type}")
+    return encoder(limits)

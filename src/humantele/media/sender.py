@@ -34,7 +34,7 @@ from aiortc.sdp import SessionDescription
 
 from humantele.media.aiortc_hooks import use_encoder
 from humantele.media.config import TRACKS, FollowerVideoConfig
-from humantele.media.encoders import make_encoder
+from humantele.media.encoders import ENCODERS, make_encoder
 from humantele.media.frameinfo import FrameInfo
 from humantele.media.policy import DegradationPolicy, Health
 from humantele.media.slot import LatestSlot
@@ -259,11 +259,8 @@ def offered_codecs(pc: RTCPeerConnection) -> list[str | None]:
     for media in SessionDescription.parse(pc.remoteDescription.sdp).media:
         if media.kind == "video":
             mimes = [c.mimeType for c in media.rtp.codecs]
-            out.append(next((m for m in mimes if m.lower() in ENCODED), None))
+            out.append(next((m for m in mimes if m.lower() in ENCODERS), None))
     return out
-
-
-ENCODED = ("video/vp8", "video/h264")
 
 
 class VideoSender:
