@@ -3,7 +3,7 @@ from pydantic import Field
 
 from humantele.cli import main
 from humantele.config import ConfigError, ConfigModel, load_config
-from humantele.report import write_section
+from humantele.report import markdown_table, section_rows, write_section
 
 
 class _Demo(ConfigModel):
@@ -42,6 +42,18 @@ def test_bench_sections_are_replaced_not_duplicated(tmp_path):
     text = md.read_text()
     assert "second" in text and "first" not in text and "other" in text
     assert text.count("<!-- bench:a -->") == 1
+
+
+def test_section_rows_are_the_body_rows_of_tables_of_that_width(tmp_path):
+    md = tmp_path / "b.md"
+    wide = markdown_table(["setting", "a", "b"], [["x", "1", "2"], ["y", "3", "4"]])
+    narrow = markdown_table(["setting", "a"], [["z", "5"]])
+    write_section("s", f"## s\n\n{wide}\n\ntext | with a bar\n\n{narrow}", md)
+    write_section("other", markdown_table(["setting", "a", "b"], [["w", "0", "0"]]), md)
+    assert section_rows("s", 3, md) == [["x", "1", "2"], ["y", "3", "4"]]
+    assert section_rows("s", 2, md) == [["z", "5"]]  # its header is not a row
+    assert section_rows("missing", 3, md) == []
+    assert section_rows("s", 3, tmp_path / "none.md") == []
 
 
 def test_cli_without_command_prints_help(capsys):

@@ -54,3 +54,33 @@ def markdown_table(header: list[str], rows: list[list[object]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
     return "\n".join(lines)
+
+
+def section_rows(name: str, width: int, path: Path | None = None) -> list[list[str]]:
+    """The body rows (cells stripped) of the tables with ``width`` columns in benchmark
+    ``name``'s section of ``path`` (docs/benchmarks.md): what a benchmark keeps of its earlier
+    runs when it rewrites its section. Header rows (the line above a ``|---|`` rule) are not
+    rows; a missing file or section gives none."""
+    path = Path(path) if path is not None else BENCHMARKS_MD
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError:
+        return []
+    begin, end = f"<!-- bench:{name} -->", f"<!-- /bench:{name} -->"
+    if begin not in text:
+        return []
+    rows: list[list[str]] = []
+    previous: list[str] | None = None
+    for line in text.split(begin, 1)[1].split(end, 1)[0].splitlines():
+        line = line.strip()
+        if not line.startswith("|"):
+            previous = None
+            continue
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        if all(c and set(c) <= set("-:") for c in cells):  # the rule under a header
+            if rows and rows[-1] is previous:
+                rows.pop()
+        elif len(cells) == width:
+            rows.append(cells)
+        previous = cells
+    return rows

@@ -67,24 +67,24 @@ def _row(label: str, value: str) -> list[str]:
 
 
 def test_a_run_replaces_its_own_row_and_keeps_the_others(tmp_path):
-    from humantele.report import markdown_table, write_section
+    from humantele.report import markdown_table, section_rows, write_section
 
     path = tmp_path / "benchmarks.md"
     old = [_row("loopback", "1"), _row("TURN (coturn)", "2")]
     write_section("session", "## s\n\n" + markdown_table(session.HEADER, old), path)
     write_section("other", "## o\n\n" + markdown_table(session.HEADER, [_row("alien", "9")]), path)
-    rows = session.previous_rows(path)
+    rows = section_rows(session.SECTION, len(session.HEADER), path)
     assert rows == old  # only this section's rows, header and rule skipped
     merged = session.merge_rows(rows, _row("TURN (coturn)", "3"))
     assert [r[:2] for r in merged] == [["loopback", "1"], ["TURN (coturn)", "3"]]
     merged = session.merge_rows(merged, _row("TURN + 4 ms, 0 % loss", "4"))
     assert [r[0] for r in merged] == ["loopback", "TURN (coturn)", "TURN + 4 ms, 0 % loss"]
-    assert session.previous_rows(tmp_path / "missing.md") == []
+    assert section_rows(session.SECTION, len(session.HEADER), tmp_path / "missing.md") == []
 
 
 def test_rows_of_an_older_table_layout_are_not_kept(tmp_path):
-    from humantele.report import markdown_table, write_section
+    from humantele.report import markdown_table, section_rows, write_section
 
     path = tmp_path / "benchmarks.md"
     write_section("session", markdown_table(["link", "a"], [["loopback", "1"]]), path)
-    assert session.previous_rows(path) == []
+    assert section_rows(session.SECTION, len(session.HEADER), path) == []

@@ -50,14 +50,14 @@ def test_phase_figures_split_a_run_at_the_loss_window():
 
 def test_link_section_keeps_other_rows_and_its_recovery_table(tmp_path):
     from humantele.bench import video_link as vl
-    from humantele.report import write_section
+    from humantele.report import section_rows, write_section
 
     md = tmp_path / "benchmarks.md"
     row = ["a setting", *["x"] * (len(vl.HEADER) - 1)]
     phase = ["a setting", "during", *["y"] * (len(vl.PHASE_HEADER) - 2)]
     write_section(vl.SECTION, vl.markdown([row], [phase]), md)
-    assert vl.previous_rows(md, len(vl.HEADER)) == [row]
-    assert vl.previous_rows(md, len(vl.PHASE_HEADER)) == [phase]
+    assert section_rows(vl.SECTION, len(vl.HEADER), md) == [row]
+    assert section_rows(vl.SECTION, len(vl.PHASE_HEADER), md) == [phase]
 
 
 @pytest.mark.slow

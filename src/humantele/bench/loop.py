@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
-import re
 import time
 from typing import Any
 
@@ -26,7 +25,13 @@ from humantele.haptics.devices import SimDeviceConfig
 from humantele.haptics.servo import ServoProcess
 from humantele.haptics.servo_child import try_realtime
 from humantele.haptics.servo_config import ServoConfig
-from humantele.report import BENCHMARKS_MD, machine_line, markdown_table, write_section
+from humantele.report import (
+    BENCHMARKS_MD,
+    machine_line,
+    markdown_table,
+    section_rows,
+    write_section,
+)
 from humantele.runtime.stats import process_cpu_seconds
 
 HEADER = ["load", "s", "rate Hz", "p50 us", "p99 us", "max us", "> 2 ms", "overruns", "late",
@@ -143,19 +148,7 @@ def _row(r: dict[str, Any]) -> list[object]:
 
 def _kept_rows(other: str) -> list[list[str]]:
     """Rows of the other load condition already in docs/benchmarks.md."""
-    try:
-        text = BENCHMARKS_MD.read_text(encoding="utf-8")
-    except OSError:
-        return []
-    m = re.search(r"<!-- bench:loop -->(.*?)<!-- /bench:loop -->", text, re.DOTALL)
-    if not m:
-        return []
-    rows = []
-    for line in m.group(1).splitlines():
-        cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if len(cells) == len(HEADER) and cells[0] == other:
-            rows.append(cells)
-    return rows
+    return [r for r in section_rows("loop", len(HEADER), BENCHMARKS_MD) if r[0] == other]
 
 
 def section(r: dict[str, Any], kept: list[list[str]]) -> str:

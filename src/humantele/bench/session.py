@@ -34,18 +34,16 @@ import json
 import logging
 import math
 import os
-import re
 import secrets
 import sys
 import time
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from humantele import report
 from humantele.bench.cpuload import cpu_load
-from humantele.report import machine_line, markdown_table, write_section
+from humantele.report import machine_line, markdown_table, section_rows, write_section
 
 ROOM = "bench"
 Q_IDENTITY = (0.0, 0.0, 0.0, 1.0)
@@ -459,24 +457,6 @@ def _row(s: dict) -> list[str]:
     ]
 
 
-def previous_rows(path: Path) -> list[list[str]]:
-    """The table rows already in the session section of ``path`` (same columns only)."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError:
-        return []
-    m = re.search(rf"<!-- bench:{SECTION} -->(.*?)<!-- /bench:{SECTION} -->", text, re.DOTALL)
-    if m is None:
-        return []
-    rows = []
-    for line in m.group(1).splitlines():
-        cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if line.startswith("|") and len(cells) == len(HEADER) and cells[0] != HEADER[0]:
-            if not set(cells[0]) <= set("-"):
-                rows.append(cells)
-    return rows
-
-
 def merge_rows(old: list[list[str]], new: list[str]) -> list[list[str]]:
     """``old`` with the row of the same link replaced by ``new`` (appended if none)."""
     rows = [new if r[0] == new[0] else r for r in old]
@@ -564,7 +544,7 @@ def run(args: argparse.Namespace) -> int:
         f"dropped {summary['dropped']}"
     )
     if not args.no_write:
-        rows = merge_rows(previous_rows(report.BENCHMARKS_MD), _row(summary))
+        rows = merge_rows(section_rows(SECTION, len(HEADER), report.BENCHMARKS_MD), _row(summary))
         path = write_section(SECTION, _markdown(summary, rows))
         print(f"wrote {path}")
     if args.json:

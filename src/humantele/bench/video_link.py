@@ -40,7 +40,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-from humantele.report import BENCHMARKS_MD, machine_line, markdown_table, write_section
+from humantele.report import (
+    BENCHMARKS_MD,
+    machine_line,
+    markdown_table,
+    section_rows,
+    write_section,
+)
 
 SECTION = "video-link"
 TARGETS = {"us_p95_ms": 100.0, "pov_p95_ms": 150.0, "us_fps": 15.0, "pov_fps": 20.0}
@@ -351,23 +357,6 @@ def phase_rows(s: dict) -> list[list[str]]:
     return out
 
 
-def previous_rows(path: Path, width: int) -> list[list[str]]:
-    """The rows of ``width`` cells already in the section (to keep other settings' rows)."""
-    if not path.exists():
-        return []
-    text = path.read_text(encoding="utf-8")
-    begin, end = f"<!-- bench:{SECTION} -->", f"<!-- /bench:{SECTION} -->"
-    if begin not in text:
-        return []
-    body = text.split(begin, 1)[1].split(end, 1)[0]
-    rows = []
-    for line in body.splitlines():
-        cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if len(cells) == width and cells[0] != "setting" and not cells[0].startswith("-"):
-            rows.append(cells)
-    return rows
-
-
 def markdown(rows: list[list[str]], recovery: list[list[str]]) -> str:
     parts = [
         "## Video over the link: glass to glass (`humantele bench video link`)",
@@ -406,8 +395,8 @@ def run_link(args: argparse.Namespace) -> int:
 
     runs = MATRIX if args.matrix else [None]
     summaries = []
-    rows = {r[0]: r for r in previous_rows(BENCHMARKS_MD, len(HEADER))}
-    recovery = {(r[0], r[1]): r for r in previous_rows(BENCHMARKS_MD, len(PHASE_HEADER))}
+    rows = {r[0]: r for r in section_rows(SECTION, len(HEADER), BENCHMARKS_MD)}
+    recovery = {(r[0], r[1]): r for r in section_rows(SECTION, len(PHASE_HEADER), BENCHMARKS_MD)}
     for extra in runs:
         a = args
         if extra is not None:
