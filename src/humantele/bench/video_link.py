@@ -47,6 +47,7 @@ from humantele.report import (
     section_rows,
     write_section,
 )
+from humantele.runtime.stats import percentile_ms
 
 SECTION = "video-link"
 TARGETS = {"us_p95_ms": 100.0, "pov_p95_ms": 150.0, "us_fps": 15.0, "pov_fps": 20.0}
@@ -253,8 +254,8 @@ def phase_figures(t: list[float], ages: list[float], start: float, end: float) -
         "frames": int(ts.size),
         "fps": round(ts.size / (end - start), 1) if end > start else None,
         "gap_max_ms": round(float(np.diff(edges).max()) * 1e3),
-        "age_p50_ms": round(float(np.percentile(a, 50)) * 1e3, 1) if a.size else None,
-        "age_p95_ms": round(float(np.percentile(a, 95)) * 1e3, 1) if a.size else None,
+        "age_p50_ms": percentile_ms(a, 50, ndigits=1),
+        "age_p95_ms": percentile_ms(a, 95, ndigits=1),
         "age_max_ms": round(float(a.max()) * 1e3, 1) if a.size else None,
     }
 

@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from humantele.report import BENCHMARKS_MD, machine_line, markdown_table, write_section
+from humantele.runtime.stats import percentile_ms
 
 SECTION = "video-quality"
 CHART = Path(BENCHMARKS_MD).parent / "img" / "video_speed_quality.png"
@@ -188,8 +189,8 @@ async def point(width: int, height: int, kbps: int, seconds: float) -> dict[str,
         "kbps_set": kbps,
         "kbps_sent": round(8e-3 * sent["bytes"] / sent["s"]) if sent.get("s") else None,
         "fps": round((len(ages) - 1) / span, 1) if span > 0 else None,
-        "age_p50_ms": round(float(np.percentile(a, 50)) * 1e3, 1) if a.size else None,
-        "age_p95_ms": round(float(np.percentile(a, 95)) * 1e3, 1) if a.size else None,
+        "age_p50_ms": percentile_ms(a, 50, ndigits=1),
+        "age_p95_ms": percentile_ms(a, 95, ndigits=1),
         "psnr_db": round(float(np.median(p[np.isfinite(p)])), 2) if p.size else None,
         "ssim": round(float(np.median([s for _, s in scores])), 4) if scores else None,
         "compared": len(scores),

@@ -56,26 +56,26 @@ class SortedWindow:
         out.reverse()
         return out
 
-    def percentile_ms(self, q: float) -> float | None:
+    def percentile_ms(self, q: float, ndigits: int = 3) -> float | None:
         """As :func:`percentile_ms`, in O(1)."""
         v = self._sorted
         if not v:
             return None
         k = min(len(v) - 1, max(0, round(q / 100.0 * (len(v) - 1))))
-        return round(v[k] * 1000.0, 3)
+        return round(v[k] * 1000.0, ndigits)
 
 
-def percentile_ms(values_s: Iterable[float], q: float) -> float | None:
-    """The ``q`` percentile (0-100) of durations in seconds, in ms, rounded to 1 us; None when
-    there are none. The one definition the figures use: the nearest sample (numpy's
-    ``method="nearest"``), so a percentile is always a latency that was measured. A
-    :class:`SortedWindow` answers without sorting."""
+def percentile_ms(values_s: Iterable[float], q: float, ndigits: int = 3) -> float | None:
+    """The ``q`` percentile (0-100) of durations in seconds, in ms rounded to ``ndigits``
+    decimals (3: 1 us); None when there are none. The one definition the figures use: the
+    nearest sample (numpy's ``method="nearest"``), so a percentile is always a latency that
+    was measured. A :class:`SortedWindow` answers without sorting."""
     if isinstance(values_s, SortedWindow):
-        return values_s.percentile_ms(q)
+        return values_s.percentile_ms(q, ndigits)
     v = np.fromiter(values_s, dtype=float)
     if v.size == 0:
         return None
-    return round(float(np.percentile(v, q, method="nearest")) * 1000.0, 3)
+    return round(float(np.percentile(v, q, method="nearest")) * 1000.0, ndigits)
 
 
 class CpuMeter:
