@@ -10,17 +10,10 @@ from aiortc.rtp import RtpPacket
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from daemon_doubles import Clock
 from humantele.media.jitter import BEHIND_RELEASES, BoundedJitterBuffer
 
 WAIT = 0.1  # s, max_wait_s of the buffers below
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.t = 0.0
-
-    def __call__(self) -> float:
-        return self.t
 
 
 def is_key(data: bytes) -> bool:
