@@ -19,6 +19,7 @@ from humantele.config import ConfigError, validate_config
 from humantele.media.config import BitrateConfig, FollowerVideoConfig
 from humantele.media.encoders import make_encoder, two_packets
 from humantele.media.jitter import h264_is_keyframe, vp8_is_keyframe
+from humantele.media.receiver import luma_plane
 from humantele.video.counter import read_counter
 from humantele.video.scene import DemoScene
 from humantele.video.sim_ultrasound import SimUltrasound, SimUltrasoundConfig
@@ -67,9 +68,7 @@ def round_trip(mime, encoder, frames, keyframe_at=(), decoder=None):
 
 
 def luma_counter(frame: av.VideoFrame) -> int | None:
-    plane = frame.planes[0]
-    y = np.frombuffer(plane, np.uint8).reshape(-1, plane.line_size)[:32, :64]
-    return read_counter(np.ascontiguousarray(y))
+    return read_counter(np.ascontiguousarray(luma_plane(frame)[:32, :64]))
 
 
 @pytest.mark.parametrize("mime", ["video/VP8", "video/H264"])

@@ -66,6 +66,7 @@ async def follower(url: str, room: str, out: Path, width: int, height: int, kbps
     """Send both tracks for ``seconds`` after the link is up; save every EVERY-th US frame's
     luma as handed to the encoder (``out/<seq>.npy``) and the bytes sent (``out/sent.json``)."""
     from humantele.media.config import FollowerVideoConfig
+    from humantele.media.receiver import luma_plane
     from humantele.media.sender import VideoSender
     from humantele.transport import LinkConfig, PeerLink
     from humantele.video.scene import DEFAULT_PATIENT, DemoScene
@@ -81,9 +82,7 @@ async def follower(url: str, room: str, out: Path, width: int, height: int, kbps
         def _on_sent(self, name: str, cf: Any) -> None:
             super()._on_sent(name, cf)
             if name == "us" and cf.seq % EVERY == 0:
-                plane = cf.frame.planes[0]
-                y = np.frombuffer(plane, np.uint8).reshape(-1, plane.line_size)
-                np.save(out / f"{cf.seq}.npy", y[: cf.height, : cf.width])
+                np.save(out / f"{cf.seq}.npy", luma_plane(cf.frame)[: cf.height, : cf.width])
 
     sender = Saving(config, None, None, DEFAULT_PATIENT)
     link = PeerLink(
@@ -124,7 +123,7 @@ async def follower(url: str, room: str, out: Path, width: int, height: int, kbps
 async def point(width: int, height: int, kbps: int, seconds: float) -> dict[str, Any]:
     """One size and bit rate: a follower child, the expert here; the figures."""
     from humantele.media.config import ExpertVideoConfig
-    from humantele.media.receiver import VideoReceiver
+    from humantele.media.receiver import VideoReceiver, luma_plane
     from humantele.signaling.messages import TOKEN_ENV
     from humantele.signaling.server import SignalConfig, SignalingServer
     from humantele.transport import LinkConfig, PeerLink
@@ -158,9 +157,7 @@ async def point(width: int, height: int, kbps: int, seconds: float) -> dict[str,
                 if f.age_s is not None:
                     ages.append((f.t_received, f.age_s))
                 if f.seq is not None and f.seq % EVERY == 0 and f.seq not in decoded:
-                    plane = f.frame.planes[0]
-                    y = np.frombuffer(plane, np.uint8).reshape(-1, plane.line_size)
-                    decoded[f.seq] = y[: f.height, : f.width].copy()
+                    decoded[f.seq] = luma_plane(f.frame)[: f.height, : f.width].copy()
             await child.wait()
         finally:
             if child.returncode is None:

@@ -105,16 +105,22 @@ class ReceivedFrame:
             return self._bgr
 
 
+def luma_plane(frame: av.VideoFrame) -> np.ndarray:
+    """The luma plane of a planar YUV frame (yuv420p, yuvj420p, nv12) as a height x width
+    uint8 view (the plane's rows are ``line_size`` bytes, padding included)."""
+    plane = frame.planes[0]
+    rows = np.frombuffer(plane, np.uint8).reshape(-1, plane.line_size)
+    return rows[: frame.height, : plane.width]
+
+
 def luma_patch(frame: av.VideoFrame) -> np.ndarray | None:
     """The top-left 64 x 32 px of the luma plane (a view), or None if the frame is smaller."""
     h, w = ROWS * CELL, COLS * CELL
     if frame.format.name not in ("yuv420p", "yuvj420p", "nv12") or frame.height < h:
         return None
-    plane = frame.planes[0]
-    if plane.width < w:
+    if frame.planes[0].width < w:
         return None
-    buf = np.frombuffer(plane, np.uint8)
-    return buf.reshape(-1, plane.line_size)[:h, :w]
+    return luma_plane(frame)[:h, :w]
 
 
 class TrackStats:
