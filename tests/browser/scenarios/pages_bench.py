@@ -135,16 +135,17 @@ async def run(ctx) -> dict:
 
 def load_note(data: dict) -> str:
     """What the load says about the figures. The scene's own processes count in it (the
-    demo, and Chromium rendering in software on the CPU), so the load rises during the
-    windows; other work is what was there at the start of the first (2 cores: above 1.5)."""
-    loads = [x for ph in (data["console"], data["headset"]) for x in ph["load"]]
-    start, hi = data["console"]["load"][0], max(loads)
-    if start <= 1.5:
-        return (f"Load {start:g} at the start of the first window (the demo running), up to"
-                f" {hi:g} during them: the scene's own processes (the browser renders on the"
-                " CPU); nothing else ran.")  # fmt: skip
-    return (f"Load {start:g} at the start of the first window, up to {hi:g}: other work was"
-            " running, so these figures are provisional (rerun on a quiet machine).")  # fmt: skip
+    demo, and Chromium rendering in software on the CPU), so it rises during the windows;
+    other work is what was there before the demo started (2 cores: above 1.5)."""
+    before = data["started_load"]
+    hi = max(x for ph in (data["console"], data["headset"]) for x in ph["load"])
+    if before <= 1.5:
+        return (f"Load {before:g} before the demo started, up to {hi:g} during the windows:"
+                " the scene's own processes (the browser renders on the CPU); nothing else"
+                " ran.")  # fmt: skip
+    return (f"Load {before:g} before the demo started, up to {hi:g} during the windows: other"
+            " work was running, so these figures are provisional (rerun on a quiet"
+            " machine).")  # fmt: skip
 
 
 CPU_COLUMNS = ["window", "browser", "expert", "servo", "follower", "follower children",
