@@ -43,7 +43,6 @@ class Daemon:
 
     def __init__(self, config: Any, stats_file: str | None = None) -> None:
         self.config = config
-        self.stats_file = stats_file
         self.stats_out = StatsFile(stats_file)
         self.cpu = CpuMeter()
         self.t_start = time.monotonic()
