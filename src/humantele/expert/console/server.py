@@ -56,6 +56,7 @@ from humantele.expert.console.messages import (
     frame_header,
 )
 from humantele.expert.console.session import ConsoleSession
+from humantele.runtime.stats import percentile_ms
 from humantele.signaling.messages import is_loopback
 from humantele.video.base import VideoFrame
 from humantele.video.counter import unwrap
@@ -601,13 +602,13 @@ class ConsoleServer:
             out[track] = {
                 "frames": st.frames,
                 "drawn": st.drawn,
-                "encode_p50_ms": _pct(st.encode_s, 50),
-                "seen_to_draw_p50_ms": _pct(st.seen_to_draw, 50),
-                "seen_to_draw_p95_ms": _pct(st.seen_to_draw, 95),
-                "capture_to_draw_p50_ms": _pct(st.capture_to_draw, 50),
-                "capture_to_draw_p95_ms": _pct(st.capture_to_draw, 95),
-                "capture_to_seen_p50_ms": _pct(st.capture_to_seen, 50),
-                "capture_to_seen_p95_ms": _pct(st.capture_to_seen, 95),
+                "encode_p50_ms": percentile_ms(st.encode_s, 50, ndigits=2),
+                "seen_to_draw_p50_ms": percentile_ms(st.seen_to_draw, 50, ndigits=2),
+                "seen_to_draw_p95_ms": percentile_ms(st.seen_to_draw, 95, ndigits=2),
+                "capture_to_draw_p50_ms": percentile_ms(st.capture_to_draw, 50, ndigits=2),
+                "capture_to_draw_p95_ms": percentile_ms(st.capture_to_draw, 95, ndigits=2),
+                "capture_to_seen_p50_ms": percentile_ms(st.capture_to_seen, 50, ndigits=2),
+                "capture_to_seen_p95_ms": percentile_ms(st.capture_to_seen, 95, ndigits=2),
                 "counter_read": st.counter_read,
                 "counter_unread": st.counter_unread,
                 "counter_unmatched": st.counter_unmatched,
@@ -624,10 +625,6 @@ def _hostname(host: str) -> str:
     if host.startswith("["):
         return host[1:].split("]", 1)[0]
     return host.rsplit(":", 1)[0] if host.count(":") == 1 else host
-
-
-def _pct(values_s: deque[float], q: float) -> float | None:
-    return round(float(np.percentile(values_s, q)) * 1000.0, 2) if values_s else None
 
 
 def _clean(obj: Any) -> Any:
