@@ -30,7 +30,12 @@ class TrackingFrame:
 
     ``ir``: (H, W) uint16 active brightness (counts). ``depth_mm``: (H, W) uint16 range along
     each pixel's ray in mm (0 = invalid), or None when the camera has no depth. ``t``: capture
-    time, s. ``T_camera_probe_true``: ground truth (simulated frames only).
+    time, s. ``T_world_camera``: the camera's pose in the tracker's world at this frame, as
+    the device reports it (hl2ss: the rig pose times the AHAT extrinsics; sim: the sim
+    head's camera); None when the device gave none (such a frame cannot place the probe in
+    the world). ``T_world_rig``: the headset's own pose (rig frame) in the same world, when
+    the device reports one. ``T_camera_probe_true``: ground truth (simulated frames only,
+    for tests and benchmarks; never read by the daemons).
     """
 
     t: float
@@ -38,6 +43,8 @@ class TrackingFrame:
     depth_mm: NDArray[np.uint16] | None
     intrinsics: CameraIntrinsics
     seq: int = 0
+    T_world_camera: Pose | None = None
+    T_world_rig: Pose | None = None
     T_camera_probe_true: Pose | None = None
     visible_true: tuple[bool, ...] | None = None
 
