@@ -57,13 +57,11 @@ import sys
 import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from humantele.cliargs import EXIT_FAILED, port, socket_error
 from humantele.config import ConfigModel, load_config, validate_config
@@ -75,18 +73,11 @@ from humantele.follower.calibration import (
     CalibrationEvent,
     Calibrator,
 )
+from humantele.follower.clinic import ClinicConfig, Guide, SimClinicConfig, make_clinic
 from humantele.follower.feed import FeedConfig, RendererFeed, model_fields
-from humantele.follower.sensing import ProbeSensing, SensingConfig
+from humantele.follower.sensing import LOST, Measurement, Sensing, SensingConfig, TrackerImage
 from humantele.follower.sensing_process import SensingProcess
-from humantele.follower.sim_human import (
-    CalibrationScript,
-    SimHeadConfig,
-    SimHumanConfig,
-    SimPatientConfig,
-)
-from humantele.follower.sim_world import SimWorld, WorldTruth
-from humantele.geometry import Pose, matrix_to_quat
-from humantele.haptics.ellipsoid import Ellipsoid
+from humantele.geometry import Pose
 from humantele.interop.igtl import IgtlConfig
 from humantele.interop.sessions import FollowerIgtl
 from humantele.media.config import FollowerVideoConfig
@@ -101,10 +92,8 @@ from humantele.runtime.daemon import (
 )
 from humantele.runtime.session import SessionConfig, recorder_stats
 from humantele.runtime.stats import SortedWindow, percentile_ms
-from humantele.tracking.tool import load_tool
 from humantele.transport import LinkConfig, PeerLink
 from humantele.video.base import VideoSourceUnavailable
-from humantele.video.scene import SceneSnapshot
 from humantele.wire import (
     CalibrationProgress,
     ControlMessage,
@@ -117,6 +106,8 @@ from humantele.wire import (
     TrackingStatus,
 )
 
+SIM_SETTING = 'the simulated clinic is [follower.clinic] (backend = "sim"): '
+
 log = logging.getLogger(__name__)
 
 DEFAULT_STATE_DIR = "~/.local/state/humantele/follower"
@@ -128,13 +119,19 @@ ZERO_POSE = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))  # recorded when the probe i
 class FollowerConfig(ConfigModel):
     """The follower daemon (``[follower]`` of configs/follower.toml)."""
 
+    moved_fields = {
+        "auto_calibrate": SIM_SETTING + "auto_calibrate",
+        "sim_patient": SIM_SETTING + "[follower.clinic.patient]",
+        "sim_human": SIM_SETTING + "[follower.clinic.novice]",
+        "sim_head": SIM_SETTING + "[follower.clinic.head]",
+    }
+
     rate_hz: float = Field(100.0, gt=1, le=1000, description="tick: probe, sensing, state")
     stale_after_s: float = Field(0.3, gt=0, le=10, description="virtual probe stale after")
     alignment_settle_s: float = Field(
         1.0, ge=0, le=30, description="alignment error counted this long after following starts"
     )
     state_dir: str = Field(DEFAULT_STATE_DIR, description="where the calibration is saved")
-    auto_calibrate: bool = Field(True, description="sim person presses the landmarks")
     probe_source: Literal["pipeline", "truth"] = Field(
         "pipeline", description="measure through the sensing pipeline ([sensing]), or the truth"
     )
@@ -153,123 +150,29 @@ class FollowerConfig(ConfigModel):
     link: LinkConfig = LinkConfig()
     feed: FeedConfig = FeedConfig()
     calibration: CalibrationConfig = CalibrationConfig()
-    sim_patient: SimPatientConfig = SimPatientConfig()
-    sim_human: SimHumanConfig = SimHumanConfig()
-    sim_head: SimHeadConfig = SimHeadConfig()
+    clinic: ClinicConfig = Field(default_factory=SimClinicConfig)
     video: FollowerVideoConfig = FollowerVideoConfig()
     session: SessionConfig = SessionConfig()
     recording: RecorderConfig = RecorderConfig()
     igtl: IgtlConfig = IgtlConfig()
 
-
-@dataclass
-class Measurement:
-    """What the follower knows of its probe at one tick (world frame, SI); ``force_tip`` is
-    the same force in the probe's tip frame (None when unknown)."""
-
-    status: TrackingStatus
-    T_world_tip: Pose | None
-    force_world: NDArray[np.float64]
-    contact: bool
-    force_tip: NDArray[np.float64] | None = None
-
-
-@dataclass
-class TrackerImage:
-    """One tracker image to measure: the simulated world at its time (what the sim sensors
-    see; ``truth.t`` is the tick time, s), and the virtual probe and target the tick had
-    (world frame, for the alignment figure)."""
-
-    truth: WorldTruth
-    virtual: Pose | None
-    target: Pose | None
-
-    @property
-    def t(self) -> float:
-        return self.truth.t
-
-
-def _tip_transform(tool_name: str) -> Pose:
-    """``T_probe_tip``: the tip frame on the tracked probe body (from the tool definition)."""
-    tool = load_tool(tool_name)
-    tip, z = np.asarray(tool.tip, dtype=float), np.asarray(tool.face_direction, dtype=float)
-    z = z / np.linalg.norm(z)
-    x = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = x - z * float(x @ z)
-    x /= np.linalg.norm(x)
-    return Pose(tip, matrix_to_quat(np.column_stack([x, np.cross(z, x), z])))
-
-
-class Sensing:
-    """Measure the probe: the sensing pipeline (sim IR tracker and force sensor) by default,
-    else the truth. ``measure(truth)`` (the simulated world at a tracker image) gives a
-    :class:`Measurement`; a pipeline error gives a LOST measurement (counted), never a crash.
-    """
-
-    def __init__(
-        self,
-        config: FollowerConfig,
-        sensing_config: SensingConfig | None = None,
-        build: bool = True,
-    ) -> None:
-        """``build=False``: build the pipeline at the first :meth:`measure` (the daemon's own
-        copy when a :class:`~humantele.follower.sensing_process.SensingProcess` measures)."""
-        self.T_probe_tip = _tip_transform(config.tool)
-        self.T_tip_probe = self.T_probe_tip.inverse()
-        self.pipeline = None
-        self.errors = 0
-        self.contact_n = config.calibration.force_off_n
-        self.sensing_config = sensing_config
-        self.tool = config.tool
-        self.unbuilt = config.probe_source == "pipeline"  # the pipeline is still to be built
-        if build:
-            self.build()
-
-    def build(self) -> None:
-        """Build the sensing pipeline (once; nothing in ``truth`` mode)."""
-        if not self.unbuilt:
-            return
-        self.unbuilt = False
-        if self.pipeline is not None:  # given by the caller
-            return
-        self.pipeline = ProbeSensing(self.sensing_config, self.tool)
-
-    def measure(self, truth: WorldTruth) -> Measurement:
-        if self.unbuilt:
-            self.build()
-        t, T_world_tip, force_world = truth.t, truth.T_world_tip, truth.force_world
-        T_world_camera = truth.T_world_camera
-        lost = Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
-        if T_world_tip is None:
-            return lost
-        if self.pipeline is None:
-            contact = float(np.linalg.norm(force_world)) > self.contact_n
-            force_tip = T_world_tip.inverse().rotate(force_world)
-            return Measurement(TrackingStatus.TRACKED, T_world_tip, force_world, contact, force_tip)
-        try:
-            m = self.pipeline.measure(
-                t, T_world_tip @ self.T_tip_probe, force_world, T_world_camera
+    @model_validator(mode="after")
+    def _sim_needs_the_sim_clinic(self) -> FollowerConfig:
+        if isinstance(self.clinic, SimClinicConfig):
+            return self
+        if self.probe_source == "truth":
+            raise ValueError(
+                'probe_source = "truth" is the simulated clinic\'s ideal sensor: '
+                'use "pipeline" with [follower.clinic] backend = "devices"'
             )
-            status = TrackingStatus(m.status)
-        except Exception:  # a sensing fault must not stop the daemon
-            self.errors += 1
-            if self.errors == 1:
-                log.exception("follower: sensing failed (counted, reported as lost)")
-            return lost
-        force = np.asarray(m.force_world, dtype=float)
-        force_tip = self.T_tip_probe.rotate(np.asarray(m.force_probe, dtype=float))
-        if not (np.all(np.isfinite(force)) and np.all(np.isfinite(force_tip))):
-            force, force_tip = np.zeros(3), None
-        if not status.has_pose or m.T_world_probe is None:
-            status = TrackingStatus.LOST if status.has_pose else status  # lost or ambiguous
-            return Measurement(status, None, force, bool(m.contact), force_tip)
-        tip = m.T_world_probe @ self.T_probe_tip
-        return Measurement(status, tip, force, bool(m.contact), force_tip)
-
-    def close(self) -> None:
-        if self.pipeline is not None:
-            with contextlib.suppress(Exception):
-                self.pipeline.close()
+        if self.video.enabled:
+            for name in ("us", "pov"):
+                if getattr(self.video, name).backend == "sim":
+                    raise ValueError(
+                        f'video.{name}: a "sim" source needs the simulated clinic; with '
+                        'backend = "devices" give it a real one (e.g. "opencv")'
+                    )
+        return self
 
 
 class FollowerDaemon(Daemon):
@@ -288,13 +191,6 @@ class FollowerDaemon(Daemon):
         self.calibration_path = self.state_dir / CALIBRATION_FILE
         self.calibration: Calibration | None = Calibration.load(self.calibration_path)
         self.calibrator = Calibrator(config.calibration)
-        self.world = SimWorld(config.sim_patient, config.sim_human, config.sim_head)
-        patient = self.world.patient
-        self.patient_ellipsoid = Ellipsoid(
-            tuple(patient.T_world_body.position),
-            tuple(float(v) for v in patient.semi_axes),
-            math.radians(config.sim_patient.yaw_deg),
-        )
         # with a sensing process, the daemon's own pipeline is built only if ever used
         self.sensing = Sensing(config, sensing_config, build=config.sensing_worker == "thread")
         self.sensing_proc: SensingProcess | None = None  # run() starts it
@@ -302,24 +198,31 @@ class FollowerDaemon(Daemon):
         self._jobs = 0
         self.sensing_failure: str | None = None
         self.sensing_starting = 0  # tracker images due before the sensing process was ready
-        self.measurement = Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
+        self.measurement = LOST
         self.last_measure_t = -math.inf
         self.measurements = 0
         self.feed = RendererFeed(config.feed, self.state_dir)
-        # Video: the us and pov tracks (humantele.media.sender), fed by the sim world's latest
-        # snapshot (self.scene_snapshot, updated each tick) for the sim sources.
-        self._scene: SceneSnapshot | None = None
-        self._head: Pose | None = None
+        # The clinic (its devices; the sim's world and the scene its video sources render),
+        # then the us and pov tracks (humantele.media.sender).
+        self.clinic = make_clinic(config.clinic)
         self.video = (
-            VideoSender(config.video, self.scene_snapshot, self.record_any, self.patient_ellipsoid)
+            VideoSender(
+                config.video,
+                self.clinic.scene,
+                self.record_any,
+                getattr(self.clinic, "patient", None),
+            )  # fmt: skip
             if config.video.enabled
             else None
         )
+        if self.video is not None and hasattr(self.clinic, "on_scene"):
+            self.clinic.on_scene = self.video.publish_scene
         self._video_check_t = -math.inf
         self.video_error = ""
         self._video_late_ticks = 0
         us = (self.video.captures["us"].slot, config.video.us) if self.video else None
-        self.igtl = FollowerIgtl(config.igtl, self.world.patient.ellipsoid(), us)
+        sim_us = None if config.video.enabled else getattr(self.clinic, "scene", None)
+        self.igtl = FollowerIgtl(config.igtl, sim_us, us)
         self.link = PeerLink(
             "follower",
             config.link,
@@ -331,8 +234,6 @@ class FollowerDaemon(Daemon):
         self.calibrating = False
         self.following_since: float | None = None
         self.last_force_n = 0.0
-        self.script: CalibrationScript | None = None
-        self.script_t0 = 0.0
         self.last_pose: PoseMessage | None = None
         self.last_pose_rx = -math.inf
         self.pose_ages = SortedWindow(20000)  # s; percentiles without sorting on the loop
@@ -490,8 +391,6 @@ class FollowerDaemon(Daemon):
         self.calibrating = True
         self.calibrator.reset()
         self.record("/follower/calibration", time.monotonic(), {"event": "reset"})
-        self.script = self.world.calibration_script() if self.config.auto_calibrate else None
-        self.script_t0 = time.monotonic()
         self.send_control(CalibrationProgress(event="start"))
         self.publish_calibration()
 
@@ -528,7 +427,6 @@ class FollowerDaemon(Daemon):
             self.calibration = self.calibrator.result
             self.save_calibration()  # best-effort: the model goes to the expert regardless
             self.calibrating = False
-            self.script = None
             self.send_control(CalibrationProgress(event="done"))
             self.send_model()
             self.record_model(t)
@@ -547,22 +445,12 @@ class FollowerDaemon(Daemon):
         return self.calibration.T_world_patient @ self.last_pose.pose
 
     def tick(self, t: float) -> None:
+        """The clinic sees the guide; at the tracker's rate, a frame is measured."""
         virtual = self.virtual_world()
-        if self.script is not None and self.calibrator.step is not None:
-            # The scripted technician presses the landmark asked for (again if refused), once
-            # the follower measures: a press while the sensing process starts is not seen.
-            if not self.measuring():
-                self.script_t0 = t
-            target = self.script.target(self.calibrator.step, t - self.script_t0)
-            if target is None:
-                self.script_t0 = t
-                target = self.script.target(self.calibrator.step, 0.0)
-        else:
-            fresh = virtual is not None and not self.virtual_stale(t)
-            target = virtual if fresh else None
-            if target is not None and self.last_pose.clutch:
-                target = None  # the expert is re-indexing: hold still
-        self.world.step(t, target)
+        live = virtual is not None and not self.virtual_stale(t) and not self.last_pose.clutch
+        target = virtual if live else None  # the guide the novice follows (clutch: hold still)
+        landmark = self.calibrator.step if self.calibrating else None
+        self.clinic.step(Guide(t, virtual, live, landmark, self.measuring()))
         if self.calibrating or target is None:
             self.following_since = None
         elif self.following_since is None:
@@ -573,35 +461,11 @@ class FollowerDaemon(Daemon):
             # fraction of the tick rate (45 Hz from 100 Hz ticks, not 33); no catching up.
             late = t - self.last_measure_t >= 2.0 * frame_period
             self.last_measure_t = t if late else self.last_measure_t + frame_period
-            truth = self.world.truth(t)
-            self._head = truth.T_world_camera
-            self.start_measurement(TrackerImage(truth, virtual, target))
-        # The sim video sources render this snapshot (in the video process); video frame
-        # timestamps (/follower/video_frame) are recorded as each frame is captured and sent.
-        self.publish_scene(t, self.world.T_world_tip, self.world.force_world, virtual)
+            world = self.clinic.world_at_frame(t)  # for the sim's devices; opaque here
+            self.start_measurement(TrackerImage(t, world, virtual, target))
         self.publish_feed(t, self.measurement)
         v_patient = None if self.last_pose is None else self.last_pose.pose
-        force_n = float(np.linalg.norm(self.world.force_world))
-        self.igtl.tick(t, self.calibration, v_patient, self.world.T_world_tip, force_n)
-
-    def publish_scene(
-        self, t: float, true_tip: Pose | None, force: NDArray, virtual: Pose | None
-    ) -> None:
-        """The sim world now, for the sim video sources (an immutable snapshot)."""
-        if self.video is None:
-            return
-        force_n = 0.0
-        if true_tip is not None:
-            beam = true_tip.rotate((0.0, 0.0, 1.0))
-            force_n = max(0.0, -float(np.dot(force, beam)))
-        self._scene = SceneSnapshot(t, self.patient_ellipsoid, true_tip, force_n, self._head,
-                                    virtual)  # fmt: skip
-        self.video.publish_scene(self._scene)
-
-    def scene_snapshot(self) -> SceneSnapshot:
-        """The latest snapshot (called from the video threads)."""
-        s = self._scene
-        return s if s is not None else SceneSnapshot(0.0, self.patient_ellipsoid, None, 0.0, None)
+        self.igtl.tick(t, self.calibration, v_patient)
 
     def record_any(self, topic: str, t: float, payload: dict) -> None:
         """Record from any thread (the recorder only queues)."""
@@ -629,13 +493,13 @@ class FollowerDaemon(Daemon):
                 self.sensing_skipped += 1
                 return
             self._jobs += 1
-            if proc.submit(self._jobs, frame.truth):
+            if proc.submit(self._jobs, (frame.t, frame.world)):
                 self._proc_frame = (self._jobs, frame)
             else:
                 self.sensing_skipped += 1
             return
         if self.executor is None:
-            self.take_measurement(frame, self.sensing.measure(frame.truth))
+            self.take_measurement(frame, self.sensing.measure(frame.t, frame.world))
             return
         if self._sensing is not None:
             self.sensing_skipped += 1
@@ -665,7 +529,7 @@ class FollowerDaemon(Daemon):
     def _measure(self, frame: TrackerImage) -> Measurement:
         """On the sensing worker: measure, and time it."""
         t0 = time.perf_counter()
-        m = self.sensing.measure(frame.truth)
+        m = self.sensing.measure(frame.t, frame.world)
         self.sensing_times.append(time.perf_counter() - t0)
         return m
 

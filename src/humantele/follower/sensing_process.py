@@ -9,7 +9,8 @@ loop's wake-up latency with sensing beside it in a thread and in a process.
 
 :class:`SensingProcess` is the daemon's handle: a ``spawn`` child that builds the daemon's own
 :class:`~humantele.follower.daemon.Sensing` and answers one request at a time over a pipe:
-``(job, WorldTruth)`` in, ``(job, Measurement, seconds)`` out. The daemon's loop reads the
+``(job, (t, world))`` in (``world``: what the sim clinic's devices observe; None with
+real devices), ``(job, Measurement, seconds)`` out. The daemon's loop reads the
 answers with ``add_reader`` (never blocks on the child). One frame at most is in flight: the
 caller skips frames while :attr:`busy`, as it did with the thread. A child that dies is
 restarted (``max_restarts``, then :attr:`failed` and the caller falls back to its thread); a
@@ -48,7 +49,7 @@ def sensing_main(config: Any, sensing_config: Any, conn: Connection, nice: int =
     """The child: build the sensing, then measure each request until the pipe closes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
-        from humantele.follower.daemon import Sensing
+        from humantele.follower.sensing import Sensing
 
         sensing = Sensing(config, sensing_config)
     except Exception as exc:  # a config the sensing refuses: say why, once
@@ -70,9 +71,9 @@ def sensing_main(config: Any, sensing_config: Any, conn: Connection, nice: int =
                 break
             if msg is None:
                 break
-            job, truth = msg
+            job, (t, world) = msg
             t0 = time.perf_counter()
-            m = sensing.measure(truth)  # catches the pipeline's own faults
+            m = sensing.measure(t, world)  # catches the pipeline's own faults
             conn.send(("result", job, m, time.perf_counter() - t0, sensing.errors))
     except (BrokenPipeError, OSError):
         pass
@@ -157,12 +158,12 @@ class SensingProcess:
             return None
         return process_cpu_percent(self.pid)
 
-    def submit(self, job: int, truth: Any) -> bool:
+    def submit(self, job: int, frame: Any) -> bool:
         """Send one frame to measure; False (nothing sent) if one is in flight or no child."""
         if self.busy or not self.running or self._conn is None:
             return False
         try:
-            self._conn.send((job, truth))
+            self._conn.send((job, frame))
         except (BrokenPipeError, OSError):
             self._died()
             return False

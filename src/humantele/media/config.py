@@ -12,8 +12,7 @@ from typing import Any, Literal
 from pydantic import Field, model_validator
 
 from humantele.config import ConfigModel
-from humantele.video.sim_pov import SimPovConfig
-from humantele.video.sim_ultrasound import SimUltrasoundConfig
+from humantele.video.sim_config import SimPovConfig, SimUltrasoundConfig
 from humantele.video.sources import PovSourceConfig, UltrasoundSourceConfig
 
 TRACKS = ("us", "pov")

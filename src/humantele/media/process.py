@@ -34,7 +34,7 @@ import os
 import threading
 import time
 from multiprocessing import shared_memory
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -42,7 +42,9 @@ from humantele.geometry import Pose
 from humantele.haptics.shm import SeqlockArray
 from humantele.media.slot import LatestSlot
 from humantele.video.base import SourceCounters, VideoSourceUnavailable
-from humantele.video.scene import SceneSnapshot
+
+if TYPE_CHECKING:
+    from humantele.video.scene import SceneSnapshot
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +67,8 @@ def pack_scene(s: SceneSnapshot) -> np.ndarray:
 
 
 def unpack_scene(a: np.ndarray, patient: Any) -> SceneSnapshot | None:
+    from humantele.video.scene import SceneSnapshot  # the sim sources' input: sim only
+
     poses = []
     for i in range(3):
         o = 2 + 8 * i

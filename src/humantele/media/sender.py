@@ -24,7 +24,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import av
 import cv2
@@ -40,8 +40,10 @@ from humantele.media.policy import DegradationPolicy, Health
 from humantele.media.slot import LatestSlot
 from humantele.video.base import VideoSource, VideoSourceError, VideoSourceUnavailable
 from humantele.video.counter import draw_counter
-from humantele.video.scene import Scene
 from humantele.video.sources import make_video_source
+
+if TYPE_CHECKING:
+    from humantele.video.scene import Scene
 
 log = logging.getLogger(__name__)
 
