@@ -158,7 +158,7 @@ async def _run(mode: str, seconds: float, rate: float) -> dict:
             now = time.monotonic()
             late.append(max(0.0, now - nxt))
             world_t = now - t0
-            fol.clinic.world.step(world_t, None)
+            fol.world.step(world_t, None)
             if world_t - last_frame >= 1.0 / 45.0:
                 last_frame = world_t
                 fol.frame(world_t)
