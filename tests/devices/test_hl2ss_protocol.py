@@ -79,7 +79,8 @@ def test_configuration_bytes_are_the_ones_hl2ss_builds_and_the_app_accepts(hl2ss
     bitrate = lnm.get_video_codec_default_bitrate(512, 512, 45, 1, h.VideoProfile.RAW) * 16
     options = lnm.get_video_codec_default_options(512, 512, 45, 1, h.VideoProfile.RAW)
     theirs = h._create_configuration_for_rm_depth_ahat(
-        1, 1, h.DepthProfile.SAME, h.VideoProfile.RAW, h.H26xLevel.DEFAULT, bitrate, options)
+        1, 1, h.DepthProfile.SAME, h.VideoProfile.RAW, h.H26xLevel.DEFAULT, bitrate, options
+    )
     assert bitrate == DEFAULT_RAW_BITRATE > 0
     assert ahat_configuration(1) == theirs
     cfg = read_configuration(reader(theirs))

@@ -175,9 +175,10 @@ class Hl2ssAhatCalibration:
                 tables = {n: np.asarray(z[n], np.float32) for n in ("uv2x", "uv2y", "mapx", "mapy")}
             if any(t.shape != SHAPE for t in tables.values()):
                 raise ValueError("tables are not 512 x 512")
-            cal = cls(extrinsics=np.asarray(doc["extrinsics_hl2ss"], np.float32).reshape(4, 4),
-                      scale=float(doc["scale"]), alias=float(doc["alias"]),
-                      k=np.asarray(doc["k_fx_fy_cx_cy"], np.float32).reshape(4), **tables)  # fmt: skip
+            E = np.asarray(doc["extrinsics_hl2ss"], np.float32).reshape(4, 4)
+            k = np.asarray(doc["k_fx_fy_cx_cy"], np.float32).reshape(4)
+            cal = cls(extrinsics=E, scale=float(doc["scale"]), alias=float(doc["alias"]), k=k,
+                      **tables)  # fmt: skip
             cal.check_axes()
         except (OSError, KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"hl2ss calibration file {path}: {exc}") from exc

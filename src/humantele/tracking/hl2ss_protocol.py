@@ -225,4 +225,3 @@ def rig_camera_from_extrinsics(extrinsics: ArrayLike) -> Pose:
     if T_camera_rig is None:
         raise ValueError(f"hl2ss AHAT extrinsics are not a rigid transform ({why})")
     return T_camera_rig.inverse()
-
