@@ -6,6 +6,8 @@ bad bytes, a stalled or dropped connection and an unreachable headset handled.""
 import math
 import socket
 import struct
+import subprocess
+import sys
 import threading
 
 import numpy as np
@@ -17,7 +19,12 @@ from humantele.geometry import Pose, quat_from_axis_angle, quat_multiply
 from humantele.tracking.frames import FrameSourceUnavailable
 from humantele.tracking.hl2ss_calibration import Hl2ssAhatCalibration
 from humantele.tracking.hl2ss_protocol import AHAT_PIXELS, encode_ahat_packet
-from humantele.tracking.hl2ss_replay import AhatRecord, Hl2ssReplayServer
+from humantele.tracking.hl2ss_replay import (
+    AhatRecord,
+    Hl2ssReplayServer,
+    load_records,
+    save_records,
+)
 from humantele.tracking.hl2ss_source import (
     Hl2ssFrameConfig,
     Hl2ssFrameSource,
@@ -277,3 +284,45 @@ def test_devices_check_reads_an_hl2ss_headset(tmp_path, capsys):
     assert "[ok  ] tracker camera (hl2ss): 8/8 frames 512x512" in text
     assert "camera pose in 8" in text
     assert AHAT_PIXELS == 512 * 512
+
+
+def test_records_file_round_trip(tmp_path):
+    frames = sim_frames(3)
+    recs = [record(f, k, None if k == 1 else rig_pose(k)) for k, f in enumerate(frames)]
+    path = tmp_path / "ahat.npz"
+    save_records(path, recs, calibration(frames))
+    back, cal = load_records(path)
+    assert cal.T_rig_camera().distance_to(T_RIG_CAMERA)[0] < 1e-6
+    assert [r.timestamp for r in back] == [r.timestamp for r in recs]
+    assert back[1].T_world_rig is None and back[2].T_world_rig.distance_to(rig_pose(2))[0] < 1e-6
+    assert np.array_equal(back[2].ab, recs[2].ab)
+    (tmp_path / "bad.npz").write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match="bad.npz"):
+        load_records(tmp_path / "bad.npz")
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_replay_server_in_its_own_process_paced_like_the_headset(tmp_path):
+    frames = sim_frames(5)
+    path = tmp_path / "ahat.npz"
+    save_records(path, [record(f, k, rig_pose(k)) for k, f in enumerate(frames)],
+                 calibration(frames))  # fmt: skip
+    proc = subprocess.Popen([sys.executable, "-m", "humantele.tracking.hl2ss_replay", str(path),
+                             "--rate", "45"], stdout=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        line = proc.stdout.readline()
+        assert line.startswith("hl2ss replay listening on 127.0.0.1:"), line
+        port = int(line.rsplit(":", 1)[1])
+        for _ in range(2):  # every client gets the recording (repeat)
+            src = Hl2ssFrameSource(cfg(port, mode=1, download_calibration=True,
+                                       read_timeout_s=5.0))  # fmt: skip
+            src.open()
+            got = [src.read() for _ in frames]
+            src.close()
+            assert all(g is not None and g.T_world_camera is not None for g in got)
+            assert np.array_equal(got[4].ir, frames[4].ir)
+    finally:
+        proc.terminate()
+        proc.wait(10)
+    assert proc.returncode == 0
