@@ -17,7 +17,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "follower": ("humantele.follower.daemon", "run the follower daemon (tracking, force, video)"),
     "signal": ("humantele.signaling.server", "run the signaling server"),
     "analyze": ("humantele.analysis.cli", "the study's analysis of recorded sessions"),
-    "devices": ("humantele.devices.check", "list devices and read a few samples from each"),
+    "devices": (
+        "humantele.devices.check",
+        "list devices and read a few samples from each; save the hl2ss calibration",
+    ),
 }
 
 # name -> (module, one-line help) for `humantele bench NAME`.

@@ -44,6 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--only", choices=["haptic", "tracker", "force", "hid"], action="append",
                    help="check only these (repeatable)")  # fmt: skip
     p.add_argument("--json", action="store_true", help="print the results as JSON")
+    from humantele.devices import hl2ss_calibration
+
+    hl2ss_calibration.add_parser(sub)
 
 
 def list_hid() -> list[dict[str, Any]]:
@@ -118,10 +121,11 @@ def check_tracker(config: Any, tool: str, n: int) -> Check:
     backend = config.backend
     try:
         src = make_frame_source(config)
+        src.open()
     except (FrameSourceUnavailable, OSError, ValueError) as exc:
         return Check("tracker camera", backend, False, str(exc))
     tracker = Tracker(load_tool(tool))
-    frames, tracked = 0, 0
+    frames, tracked, with_pose = 0, 0, 0
     last = None
     try:
         for _ in range(n):
@@ -131,6 +135,7 @@ def check_tracker(config: Any, tool: str, n: int) -> Check:
             frames += 1
             last = f
             tracked += tracker.process(f).status == "tracked"
+            with_pose += f.T_world_camera is not None
     finally:
         src.close()
     if last is None:
@@ -138,10 +143,11 @@ def check_tracker(config: Any, tool: str, n: int) -> Check:
     valid = None if last.depth_mm is None else float(np.mean(last.depth_mm > 0))
     figs = {"frames": frames, "size": list(last.ir.shape[::-1]), "ir_max": int(last.ir.max()),
             "depth_valid": None if valid is None else round(valid, 3),
-            "tracked": tracked}  # fmt: skip
+            "tracked": tracked, "camera_pose": with_pose}  # fmt: skip
     depth = "no depth" if valid is None else f"depth valid {100 * valid:.0f} %"
     summary = (f"{frames}/{n} frames {figs['size'][0]}x{figs['size'][1]}, IR max "
-               f"{figs['ir_max']}, {depth}, probe tracked in {tracked}")  # fmt: skip
+               f"{figs['ir_max']}, {depth}, probe tracked in {tracked}, camera pose in "
+               f"{with_pose}")  # fmt: skip
     return Check("tracker camera", backend, True, summary, figs)
 
 
@@ -227,8 +233,15 @@ def run_checks(args: argparse.Namespace) -> tuple[list[Check], dict[str, Any]]:
 
 
 def run(args: argparse.Namespace) -> int:
+    if getattr(args, "action", None) == "hl2ss-calibration":
+        from humantele.devices import hl2ss_calibration
+
+        return hl2ss_calibration.run(args)
     if getattr(args, "action", None) != "check":
-        print("usage: humantele devices check [--expert-config F] [--follower-config F]")
+        print(
+            "usage: humantele devices check [--expert-config F] [--follower-config F]\n"
+            "       humantele devices hl2ss-calibration --host H --out FILE"
+        )
         return 2
     checks, system = run_checks(args)
     if args.json:
