@@ -75,6 +75,21 @@ class SimHeadConfig(ConfigModel):
     follow_time_constant_s: float = Field(0.6, gt=0, le=10)
 
 
+SIMULATOR_MODULES = frozenset({  # the simulated world and its devices' renderers
+    "humantele.follower.sim_clinic", "humantele.follower.sim_world", "humantele.follower.sim_human",
+    "humantele.tracking.sim", "humantele.forcesense.sim", "humantele.video.scene",
+    "humantele.video.simsource", "humantele.video.sim_ultrasound", "humantele.video.sim_pov",
+    "humantele.video.phantom", "humantele.video.speckle",
+})  # fmt: skip
+
+
+def simulator_modules() -> list[str]:
+    """The simulator's modules loaded in this process (none in a real clinic's follower)."""
+    import sys
+
+    return sorted(SIMULATOR_MODULES.intersection(sys.modules))
+
+
 class SimClinicConfig(ConfigModel):
     """The simulated clinic (``[follower.clinic]``, ``backend = "sim"``): a patient on a bed,
     the novice holding the probe (a model of the study's people: docs/references.md), their

@@ -73,7 +73,13 @@ from humantele.follower.calibration import (
     CalibrationEvent,
     Calibrator,
 )
-from humantele.follower.clinic import ClinicConfig, Guide, SimClinicConfig, make_clinic
+from humantele.follower.clinic import (
+    ClinicConfig,
+    Guide,
+    SimClinicConfig,
+    make_clinic,
+    simulator_modules,
+)
 from humantele.follower.feed import FeedConfig, RendererFeed, model_fields
 from humantele.follower.sensing import LOST, Measurement, Sensing, SensingConfig, TrackerImage
 from humantele.follower.sensing_process import SensingProcess
@@ -685,6 +691,17 @@ class FollowerDaemon(Daemon):
             "loop_priority": self.loop_priority,
             "igtl": self.igtl.stats(),
             "video": None if self.video is None else self.video.stats(),
+            "simulator_modules": self.simulator_loaded(),
+        }
+
+    def simulator_loaded(self) -> dict[str, list[str] | None]:
+        """The simulator's modules loaded in each of the follower's processes (None: that
+        process not running or not ready): all empty in a real clinic."""
+        video = getattr(self.video, "process", None)
+        return {
+            "daemon": simulator_modules(),
+            "sensing": getattr(self.sensing_proc, "simulator_modules", None),
+            "video": getattr(video, "simulator_modules", None),
         }
 
     def feed_error(self, exc: OSError) -> str:

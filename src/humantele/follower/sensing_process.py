@@ -63,7 +63,9 @@ def sensing_main(config: Any, sensing_config: Any, conn: Connection, nice: int =
         with contextlib.suppress(OSError):
             os.nice(nice)
     try:
-        conn.send(("ready", os.getpid()))
+        from humantele.follower.clinic import simulator_modules
+
+        conn.send(("ready", os.getpid(), simulator_modules()))
         while True:
             try:
                 msg = conn.recv()
@@ -110,6 +112,7 @@ class SensingProcess:
         self.failed = False
         self.error: str | None = None
         self.pid: int | None = None
+        self.simulator_modules: list[str] | None = None  # loaded in the child (once ready)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._proc: mp.process.BaseProcess | None = None
         self._conn: Connection | None = None
@@ -185,7 +188,7 @@ class SensingProcess:
             self.child_errors = self._errors_before + msg[4]
             self.on_result(msg[1], msg[2], msg[3])
         elif kind == "ready":
-            self.ready, self.pid = True, msg[1]
+            self.ready, self.pid, self.simulator_modules = True, msg[1], msg[2]
         elif kind == "error":
             self.failed, self.error = True, msg[1]
             self._drop_child()

@@ -146,6 +146,9 @@ def _child(
             return
         send(("opened", name, None))
         caps.append(cap)
+    from humantele.follower.clinic import simulator_modules
+
+    send(("simulator", simulator_modules()))
     for cap in caps:
         cap._stop = stop  # the process's stop event ends the capture loops
         cap.start_thread()
@@ -321,6 +324,7 @@ class ProcessVideo:
         self.nice = nice
         self.specs = specs
         self.closed = False
+        self.simulator_modules: list[str] | None = None  # loaded in the video process (opened)
         self._cpu_s: float | None = None
         self.captures = {
             name: ProcessCapture(name, self.shared, spec, spec["fps"])
@@ -369,6 +373,8 @@ class ProcessVideo:
                 elif kind == "rec":
                     if sh.record is not None:
                         sh.record(msg[1], msg[2], msg[3])
+                elif kind == "simulator":
+                    self.simulator_modules = msg[1]
                 elif kind in ("opened", "open_failed"):
                     sh.opened[msg[1]] = msg[2]
                     if kind == "open_failed" or len(sh.opened) == len(self.captures):
