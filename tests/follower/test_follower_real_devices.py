@@ -1,9 +1,9 @@
 """The follower on real device backends fed by recorded device data, with no simulator in any
 of its processes (issue 18 §1): AHAT frames and rig poses from an hl2ss replay server in its
 own process (hl2ss's wire format, the clinic's calibration file), the force board's HID reports
-through the real HID reader (a replayed ``hid`` module), US and POV video from files through
-the OpenCV source (not yet: the video is off here). The recording is made here, once per run, by the simulator (in the test's
-process, never the follower's)."""
+through the real HID reader (a replayed ``hid`` module); the video is off here (from files
+through the OpenCV source the follower outlived its SIGTERM). The recording is made here,
+once per run, by the simulator (in the test's process, never the follower's)."""
 
 from __future__ import annotations
 
