@@ -15,8 +15,8 @@ answers with ``add_reader`` (never blocks on the child). One frame at most is in
 caller skips frames while :attr:`busy`, as it did with the thread. A child that dies is
 restarted (``max_restarts``, then :attr:`failed` and the caller falls back to its thread); a
 child that cannot build its sensing (a bad config) reports why and is not restarted. The child
-ignores SIGINT (Ctrl-C reaches the whole process group; the daemon stops it) and exits when
-the pipe closes, so it never outlives the daemon. Once started it runs at ``nice`` +10 by
+ignores SIGINT and SIGTERM (Ctrl-C and systemd reach the whole process group; the daemon stops
+it) and exits when the pipe closes, so it never outlives the daemon. Once started it runs at ``nice`` +10 by
 default (``sensing_nice``): when the daemon's loop and the child both want the CPU, the loop,
 which only needs it briefly to read a pose, wakes first; the child still gets every idle
 moment. On an overloaded machine it then measures fewer frames (skipped, counted) rather
@@ -47,7 +47,8 @@ OnResult = Callable[[int, Any, float], None]  # (job, Measurement, seconds measu
 
 def sensing_main(config: Any, sensing_config: Any, conn: Connection, nice: int = 0) -> None:
     """The child: build the sensing, then measure each request until the pipe closes."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for sig in (signal.SIGINT, signal.SIGTERM):  # to the group: the daemon stops the child
+        signal.signal(sig, signal.SIG_IGN)
     try:
         from humantele.follower.sensing import Sensing
 
