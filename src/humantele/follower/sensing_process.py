@@ -16,7 +16,8 @@ caller skips frames while :attr:`busy`, as it did with the thread. A child that 
 restarted (``max_restarts``, then :attr:`failed` and the caller falls back to its thread); a
 child that cannot build its sensing (a bad config) reports why and is not restarted. The child
 ignores SIGINT and SIGTERM (Ctrl-C and systemd reach the whole process group; the daemon stops
-it) and exits when the pipe closes, so it never outlives the daemon. Once started it runs at ``nice`` +10 by
+it) and exits when the pipe closes, so it never outlives the daemon. Once started it runs at
+``nice`` +10 by
 default (``sensing_nice``): when the daemon's loop and the child both want the CPU, the loop,
 which only needs it briefly to read a pose, wakes first; the child still gets every idle
 moment. On an overloaded machine it then measures fewer frames (skipped, counted) rather
