@@ -163,7 +163,7 @@ async def test_sensing_runs_off_the_loop_in_order_without_overlap(tmp_path):
     d.clinic.world.human.hand = Pose(
         [0.35, 1.0, -0.15], probe_down_quat([0.0, 1.0, 0.0])
     )  # probe in hand
-    d.executor = ThreadPoolExecutor(1)
+    d.worker.executor = ThreadPoolExecutor(1)
     loop_thread = threading.get_ident()
     try:
         t = 0.0
@@ -172,7 +172,7 @@ async def test_sensing_runs_off_the_loop_in_order_without_overlap(tmp_path):
             t += 0.01
             await asyncio.sleep(0)
         assert len(calls) == 1 and calls[0][1] != loop_thread
-        assert d.measurements == 0 and d.sensing_skipped == 13  # frames due at 45 Hz, skipped
+        assert d.measurements == 0 and d.worker.skipped == 13  # frames due at 45 Hz, skipped
         release.set()
         for _ in range(100):
             d.tick(t)
@@ -180,7 +180,7 @@ async def test_sensing_runs_off_the_loop_in_order_without_overlap(tmp_path):
             await asyncio.sleep(0.002)  # the worker's result comes back on the loop
     finally:
         release.set()
-        d.executor.shutdown(wait=True)
+        d.worker.executor.shutdown(wait=True)
     await asyncio.sleep(0.05)
     times = [c[0] for c in calls]
     assert times == sorted(times) and len(times) == len(set(times))

@@ -99,10 +99,12 @@ async def test_the_daemon_streams_what_the_child_measured(tmp_path):
     d = FollowerDaemon(FollowerConfig(state_dir=str(tmp_path), sensing_worker="process"))
     d.link = _Link()
     d.clinic.world.human.hand = Pose([0.35, 1.0, -0.15], probe_down_quat([0.0, 1.0, 0.0]))
-    d.sensing_proc = SensingProcess(d.config, None, d._measured_in_process, d._sensing_cannot_start)
-    d.sensing_proc.start()
+    d.worker.proc = SensingProcess(
+        d.config, None, d.worker._measured_in_process, d.worker._cannot_start
+    )
+    d.worker.proc.start()
     try:
-        await _until(lambda: d.sensing_proc.ready)
+        await _until(lambda: d.worker.proc.ready)
         t = 0.0
         while d.measurements < 10:
             d.tick(t)
@@ -110,7 +112,7 @@ async def test_the_daemon_streams_what_the_child_measured(tmp_path):
             await asyncio.sleep(0.005)
             assert t < 600.0
     finally:
-        d.sensing_proc.close()
+        d.worker.proc.close()
     assert d.sensing.pipeline is None  # the daemon never built its own: the child measured
     assert d.measurement.T_world_tip is not None and d.tick_errors == 0
     s = d.stats()
