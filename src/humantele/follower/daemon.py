@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from humantele.cliargs import EXIT_FAILED, socket_error
+from humantele.cliargs import EXIT_FAILED
 from humantele.follower.calibration import (
     Calibration,
     CalibrationEvent,
@@ -114,9 +114,7 @@ class FollowerDaemon(Daemon):
         )
         if self.video is not None and hasattr(self.clinic, "on_scene"):
             self.clinic.on_scene = self.video.publish_scene
-        self._video_check_t = -math.inf
         self.video_error = ""
-        self._video_late_ticks = 0
         us = (self.video.captures["us"].slot, config.video.us) if self.video else None
         sim_us = None if config.video.enabled else getattr(self.clinic, "scene", None)
         self.igtl = FollowerIgtl(config.igtl, sim_us, us)
@@ -413,32 +411,9 @@ class FollowerDaemon(Daemon):
         """The simulator's modules loaded in each of the follower's processes (None: that
         process not running or not ready): all empty in a real clinic."""
         video = getattr(self.video, "process", None)
-        return {
-            "daemon": simulator_modules(),
-            "sensing": getattr(self.worker.proc, "simulator_modules", None),
-            "video": getattr(video, "simulator_modules", None),
-        }
-
-    def feed_error(self, exc: OSError) -> str:
-        """One line for a renderer feed that cannot start."""
-        cfg = self.config.feed
-        if exc.filename is not None:  # the TLS certificate in the state directory
-            return (
-                f"humantele follower: renderer feed: cannot write {exc.filename}: "
-                f"{exc.strerror or exc} (check --state-dir {self.state_dir})"
-            )
-        return socket_error("humantele follower: renderer feed", cfg.host, cfg.port, exc)
-
-    def check_video(self, t: float) -> None:
-        """Once a second, the video's degradation policy (POV first), in a task."""
-        if self.video is None or t - self._video_check_t < 1.0:
-            return
-        dt = 1.0 if self._video_check_t == -math.inf else t - self._video_check_t
-        self._video_check_t = t
-        late = (self.late_ticks - self._video_late_ticks) / dt
-        self._video_late_ticks = self.late_ticks
-        task = asyncio.ensure_future(self.video.check(t, late))
-        task.add_done_callback(_log_task_error)
+        return {"daemon": simulator_modules(),
+                "sensing": getattr(self.worker.proc, "simulator_modules", None),
+                "video": getattr(video, "simulator_modules", None)}  # fmt: skip
 
     def _count_late_tick(self) -> None:
         self.late_ticks += 1
@@ -456,7 +431,7 @@ class FollowerDaemon(Daemon):
                 await self.feed.start()
             except OSError as exc:  # port taken, unknown host, unwritable state dir
                 self.close_recording()
-                print(self.feed_error(exc), file=sys.stderr)
+                print(self.feed.start_error(exc, self.state_dir), file=sys.stderr)
                 return EXIT_FAILED
             except BaseException:  # the recording is still closed
                 self.close_recording()
@@ -484,7 +459,8 @@ class FollowerDaemon(Daemon):
                 try:
                     self.tick(t)
                     self.record_reports(t)
-                    self.check_video(t)
+                    if self.video is not None:
+                        self.video.tick(t, self.late_ticks)
                 except Exception:  # never let one bad tick end the daemon
                     self.tick_errors += 1
                     if self.tick_errors in (1, 10, 100, 1000):
@@ -518,8 +494,3 @@ class FollowerDaemon(Daemon):
             self._stop.set()
             return
         self.video.start(asyncio.get_running_loop())
-
-
-def _log_task_error(task: asyncio.Future) -> None:
-    if not task.cancelled() and task.exception() is not None:
-        log.error("follower: video check failed: %s", task.exception())
