@@ -86,9 +86,19 @@ class FollowerVideoConfig(ConfigModel):
     )
     us: UltrasoundSourceConfig = SimUltrasoundConfig()
     pov: PovSourceConfig = SimPovConfig()
-    stamp_counter: bool = Field(
-        True, description="draw the frame counter (64x32 px, top left) into every frame sent"
+    stamp_counter: bool | None = Field(
+        None,
+        description="draw the frame counter (64x32 px, top left) into every frame sent; "
+        "unset: into the sim sources' only (a real picture is sent as it came; its latency "
+        "comes from the frame records and the RTP timestamps)",
     )
+
+    def stamps(self, track: str) -> bool:
+        """Whether ``track``'s frames carry the drawn counter."""
+        if self.stamp_counter is not None:
+            return self.stamp_counter
+        return getattr(getattr(self, track), "backend", "") == "sim"
+
     degrade: DegradeConfig = DegradeConfig()
     us_bitrate: UsBitrateConfig = UsBitrateConfig()
     pov_bitrate: PovBitrateConfig = PovBitrateConfig()

@@ -293,7 +293,7 @@ class VideoSender:
                 if getattr(c, "backend", "") != "sim":  # a device may give another size
                     w, h = max(w, 1920), max(h, 1080)
                 specs[name] = {
-                    "config": c, "stamp_counter": config.stamp_counter, "fps": float(c.fps) or 30.0,
+                    "config": c, "stamp_counter": config.stamps(name), "fps": float(c.fps) or 30.0,
                     "record_hz": rates[name], "jpeg_quality": config.jpeg_quality,
                     "size": (w, h),
                 }  # fmt: skip
@@ -304,7 +304,7 @@ class VideoSender:
                 name: VideoCapture(
                     name,
                     make_video_source(sources[name], scene),
-                    stamp_counter=config.stamp_counter,
+                    stamp_counter=config.stamps(name),
                     record=record,
                     record_hz=rates[name],
                     jpeg_quality=config.jpeg_quality,
