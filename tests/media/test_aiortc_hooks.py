@@ -123,4 +123,4 @@ def test_frames_without_a_counter_get_their_capture_time_from_the_records_and_rt
     for g, t in zip(got, t_capture[2:8], strict=True):
         assert g is None or g == pytest.approx(t, abs=3e-5)  # never a wrong capture time
     st = rx.stats_by_track["us"]
-    assert st.unreadable == 6 and st.anchor == -first
+    assert st.unreadable == 6 and st.anchor == first  # capture time = (pts + anchor) / 90 kHz
