@@ -1,39 +1,72 @@
 """The real 3D Systems Touch X through the vendor's OpenHaptics HD API (libHD.so, via ctypes).
 
+Checked against OpenHaptics' own headers (``hdDefines.h``, ``hdDevice.h``, ``hdScheduler.h``),
+its examples (Calibration, PreventWarmMotors, ErrorHandling) and its Programmer's Guide and API
+reference (public copies: github.com/danepowell/openhaptics, github.com/hhmai/PhantomAPI).
+
 OpenHaptics wants device I/O inside its own servo thread: ``open`` schedules one asynchronous
 callback at the highest priority (``hdScheduleAsynchronous``) and asks the scheduler for 1 kHz
 (``hdSetSchedulerRate``). Each tick the callback opens an HD frame (``hdBeginFrame``), reads
-``HD_CURRENT_TRANSFORM`` (4x4, column-major, mm), ``HD_CURRENT_VELOCITY`` (mm/s) and
-``HD_CURRENT_BUTTONS``, checks the calibration, writes the latest commanded force to
-``HD_CURRENT_FORCE`` (N) and closes the frame (``hdEndFrame``). ``read`` returns the newest
-tick's state, ``command_force`` stores the force the next tick writes: neither waits on the
-device, so the servo loop of :mod:`humantele.haptics.loop` keeps its own clock.
+``HD_CURRENT_TRANSFORM`` (4x4, column-major, translation in mm at 12..14),
+``HD_CURRENT_VELOCITY`` (mm/s), ``HD_CURRENT_BUTTONS`` and ``HD_MOTOR_TEMPERATURE``, checks the
+calibration, writes the latest commanded force, limited as below, to ``HD_CURRENT_FORCE`` (N)
+and closes the frame (``hdEndFrame``). ``read`` returns the newest tick's state,
+``command_force`` stores the force the next tick writes, ``wait_tick`` blocks (the GIL free)
+until the next tick: the servo process follows the device's clock instead of spinning on its
+own, because every tick of this callback needs the GIL (see :mod:`humantele.haptics.servo_child`).
 
 Units: HD speaks mm and N in the device frame of ``base`` (x right, y up, z toward the user,
 origin at the workspace centre); this module converts mm to m at the edge and leaves forces in
-N and in that frame. Safety: every force written is finite and at most the smaller of
-``spec.max_force_n`` and the device's own ``HD_NOMINAL_MAX_FORCE``; it is zero while the device
-is not calibrated, after an HD error and on close.
+N and in that frame.
 
-Calibration (``hdCheckCalibration``): ``ok``; ``needs_update`` is fixed at once with the best
-style the device supports (``hdUpdateCalibration``: encoder reset, then auto);
-``needs_manual_input`` (a Touch X or Omni asking for its inkwell) leaves the force zero until the
-stylus has been put in the inkwell, and :attr:`TouchX.calibration` says so.
+Force limit (safety): every force written is finite and at most the peak, the smaller of
+``spec.max_force_n`` and the device's ``HD_NOMINAL_MAX_FORCE``. Sustained force is held to the
+continuous rating (``HD_NOMINAL_MAX_CONTINUOUS_FORCE``, 1.75 N on a Touch X) by a thermal budget
+on the squared force (motor heating goes as current squared; ``heat`` is |F|^2 low-passed with
+``thermal_time_constant_s``): the limit falls from the peak while the budget fills and reaches
+the continuous rating when ``heat`` does, so a peak passes only briefly and a sustained press
+settles at the rating. On top, the device's own motor model as OpenHaptics' PreventWarmMotors
+example uses it: above 0.7 of ``HD_MOTOR_TEMPERATURE`` the limit decays by 0.1 % a tick toward
+the continuous rating, below 0.5 it recovers. If the device still reports ``HD_WARM_MOTORS``,
+the force ramps down to zero over ``warm_ramp_s`` (logged: never a step mid-contact), stays
+off until the motors have cooled (temperature below 0.5, or ``warm_cooldown_s`` without a
+temperature reading) and ramps back up over ``ramp_s``.
 
-HD errors (``hdGetError``) become :class:`DeviceError` messages naming the error and what to do
-(:func:`describe_hd_error`). Tested against a fake libHD compiled in tests/devices (no device
-here). Constants are those of OpenHaptics' ``hdDefines.h`` and ``hdScheduler.h``.
+Calibration, as OpenHaptics' Calibration example: the supported styles
+(``HD_CALIBRATION_STYLE``) give one style, AUTO first, then INKWELL, then ENCODER_RESET.
+``needs_update`` is updated with that style from the servo tick (``hdUpdateCalibration``, after
+the frame, at most every 0.1 s): AUTO as the arm moves, INKWELL once the stylus is in the inkwell
+(``needs_manual_input`` says to put it there). ENCODER_RESET zeroes the encoders wherever the arm
+is, so it is never done by the tick: only :func:`reset_encoders`, before the scheduler starts and
+after the user confirmed the arm is at its reset pose (``python -m
+humantele.haptics.devices.touchx --reset-encoders``). Force is zero while not calibrated and, as
+the guide warns that the position may jump when calibration changes, ramps back over
+``ramp_s`` when it returns to ok. :attr:`TouchX.calibration` says what is needed.
+
+HD errors (``hdGetError``, drained each tick) become :class:`DeviceError` messages naming the
+error and what to do (:func:`describe_hd_error`) and zero the commanded force; a missing libHD, a
+missing library libHD needs (the Touch driver's ``libPhantomIOLib42.so``) and an unset
+``GTDD_HOME`` are each named as what is missing. The callback's own period and duration
+(``hdGetSchedulerTimeStamp`` at its end: the wait for the GIL counted) are kept in
+:attr:`TouchX.timing`. Tested against a fake libHD compiled in tests/devices (no device here).
 """
 
 from __future__ import annotations
 
+import argparse
 import ctypes
 import ctypes.util
 import logging
 import math
+import os
+import re
+import sys
 import threading
 import time
+from collections.abc import Callable
 from typing import Literal
+
+from pydantic import Field
 
 from humantele.config import ConfigModel
 from humantele.haptics.devices.base import DeviceError, DeviceSpec, DeviceState, HapticDevice, Vec3
@@ -42,17 +75,23 @@ from humantele.haptics.devices.base import safe_force as _safe_force
 log = logging.getLogger(__name__)
 
 HD_SUCCESS = 0x0000
+HD_WARM_MOTORS = 0x0200
 HD_CURRENT_BUTTONS = 0x2000
 HD_CURRENT_POSITION = 0x2050
 HD_CURRENT_VELOCITY = 0x2051
 HD_CURRENT_TRANSFORM = 0x2052
 HD_DEVICE_MODEL_TYPE = 0x2501
 HD_DEVICE_SERIAL_NUMBER = 0x2504
+HD_OUTPUT_DOF = 0x2554
 HD_CALIBRATION_STYLE = 0x2555
 HD_UPDATE_RATE = 0x2600
 HD_NOMINAL_MAX_FORCE = 0x2603
+HD_NOMINAL_MAX_CONTINUOUS_FORCE = 0x2604
+HD_MOTOR_TEMPERATURE = 0x2605
 HD_CURRENT_FORCE = 0x2700
 HD_FORCE_OUTPUT = 0x4000
+HD_MAX_FORCE_CLAMPING = 0x4001
+HD_FORCE_RAMPING = 0x4002
 HD_MAX_SCHEDULER_PRIORITY = 0xFFFF
 HD_CALIBRATION_OK = 0x5000
 HD_CALIBRATION_NEEDS_UPDATE = 0x5001
@@ -64,11 +103,30 @@ HD_CALLBACK_DONE = 0
 HD_CALLBACK_CONTINUE = 1
 HD_INVALID_HANDLE = 0xFFFFFFFF
 SERVO_RATE_HZ = 1000
+# PreventWarmMotors (OpenHaptics example): normalised motor temperature thresholds and the
+# per-tick factors of its adaptive clamp.
+TEMP_RAMP_DOWN_ON, TEMP_RAMP_DOWN_OFF = 0.7, 0.5
+TEMP_DOWN_RATE, TEMP_UP_RATE = 0.999, 1.001
+CALIBRATION_UPDATE_EVERY_S = 0.1
 
 CALIBRATION_NAMES = {
     HD_CALIBRATION_OK: "ok",
     HD_CALIBRATION_NEEDS_UPDATE: "needs_update",
     HD_CALIBRATION_NEEDS_MANUAL_INPUT: "needs_manual_input",
+}
+STYLE_NAMES = {
+    HD_CALIBRATION_AUTO: "auto",
+    HD_CALIBRATION_INKWELL: "inkwell",
+    HD_CALIBRATION_ENCODER_RESET: "encoder_reset",
+}
+# Libraries libHD needs that a user installs separately, and what to install for each.
+DEPENDENCY_HINTS = {
+    "libPhantomIOLib42": "the 3D Systems Touch device driver (TouchDriver for Linux): copy its "
+    "usr/lib/libPhantomIOLib42.so to /usr/lib (or add its folder to LD_LIBRARY_PATH) and set "
+    "GTDD_HOME",
+    "libPHANToMIO": "the PHANTOM Device Drivers (PDD) that this OpenHaptics version was built for",
+    "libncurses": "the ncurses 5 compatibility library (Debian/Ubuntu: libncurses5)",
+    "libtinfo": "the ncurses 5 compatibility library (Debian/Ubuntu: libtinfo5)",
 }
 
 # hdDefines.h error codes: (name, what the user should do).
@@ -90,7 +148,11 @@ HD_ERRORS: dict[int, tuple[str, str]] = {
     ),
     0x0302: ("HD_COMM_ERROR", "lost contact with the device; check its USB cable and power"),
     0x0303: ("HD_COMM_CONFIG_ERROR", "the device is not configured; run Touch_Setup"),
-    0x0304: ("HD_TIMER_ERROR", "the servo thread missed its deadline; the machine is overloaded"),
+    0x0304: (
+        "HD_TIMER_ERROR",
+        "the servo loop missed its time slice (a callback ran long or the machine is "
+        "overloaded); the device cut its force",
+    ),
     0x0400: ("HD_ILLEGAL_BEGIN", "an HD frame was opened twice (a bug in humantele)"),
     0x0401: ("HD_ILLEGAL_END", "an HD frame was closed twice (a bug in humantele)"),
     0x0402: ("HD_FRAME_ERROR", "an HD frame error (a bug in humantele)"),
@@ -108,12 +170,19 @@ def describe_hd_error(code: int, internal: int = 0) -> str:
 
 class TouchXConfig(ConfigModel):
     """The ``touchx`` backend. ``library``: libHD path or name; ``device_name``: the name set in
-    the Touch Setup tool (empty = HD_DEFAULT_DEVICE)."""
+    the Touch Setup tool (empty = HD_DEFAULT_DEVICE); ``thermal_time_constant_s``: the window of
+    the force budget (s); ``ramp_s``: force ramp-up after calibration or warm motors (s);
+    ``warm_ramp_s``: ramp-down on HD_WARM_MOTORS (s); ``warm_cooldown_s``: how long the force
+    stays off after HD_WARM_MOTORS when the device gives no motor temperature (s)."""
 
     backend: Literal["touchx"] = "touchx"
     library: str = "libHD.so"
     device_name: str = ""
     spec: DeviceSpec = DeviceSpec()
+    thermal_time_constant_s: float = Field(1.0, gt=0.0, le=600.0)
+    ramp_s: float = Field(1.0, ge=0.0, le=10.0)
+    warm_ramp_s: float = Field(1.0, gt=0.0, le=10.0)
+    warm_cooldown_s: float = Field(60.0, ge=0.0, le=3600.0)
 
 
 class _HDErrorInfo(ctypes.Structure):
@@ -123,9 +192,30 @@ class _HDErrorInfo(ctypes.Structure):
 
 HDSchedulerCallback = ctypes.CFUNCTYPE(ctypes.c_uint, ctypes.c_void_p)
 
+_DLOPEN_MISSING = re.compile(r"^(?P<lib>[^:]+?): cannot open shared object file")
+
+
+def missing_library(candidate: str, exc: OSError) -> str | None:
+    """The library that is missing when loading ``candidate`` failed with ``exc``: None when it
+    is ``candidate`` itself (or not a missing file), else the dependency's file name (glibc's
+    dlopen message names the first file it could not open)."""
+    m = _DLOPEN_MISSING.match(str(exc))
+    if m is None:
+        return None
+    lib = os.path.basename(m.group("lib").strip())
+    return None if lib == os.path.basename(candidate) else lib
+
+
+def _dependency_hint(lib: str) -> str:
+    for prefix, hint in DEPENDENCY_HINTS.items():
+        if lib.startswith(prefix):
+            return hint
+    return "the package that provides it (ldd on libHD.so lists what is missing)"
+
 
 def load_hd_library(name: str) -> ctypes.CDLL:
-    """Load libHD with its signatures; DeviceError saying how to get it when it is missing."""
+    """Load libHD with its signatures; DeviceError saying what is missing when it cannot be
+    loaded: libHD itself, or a library it needs (named, with what to install)."""
     candidates = [name]
     found = ctypes.util.find_library("HD")
     if found and found not in candidates:
@@ -136,6 +226,12 @@ def load_hd_library(name: str) -> ctypes.CDLL:
             lib = ctypes.CDLL(cand)
             break
         except OSError as exc:
+            dep = missing_library(cand, exc)
+            if dep is not None:
+                raise DeviceError(
+                    f"touchx: the OpenHaptics HD library {cand} is installed but a library it "
+                    f"needs is missing: {dep} ({exc}). Install {_dependency_hint(dep)}."
+                ) from exc
             errors.append(f"{cand}: {exc}")
     else:
         raise DeviceError(
@@ -167,6 +263,7 @@ def load_hd_library(name: str) -> ctypes.CDLL:
             [HDSchedulerCallback, ctypes.c_void_p, ctypes.c_ushort],
         ),  # fmt: skip
         "hdUnschedule": (None, [ctypes.c_ulong]),
+        "hdGetSchedulerTimeStamp": (c_double, []),
     }
     missing = []
     for fn, (restype, argtypes) in sigs.items():
@@ -179,16 +276,111 @@ def load_hd_library(name: str) -> ctypes.CDLL:
     if missing:
         raise DeviceError(
             f"touchx: {name} lacks {', '.join(missing)}; is it the OpenHaptics HD library "
-            "(3.4 or later)?"
+            "(3.0 or later)?"
         )
     return lib
+
+
+def gtdd_home_problem(env: dict[str, str] | None = None) -> str | None:
+    """Why the 3D Systems Touch driver cannot find its device configuration, or None. The driver
+    (libPhantomIOLib42) reads what Touch_Setup saved under ``$GTDD_HOME/config``; without
+    GTDD_HOME it prints "Config directory not set correctly." and finds no device."""
+    env = os.environ if env is None else env
+    home = env.get("GTDD_HOME")
+    if not home:
+        return (
+            "GTDD_HOME is not set: the Touch device driver (libPhantomIOLib42.so) reads the "
+            "device configuration Touch_Setup saved under $GTDD_HOME/config; set GTDD_HOME (for "
+            "example /usr/share/3DSystems) in the environment of the expert daemon"
+        )
+    if not os.path.isdir(os.path.join(home, "config")):
+        return (
+            f"GTDD_HOME is {home!r} but {os.path.join(home, 'config')} does not exist: run "
+            "Touch_Setup (as the same user) to save the device configuration there"
+        )
+    return None
+
+
+def choose_calibration_style(supported: int) -> int:
+    """The style OpenHaptics' Calibration example picks: AUTO, else INKWELL, else ENCODER_RESET
+    (0 when none is supported)."""
+    for style in (HD_CALIBRATION_AUTO, HD_CALIBRATION_INKWELL, HD_CALIBRATION_ENCODER_RESET):
+        if supported & style:
+            return style
+    return 0
+
+
+class CallbackTiming:
+    """The servo callback's own period (entry to entry, as the Python code runs: GIL waits
+    included) and duration (``hdGetSchedulerTimeStamp`` at its end: from the scheduler tick's
+    start, so the wait for the GIL is counted), in 10 us bins; O(1) per tick."""
+
+    BIN_US = 10.0
+    NBINS = 5000
+
+    def __init__(self) -> None:
+        self.period = [0] * self.NBINS
+        self.duration = [0] * self.NBINS
+        self.n_period = self.n_duration = 0
+        self.max_period_us = self.max_duration_us = 0.0
+        self._last: float | None = None
+
+    def enter(self, t: float) -> None:
+        if self._last is not None:
+            us = (t - self._last) * 1e6
+            self.period[min(max(int(us / self.BIN_US), 0), self.NBINS - 1)] += 1
+            self.n_period += 1
+            self.max_period_us = max(self.max_period_us, us)
+        self._last = t
+
+    def done(self, seconds: float) -> None:
+        us = seconds * 1e6
+        if not math.isfinite(us):
+            return
+        self.duration[min(max(int(us / self.BIN_US), 0), self.NBINS - 1)] += 1
+        self.n_duration += 1
+        self.max_duration_us = max(self.max_duration_us, us)
+
+    @classmethod
+    def _pct(cls, hist: list[int], n: int, q: float, top: float) -> float:
+        if n == 0:
+            return 0.0
+        want, acc = q * n, 0
+        for i, c in enumerate(hist):
+            acc += c
+            if acc >= want and c:
+                return min((i + 0.5) * cls.BIN_US, top)
+        return top
+
+    def count_over(self, which: str, us: float) -> int:
+        hist = self.period if which == "period" else self.duration
+        return sum(hist[int(us / self.BIN_US) :])
+
+    def summary(self) -> dict[str, float]:
+        """p50/p99/max of period and duration (us), and callbacks over 1 ms / periods over 2 ms."""
+        p, d = self.period, self.duration
+        return {
+            "callbacks": float(self.n_duration),
+            "period_p50_us": self._pct(p, self.n_period, 0.5, self.max_period_us),
+            "period_p99_us": self._pct(p, self.n_period, 0.99, self.max_period_us),
+            "period_max_us": self.max_period_us,
+            "duration_p50_us": self._pct(d, self.n_duration, 0.5, self.max_duration_us),
+            "duration_p99_us": self._pct(d, self.n_duration, 0.99, self.max_duration_us),
+            "duration_max_us": self.max_duration_us,
+            "durations_over_1ms": float(self.count_over("duration", 1000.0)),
+            "periods_over_2ms": float(self.count_over("period", 2000.0)),
+        }
 
 
 class TouchX(HapticDevice):
     """The Touch X via libHD's scheduler; see the module docstring.
 
     ``calibration``: "ok", "needs_update" or "needs_manual_input" (force zero until "ok");
-    ``ticks``: servo callbacks run; ``force_limit_n``: the limit actually applied (N);
+    ``calibration_styles``/``calibration_style``: supported and chosen (``STYLE_NAMES``);
+    ``ticks``: servo callbacks run; ``force_limit_n``: peak limit (N); ``continuous_force_n``:
+    the sustained limit (N); ``limit_n``: the limit of the last tick (N); ``warm_motors``: force
+    ramped off until the motors cool; ``temperature``: the hottest motor (0 room .. 1 overheat,
+    None if the device gives none); ``timing``: the callback's period and duration;
     ``model``/``serial``: what the device says it is.
     """
 
@@ -199,10 +391,16 @@ class TouchX(HapticDevice):
         self.config = config or TouchXConfig()
         self.spec = self.config.spec
         self.force_limit_n = self.spec.max_force_n
+        self.continuous_force_n = min(self.spec.continuous_force_n, self.force_limit_n)
+        self.limit_n = self.force_limit_n
         self.calibration = "unknown"
+        self.calibration_styles = 0
         self.calibration_style = 0
         self.ticks = 0
         self.errors = 0
+        self.warm_motors = False
+        self.temperature: float | None = None
+        self.timing = CallbackTiming()
         self.model = self.serial = ""
         self._lib: ctypes.CDLL | None = None
         self._hhd: int | None = None
@@ -210,12 +408,23 @@ class TouchX(HapticDevice):
         self._cb = HDSchedulerCallback(self._servo_tick)  # kept alive while scheduled
         self._m = (ctypes.c_double * 16)()
         self._v = (ctypes.c_double * 3)()
+        self._temps = (ctypes.c_double * 6)()
+        self._n_motors = 0  # 0: no HD_MOTOR_TEMPERATURE
         self._buttons = ctypes.c_int(0)
         self._out = (ctypes.c_double * 3)()
         self._force: Vec3 = (0.0, 0.0, 0.0)  # next force to write (already safe), N
         self._state: DeviceState | None = None
         self._error: str | None = None
         self._lock = threading.Lock()
+        self._cv = threading.Condition(self._lock)
+        # force limiting (HD servo thread only)
+        self._dt = 1.0 / SERVO_RATE_HZ
+        self._heat = 0.0  # |F|^2 low-passed, N^2
+        self._temp_limit = self.force_limit_n
+        self._hot = False
+        self._scale = 1.0  # ramp factor: calibration and warm motors
+        self._warm_last = -math.inf
+        self._last_update = -math.inf
 
     # ------------------------------------------------------------------ open / close
     def open(self) -> None:
@@ -225,17 +434,22 @@ class TouchX(HapticDevice):
         err = lib.hdGetError()
         if hhd == HD_INVALID_HANDLE or err.errorCode != HD_SUCCESS:
             who = repr(self.config.device_name) if self.config.device_name else "the default"
+            gtdd = gtdd_home_problem()
             raise DeviceError(
                 f"touchx: cannot open {who} device: "
-                f"{describe_hd_error(err.errorCode, err.internalErrorCode)}; is the Touch X "
-                "connected and set up (Touch_Setup)?"
+                f"{describe_hd_error(err.errorCode, err.internalErrorCode)}; "
+                + (f"{gtdd}." if gtdd else "is the Touch X connected and set up (Touch_Setup)?")
             )
         self._lib, self._hhd = lib, hhd
         try:
             self._read_properties()
             lib.hdEnable(HD_FORCE_OUTPUT)
+            self._raise_if_error("enabling force output")
+            for cap in (HD_FORCE_RAMPING, HD_MAX_FORCE_CLAMPING):  # as OpenHaptics' examples
+                lib.hdEnable(cap)
+            self._drain_errors()  # optional safety features: not fatal if unsupported
             lib.hdSetSchedulerRate(SERVO_RATE_HZ)
-            self._raise_if_error("setting up the device")
+            self._raise_if_error("setting the scheduler rate")
             self._handle = lib.hdScheduleAsynchronous(self._cb, None, HD_MAX_SCHEDULER_PRIORITY)
             self._raise_if_error("scheduling the servo callback")
             lib.hdStartScheduler()
@@ -247,16 +461,31 @@ class TouchX(HapticDevice):
     def _read_properties(self) -> None:
         lib = self._lib
         assert lib is not None
-        peak = ctypes.c_double(0.0)
-        lib.hdGetDoublev(HD_NOMINAL_MAX_FORCE, ctypes.byref(peak))
-        if math.isfinite(peak.value) and peak.value > 0.0:
-            self.force_limit_n = min(self.spec.max_force_n, peak.value)
+        self._drain_errors()
+        val = ctypes.c_double(0.0)
+        lib.hdGetDoublev(HD_NOMINAL_MAX_FORCE, ctypes.byref(val))
+        if lib.hdGetError().errorCode == HD_SUCCESS and math.isfinite(val.value) and val.value > 0:
+            self.force_limit_n = min(self.spec.max_force_n, val.value)
+        val.value = 0.0
+        lib.hdGetDoublev(HD_NOMINAL_MAX_CONTINUOUS_FORCE, ctypes.byref(val))
+        cont = val.value if lib.hdGetError().errorCode == HD_SUCCESS else math.nan
+        if not (math.isfinite(cont) and cont > 0):
+            cont = self.spec.continuous_force_n
+            log.warning("touchx: no HD_NOMINAL_MAX_CONTINUOUS_FORCE; using the spec's %.2f N", cont)
+        self.continuous_force_n = min(self.spec.continuous_force_n, cont, self.force_limit_n)
+        self.limit_n = self._temp_limit = self.force_limit_n
+        dof = ctypes.c_int(0)
+        lib.hdGetIntegerv(HD_OUTPUT_DOF, ctypes.byref(dof))
+        n = dof.value if lib.hdGetError().errorCode == HD_SUCCESS and 0 < dof.value <= 6 else 3
+        lib.hdGetDoublev(HD_MOTOR_TEMPERATURE, self._temps)
+        self._n_motors = n if lib.hdGetError().errorCode == HD_SUCCESS else 0
         style = ctypes.c_int(0)
         lib.hdGetIntegerv(HD_CALIBRATION_STYLE, ctypes.byref(style))
-        self.calibration_style = style.value
+        self.calibration_styles = style.value if lib.hdGetError().errorCode == HD_SUCCESS else 0
+        self.calibration_style = choose_calibration_style(self.calibration_styles)
         self.model = (lib.hdGetString(HD_DEVICE_MODEL_TYPE) or b"").decode(errors="replace")
         self.serial = (lib.hdGetString(HD_DEVICE_SERIAL_NUMBER) or b"").decode(errors="replace")
-        lib.hdGetError()  # optional properties: an error here is not fatal
+        self._drain_errors()  # optional properties: an error here is not fatal
 
     def close(self) -> None:
         """Zero the force, stop the scheduler, release the device; safe to call twice."""
@@ -279,6 +508,8 @@ class TouchX(HapticDevice):
             lib.hdDisableDevice(hhd)
         lib.hdGetError()
         self._lib = self._hhd = None
+        with self._cv:
+            self._cv.notify_all()
 
     # ------------------------------------------------------------------ servo loop side
     def read(self) -> DeviceState:
@@ -294,6 +525,15 @@ class TouchX(HapticDevice):
             raise DeviceError("touchx: no servo tick yet (is the HD scheduler running?)")
         return state
 
+    def wait_tick(self, after: int, timeout: float) -> int:
+        """Block until a servo tick later than tick number ``after`` has run, at most
+        ``timeout`` s; returns the newest tick number. The wait holds no GIL, so the HD servo
+        thread's callback is never kept waiting by the caller."""
+        with self._cv:
+            if self.ticks <= after and self._lib is not None:
+                self._cv.wait(timeout)
+            return self.ticks
+
     def command_force(self, force: Vec3) -> None:
         """Set the force the next servo tick writes (N, device frame; clamped, zero if NaN)."""
         if self._lib is None:
@@ -305,9 +545,20 @@ class TouchX(HapticDevice):
     def _raise_if_error(self, what: str) -> None:
         err = self._lib.hdGetError()  # type: ignore[union-attr]
         if err.errorCode != HD_SUCCESS:
+            self._drain_errors()
             raise DeviceError(
                 f"touchx: {describe_hd_error(err.errorCode, err.internalErrorCode)} while {what}"
             )
+
+    def _drain_errors(self, limit: int = 16) -> list[tuple[int, int]]:
+        """Pop HD's error stack (most recent first); the (code, internal) pairs."""
+        out = []
+        for _ in range(limit):
+            err = self._lib.hdGetError()  # type: ignore[union-attr]
+            if err.errorCode == HD_SUCCESS:
+                break
+            out.append((int(err.errorCode), int(err.internalErrorCode)))
+        return out
 
     # ------------------------------------------------------------------ HD servo thread
     def _servo_tick(self, _data: int | None) -> int:
@@ -317,49 +568,134 @@ class TouchX(HapticDevice):
         except Exception as exc:  # noqa: BLE001 - an exception must not kill the servo thread
             with self._lock:
                 self._error = f"servo callback failed: {exc!r}"
+                self._force = (0.0, 0.0, 0.0)
             return HD_CALLBACK_CONTINUE
 
     def _tick(self) -> int:
         lib, hhd = self._lib, self._hhd
         if lib is None or hhd is None:
             return HD_CALLBACK_DONE
+        now = time.monotonic()
+        self.timing.enter(now)
         lib.hdBeginFrame(hhd)
         lib.hdGetDoublev(HD_CURRENT_TRANSFORM, self._m)
         lib.hdGetDoublev(HD_CURRENT_VELOCITY, self._v)
         lib.hdGetIntegerv(HD_CURRENT_BUTTONS, ctypes.byref(self._buttons))
+        if self._n_motors:
+            lib.hdGetDoublev(HD_MOTOR_TEMPERATURE, self._temps)
         cal = lib.hdCheckCalibration()
-        if cal == HD_CALIBRATION_NEEDS_UPDATE:
-            style = self.calibration_style
-            for s in (HD_CALIBRATION_ENCODER_RESET, HD_CALIBRATION_AUTO):
-                if style & s:
-                    lib.hdUpdateCalibration(s)
-                    break
-        calibration = CALIBRATION_NAMES.get(cal, f"unknown 0x{cal:04x}")
         with self._lock:
-            force = self._force if cal == HD_CALIBRATION_OK and self._error is None else None
+            cmd = self._force if self._error is None else (0.0, 0.0, 0.0)
         out = self._out
-        out[0], out[1], out[2] = force or (0.0, 0.0, 0.0)
+        out[0], out[1], out[2] = self._limited(cmd, cal == HD_CALIBRATION_OK, now)
         lib.hdSetDoublev(HD_CURRENT_FORCE, out)
         lib.hdEndFrame(hhd)
-        err = lib.hdGetError()
-        state = self._make_state(time.monotonic())
-        with self._lock:
+        if cal == HD_CALIBRATION_NEEDS_UPDATE:
+            self._update_calibration(now)
+        errors = self._drain_errors()
+        state = self._make_state(now)
+        calibration = CALIBRATION_NAMES.get(cal, f"unknown 0x{cal:04x}")
+        with self._cv:
             self.ticks += 1
             if calibration != self.calibration:
                 self._calibration_changed(calibration)
-            if err.errorCode != HD_SUCCESS:
+            for code, internal in errors:
+                if code == HD_WARM_MOTORS:
+                    self._warm(now)
+                    continue
                 self.errors += 1
-                self._error = describe_hd_error(err.errorCode, err.internalErrorCode)
+                self._error = describe_hd_error(code, internal)
                 self._force = (0.0, 0.0, 0.0)  # an HD error drops the commanded force
             self._state = state
+            self._cv.notify_all()
+        self.timing.done(lib.hdGetSchedulerTimeStamp())
         return HD_CALLBACK_CONTINUE
 
+    def _limited(self, cmd: Vec3, calibrated: bool, now: float) -> Vec3:
+        """The force to write this tick (N): ``cmd`` within the thermal budget, the motor
+        temperature clamp and the ramp. Zero while not calibrated. HD servo thread only."""
+        dt, peak, cont = self._dt, self.force_limit_n, self.continuous_force_n
+        if self._n_motors:
+            t = max(self._temps[i] for i in range(self._n_motors))
+            self.temperature = t if math.isfinite(t) else None
+            if t > TEMP_RAMP_DOWN_ON and not self._hot:
+                self._hot = True
+                log.warning("touchx: motors at %.0f %% of their limit: force limited toward the "
+                            "continuous %.2f N", 100 * t, cont)  # fmt: skip
+            elif t < TEMP_RAMP_DOWN_OFF:
+                self._hot = False
+            if self._hot:
+                self._temp_limit = max(cont, min(self._temp_limit, self.limit_n) * TEMP_DOWN_RATE)
+            else:
+                self._temp_limit = min(peak, self._temp_limit * TEMP_UP_RATE)
+        if self.warm_motors and self._cooled(now):
+            self.warm_motors = False
+            log.warning("touchx: motors cooled; force ramps back over %.1f s", self.config.ramp_s)
+        if not calibrated:
+            self._scale = 0.0
+        elif self.warm_motors:
+            self._scale = max(0.0, self._scale - dt / self.config.warm_ramp_s)
+        elif self._scale < 1.0:
+            ramp = self.config.ramp_s
+            self._scale = 1.0 if ramp <= 0.0 else min(1.0, self._scale + dt / ramp)
+        budget = cont + (peak - cont) * min(1.0, max(0.0, 1.0 - self._heat / (cont * cont)))
+        limit = min(budget, self._temp_limit, peak)
+        self.limit_n = limit
+        fx, fy, fz = _safe_force(cmd, limit)
+        s = self._scale
+        fx, fy, fz = fx * s, fy * s, fz * s
+        alpha = min(1.0, dt / self.config.thermal_time_constant_s)
+        self._heat += alpha * (fx * fx + fy * fy + fz * fz - self._heat)
+        return (fx, fy, fz)
+
+    def _warm(self, now: float) -> None:
+        if not self.warm_motors:
+            log.warning(
+                "touchx: HD_WARM_MOTORS: the motors are too warm; force ramps down to zero over "
+                "%.1f s and stays off until they cool", self.config.warm_ramp_s,
+            )  # fmt: skip
+        self.warm_motors = True
+        self._warm_last = now
+
+    def _cooled(self, now: float) -> bool:
+        since = now - self._warm_last
+        if self._n_motors and self.temperature is not None:
+            return since > 1.0 and self.temperature < TEMP_RAMP_DOWN_OFF
+        return since > self.config.warm_cooldown_s
+
+    def _update_calibration(self, now: float) -> None:
+        """``hdUpdateCalibration`` with the chosen style, outside the frame (as OpenHaptics'
+        Calibration example), at most every 0.1 s; never ENCODER_RESET (:func:`reset_encoders`)."""
+        style = self.calibration_style
+        if style in (0, HD_CALIBRATION_ENCODER_RESET):
+            return
+        if now - self._last_update < CALIBRATION_UPDATE_EVERY_S:
+            return
+        self._last_update = now
+        self._lib.hdUpdateCalibration(style)  # type: ignore[union-attr]
+
     def _calibration_changed(self, calibration: str) -> None:
-        self.calibration = calibration
-        if calibration == "needs_manual_input":
+        prev, self.calibration = self.calibration, calibration
+        style = self.calibration_style
+        inkwell = bool(self.calibration_styles & HD_CALIBRATION_INKWELL)
+        if calibration == "ok":
+            if prev != "unknown":
+                log.warning("touchx: calibrated; force ramps back over %.1f s (the position may "
+                            "have jumped)", self.config.ramp_s)  # fmt: skip
+        elif style == HD_CALIBRATION_ENCODER_RESET:
+            log.warning(
+                "touchx: calibration %s: hold the arm at its reset pose and run `python -m "
+                "humantele.haptics.devices.touchx --reset-encoders` with the servo stopped "
+                "(force off until then)", calibration,
+            )  # fmt: skip
+        elif calibration == "needs_manual_input" and inkwell:
             log.warning("touchx: calibration needed: put the stylus in the inkwell (force off)")
-        elif calibration != "ok":
-            log.warning("touchx: calibration %s (force off until ok)", calibration)
+        elif calibration == "needs_manual_input":
+            log.warning("touchx: calibration needs manual input (force off until ok); run "
+                        "Touch_Diagnostic to calibrate")  # fmt: skip
+        else:
+            log.warning("touchx: calibration %s (%s; force off until ok)", calibration,
+                        STYLE_NAMES.get(style, "no supported style"))  # fmt: skip
 
     def _make_state(self, t: float) -> DeviceState:
         m, v = self._m, self._v  # column-major 4x4, translation in mm at 12..14; v in mm/s
@@ -377,3 +713,76 @@ class TouchX(HapticDevice):
 
             q = tuple(matrix_to_quat([[r00, r01, r02], [r10, r11, r12], [r20, r21, r22]]))
         return DeviceState(t, pos, q, int(self._buttons.value), vel)  # type: ignore[arg-type]
+
+
+def reset_encoders(config: TouchXConfig, confirm: Callable[[str], bool]) -> str:
+    """Calibrate a device whose style is HD_CALIBRATION_ENCODER_RESET, as OpenHaptics'
+    Calibration example: before the scheduler starts, ask the user (``confirm(prompt)``) to hold
+    the arm at its reset pose, then ``hdUpdateCalibration(HD_CALIBRATION_ENCODER_RESET)``. Run
+    it with the servo (and any other program on the device) stopped. Returns what was done;
+    DeviceError when the device cannot, or the user declined."""
+    lib = load_hd_library(config.library)
+    name = config.device_name.encode() if config.device_name else None
+    hhd = lib.hdInitDevice(name)
+    err = lib.hdGetError()
+    if hhd == HD_INVALID_HANDLE or err.errorCode != HD_SUCCESS:
+        gtdd = gtdd_home_problem()
+        raise DeviceError(
+            f"touchx: cannot open the device: "
+            f"{describe_hd_error(err.errorCode, err.internalErrorCode)}"
+            + (f"; {gtdd}" if gtdd else "")
+        )
+    try:
+        styles = ctypes.c_int(0)
+        lib.hdGetIntegerv(HD_CALIBRATION_STYLE, ctypes.byref(styles))
+        if not styles.value & HD_CALIBRATION_ENCODER_RESET:
+            have = [n for s, n in STYLE_NAMES.items() if styles.value & s] or ["none"]
+            raise DeviceError(
+                f"touchx: this device has no encoder reset (its calibration: {', '.join(have)}); "
+                "the servo calibrates it by itself (inkwell: put the stylus in the inkwell)"
+            )
+        if not confirm(
+            "Hold the arm at its reset pose (for PHANTOM devices: all links orthogonal; see the "
+            "device's manual) and keep it still. Reset the encoders now?"
+        ):
+            raise DeviceError("touchx: encoder reset cancelled; nothing changed")
+        lib.hdUpdateCalibration(HD_CALIBRATION_ENCODER_RESET)
+        err = lib.hdGetError()
+        if err.errorCode != HD_SUCCESS:
+            raise DeviceError(
+                "touchx: encoder reset failed: "
+                f"{describe_hd_error(err.errorCode, err.internalErrorCode)}"
+            )
+        status = lib.hdCheckCalibration()
+        return f"encoders reset; calibration {CALIBRATION_NAMES.get(status, hex(status))}"
+    finally:
+        lib.hdDisableDevice(hhd)
+        lib.hdGetError()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m humantele.haptics.devices.touchx --reset-encoders``: the prompted encoder
+    reset for devices calibrated that way (not the Touch X: it calibrates in its inkwell)."""
+    ap = argparse.ArgumentParser(prog="python -m humantele.haptics.devices.touchx")
+    ap.add_argument("--reset-encoders", action="store_true", help="prompted encoder reset")
+    ap.add_argument("--library", default="libHD.so", help="path or name of libHD.so")
+    ap.add_argument("--device-name", default="", help="the name set in Touch_Setup")
+    args = ap.parse_args(argv)
+    if not args.reset_encoders:
+        ap.print_help()
+        return 2
+
+    def confirm(prompt: str) -> bool:
+        return input(prompt + " [y/N] ").strip().lower() in ("y", "yes")
+
+    try:
+        print(reset_encoders(TouchXConfig(library=args.library, device_name=args.device_name),
+                             confirm))  # fmt: skip
+    except DeviceError as exc:
+        print(exc, file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
