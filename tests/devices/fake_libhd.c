@@ -13,8 +13,9 @@
  * - forces: the device's HD_NOMINAL_MAX_FORCE (peak) and HD_NOMINAL_MAX_CONTINUOUS_FORCE;
  *   a force over the peak gives HD_EXCEEDED_MAX_FORCE (clamped with HD_MAX_FORCE_CLAMPING, else
  *   cut). The motors' temperature (HD_MOTOR_TEMPERATURE, 0 room .. 1 overheat) follows the
- *   squared force with time constant tau_s: the continuous force holds it at 0.6; at 1 the
- *   device raises HD_WARM_MOTORS (and again every second while warm, until it is below 0.7).
+ *   squared force with time constant tau_s (10 s: a guess, 3D Systems publishes none): the
+ *   continuous force holds it at 0.6; at 1 the device raises HD_WARM_MOTORS (and again every
+ *   second while warm, until it is below 0.7).
  * - scheduler watchdog: a tick whose callbacks run longer than watchdog_us gives
  *   HD_TIMER_ERROR ("unable to maintain the servo loop timer") and the force is cut for that
  *   tick; hdGetSchedulerTimeStamp() is the time since the tick began.
@@ -55,7 +56,7 @@ static double T[16] = {1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1};  /* true pose, colum
 static double V[3];
 static int buttons;
 static double force[3], max_force_seen, nominal_max_force = 7.9, nominal_continuous = 1.75;
-static double temperature, tau_s = 2.0;
+static double temperature, tau_s = 10.0;
 static int warm;
 static long warm_events, exceeded_events, watchdog_trips, last_warm_tick;
 static unsigned int calibration = OK, last_update_style;
@@ -266,7 +267,7 @@ void fake_reset(int manual_mode) {
     manual = manual_mode; inited = enabled = in_frame = clamping = ramping = 0; nerr = 0;
     init_error = 0; require_gtdd = 1;
     fail_at_tick = -1; max_force_seen = 0; nominal_max_force = 7.9; nominal_continuous = 1.75;
-    temperature = 0.0; tau_s = 2.0; warm = 0;
+    temperature = 0.0; tau_s = 10.0; warm = 0;
     warm_events = exceeded_events = watchdog_trips = last_warm_tick = 0;
     calibration = OK; calibration_style = AUTO; inkwell = at_reset_pose = 0;
     cal_delay = 50; cal_pending = -1; enc_reset_running = updates = 0;

@@ -107,6 +107,8 @@ SERVO_RATE_HZ = 1000
 # per-tick factors of its adaptive clamp.
 TEMP_RAMP_DOWN_ON, TEMP_RAMP_DOWN_OFF = 0.7, 0.5
 TEMP_DOWN_RATE, TEMP_UP_RATE = 0.999, 1.001
+# The thermal budget's hot / cool thresholds, as fractions of the continuous force squared.
+BUDGET_ON, BUDGET_OFF = 0.5, 0.25
 CALIBRATION_UPDATE_EVERY_S = 0.1
 
 CALIBRATION_NAMES = {
@@ -415,13 +417,14 @@ class TouchX(HapticDevice):
         self._force: Vec3 = (0.0, 0.0, 0.0)  # next force to write (already safe), N
         self._state: DeviceState | None = None
         self._error: str | None = None
+        self._messages: list[tuple[str, tuple[object, ...]]] = []  # from the HD servo thread
         self._lock = threading.Lock()
         self._cv = threading.Condition(self._lock)
         # force limiting (HD servo thread only)
         self._dt = 1.0 / SERVO_RATE_HZ
         self._heat = 0.0  # |F|^2 low-passed, N^2
-        self._temp_limit = self.force_limit_n
-        self._hot = False
+        self._clamp = self.force_limit_n  # the adaptive clamp (N), see _limited
+        self._hot = self._hot_said = False
         self._scale = 1.0  # ramp factor: calibration and warm motors
         self._warm_last = -math.inf
         self._last_update = -math.inf
@@ -473,7 +476,7 @@ class TouchX(HapticDevice):
             cont = self.spec.continuous_force_n
             log.warning("touchx: no HD_NOMINAL_MAX_CONTINUOUS_FORCE; using the spec's %.2f N", cont)
         self.continuous_force_n = min(self.spec.continuous_force_n, cont, self.force_limit_n)
-        self.limit_n = self._temp_limit = self.force_limit_n
+        self.limit_n = self._clamp = self.force_limit_n
         dof = ctypes.c_int(0)
         lib.hdGetIntegerv(HD_OUTPUT_DOF, ctypes.byref(dof))
         n = dof.value if lib.hdGetError().errorCode == HD_SUCCESS and 0 < dof.value <= 6 else 3
@@ -494,6 +497,7 @@ class TouchX(HapticDevice):
         with self._lock:
             self._force = (0.0, 0.0, 0.0)
         self._release()
+        self._flush_messages()
 
     def _release(self) -> None:
         lib, hhd = self._lib, self._hhd
@@ -519,6 +523,8 @@ class TouchX(HapticDevice):
         with self._lock:
             error, self._error = self._error, None
             state = self._state
+        if self._messages:
+            self._flush_messages()
         if error is not None:
             raise DeviceError(f"touchx: {error}")
         if state is None:
@@ -541,6 +547,16 @@ class TouchX(HapticDevice):
         safe = _safe_force(force, self.force_limit_n)
         with self._lock:
             self._force = safe
+
+    def _say(self, msg: str, *args: object) -> None:
+        """Queue a warning from the HD servo thread (no I/O in the callback); ``read`` logs it."""
+        if len(self._messages) < 100:
+            self._messages.append((msg, args))
+
+    def _flush_messages(self) -> None:
+        while self._messages:
+            msg, args = self._messages.pop(0)
+            log.warning(msg, *args)
 
     def _raise_if_error(self, what: str) -> None:
         err = self._lib.hdGetError()  # type: ignore[union-attr]
@@ -575,8 +591,9 @@ class TouchX(HapticDevice):
         lib, hhd = self._lib, self._hhd
         if lib is None or hhd is None:
             return HD_CALLBACK_DONE
-        now = time.monotonic()
-        self.timing.enter(now)
+        t = time.monotonic()
+        self.timing.enter(t)
+        now = self.ticks * self._dt  # servo time (s): ramps and waits count ticks
         lib.hdBeginFrame(hhd)
         lib.hdGetDoublev(HD_CURRENT_TRANSFORM, self._m)
         lib.hdGetDoublev(HD_CURRENT_VELOCITY, self._v)
@@ -584,6 +601,9 @@ class TouchX(HapticDevice):
         if self._n_motors:
             lib.hdGetDoublev(HD_MOTOR_TEMPERATURE, self._temps)
         cal = lib.hdCheckCalibration()
+        errors = self._drain_errors()  # raised since the last tick (the scheduler's own)
+        if errors:
+            self._handle_errors(errors, now)
         with self._lock:
             cmd = self._force if self._error is None else (0.0, 0.0, 0.0)
         out = self._out
@@ -592,45 +612,60 @@ class TouchX(HapticDevice):
         lib.hdEndFrame(hhd)
         if cal == HD_CALIBRATION_NEEDS_UPDATE:
             self._update_calibration(now)
-        errors = self._drain_errors()
-        state = self._make_state(now)
+        errors = self._drain_errors()  # raised by this tick's frame
+        if errors:
+            self._handle_errors(errors, now)
+        state = self._make_state(t)
         calibration = CALIBRATION_NAMES.get(cal, f"unknown 0x{cal:04x}")
         with self._cv:
             self.ticks += 1
             if calibration != self.calibration:
                 self._calibration_changed(calibration)
-            for code, internal in errors:
-                if code == HD_WARM_MOTORS:
-                    self._warm(now)
-                    continue
-                self.errors += 1
-                self._error = describe_hd_error(code, internal)
-                self._force = (0.0, 0.0, 0.0)  # an HD error drops the commanded force
             self._state = state
             self._cv.notify_all()
         self.timing.done(lib.hdGetSchedulerTimeStamp())
         return HD_CALLBACK_CONTINUE
 
     def _limited(self, cmd: Vec3, calibrated: bool, now: float) -> Vec3:
-        """The force to write this tick (N): ``cmd`` within the thermal budget, the motor
-        temperature clamp and the ramp. Zero while not calibrated. HD servo thread only."""
+        """The force to write this tick (N): ``cmd`` within the adaptive clamp and the ramp;
+        zero while not calibrated. HD servo thread only.
+
+        The clamp is OpenHaptics' PreventWarmMotors: when the motors get hot it starts at the
+        force then commanded and decays by 0.1 % a tick to the continuous rating; when they are
+        cool again it grows by 0.1 % a tick back to the peak. "Hot" is the device's own motor
+        temperature above 0.7 (below 0.5: cool), or the thermal budget: ``heat`` (|F|^2
+        low-passed over ``thermal_time_constant_s``) above half the continuous rating squared
+        (cool below a quarter). A sustained press so settles at the continuous rating, where
+        ``heat`` stays at its square, and a peak passes for a fraction of a second.
+        """
         dt, peak, cont = self._dt, self.force_limit_n, self.continuous_force_n
+        temp = None
         if self._n_motors:
             t = max(self._temps[i] for i in range(self._n_motors))
-            self.temperature = t if math.isfinite(t) else None
-            if t > TEMP_RAMP_DOWN_ON and not self._hot:
-                self._hot = True
-                log.warning("touchx: motors at %.0f %% of their limit: force limited toward the "
-                            "continuous %.2f N", 100 * t, cont)  # fmt: skip
-            elif t < TEMP_RAMP_DOWN_OFF:
-                self._hot = False
-            if self._hot:
-                self._temp_limit = max(cont, min(self._temp_limit, self.limit_n) * TEMP_DOWN_RATE)
-            else:
-                self._temp_limit = min(peak, self._temp_limit * TEMP_UP_RATE)
+            temp = self.temperature = t if math.isfinite(t) else None
+        c2 = cont * cont
+        hot_temp = temp is not None and temp > TEMP_RAMP_DOWN_ON
+        if not self._hot and (hot_temp or self._heat > BUDGET_ON * c2):
+            self._hot = True
+            cx, cy, cz = cmd
+            self._clamp = min(self._clamp, max(cont, math.sqrt(cx * cx + cy * cy + cz * cz)))
+            if hot_temp and not self._hot_said:
+                self._hot_said = True
+                self._say("touchx: motors at %.0f %% of their limit: force limited toward the "
+                          "continuous %.2f N", 100 * temp, cont)  # fmt: skip
+        elif (
+            self._hot
+            and self._heat < BUDGET_OFF * c2
+            and (temp is None or temp < TEMP_RAMP_DOWN_OFF)
+        ):
+            self._hot = self._hot_said = False
+        if self._hot:
+            self._clamp = max(cont, self._clamp * TEMP_DOWN_RATE)
+        else:
+            self._clamp = min(peak, self._clamp * TEMP_UP_RATE)
         if self.warm_motors and self._cooled(now):
             self.warm_motors = False
-            log.warning("touchx: motors cooled; force ramps back over %.1f s", self.config.ramp_s)
+            self._say("touchx: motors cooled; force ramps back over %.1f s", self.config.ramp_s)
         if not calibrated:
             self._scale = 0.0
         elif self.warm_motors:
@@ -638,8 +673,8 @@ class TouchX(HapticDevice):
         elif self._scale < 1.0:
             ramp = self.config.ramp_s
             self._scale = 1.0 if ramp <= 0.0 else min(1.0, self._scale + dt / ramp)
-        budget = cont + (peak - cont) * min(1.0, max(0.0, 1.0 - self._heat / (cont * cont)))
-        limit = min(budget, self._temp_limit, peak)
+        # 1 ppb under: the rounding of the clamp must not cross the device's own max force check
+        limit = min(self._clamp, peak) * (1.0 - 1e-9)
         self.limit_n = limit
         fx, fy, fz = _safe_force(cmd, limit)
         s = self._scale
@@ -648,9 +683,21 @@ class TouchX(HapticDevice):
         self._heat += alpha * (fx * fx + fy * fy + fz * fz - self._heat)
         return (fx, fy, fz)
 
+    def _handle_errors(self, errors: list[tuple[int, int]], now: float) -> None:
+        """HD_WARM_MOTORS ramps the force off (:meth:`_warm`); any other error is reported by
+        the next ``read`` and drops the commanded force."""
+        for code, internal in errors:
+            if code == HD_WARM_MOTORS:
+                self._warm(now)
+                continue
+            with self._lock:
+                self.errors += 1
+                self._error = describe_hd_error(code, internal)
+                self._force = (0.0, 0.0, 0.0)
+
     def _warm(self, now: float) -> None:
         if not self.warm_motors:
-            log.warning(
+            self._say(
                 "touchx: HD_WARM_MOTORS: the motors are too warm; force ramps down to zero over "
                 "%.1f s and stays off until they cool", self.config.warm_ramp_s,
             )  # fmt: skip
@@ -680,21 +727,21 @@ class TouchX(HapticDevice):
         inkwell = bool(self.calibration_styles & HD_CALIBRATION_INKWELL)
         if calibration == "ok":
             if prev != "unknown":
-                log.warning("touchx: calibrated; force ramps back over %.1f s (the position may "
+                self._say("touchx: calibrated; force ramps back over %.1f s (the position may "
                             "have jumped)", self.config.ramp_s)  # fmt: skip
         elif style == HD_CALIBRATION_ENCODER_RESET:
-            log.warning(
+            self._say(
                 "touchx: calibration %s: hold the arm at its reset pose and run `python -m "
                 "humantele.haptics.devices.touchx --reset-encoders` with the servo stopped "
                 "(force off until then)", calibration,
             )  # fmt: skip
         elif calibration == "needs_manual_input" and inkwell:
-            log.warning("touchx: calibration needed: put the stylus in the inkwell (force off)")
+            self._say("touchx: calibration needed: put the stylus in the inkwell (force off)")
         elif calibration == "needs_manual_input":
-            log.warning("touchx: calibration needs manual input (force off until ok); run "
+            self._say("touchx: calibration needs manual input (force off until ok); run "
                         "Touch_Diagnostic to calibrate")  # fmt: skip
         else:
-            log.warning("touchx: calibration %s (%s; force off until ok)", calibration,
+            self._say("touchx: calibration %s (%s; force off until ok)", calibration,
                         STYLE_NAMES.get(style, "no supported style"))  # fmt: skip
 
     def _make_state(self, t: float) -> DeviceState:
