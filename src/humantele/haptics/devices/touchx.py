@@ -215,7 +215,32 @@ def _dependency_hint(lib: str) -> str:
     return "the package that provides it (ldd on libHD.so lists what is missing)"
 
 
-def load_hd_library(name: str) -> ctypes.CDLL:
+class HDLibrary:
+    """libHD's functions with their signatures, as attributes (``lib.hdBeginFrame(...)``).
+
+    Those the servo callback calls are bound through ``ctypes.PyDLL``: they keep the GIL,
+    because a ``CDLL`` call releases and re-takes it around every call, and each re-take waits
+    for whatever other Python thread holds it (up to the switch interval: a dozen such waits in
+    one callback made it run for milliseconds). The calls that block or wait for the scheduler
+    thread (``GIL_FREE``: init, start/stop, unschedule, disable) release it, or stopping the
+    scheduler would deadlock on a callback waiting for the GIL."""
+
+    GIL_FREE = frozenset({"hdInitDevice", "hdDisableDevice", "hdStartScheduler",
+                          "hdStopScheduler", "hdUnschedule", "hdScheduleAsynchronous"})  # fmt: skip
+
+    def __init__(self, path: str, cdll: ctypes.CDLL) -> None:
+        self.path = path
+        self._c = cdll
+        self._py = ctypes.PyDLL(path, handle=cdll._handle)
+
+    def bind(self, fn: str, restype: object, argtypes: list) -> None:
+        """Bind ``fn`` (AttributeError when libHD lacks it)."""
+        f = getattr(self._c if fn in self.GIL_FREE else self._py, fn)
+        f.restype, f.argtypes = restype, argtypes
+        setattr(self, fn, f)
+
+
+def load_hd_library(name: str) -> HDLibrary:
     """Load libHD with its signatures; DeviceError saying what is missing when it cannot be
     loaded: libHD itself, or a library it needs (named, with what to install)."""
     candidates = [name]
@@ -267,20 +292,19 @@ def load_hd_library(name: str) -> ctypes.CDLL:
         "hdUnschedule": (None, [ctypes.c_ulong]),
         "hdGetSchedulerTimeStamp": (c_double, []),
     }
+    hd = HDLibrary(cand, lib)
     missing = []
     for fn, (restype, argtypes) in sigs.items():
         try:
-            f = getattr(lib, fn)
+            hd.bind(fn, restype, argtypes)
         except AttributeError:
             missing.append(fn)
-            continue
-        f.restype, f.argtypes = restype, argtypes
     if missing:
         raise DeviceError(
             f"touchx: {name} lacks {', '.join(missing)}; is it the OpenHaptics HD library "
             "(3.0 or later)?"
         )
-    return lib
+    return hd
 
 
 def gtdd_home_problem(env: dict[str, str] | None = None) -> str | None:
@@ -404,7 +428,7 @@ class TouchX(HapticDevice):
         self.temperature: float | None = None
         self.timing = CallbackTiming()
         self.model = self.serial = ""
-        self._lib: ctypes.CDLL | None = None
+        self._lib: HDLibrary | None = None
         self._hhd: int | None = None
         self._handle: int | None = None
         self._cb = HDSchedulerCallback(self._servo_tick)  # kept alive while scheduled
