@@ -513,3 +513,23 @@ def test_servo_loop_follows_the_device_ticks_and_never_spins(fake_hd, monkeypatc
             b.close()
             b.unlink()
     assert not errors and not loop.is_alive()
+
+
+def test_servo_process_runs_on_the_touchx_backend(fake_hd_path, tmp_path, monkeypatch):
+    """The whole servo process on the fake libHD in its own 1 kHz thread: the loop follows the
+    device's ticks, publishes the stylus pose and stops with the device released."""
+    from humantele.haptics.servo import ServoProcess
+
+    (tmp_path / "3DSystems" / "config").mkdir(parents=True)
+    monkeypatch.setenv("GTDD_HOME", str(tmp_path / "3DSystems"))
+    cfg = ServoConfig(device=TouchXConfig(library=fake_hd_path), realtime_priority=0)
+    with ServoProcess(cfg) as sp:
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline:
+            s = sp.latest()
+            if s is not None and s.tick > 300:
+                break
+            time.sleep(0.01)
+        assert s is not None and s.tick > 300
+        assert np.allclose(s.T_device_stylus.position, 0.0)  # the fake's stylus at the origin
+    assert sp.returncode == 0 and sp.stats().ticks > 300  # the final statistics

@@ -14,6 +14,8 @@ and closes the frame (``hdEndFrame``). ``read`` returns the newest tick's state,
 ``command_force`` stores the force the next tick writes, ``wait_tick`` blocks (the GIL free)
 until the next tick: the servo process follows the device's clock instead of spinning on its
 own, because every tick of this callback needs the GIL (see :mod:`humantele.haptics.servo_child`).
+The libHD calls the callback makes keep the GIL (``ctypes.PyDLL``, see :class:`HDLibrary`), so
+it takes the GIL once per tick, not once per call.
 
 Units: HD speaks mm and N in the device frame of ``base`` (x right, y up, z toward the user,
 origin at the workspace centre); this module converts mm to m at the edge and leaves forces in
@@ -21,13 +23,14 @@ N and in that frame.
 
 Force limit (safety): every force written is finite and at most the peak, the smaller of
 ``spec.max_force_n`` and the device's ``HD_NOMINAL_MAX_FORCE``. Sustained force is held to the
-continuous rating (``HD_NOMINAL_MAX_CONTINUOUS_FORCE``, 1.75 N on a Touch X) by a thermal budget
-on the squared force (motor heating goes as current squared; ``heat`` is |F|^2 low-passed with
-``thermal_time_constant_s``): the limit falls from the peak while the budget fills and reaches
-the continuous rating when ``heat`` does, so a peak passes only briefly and a sustained press
-settles at the rating. On top, the device's own motor model as OpenHaptics' PreventWarmMotors
-example uses it: above 0.7 of ``HD_MOTOR_TEMPERATURE`` the limit decays by 0.1 % a tick toward
-the continuous rating, below 0.5 it recovers. If the device still reports ``HD_WARM_MOTORS``,
+continuous rating (``HD_NOMINAL_MAX_CONTINUOUS_FORCE``, 1.75 N on a Touch X) by OpenHaptics'
+PreventWarmMotors scheme: once hot, an adaptive clamp starts at the force then commanded and
+decays by 0.1 % a tick to the continuous rating; once cool it recovers by 0.1 % a tick. Hot is
+the device's own motor model (``HD_MOTOR_TEMPERATURE`` above 0.7, cool below 0.5) or a thermal
+budget on the squared force (motor heating goes as current squared: ``heat``, |F|^2 low-passed
+over ``thermal_time_constant_s``, above half the continuous rating squared, cool below a
+quarter), so a peak passes for a fraction of a second and a sustained press settles at the
+rating with no step. If the device still reports ``HD_WARM_MOTORS``,
 the force ramps down to zero over ``warm_ramp_s`` (logged: never a step mid-contact), stays
 off until the motors have cooled (temperature below 0.5, or ``warm_cooldown_s`` without a
 temperature reading) and ramps back up over ``ramp_s``.
