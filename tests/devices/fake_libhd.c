@@ -25,6 +25,7 @@
  * Python callback's wait for its GIL is counted) in 10 us histograms. */
 #include <math.h>
 #include <pthread.h>
+#include <sched.h>
 #include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -71,6 +72,7 @@ static unsigned int init_error;
 static int require_gtdd = 1;
 static long fail_at_tick = -1; static unsigned int fail_code;
 static long watchdog_ns = 1000000;
+static int rt_prio;  /* SCHED_FIFO priority of the scheduler thread (0: normal) */
 static struct timespec tick_start, last_tick_start;
 static long period_hist[NBINS], dur_hist[NBINS], nperiods, ndurs;
 static double dur_max_us, period_max_us;
@@ -252,6 +254,10 @@ void hdStartScheduler(void) {
     if (!manual) {
         pthread_create(&thread, 0, servo_main, 0);
         servo_thread = thread; have_servo_thread = 1;
+        if (rt_prio > 0) {
+            struct sched_param sp = {.sched_priority = rt_prio};
+            pthread_setschedparam(thread, SCHED_FIFO, &sp);  /* refused: stays normal */
+        }
     }
 }
 void hdStopScheduler(void) {
@@ -265,7 +271,7 @@ void hdStopScheduler(void) {
 void fake_reset(int manual_mode) {
     running = 0; ncb = 0; ticks = frames = force_writes = frame_violations = thread_violations = 0;
     manual = manual_mode; inited = enabled = in_frame = clamping = ramping = 0; nerr = 0;
-    init_error = 0; require_gtdd = 1;
+    init_error = 0; require_gtdd = 1; rt_prio = 0;
     fail_at_tick = -1; max_force_seen = 0; nominal_max_force = 7.9; nominal_continuous = 1.75;
     temperature = 0.0; tau_s = 10.0; warm = 0;
     warm_events = exceeded_events = watchdog_trips = last_warm_tick = 0;
@@ -294,6 +300,7 @@ void fake_set_nominal_continuous_force(double f) { nominal_continuous = f; }
 void fake_set_thermal(double tau, double temp) { tau_s = tau; temperature = temp; }
 void fake_set_watchdog_us(long us) { watchdog_ns = us * 1000L; }
 void fake_require_gtdd_home(int on) { require_gtdd = on; }
+void fake_set_realtime(int prio) { rt_prio = prio; }
 void fake_fail_init(unsigned int code) { init_error = code; }
 void fake_fail_at_tick(long tick, unsigned int code) { fail_at_tick = tick; fail_code = code; }
 double fake_force(int i) { return force[i]; }

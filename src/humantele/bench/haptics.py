@@ -49,8 +49,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="the Touch X servo callback's timing on the fake libHD instead",
     )
-    parser.add_argument("--callback-seconds", type=float, default=5.0,
-                        help="seconds per --callback row (7 rows)")  # fmt: skip
+    parser.add_argument(
+        "--callback-seconds", type=float, default=5.0, help="seconds per --callback row (9 rows)"
+    )
+    parser.add_argument("--callback-realtime", type=int, default=0, metavar="PRIO",
+                        help="--callback rows again with SCHED_FIFO PRIO (0: not)")  # fmt: skip
 
 
 def scene_points(
@@ -259,11 +262,12 @@ def run_callback(args: argparse.Namespace) -> int:
     """``--callback``: the servo callback rows; writes the ``haptics-callback`` section."""
     from humantele.bench import haptics_callback as hc
 
-    if not 0.5 <= args.callback_seconds <= 120.0:
-        print("humantele bench haptics: --callback-seconds must be in [0.5, 120]")
+    if not 0.5 <= args.callback_seconds <= 120.0 or not 0 <= args.callback_realtime <= 99:
+        print("humantele bench haptics: --callback-seconds in [0.5, 120], --callback-realtime "
+              "in [0, 99]")  # fmt: skip
         return 2
     try:
-        rows = hc.measure(args.callback_seconds)
+        rows = hc.measure(args.callback_seconds, args.callback_realtime)
     except (RuntimeError, OSError, subprocess.CalledProcessError) as exc:
         print(f"humantele bench haptics --callback: cannot build the fake libHD: {exc}")
         return 1
@@ -271,7 +275,8 @@ def run_callback(args: argparse.Namespace) -> int:
     print(table)
     if not args.no_write:
         write_section(
-            "haptics-callback", hc.section(rows, args.callback_seconds, table, machine_line())
+            "haptics-callback",
+            hc.section(rows, args.callback_seconds, table, machine_line(), args.callback_realtime),
         )
     if args.json:
         print(json.dumps(rows))

@@ -35,6 +35,8 @@ ROWS: list[tuple[str, str, str, float | None]] = [
     ("device / CPU-bound Python thread", "device", "python thread", None),
     ("device / Python thread, 5 ms switch", "device", "python thread", 0.005),
     ("sleep+spin / idle", "spin", "idle", None),
+    ("sleep+spin / idle (run 2)", "spin", "idle", None),
+    ("sleep+spin / idle (run 3)", "spin", "idle", None),
     ("sleep+spin / one busy core", "spin", "busy core", None),
     ("sleep+spin / CPU-bound Python thread", "spin", "python thread", None),
 ]
@@ -65,8 +67,12 @@ class _OwnClock:
         self._dev.command_force(f)
 
 
-def _child(lib: str, loop: str, load: str, switch: float | None, seconds: float, conn) -> None:
-    """One row, in its own process: the servo loop on the fake device; sends the figures."""
+def _child(
+    lib: str, loop: str, load: str, switch: float | None, seconds: float, rt: int, conn
+) -> None:
+    """One row, in its own process: the servo loop on the fake device; sends the figures.
+    ``rt`` > 0: the fake's scheduler thread and the loop's thread at that SCHED_FIFO priority
+    (the CPU-bound thread and the busy process stay at normal priority)."""
     import numpy as np
 
     from humantele.haptics import servo_child
@@ -92,10 +98,11 @@ def _child(lib: str, loop: str, load: str, switch: float | None, seconds: float,
     fake.fake_reset(0)
     fake.fake_require_gtdd_home(0)
     fake.fake_set_watchdog_us(WATCHDOG_US)
+    fake.fake_set_realtime(rt)
     m = np.eye(4)
     m[1, 3] = -35.0  # mm: 5 mm into the demo patient under the automatic registration
     fake.fake_set_transform((ctypes.c_double * 16)(*m.T.reshape(-1)))
-    cfg = ServoConfig(device=TouchXConfig(library=lib), realtime_priority=0)
+    cfg = ServoConfig(device=TouchXConfig(library=lib), realtime_priority=rt)
     dev = TouchX(cfg.device)
     dev.open()
     device = dev if loop == "device" else _OwnClock(dev)
@@ -117,8 +124,9 @@ def _child(lib: str, loop: str, load: str, switch: float | None, seconds: float,
                 pass
 
         threading.Thread(target=burn, daemon=True).start()
+    realtime = servo_child.try_realtime(cfg) if rt > 0 else False
     try:
-        servo_child._run(cfg, device, cmd, out, st, stop, os.getppid(), False)
+        servo_child._run(cfg, device, cmd, out, st, stop, os.getppid(), realtime)
     finally:
         dev.close()
     stats = dict(zip(STAT_FIELDS, st.read().tolist(), strict=True))
@@ -133,11 +141,14 @@ def _child(lib: str, loop: str, load: str, switch: float | None, seconds: float,
         "device_ticks": float(fake.fake_counter(0)),
         "loop_rate_hz": stats["rate_hz"],
         "loop_fault_episodes": stats["fault_episodes"],
+        "realtime": bool(realtime),
     })  # fmt: skip
     conn.send(res)
 
 
-def run_row(lib: Path, loop: str, load: str, switch: float | None, seconds: float) -> dict:
+def run_row(
+    lib: Path, loop: str, load: str, switch: float | None, seconds: float, rt: int = 0
+) -> dict:
     """One row in a fresh spawned process (with a busy-core process beside it if asked)."""
     ctx = mp.get_context("spawn")
     parent, child = ctx.Pipe(duplex=False)
@@ -146,7 +157,7 @@ def run_row(lib: Path, loop: str, load: str, switch: float | None, seconds: floa
         burner = subprocess.Popen([sys.executable, "-c", "while True: pass"])
     try:
         load_before = os.getloadavg()[0]
-        p = ctx.Process(target=_child, args=(str(lib), loop, load, switch, seconds, child))
+        p = ctx.Process(target=_child, args=(str(lib), loop, load, switch, seconds, rt, child))
         p.start()
         child.close()
         res = parent.recv() if parent.poll(seconds + 60.0) else {}
@@ -162,13 +173,18 @@ def run_row(lib: Path, loop: str, load: str, switch: float | None, seconds: floa
     return res
 
 
-def measure(seconds: float) -> list[dict]:
+def measure(seconds: float, rt: int = 0) -> list[dict]:
+    """All rows at normal priority, then (``rt`` > 0) again with SCHED_FIFO ``rt``."""
     with tempfile.TemporaryDirectory() as d:
         lib = build_fake_libhd(Path(d))
         rows = []
-        for name, loop, load, switch in ROWS:
-            res = run_row(lib, loop, load, switch, seconds)
-            res.update({"row": name, "loop": loop, "load": load})
+        for prio, (name, loop, load, switch) in [(0, r) for r in ROWS] + (
+            [(rt, r) for r in ROWS] if rt > 0 else []
+        ):
+            res = run_row(lib, loop, load, switch, seconds, prio)
+            if prio:
+                name = f"{name}, SCHED_FIFO {prio}" + ("" if res.get("realtime") else " refused")
+            res.update({"row": name, "loop": loop, "load": load, "rt": prio})
             rows.append(res)
             print(f"  {name}: period p99 {res.get('period_p99_us', 0):.0f} us, duration p99 "
                   f"{res.get('duration_p99_us', 0):.0f} us, watchdog {res.get('watchdog_trips')}",
@@ -199,15 +215,19 @@ def table_rows(rows: list[dict]) -> list[list[object]]:
     return out
 
 
-def section(rows: list[dict], seconds: float, table: str, machine: str) -> str:
+def section(rows: list[dict], seconds: float, table: str, machine: str, rt: int = 0) -> str:
     return "\n\n".join([
         "## Haptics: the Touch X servo callback (fake OpenHaptics libHD)",
         machine + " A shared machine (other work ran beside it): the load average (1 min, the "
         "larger of before and after the row) is given per row.",
-        f"`humantele bench haptics --callback --callback-seconds {seconds:g}`: each row runs the "
-        "servo process's loop on the Touch X backend over the fake libHD (its own 1 kHz "
-        "scheduler thread, watchdog at 1 ms) with the demo patient in contact, no SCHED_FIFO, "
-        f"for {seconds:g} s. Period: the callback's entry to entry, as its Python code runs; "
+        f"`humantele bench haptics --callback --callback-seconds {seconds:g}"
+        + (f" --callback-realtime {rt}" if rt else "")
+        + "`: each row runs the servo process's loop on the Touch X backend over the fake libHD "
+        "(its own 1 kHz scheduler thread, watchdog at 1 ms) with the demo patient in contact "
+        f"for {seconds:g} s, at normal priority"
+        + (f", then again with the scheduler thread and the loop at SCHED_FIFO {rt} (as the "
+           "servo runs where allowed; the load stays at normal priority)" if rt else "")
+        + ". Period: the callback's entry to entry, as its Python code runs; "
         "duration: `hdGetSchedulerTimeStamp()` at its end, i.e. from the scheduler tick's "
         "start, the wait for the GIL included. `device`: the loop blocks in "
         "`TouchX.wait_tick` (GIL free) and the servo process's switch interval is 0.2 ms (the "
@@ -215,4 +235,16 @@ def section(rows: list[dict], seconds: float, table: str, machine: str) -> str:
         "0.2 ms holding the GIL (before). One busy core: a separate `python -c \"while True: "
         "pass\"` process; Python thread: a CPU-bound thread inside the servo process.",
         table,
+        "The fake's watchdog faults a tick whose callbacks run over 1 ms (OpenHaptics does not "
+        "publish its own limit; its guide asks callbacks to take \"significantly less time\" "
+        "than the 1 ms slice and the device's amplifiers cut out when the servo loop stalls). "
+        "A CPU-bound Python thread inside the servo process makes the callback wait for the GIL "
+        "whatever the loop does: with SCHED_FIFO it is a priority inversion (the thread holding "
+        "the GIL is preempted by normal-priority work and cannot hand it over). The servo "
+        "process runs no other Python thread (the daemon's threads are in their own process); "
+        "the 0.2 ms switch interval bounds the wait while the holder runs (compare the 5 ms "
+        "row). The two 1 kHz clocks of a `sleep+spin` row (the device's scheduler and the loop's "
+        "deadlines) keep the phase they start with for the whole run, so whether the device's "
+        "callback falls into the loop's spin and render window, and waits for the GIL every "
+        "tick, changes from run to run: hence three idle runs.",
     ])  # fmt: skip

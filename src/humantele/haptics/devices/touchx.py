@@ -17,6 +17,11 @@ own, because every tick of this callback needs the GIL (see :mod:`humantele.hapt
 The libHD calls the callback makes keep the GIL (``ctypes.PyDLL``, see :class:`HDLibrary`), so
 it takes the GIL once per tick, not once per call.
 
+Calling convention: ``hdExport.h`` declares the API ``__attribute__((stdcall))`` on Linux, which
+x86-64 ignores (System V ABI), and the callback with none: plain ``CDLL``/``CFUNCTYPE`` (OpenHaptics
+3.4 for Linux is amd64 only). Types: ``HHD``/``HDenum`` unsigned int, ``HDSchedulerHandle``
+unsigned long, priority ``HDushort``, ``hdGetError`` returns ``HDErrorInfo`` by value.
+
 Units: HD speaks mm and N in the device frame of ``base`` (x right, y up, z toward the user,
 origin at the workspace centre); this module converts mm to m at the edge and leaves forces in
 N and in that frame.
