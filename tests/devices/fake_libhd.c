@@ -20,7 +20,9 @@
  *   HD_TIMER_ERROR ("unable to maintain the servo loop timer") and the force is cut for that
  *   tick; hdGetSchedulerTimeStamp() is the time since the tick began.
  * - the 3D Systems Touch driver (libPhantomIOLib42) needs GTDD_HOME: without it hdInitDevice
- *   prints the driver's "Config directory not set correctly." and fails (HD_COMM_ERROR).
+ *   prints the driver's "Config directory not set correctly." and fails (HD_COMM_ERROR: a
+ *   guess; users report only that the Touch is then not found, jhu-cisst-external/
+ *   3ds-touch-openhaptics issue 2, and the backend's message does not depend on the code).
  * It also keeps the callbacks' period and duration (tick start to the callbacks' return, so a
  * Python callback's wait for its GIL is counted) in 10 us histograms. */
 #include <math.h>

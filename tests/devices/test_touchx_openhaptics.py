@@ -533,3 +533,26 @@ def test_servo_process_runs_on_the_touchx_backend(fake_hd_path, tmp_path, monkey
         assert s is not None and s.tick > 300
         assert np.allclose(s.T_device_stylus.position, 0.0)  # the fake's stylus at the origin
     assert sp.returncode == 0 and sp.stats().ticks > 300  # the final statistics
+
+
+def test_a_failing_tick_closes_its_frame_with_zero_force(fake_hd):
+    path, fake = fake_hd
+    dev = TouchX(TouchXConfig(library=path))
+    dev.open()
+    dev.command_force((0.0, 1.0, 0.0))
+    fake.fake_tick(2)
+    assert forces(fake)[1] == pytest.approx(1.0)
+    good = dev._limited
+
+    def broken(*args):
+        raise ValueError("boom")
+
+    dev._limited = broken
+    fake.fake_tick(1)
+    dev._limited = good
+    assert forces(fake) == [0.0, 0.0, 0.0] and fake.fake_counter(FRAMES) == 3
+    with pytest.raises(DeviceError, match="servo callback failed.*boom"):
+        dev.read()
+    fake.fake_tick(1)  # the next frame opens cleanly (no HD_ILLEGAL_BEGIN)
+    dev.read()
+    dev.close()

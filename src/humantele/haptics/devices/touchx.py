@@ -445,6 +445,7 @@ class TouchX(HapticDevice):
         self._temps = (ctypes.c_double * 6)()
         self._n_motors = 0  # 0: no HD_MOTOR_TEMPERATURE
         self._buttons = ctypes.c_int(0)
+        self._in_frame = False
         self._out = (ctypes.c_double * 3)()
         self._force: Vec3 = (0.0, 0.0, 0.0)  # next force to write (already safe), N
         self._state: DeviceState | None = None
@@ -617,6 +618,14 @@ class TouchX(HapticDevice):
             with self._lock:
                 self._error = f"servo callback failed: {exc!r}"
                 self._force = (0.0, 0.0, 0.0)
+            if self._in_frame and self._lib is not None:  # close it with zero force
+                self._in_frame = False
+                try:
+                    self._out[0] = self._out[1] = self._out[2] = 0.0
+                    self._lib.hdSetDoublev(HD_CURRENT_FORCE, self._out)
+                    self._lib.hdEndFrame(self._hhd)
+                except Exception:  # noqa: BLE001 - nothing more to do from here
+                    pass
             return HD_CALLBACK_CONTINUE
 
     def _tick(self) -> int:
@@ -627,6 +636,7 @@ class TouchX(HapticDevice):
         self.timing.enter(t)
         now = self.ticks * self._dt  # servo time (s): ramps and waits count ticks
         lib.hdBeginFrame(hhd)
+        self._in_frame = True
         lib.hdGetDoublev(HD_CURRENT_TRANSFORM, self._m)
         lib.hdGetDoublev(HD_CURRENT_VELOCITY, self._v)
         lib.hdGetIntegerv(HD_CURRENT_BUTTONS, ctypes.byref(self._buttons))
@@ -642,6 +652,7 @@ class TouchX(HapticDevice):
         out[0], out[1], out[2] = self._limited(cmd, cal == HD_CALIBRATION_OK, now)
         lib.hdSetDoublev(HD_CURRENT_FORCE, out)
         lib.hdEndFrame(hhd)
+        self._in_frame = False
         if cal == HD_CALIBRATION_NEEDS_UPDATE:
             self._update_calibration(now)
         errors = self._drain_errors()  # raised by this tick's frame
