@@ -16,6 +16,7 @@ pass"`` process); a CPU-bound Python thread inside the servo process.
 from __future__ import annotations
 
 import ctypes
+import gc
 import multiprocessing as mp
 import os
 import shutil
@@ -104,6 +105,8 @@ def _child(
     fake.fake_set_transform((ctypes.c_double * 16)(*m.T.reshape(-1)))
     cfg = ServoConfig(device=TouchXConfig(library=lib), realtime_priority=rt)
     dev = TouchX(cfg.device)
+    gc.collect()  # as servo_main does before it opens the device
+    gc.freeze()
     dev.open()
     device = dev if loop == "device" else _OwnClock(dev)
     if switch is not None:

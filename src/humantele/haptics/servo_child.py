@@ -160,6 +160,11 @@ def servo_main(config_json: str, names: tuple[str, str, str], parent_pid: int, c
     try:
         config = ServoConfig.model_validate_json(config_json)
         device = make_device(config.device)
+        # Collect and freeze what the imports made before the device's own servo thread starts:
+        # a full collection holds the GIL for tens of ms, during which a device callback that
+        # needs it (the Touch X's) would miss its slot. _run's collection is then short.
+        gc.collect()
+        gc.freeze()
         device.open()
     except Exception as exc:  # noqa: BLE001 - reported to the parent, which raises it
         conn.send(("error", f"{type(exc).__name__}: {exc}"))
