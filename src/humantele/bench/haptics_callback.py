@@ -235,7 +235,8 @@ def section(rows: list[dict], seconds: float, table: str, machine: str, rt: int 
         "start, the wait for the GIL included. `device`: the loop blocks in "
         "`TouchX.wait_tick` (GIL free) and the servo process's switch interval is 0.2 ms (the "
         "project's); `sleep+spin`: the loop on its own deadline clock, spinning the last "
-        "0.2 ms holding the GIL (before). One busy core: a separate `python -c \"while True: "
+        "0.2 ms holding the GIL (the loop as before; the backend as now: its libHD calls keep "
+        "the GIL, so a callback takes it once). One busy core: a separate `python -c \"while True: "
         "pass\"` process; Python thread: a CPU-bound thread inside the servo process.",
         table,
         "The fake's watchdog faults a tick whose callbacks run over 1 ms (OpenHaptics does not "
