@@ -72,7 +72,7 @@ def fake_hd(fake_hd_path, tmp_path, monkeypatch):
     fake.fake_reset(1)
     # The watchdog (a tick over 1 ms faults) is on in the fake by default, as in the real
     # scheduler; off here so that a busy test machine's stall is not taken for a defect. The
-    # tests of the watchdog turn it on.
+    # tests of the watchdog turn it on. fake_reset leaves it as set.
     fake.fake_set_watchdog_us(0)
     yield fake_hd_path, fake
     fake.fake_reset(1)

@@ -279,7 +279,7 @@ void fake_reset(int manual_mode) {
     warm_events = exceeded_events = watchdog_trips = last_warm_tick = 0;
     calibration = OK; calibration_style = AUTO; inkwell = at_reset_pose = 0;
     cal_delay = 50; cal_pending = -1; enc_reset_running = updates = 0;
-    last_update_style = 0; rate = 1000; buttons = 0; watchdog_ns = 1000000;
+    last_update_style = 0; rate = 1000; buttons = 0;  /* the watchdog stays as set */
     memset(force, 0, sizeof force); memset(V, 0, sizeof V); memset(offset, 0, sizeof offset);
     memset(period_hist, 0, sizeof period_hist); memset(dur_hist, 0, sizeof dur_hist);
     nperiods = ndurs = 0; dur_max_us = period_max_us = 0.0;

@@ -321,8 +321,7 @@ def test_real_scheduler_thread_runs_the_callback_and_io_stays_in_it(fake_hd):
     """With the fake's own servo thread (as OpenHaptics): ticks arrive without the caller's help,
     every HD frame and force write happens in that thread, and close stops it."""
     path, fake = fake_hd
-    fake.fake_reset(0)  # threaded scheduler
-    fake.fake_set_watchdog_us(0)  # a busy test machine may stall a tick: not what is tested
+    fake.fake_reset(0)  # threaded scheduler (the fixture turned the watchdog off)
     dev = TouchX(TouchXConfig(library=path))
     dev.open()
     deadline = time.monotonic() + 30.0
