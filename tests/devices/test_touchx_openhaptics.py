@@ -17,8 +17,9 @@ import pytest
 
 from humantele.haptics.demo_patient import demo_model
 from humantele.haptics.devices import DeviceError, TouchX, TouchXConfig
-from humantele.haptics.devices.touchx import describe_hd_error, reset_encoders
-from humantele.haptics.devices.touchx import main as touchx_main
+from humantele.haptics.devices.touchx import describe_hd_error
+from humantele.haptics.devices.touchx_reset import main as touchx_main
+from humantele.haptics.devices.touchx_reset import reset_encoders
 from humantele.haptics.renderer import ForceRenderer
 from humantele.haptics.servo_config import ServoConfig
 
@@ -208,7 +209,7 @@ def test_encoder_reset_devices_wait_for_the_prompted_reset(fake_hd, caplog):
         fake.fake_tick(500)
         dev.read()
     assert dev.calibration == "needs_update" and forces(fake) == [0.0, 0.0, 0.0]
-    assert fake.fake_counter(UPDATES) == 0 and "--reset-encoders" in caplog.text
+    assert fake.fake_counter(UPDATES) == 0 and "touchx_reset" in caplog.text
     dev.close()
     asked = []
     with pytest.raises(DeviceError, match="cancelled"):
@@ -229,10 +230,10 @@ def test_reset_encoders_command_line(fake_hd, monkeypatch, capsys):
     fake.fake_set_calibration(NEEDS_UPDATE, ENCODER_RESET)
     fake.fake_set_at_reset_pose(1)
     monkeypatch.setattr("builtins.input", lambda prompt: "y")
-    assert touchx_main(["--reset-encoders", "--library", path]) == 0
+    assert touchx_main(["--library", path]) == 0
     assert "encoders reset; calibration ok" in capsys.readouterr().out
     monkeypatch.setattr("builtins.input", lambda prompt: "")
-    assert touchx_main(["--reset-encoders", "--library", path]) == 1
+    assert touchx_main(["--library", path]) == 1
 
 
 @pytest.mark.parametrize(

@@ -45,10 +45,10 @@ Calibration, as OpenHaptics' Calibration example: the supported styles
 ``needs_update`` is updated with that style from the servo tick (``hdUpdateCalibration``, after
 the frame, at most every 0.1 s): AUTO as the arm moves, INKWELL once the stylus is in the inkwell
 (``needs_manual_input`` says to put it there). ENCODER_RESET zeroes the encoders wherever the arm
-is, so it is never done by the tick: only :func:`reset_encoders`, before the scheduler starts and
-after the user confirmed the arm is at its reset pose (``python -m
-humantele.haptics.devices.touchx --reset-encoders``). Force is zero while not calibrated and, as
-the guide warns that the position may jump when calibration changes, ramps back over
+is, so the tick never does it: only :mod:`.touchx_reset` (``python -m
+humantele.haptics.devices.touchx_reset``), before the scheduler starts and after the user
+confirmed the arm is at its reset pose. Force is zero while not calibrated and, as the guide
+warns that the position may jump when calibration changes, ramps back over
 ``ramp_s`` when it returns to ok. :attr:`TouchX.calibration` says what is needed.
 
 HD errors (``hdGetError``, drained each tick) become :class:`DeviceError` messages naming the
@@ -62,15 +62,12 @@ fake libHD compiled in tests/devices (no device here).
 
 from __future__ import annotations
 
-import argparse
 import ctypes
 import ctypes.util
 import logging
 import math
-import sys
 import threading
 import time
-from collections.abc import Callable
 from typing import Literal
 
 from pydantic import Field
@@ -493,7 +490,7 @@ class TouchX(HapticDevice):
 
     def _update_calibration(self, now: float) -> None:
         """``hdUpdateCalibration`` with the chosen style, outside the frame (as OpenHaptics'
-        Calibration example), at most every 0.1 s; never ENCODER_RESET (:func:`reset_encoders`)."""
+        Calibration example), at most every 0.1 s; never ENCODER_RESET (:mod:`.touchx_reset`)."""
         style = self.calibration_style
         if style in (0, HD_CALIBRATION_ENCODER_RESET):
             return
@@ -513,7 +510,7 @@ class TouchX(HapticDevice):
         elif style == HD_CALIBRATION_ENCODER_RESET:
             self._say(
                 "touchx: calibration %s: hold the arm at its reset pose and run `python -m "
-                "humantele.haptics.devices.touchx --reset-encoders` with the servo stopped "
+                "humantele.haptics.devices.touchx_reset` with the servo stopped "
                 "(force off until then)", calibration,
             )  # fmt: skip
         elif calibration == "needs_manual_input" and inkwell:
@@ -541,76 +538,3 @@ class TouchX(HapticDevice):
 
             q = tuple(matrix_to_quat([[r00, r01, r02], [r10, r11, r12], [r20, r21, r22]]))
         return DeviceState(t, pos, q, int(self._buttons.value), vel)  # type: ignore[arg-type]
-
-
-def reset_encoders(config: TouchXConfig, confirm: Callable[[str], bool]) -> str:
-    """Calibrate a device whose style is HD_CALIBRATION_ENCODER_RESET, as OpenHaptics'
-    Calibration example: before the scheduler starts, ask the user (``confirm(prompt)``) to hold
-    the arm at its reset pose, then ``hdUpdateCalibration(HD_CALIBRATION_ENCODER_RESET)``. Run
-    it with the servo (and any other program on the device) stopped. Returns what was done;
-    DeviceError when the device cannot, or the user declined."""
-    lib = load_hd_library(config.library)
-    name = config.device_name.encode() if config.device_name else None
-    hhd = lib.hdInitDevice(name)
-    err = lib.hdGetError()
-    if hhd == HD_INVALID_HANDLE or err.errorCode != HD_SUCCESS:
-        gtdd = gtdd_home_problem()
-        raise DeviceError(
-            f"touchx: cannot open the device: "
-            f"{describe_hd_error(err.errorCode, err.internalErrorCode)}"
-            + (f"; {gtdd}" if gtdd else "")
-        )
-    try:
-        styles = ctypes.c_int(0)
-        lib.hdGetIntegerv(HD_CALIBRATION_STYLE, ctypes.byref(styles))
-        if not styles.value & HD_CALIBRATION_ENCODER_RESET:
-            have = [n for s, n in STYLE_NAMES.items() if styles.value & s] or ["none"]
-            raise DeviceError(
-                f"touchx: this device has no encoder reset (its calibration: {', '.join(have)}); "
-                "the servo calibrates it by itself (inkwell: put the stylus in the inkwell)"
-            )
-        if not confirm(
-            "Hold the arm at its reset pose (for PHANTOM devices: all links orthogonal; see the "
-            "device's manual) and keep it still. Reset the encoders now?"
-        ):
-            raise DeviceError("touchx: encoder reset cancelled; nothing changed")
-        lib.hdUpdateCalibration(HD_CALIBRATION_ENCODER_RESET)
-        err = lib.hdGetError()
-        if err.errorCode != HD_SUCCESS:
-            raise DeviceError(
-                "touchx: encoder reset failed: "
-                f"{describe_hd_error(err.errorCode, err.internalErrorCode)}"
-            )
-        status = lib.hdCheckCalibration()
-        return f"encoders reset; calibration {CALIBRATION_NAMES.get(status, hex(status))}"
-    finally:
-        lib.hdDisableDevice(hhd)
-        lib.hdGetError()
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m humantele.haptics.devices.touchx --reset-encoders``: the prompted encoder
-    reset for devices calibrated that way (not the Touch X: it calibrates in its inkwell)."""
-    ap = argparse.ArgumentParser(prog="python -m humantele.haptics.devices.touchx")
-    ap.add_argument("--reset-encoders", action="store_true", help="prompted encoder reset")
-    ap.add_argument("--library", default="libHD.so", help="path or name of libHD.so")
-    ap.add_argument("--device-name", default="", help="the name set in Touch_Setup")
-    args = ap.parse_args(argv)
-    if not args.reset_encoders:
-        ap.print_help()
-        return 2
-
-    def confirm(prompt: str) -> bool:
-        return input(prompt + " [y/N] ").strip().lower() in ("y", "yes")
-
-    try:
-        print(reset_encoders(TouchXConfig(library=args.library, device_name=args.device_name),
-                             confirm))  # fmt: skip
-    except DeviceError as exc:
-        print(exc, file=sys.stderr)
-        return 1
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
