@@ -101,7 +101,7 @@ def check_haptic(config: Any, n: int) -> Check:
             "spread_mm": round(float(np.ptp(p, axis=0).max()), 3),
             "buttons": int(states[-1].buttons), "has_force": bool(dev.has_force)}  # fmt: skip
     extra = []
-    for attr in ("calibration", "model", "force_limit_n"):
+    for attr in ("calibration", "model", "force_limit_n", "continuous_force_n"):
         if getattr(dev, attr, None) not in (None, ""):
             extra.append(f"{attr} {getattr(dev, attr)}")
     summary = (f"{len(states)} states, stylus at {figs['position_mm']} mm (spread "
@@ -229,6 +229,11 @@ def run_checks(args: argparse.Namespace) -> tuple[list[Check], dict[str, Any]]:
     if "hid" in only:
         system["hid"] = list_hid()
         system["openhaptics_libHD"] = ctypes.util.find_library("HD")
+        system["touch_driver"] = ctypes.util.find_library("PhantomIOLib42")
+        from humantele.haptics.devices.touchx import gtdd_home_problem
+
+        system["gtdd_home"] = os.environ.get("GTDD_HOME")
+        system["gtdd_home_problem"] = gtdd_home_problem()
     return checks, system
 
 
@@ -259,6 +264,12 @@ def run(args: argparse.Namespace) -> int:
                       f"{h['product']} {h['path']}{perm[h['readable']]}")  # fmt: skip
             lib = system["openhaptics_libHD"]
             print(f"OpenHaptics libHD: {lib or 'not found (only needed for the touchx backend)'}")
+            drv = system["touch_driver"]
+            print(
+                "3D Systems Touch driver (libPhantomIOLib42.so): "
+                f"{drv or 'not found (the touchx backend needs it for a Touch / Touch X)'}"
+            )
+            print(f"GTDD_HOME: {system['gtdd_home_problem'] or system['gtdd_home']}")
     return 0 if all(c.ok for c in checks) else 1
 
 
