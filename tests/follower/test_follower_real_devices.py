@@ -100,6 +100,7 @@ enabled = false  # with these OpenCV file sources the follower outlived its SIGT
 backend = "opencv"
 device = "{rec / "us.avi"}"
 pixel_spacing_mm = [0.3, 0.3]
+depth_origin_row = 20.0
 [follower.video.pov]
 backend = "opencv"
 device = "{rec / "pov.avi"}"

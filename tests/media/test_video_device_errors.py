@@ -22,6 +22,8 @@ process = {str(process).lower()}
 [follower.video.us]
 backend = "opencv"
 device = "/dev/video97"
+pixel_spacing_mm = [0.2, 0.2]
+depth_origin_row = 30.0
 """
     )
     proc = await asyncio.create_subprocess_exec(

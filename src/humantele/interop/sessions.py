@@ -110,14 +110,21 @@ class FollowerIgtl(_Served):
         self._us_slot = None
         self._us_seen = 0
         self._us_spacing_mm = 0.0
+        self._us_row0 = 0.0
         if self.server is None or not config.image:
             return
         from humantele.video.sim_config import SimUltrasoundConfig
 
         if us is not None:
             slot, us_config = us
-            if not isinstance(us_config, SimUltrasoundConfig):
-                log.warning("igtl: the ultrasound source does not say its pixel size: no Image")
+            if not isinstance(us_config, SimUltrasoundConfig):  # a scanner: its configured scale
+                spacing = getattr(us_config, "pixel_spacing_mm", None)
+                row0 = getattr(us_config, "depth_origin_row", None)
+                if spacing is None or row0 is None:
+                    log.warning("igtl: the ultrasound source does not say its scale: no Image")
+                    return
+                self._us_slot, self._us_spacing_mm = slot, float(spacing[0])
+                self._us_row0 = float(row0)  # ImageToProbe once a frame gives the width
                 return
             self._us_slot, c = slot, us_config
         elif scene is not None:
@@ -156,6 +163,9 @@ class FollowerIgtl(_Served):
         if cf is None or number == self._us_seen:
             return
         s = self._us_spacing_mm
+        if self.T_tip_image is None:  # a scanner's picture: the face's centre at the top middle
+            x0, z0 = -(cf.width - 1) / 2 * s / 1000.0, -self._us_row0 * s / 1000.0
+            self.T_tip_image = image_to_probe((x0, z0), s)
         if srv.publish_image(cf.frame, (s, s), cf.t_capture):
             self._us_seen = number
 

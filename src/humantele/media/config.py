@@ -93,6 +93,22 @@ class FollowerVideoConfig(ConfigModel):
         "comes from the frame records and the RTP timestamps)",
     )
 
+    @model_validator(mode="after")
+    def _scanner_geometry(self) -> FollowerVideoConfig:
+        """A real scanner's picture says its scale: calipers, the depth scale and the
+        OpenIGTLink image need them (the sim's come from its probe model)."""
+        us = self.us
+        if self.enabled and getattr(us, "backend", "") != "sim":
+            missing = [n for n in ("pixel_spacing_mm", "depth_origin_row")
+                       if getattr(us, n, None) is None]  # fmt: skip
+            if missing:
+                raise ValueError(
+                    f"us: a real ultrasound source needs {' and '.join(missing)} (read them "
+                    "off the scanner's image at its depth setting: mm per pixel, and the row "
+                    "of the skin line)"
+                )
+        return self
+
     def stamps(self, track: str) -> bool:
         """Whether ``track``'s frames carry the drawn counter."""
         if self.stamp_counter is not None:

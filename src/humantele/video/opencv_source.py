@@ -48,6 +48,9 @@ class OpenCVVideoConfig(ConfigModel):
     pixel_spacing_mm: tuple[float, float] | None = Field(
         None, description="(row, col) mm per pixel of a US machine's image, for calipers"
     )
+    depth_origin_row: float | None = Field(
+        None, ge=0.0, le=8192.0, description="a US image's row (px) of depth 0 (the skin line)"
+    )
     stall_reads: int = Field(30, ge=1, le=100000, description="failed reads in a row = stopped")
     open_timeout_s: float = Field(5.0, gt=0.0, le=120.0, description="network streams")
     read_timeout_s: float = Field(2.0, gt=0.0, le=120.0, description="network streams")
@@ -191,7 +194,9 @@ class OpenCVVideoSource(VideoSource):
         elif img.shape[2] != 3:
             return None
         self._seq += 1
-        return VideoFrame(np.ascontiguousarray(img), self._seq, t, self.config.pixel_spacing_mm)
+        c = self.config
+        return VideoFrame(np.ascontiguousarray(img), self._seq, t, c.pixel_spacing_mm,
+                          depth_origin_row=c.depth_origin_row)  # fmt: skip
 
     def close(self) -> None:
         if self._cap is not None:
