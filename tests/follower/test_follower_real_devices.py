@@ -1,9 +1,9 @@
 """The follower on real device backends fed by recorded device data, with no simulator in any
 of its processes (issue 18 §1): AHAT frames and rig poses from an hl2ss replay server in its
 own process (hl2ss's wire format, the clinic's calibration file), the force board's HID reports
-through the real HID reader (a replayed ``hid`` module); the video is off here (from files
-through the OpenCV source the follower outlived its SIGTERM). The recording is made here,
-once per run, by the simulator (in the test's process, never the follower's)."""
+through the real HID reader (a replayed ``hid`` module), US and POV video from files through
+the OpenCV source. The recording is made here, once per run, by the simulator (in the test's
+process, never the follower's)."""
 
 from __future__ import annotations
 
@@ -95,15 +95,17 @@ host = "127.0.0.1"
 port = 0
 tls = false
 [follower.video]
-enabled = false  # with these OpenCV file sources the follower outlived its SIGTERM: see issue 20
+enabled = true
 [follower.video.us]
 backend = "opencv"
 device = "{rec / "us.avi"}"
+loop = true
 pixel_spacing_mm = [0.3, 0.3]
 depth_origin_row = 20.0
 [follower.video.pov]
 backend = "opencv"
 device = "{rec / "pov.avi"}"
+loop = true
 [sensing.camera]
 backend = "hl2ss"
 host = "127.0.0.1"
@@ -174,7 +176,9 @@ async def test_follower_on_replayed_devices_places_the_probe_and_loads_no_simula
     assert float(np.median(errs)) < 2e-3, errs
     assert max(np.linalg.norm(p["force"]) for p in probes) > 1.0  # the board's press, read
     assert any(p["contact"] for p in probes)  # contact from the force board
-    assert figures["simulator_modules"] == {"daemon": [], "sensing": [], "video": None}
+    assert figures["simulator_modules"] == {"daemon": [], "sensing": [], "video": []}
+    for track in ("us", "pov"):  # the files through the OpenCV source, in the video process
+        assert figures["video"][track]["captured"] > 10 and figures["video"][track]["errors"] == 0
 
 
 class _suppress:
