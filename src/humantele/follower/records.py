@@ -36,6 +36,8 @@ def measurement_samples(m: Measurement, calibration: Any) -> list[tuple[str, dic
         pose = {"position": T.position, "quaternion": T.quaternion, "tracked": True}
     else:
         pose = {"position": ZERO_POSE[0], "quaternion": ZERO_POSE[1], "tracked": False}
+    if m.device_time_s is not None:
+        pose["device_time_s"] = m.device_time_s
     out.append(("/follower/probe_pose", pose))
     return out
 

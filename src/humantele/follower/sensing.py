@@ -123,6 +123,7 @@ class ProbeMeasurement:
     residual_m: float
     contact_event: ContactEvent | None = None
     T_world_rig: Pose | None = None
+    device_time_s: float | None = None
 
 
 class ProbeSensing:
@@ -176,10 +177,10 @@ class ProbeSensing:
             self.devices.observe(world)
         frame = self.source.read(t)
         status = TrackingStatus.LOST
-        pose_w = tip_w = rig = None
+        pose_w = tip_w = rig = device_t = None
         residual = math.nan
         if frame is not None:
-            rig = frame.T_world_rig
+            rig, device_t = frame.T_world_rig, frame.device_time_s
             camera = self.fixed_camera or frame.T_world_camera
             if camera is None:
                 self.no_camera_pose += 1
@@ -211,6 +212,7 @@ class ProbeSensing:
             residual_m=residual,
             contact_event=event,
             T_world_rig=rig,
+            device_time_s=device_t,
         )
 
     def close(self) -> None:
@@ -234,6 +236,7 @@ class Measurement:
     contact: bool
     force_tip: NDArray[np.float64] | None = None
     T_world_rig: Pose | None = None
+    device_time_s: float | None = None  # the tracker frame's time on the device's clock
 
 
 LOST = Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
@@ -318,12 +321,12 @@ class Sensing:
         force_tip = self.T_tip_probe.rotate(np.asarray(m.force_probe, dtype=float))
         if not (np.all(np.isfinite(force)) and np.all(np.isfinite(force_tip))):
             force, force_tip = np.zeros(3), None
-        rig = getattr(m, "T_world_rig", None)
+        rig, device_t = getattr(m, "T_world_rig", None), getattr(m, "device_time_s", None)
         if not status.has_pose or m.T_world_probe is None:
             status = TrackingStatus.LOST if status.has_pose else status  # lost or ambiguous
-            return Measurement(status, None, force, bool(m.contact), force_tip, rig)
+            return Measurement(status, None, force, bool(m.contact), force_tip, rig, device_t)
         tip = m.T_world_probe @ self.T_probe_tip
-        return Measurement(status, tip, force, bool(m.contact), force_tip, rig)
+        return Measurement(status, tip, force, bool(m.contact), force_tip, rig, device_t)
 
     def close(self) -> None:
         if self.pipeline is not None:

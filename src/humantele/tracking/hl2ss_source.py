@@ -251,6 +251,7 @@ class Hl2ssFrameSource(FrameSource):
             seq=self._seq,
             T_world_camera=T_world_camera,
             T_world_rig=T_world_rig,
+            device_time_s=ts * 1e-7,  # hl2ss: 100 ns ticks
         )
 
     def _drop_connection(self) -> None:
