@@ -66,7 +66,13 @@ def calibration(frames) -> Hl2ssAhatCalibration:
 
 
 def cfg(port: int, **kw) -> Hl2ssFrameConfig:
-    base = {"host": "127.0.0.1", "port": port, "mode": 0, "download_calibration": False}
+    base = {
+        "host": "127.0.0.1",
+        "port": port,
+        "mode": 0,
+        "download_calibration": False,
+        "newest": False,
+    }  # every frame in order (the follower's default skips to the newest)
     return Hl2ssFrameConfig(**{**base, **kw})
 
 
@@ -273,7 +279,10 @@ def test_mode_1_needs_a_source_of_extrinsics(tmp_path):
 def test_devices_check_reads_an_hl2ss_headset(tmp_path, capsys):
     frames = sim_frames(8)
     recs = [record(f, k, rig_pose(k)) for k, f in enumerate(frames)]
-    with Hl2ssReplayServer([recs], calibration=calibration(frames)) as srv:
+    # paced as the headset sends, for as long as the check reads (it takes the newest frame,
+    # as the follower does, so a slow check skips some)
+    with Hl2ssReplayServer([recs * 40], calibration=calibration(frames),
+                           rate_hz=45.0) as srv:  # fmt: skip
         conf = tmp_path / "follower.toml"
         conf.write_text(f'[sensing.camera]\nbackend = "hl2ss"\nhost = "127.0.0.1"\n'
                         f"port = {srv.port}\n")  # fmt: skip
@@ -326,3 +335,21 @@ def test_replay_server_in_its_own_process_paced_like_the_headset(tmp_path):
         proc.terminate()
         proc.wait(10)
     assert proc.returncode == 0
+
+
+def test_a_reader_that_fell_behind_skips_to_the_newest_frame():
+    """TCP keeps every frame the headset sent: a reader slower than 45 Hz would see ever older
+    frames. By default it takes the newest complete one there and counts the rest as stale."""
+    frames = sim_frames(12)
+    with Hl2ssReplayServer([[record(f, k) for k, f in enumerate(frames)]]) as srv:
+        src = Hl2ssFrameSource(cfg(srv.port, newest=True))
+        src.open()
+        first = src.read()
+        threading.Event().wait(1.0)  # busy elsewhere while the next frames arrive
+        newest = src.read()
+        src.close()
+    assert first is not None and newest is not None
+    assert np.array_equal(first.ir, frames[0].ir)
+    k = next(i for i, f in enumerate(frames) if np.array_equal(newest.ir, f.ir))
+    assert k > 1  # not the second frame: the ones that had arrived were skipped
+    assert src.dropped.get("stale", 0) == k - 1

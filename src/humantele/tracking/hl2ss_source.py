@@ -28,6 +28,8 @@ and retried on the next ``read`` (at most once per ``retry_s``). ``open`` failin
 
 from __future__ import annotations
 
+import contextlib
+import select
 import socket
 import time
 from typing import Literal
@@ -88,6 +90,11 @@ class Hl2ssFrameConfig(ConfigModel):
     intrinsics: CameraIntrinsics = Field(
         default_factory=CameraIntrinsics,
         description="used only without a calibration (then frames are not undistorted)",
+    )
+    newest: bool = Field(
+        True,
+        description="a reader that fell behind skips to the newest frame (counted as "
+        "stale); false: every frame in order (replays read whole)",
     )
     connect_timeout_s: float = Field(3.0, gt=0, le=60)
     read_timeout_s: float = Field(1.0, gt=0, le=60)
@@ -218,7 +225,11 @@ class Hl2ssFrameSource(FrameSource):
             self._count(self.dropped, "disconnected")
             self._drop_connection()
             return None
+        if self.config.newest:
+            end = self._newest(end, pose_bytes)
         packet = bytes(self._buf[:end])
+        size = len(packet) - HEADER.size - pose_bytes
+        ts = HEADER.unpack_from(packet, 0)[0]
         del self._buf[:end]
         try:
             p = decode_ahat_payload(memoryview(packet)[HEADER.size : HEADER.size + size])
@@ -253,6 +264,30 @@ class Hl2ssFrameSource(FrameSource):
             T_world_rig=T_world_rig,
             device_time_s=ts * 1e-7,  # hl2ss: 100 ns ticks
         )
+
+    def _newest(self, end: int, pose_bytes: int) -> int:
+        """A reader slower than the headset would fall ever further behind (TCP keeps every
+        frame): take what has already arrived and skip to the newest complete packet, the
+        older ones counted as ``stale``. Returns the end of that packet; the buffer starts
+        at it."""
+        assert self._sock is not None
+        with contextlib.suppress(OSError):  # a lost connection: the next read says so
+            while len(self._buf) < end + 8 * (MAX_PAYLOAD_SIZE + HEADER.size + POSE_BYTES):
+                if not select.select([self._sock], [], [], 0)[0]:
+                    break  # nothing more has arrived
+                chunk = self._sock.recv(1 << 20)
+                if not chunk:
+                    break
+                self._buf.extend(chunk)
+        while len(self._buf) >= end + HEADER.size:
+            size = HEADER.unpack_from(self._buf, end)[1]
+            nxt = end + HEADER.size + size + pose_bytes
+            if not 16 <= size <= MAX_PAYLOAD_SIZE or len(self._buf) < nxt:
+                break  # out of step (the next read says so) or not all there yet
+            del self._buf[:end]
+            self._count(self.dropped, "stale")
+            end = nxt - end
+        return end
 
     def _drop_connection(self) -> None:
         if self._sock is not None:
