@@ -15,9 +15,12 @@ Refused and calibration connections do not use up a turn; after the last turn, n
 are closed at once (``repeat=True``: every client gets the first turn again). ``rate_hz``
 paces the records as the headset would (None: as fast as the client reads).
 
-In its own process, serving records saved with :func:`save_records`::
+In its own process, serving records saved with :func:`save_records` (``.npz``) or a device
+recording made by ``humantele devices record`` (``.mcap``: the frames and rig poses exactly as
+the headset sent them, and its calibration; a truncated one is served up to its torn tail,
+said on stderr; a file that is not one is refused in one line)::
 
-    python -m humantele.tracking.hl2ss_replay FILE.npz [--host H] [--port P] [--rate 45]
+    python -m humantele.tracking.hl2ss_replay FILE.npz|REC.mcap [--host H] [--port P] [--rate 45]
 
 prints ``hl2ss replay listening on H:P`` once it listens and serves until stopped.
 """
@@ -56,19 +59,24 @@ from humantele.tracking.hl2ss_protocol import (
 @dataclass
 class AhatRecord:
     """One AHAT frame to replay: device timestamp (100 ns ticks), depth (mm) and AB images,
-    sensor ticks, and the rig's pose in the app's world (None: not located)."""
+    sensor ticks, and the rig's pose in the app's world (None: not located); ``pose_hl2ss``:
+    the pose matrix exactly as a headset sent it (recorded; sent as it is when given)."""
 
     timestamp: int
     depth_mm: NDArray[np.uint16]
     ab: NDArray[np.uint16]
     sensor_ticks: int = 0
     T_world_rig: Pose | None = None
+    pose_hl2ss: NDArray[np.float32] | None = None
 
     def packet(self, mode: int) -> bytes:
         pose = None
         if mode == MODE_FRAMES_POSE:
-            pose = (np.zeros((4, 4), np.float32) if self.T_world_rig is None
-                    else hl2ss_matrix_from_pose(self.T_world_rig))  # fmt: skip
+            if self.pose_hl2ss is not None:
+                pose = self.pose_hl2ss
+            else:
+                pose = (np.zeros((4, 4), np.float32) if self.T_world_rig is None
+                        else hl2ss_matrix_from_pose(self.T_world_rig))  # fmt: skip
         return encode_ahat_packet(self.timestamp, self.depth_mm, self.ab, self.sensor_ticks, pose)
 
 
@@ -210,6 +218,40 @@ def save_records(
     np.savez_compressed(path, **arrays)
 
 
+def load_mcap_records(
+    path: str | Path,
+) -> tuple[list[AhatRecord], Hl2ssAhatCalibration | None, str | None]:
+    """The AHAT frames and calibration of a device recording (``humantele devices record``),
+    and what cut it short (None: complete); ValueError (one line) when it is not one or holds
+    no AHAT frame."""
+    from humantele.devices.replay_file import (
+        AHAT_CALIBRATION,
+        AHAT_FRAME,
+        DeviceRecording,
+        DeviceRecordingError,
+    )
+
+    try:
+        rec = DeviceRecording(path)
+    except DeviceRecordingError as exc:
+        raise ValueError(f"hl2ss replay: {exc}") from None
+    records: list[AhatRecord] = []
+    cal = None
+    for s in rec.samples({AHAT_CALIBRATION, AHAT_FRAME}):
+        if s.topic == AHAT_CALIBRATION:
+            cal = cal or Hl2ssAhatCalibration.from_bytes(bytes(s.blobs["calibration"]))
+            continue
+        m = s.blobs.get("pose")
+        m = None if m is None else np.asarray(m, np.float32).reshape(4, 4)
+        records.append(AhatRecord(int(s.fields["timestamp"]), s.blobs["depth"], s.blobs["ab"],
+                                  int(s.fields.get("sensor_ticks", 0)),
+                                  None if m is None else pose_from_hl2ss(m)[0], m))  # fmt: skip
+    if not records:
+        raise ValueError(f"hl2ss replay: {path} holds no AHAT frame"
+                         + ("" if rec.problem is None else f" ({rec.problem})"))  # fmt: skip
+    return records, cal, rec.problem
+
+
 def load_records(path: str | Path) -> tuple[list[AhatRecord], Hl2ssAhatCalibration | None]:
     """The records and calibration :func:`save_records` wrote; ValueError naming the file."""
     try:
@@ -228,13 +270,19 @@ def load_records(path: str | Path) -> tuple[list[AhatRecord], Hl2ssAhatCalibrati
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description="serve recorded AHAT frames as the hl2ss app does")
-    ap.add_argument("file", help=".npz written by save_records")
+    ap.add_argument("file", help=".npz written by save_records, or a device recording (.mcap)")
     ap.add_argument("--host", default="127.0.0.1")
     ap.add_argument("--port", type=int, default=0, help="0: any free port (printed)")
     ap.add_argument("--rate", type=float, default=45.0, help="frames per second (0: unpaced)")
     args = ap.parse_args(argv)
     try:
-        records, cal = load_records(args.file)
+        if Path(args.file).suffix == ".npz":
+            records, cal = load_records(args.file)
+        else:
+            records, cal, problem = load_mcap_records(args.file)
+            if problem:
+                print(f"hl2ss replay: {problem}: serving its first {len(records)} frames",
+                      file=sys.stderr, flush=True)  # fmt: skip
     except ValueError as exc:
         print(exc, file=sys.stderr)
         return 1
