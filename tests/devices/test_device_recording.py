@@ -14,6 +14,7 @@ import io
 import logging
 import math
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -43,7 +44,7 @@ from humantele.recording.writer import McapLog
 from humantele.tracking.frames import FrameSourceUnavailable
 from humantele.tracking.hl2ss_calibration import Hl2ssAhatCalibration
 from humantele.tracking.hl2ss_protocol import AHAT_DEPTH_MASK
-from humantele.tracking.hl2ss_replay import AhatRecord, Hl2ssReplayServer
+from humantele.tracking.hl2ss_replay import AhatRecord, Hl2ssReplayServer, load_mcap_records
 from humantele.tracking.hl2ss_replay import main as hl2ss_replay_main
 from humantele.tracking.replay_source import ReplayFrameConfig, ReplayFrameSource
 from humantele.tracking.sim import SimFrameConfig, SimFrameSource, default_sim_pose
@@ -292,6 +293,8 @@ def test_truncated_file_replays_its_intact_part_and_says_so(recorded, tmp_path, 
     assert n >= FRAMES // 2 - 4  # about its first half (a chunk or two is lost at the cut)
     assert src.problem and "truncated" in src.problem
     assert any("truncated" in r.getMessage() for r in caplog.records)
+    records, cal, problem = load_mcap_records(cut)  # the hl2ss replay server's view
+    assert len(records) == n and cal is not None and "truncated" in problem
     sensor = ReplayForceSensor(ReplayForceConfig(file=str(cut), pace=False))
     sensor.open()  # the reports of the first half are there
     assert sensor.read() is not None
@@ -390,6 +393,8 @@ def test_cli_records_from_an_hl2ss_server_serving_the_mcap_and_ends_cleanly_on_c
         seen = b""
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and rec.poll() is None:  # until 10 frames are in
+            if not select.select([rec.stderr], [], [], 1.0)[0]:
+                continue
             chunk = os.read(rec.stderr.fileno(), 4096)
             seen += chunk
             last = seen.split(b"\r")[-1].split()

@@ -13,14 +13,19 @@ A turn is a list of items: an :class:`AhatRecord` (encoded for the client's mode
 (sent as they are: corrupt packets for tests) or None (the server drops the connection there).
 Refused and calibration connections do not use up a turn; after the last turn, new clients
 are closed at once (``repeat=True``: every client gets the first turn again). ``rate_hz``
-paces the records as the headset would (None: as fast as the client reads).
+paces the records as the headset would (None: as fast as the client reads);
+``recorded_times=True`` paces them at their own timestamps instead (100 ns ticks, from the
+first record sent; a recording's real timing, gaps and jitter included).
 
 In its own process, serving records saved with :func:`save_records` (``.npz``) or a device
 recording made by ``humantele devices record`` (``.mcap``: the frames and rig poses exactly as
 the headset sent them, and its calibration; a truncated one is served up to its torn tail,
 said on stderr; a file that is not one is refused in one line)::
 
-    python -m humantele.tracking.hl2ss_replay FILE.npz|REC.mcap [--host H] [--port P] [--rate 45]
+    python -m humantele.tracking.hl2ss_replay FILE.npz|REC.mcap [--host H] [--port P] [--rate R]
+
+(``--rate``: frames per second, 0 unpaced; default 45 for ``.npz``, the recorded times for
+``.mcap``.)
 
 prints ``hl2ss replay listening on H:P`` once it listens and serves until stopped.
 """
@@ -95,10 +100,12 @@ class Hl2ssReplayServer:
         port: int = 0,
         repeat: bool = False,
         rate_hz: float | None = None,
+        recorded_times: bool = False,
     ):
         self.turns = list(turns)
         self.repeat = repeat
         self.rate_hz = rate_hz
+        self.recorded_times = recorded_times
         self.calibration = calibration
         self._calibration_bytes = None if calibration is None else calibration.to_bytes()
         self.configs: list[AhatConfiguration] = []  # accepted stream configurations
@@ -157,6 +164,7 @@ class Hl2ssReplayServer:
         items = self.turns[0] if self.repeat else self.turns.pop(0)
         k = 0
         t0 = time.monotonic()
+        ts0: int | None = None
         for item in items:
             if item is None:
                 return  # drop the connection here
@@ -165,8 +173,14 @@ class Hl2ssReplayServer:
                 k += 1
                 if not send:
                     continue
-                if self.rate_hz:
-                    delay = t0 + (k - 1) / self.rate_hz - time.monotonic()
+                due = None
+                if self.recorded_times:
+                    ts0 = item.timestamp if ts0 is None else ts0
+                    due = t0 + (item.timestamp - ts0) / 1e7
+                elif self.rate_hz:
+                    due = t0 + (k - 1) / self.rate_hz
+                if due is not None:
+                    delay = due - time.monotonic()
                     if delay > 0 and self._stop.wait(delay):
                         return
                 data = item.packet(cfg.mode)
@@ -273,10 +287,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("file", help=".npz written by save_records, or a device recording (.mcap)")
     ap.add_argument("--host", default="127.0.0.1")
     ap.add_argument("--port", type=int, default=0, help="0: any free port (printed)")
-    ap.add_argument("--rate", type=float, default=45.0, help="frames per second (0: unpaced)")
+    ap.add_argument("--rate", type=float, default=None,
+                    help="frames per second (0: unpaced; default: 45 for .npz, the recorded "
+                    "times for .mcap)")  # fmt: skip
     args = ap.parse_args(argv)
+    mcap = Path(args.file).suffix != ".npz"
     try:
-        if Path(args.file).suffix == ".npz":
+        if not mcap:
             records, cal = load_records(args.file)
         else:
             records, cal, problem = load_mcap_records(args.file)
@@ -290,7 +307,8 @@ def main(argv: list[str] | None = None) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     with Hl2ssReplayServer([records], cal, args.host, args.port, repeat=True,
-                           rate_hz=args.rate or None) as srv:  # fmt: skip
+                           rate_hz=(45.0 if args.rate is None and not mcap else args.rate) or None,
+                           recorded_times=mcap and args.rate is None) as srv:  # fmt: skip
         print(f"hl2ss replay listening on {args.host}:{srv.port}", flush=True)
         stop.wait()
     return 0
