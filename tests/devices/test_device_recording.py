@@ -301,6 +301,19 @@ def test_truncated_file_replays_its_intact_part_and_says_so(recorded, tmp_path, 
     sensor.close()
 
 
+def test_replay_backends_are_a_real_clinic_s_devices_in_the_follower_config(tmp_path):
+    from humantele.follower.config import FollowerConfig
+
+    rec = str(tmp_path / "clinic.mcap")
+    video = {"us": {"backend": "replay", "file": rec}, "pov": {"backend": "replay", "file": rec}}
+    c = FollowerConfig.model_validate(
+        {"clinic": {"backend": "devices"}, "video": {"enabled": True, **video}}
+    )
+    assert (c.video.us.track, c.video.pov.track) == ("us", "pov")
+    s = _sensing_config(tmp_path, Path(rec))
+    assert (s.camera.backend, s.force.sensor.backend) == ("replay", "replay")
+
+
 @pytest.mark.parametrize("kind", ["random bytes", "session recording", "empty"])
 def test_a_foreign_file_is_refused_in_one_line(tmp_path, kind, capsys):
     path = tmp_path / "foreign.mcap"

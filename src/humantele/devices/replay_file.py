@@ -265,6 +265,7 @@ class DeviceRecording:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self.problem: str | None = None
+        self.bad_messages = 0  # malformed messages skipped
         self._warned = False
         try:
             size = self.path.stat().st_size
@@ -327,7 +328,6 @@ class DeviceRecording:
         """The messages of ``topics`` in file order; stops at a torn tail (then
         :attr:`problem` says where). A malformed message is skipped and counted in
         ``bad_messages``."""
-        self.bad_messages = getattr(self, "bad_messages", 0)
         channels: dict[int, str | None] = {}
         read = 0
         with open(self.path, "rb") as f:
