@@ -433,3 +433,100 @@ def test_cli_records_from_an_hl2ss_server_serving_the_mcap_and_ends_cleanly_on_c
         o = first[s.fields["timestamp"]]
         assert np.array_equal(s.blobs["ab"], o.blobs["ab"])
         assert np.array_equal(s.blobs["pose"], o.blobs["pose"])  # the matrix's exact bytes
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+async def test_follower_runs_on_the_recording_with_no_simulator(recorded, tmp_path):
+    """The follower daemon (its own process, sensing child, video child) on the replay
+    backends: it places the probe where the simulation put it, and loads no simulator."""
+    import asyncio
+    import json
+
+    import aiohttp
+
+    rec = recorded["file"]
+    cfg = tmp_path / "follower.toml"
+    cfg.write_text(f"""
+[follower]
+state_dir = "{tmp_path / "state"}"
+[follower.clinic]
+backend = "devices"
+[follower.link]
+signaling_url = "ws://127.0.0.1:9/ws"
+realtime_priority = 0
+[follower.feed]
+host = "127.0.0.1"
+port = 0
+tls = false
+[follower.video]
+enabled = true
+[follower.video.us]
+backend = "replay"
+file = "{rec}"
+loop = true
+[follower.video.pov]
+backend = "replay"
+file = "{rec}"
+loop = true
+[sensing.camera]
+backend = "replay"
+file = "{rec}"
+loop = true
+[sensing.force]
+calibration_file = "{recorded["dir"] / "board_calibration.json"}"
+[sensing.force.sensor]
+backend = "replay"
+file = "{rec}"
+loop = true
+""")
+    stats = tmp_path / "stats.json"
+    follower = subprocess.Popen(
+        [sys.executable, "-m", "humantele", "follower", "--config", str(cfg),
+         "--duration", "60", "--stats-file", str(stats)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+    )  # fmt: skip
+    probes, figures, killed = [], {}, False
+    try:
+        url = None
+        for _ in range(600):  # the feed's address, once it serves (60 s at most)
+            if stats.exists():
+                try:
+                    url = json.loads(stats.read_text()).get("feed_url")
+                except ValueError:
+                    pass
+            if url or follower.poll() is not None:
+                break
+            await asyncio.sleep(0.1)
+        assert url, f"no feed: {follower.communicate(timeout=10)}"
+        async with aiohttp.ClientSession() as s, s.ws_connect(url) as ws:
+            deadline = asyncio.get_running_loop().time() + 60
+            while len(probes) < 20 and asyncio.get_running_loop().time() < deadline:
+                try:
+                    msg = await ws.receive_json(timeout=5)
+                except (ValueError, TimeoutError, TypeError):
+                    continue
+                if msg.get("type") == "probe" and msg.get("tracking") == "tracked":
+                    probes.append(msg)
+        for _ in range(100):  # the video child reports its modules once it runs
+            figures = json.loads(stats.read_text())
+            if figures.get("simulator_modules", {}).get("video") is not None:
+                break
+            await asyncio.sleep(0.1)
+    finally:
+        if follower.poll() is None:
+            os.killpg(follower.pid, signal.SIGTERM)
+        try:
+            out, err = follower.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            killed = True
+            os.killpg(follower.pid, signal.SIGKILL)
+            out, err = follower.communicate(timeout=10)
+    assert len(probes) >= 20, err[-3000:]
+    tips = np.array(list(recorded["truth"].values()))
+    errs = [np.min(np.linalg.norm(tips - np.array(p["position"]), axis=1)) for p in probes]
+    assert float(np.median(errs)) < 2e-3, errs
+    assert figures["simulator_modules"]["daemon"] == []
+    assert figures["simulator_modules"]["sensing"] == []
+    assert figures["simulator_modules"]["video"] == [], figures["simulator_modules"]
+    assert not killed, "the follower outlived its SIGTERM by 30 s"

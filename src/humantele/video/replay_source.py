@@ -47,6 +47,10 @@ class ReplayVideoConfig(ConfigModel):
         None, description="(row, col) mm per pixel (None: as recorded)"
     )
     depth_origin_row: float | None = Field(None, description="row of depth 0 (None: recorded)")
+    # as a capture device's settings (the follower's video process sizes its buffers by them)
+    width: int = Field(0, ge=0, le=8192, description="px (0: the recording's; not rescaled)")
+    height: int = Field(0, ge=0, le=8192, description="px (0: the recording's; not rescaled)")
+    fps: float = Field(0.0, ge=0.0, le=240.0, description="nominal rate (0: the recording's)")
 
 
 class ReplayPovConfig(ReplayVideoConfig):
@@ -106,9 +110,8 @@ class ReplayVideoSource(VideoSource):
                 + ("" if rec.problem is None else f" ({rec.problem})")
             )
         self._size = (int(first.fields.get("width", 0)), int(first.fields.get("height", 0)))
-        second = self._peek_rate()
-        if second is not None:
-            self._fps = second
+        rate = self._peek_rate()
+        self._fps = c.fps or rate or 30.0
 
     def _peek_rate(self) -> float | None:
         """The recorded rate from the first frames (a second pass over the file's start)."""
