@@ -9,7 +9,8 @@ sends the calibration (closes when it has none). Modes 0/1 send the packets of t
 the rig pose in mode 1 (zeros for a record without one, as the app sends when the headset is
 not located).
 
-A turn is a list of items: an :class:`AhatRecord` (encoded for the client's mode), ``bytes``
+A turn is a list of items (or any iterable, iterated again for each client: :class:`McapTurn`
+reads a device recording lazily): an :class:`AhatRecord` (encoded for the client's mode), ``bytes``
 (sent as they are: corrupt packets for tests) or None (the server drops the connection there).
 Refused and calibration connections do not use up a turn; after the last turn, new clients
 are closed at once (``repeat=True``: every client gets the first turn again). ``rate_hz``
@@ -39,6 +40,7 @@ import socket
 import sys
 import threading
 import time
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -94,7 +96,7 @@ class Hl2ssReplayServer:
 
     def __init__(
         self,
-        turns: list[list[TurnItem]],
+        turns: list[Iterable[TurnItem]],
         calibration: Hl2ssAhatCalibration | None = None,
         host: str = "127.0.0.1",
         port: int = 0,
@@ -232,38 +234,68 @@ def save_records(
     np.savez_compressed(path, **arrays)
 
 
+class McapTurn:
+    """The AHAT frames of a device recording (``humantele devices record``) as a turn read
+    lazily from the file, again for every client (a long recording is not held in memory).
+    Construction checks the file (ValueError, one line: not a device recording, or no AHAT
+    frame) and takes its calibration; ``problem`` says what cut it short (None: complete),
+    once the reading reached the torn tail (and at once for a file without footer);
+    ``on_problem(message)`` is called when a reading stops at it."""
+
+    def __init__(self, path: str | Path, on_problem: Callable[[str], None] | None = None):
+        from humantele.devices.replay_file import (
+            AHAT_CALIBRATION,
+            AHAT_FRAME,
+            DeviceRecording,
+            DeviceRecordingError,
+        )
+
+        self.path, self.on_problem = Path(path), on_problem
+        self._topics = {AHAT_CALIBRATION, AHAT_FRAME}
+        try:
+            self._rec = DeviceRecording(path)
+        except DeviceRecordingError as exc:
+            raise ValueError(f"hl2ss replay: {exc}") from None
+        self.calibration: Hl2ssAhatCalibration | None = None
+        frames = iter(self)
+        first = next(frames, None)
+        frames.close()
+        if first is None:
+            raise ValueError(f"hl2ss replay: {path} holds no AHAT frame"
+                             + ("" if self.problem is None else f" ({self.problem})"))  # fmt: skip
+
+    @property
+    def problem(self) -> str | None:
+        return self._rec.problem
+
+    def __iter__(self) -> Iterator[AhatRecord]:
+        from humantele.devices.replay_file import AHAT_CALIBRATION
+
+        n = 0
+        for s in self._rec.samples(self._topics):
+            if s.topic == AHAT_CALIBRATION:
+                if self.calibration is None:
+                    self.calibration = Hl2ssAhatCalibration.from_bytes(
+                        bytes(s.blobs["calibration"]))  # fmt: skip
+                continue
+            m = s.blobs.get("pose")
+            m = None if m is None else np.asarray(m, np.float32).reshape(4, 4)
+            n += 1
+            yield AhatRecord(int(s.fields["timestamp"]), s.blobs["depth"], s.blobs["ab"],
+                             int(s.fields.get("sensor_ticks", 0)),
+                             None if m is None else pose_from_hl2ss(m)[0], m)  # fmt: skip
+        if self._rec.problem and self.on_problem is not None:
+            self.on_problem(f"{self._rec.problem}: served its first {n} frames")
+
+
 def load_mcap_records(
     path: str | Path,
 ) -> tuple[list[AhatRecord], Hl2ssAhatCalibration | None, str | None]:
-    """The AHAT frames and calibration of a device recording (``humantele devices record``),
-    and what cut it short (None: complete); ValueError (one line) when it is not one or holds
-    no AHAT frame."""
-    from humantele.devices.replay_file import (
-        AHAT_CALIBRATION,
-        AHAT_FRAME,
-        DeviceRecording,
-        DeviceRecordingError,
-    )
-
-    try:
-        rec = DeviceRecording(path)
-    except DeviceRecordingError as exc:
-        raise ValueError(f"hl2ss replay: {exc}") from None
-    records: list[AhatRecord] = []
-    cal = None
-    for s in rec.samples({AHAT_CALIBRATION, AHAT_FRAME}):
-        if s.topic == AHAT_CALIBRATION:
-            cal = cal or Hl2ssAhatCalibration.from_bytes(bytes(s.blobs["calibration"]))
-            continue
-        m = s.blobs.get("pose")
-        m = None if m is None else np.asarray(m, np.float32).reshape(4, 4)
-        records.append(AhatRecord(int(s.fields["timestamp"]), s.blobs["depth"], s.blobs["ab"],
-                                  int(s.fields.get("sensor_ticks", 0)),
-                                  None if m is None else pose_from_hl2ss(m)[0], m))  # fmt: skip
-    if not records:
-        raise ValueError(f"hl2ss replay: {path} holds no AHAT frame"
-                         + ("" if rec.problem is None else f" ({rec.problem})"))  # fmt: skip
-    return records, cal, rec.problem
+    """All AHAT frames of a device recording in memory (short recordings, tests), its
+    calibration and what cut it short (None: complete); ValueError as :class:`McapTurn`."""
+    turn = McapTurn(path)
+    records = list(turn)
+    return records, turn.calibration, turn.problem
 
 
 def load_records(path: str | Path) -> tuple[list[AhatRecord], Hl2ssAhatCalibration | None]:
@@ -292,14 +324,19 @@ def main(argv: list[str] | None = None) -> int:
                     "times for .mcap)")  # fmt: skip
     args = ap.parse_args(argv)
     mcap = Path(args.file).suffix != ".npz"
+
+    def say(message: str) -> None:
+        print(f"hl2ss replay: {message}", file=sys.stderr, flush=True)
+
+    records: Iterable[TurnItem]
     try:
         if not mcap:
             records, cal = load_records(args.file)
         else:
-            records, cal, problem = load_mcap_records(args.file)
-            if problem:
-                print(f"hl2ss replay: {problem}: serving its first {len(records)} frames",
-                      file=sys.stderr, flush=True)  # fmt: skip
+            records = turn = McapTurn(args.file, say)
+            cal = turn.calibration
+            if turn.problem:
+                say(turn.problem)
     except ValueError as exc:
         print(exc, file=sys.stderr)
         return 1
