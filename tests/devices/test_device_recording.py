@@ -155,7 +155,11 @@ def recorded(tmp_path_factory):
             out / "clinic.mcap",
             duration=60,
             progress=progress,
-            until=lambda c: c["ahat"] >= FRAMES and c["force"] >= len(clinic["reports"]),
+            until=lambda c: (
+                c["ahat"] >= FRAMES
+                and c["force"] >= len(clinic["reports"])
+                and min(c["us"], c["pov"]) >= VIDEO_FRAMES
+            ),
         )
     return {
         **clinic,
@@ -170,7 +174,7 @@ def recorded(tmp_path_factory):
 def _sensing_config(d: Path, file: Path, pace: bool = True) -> SensingConfig:
     return SensingConfig.model_validate(
         {
-            "camera": {"backend": "replay", "file": str(file), "pace": pace},
+            "camera": {"backend": "replay", "file": str(file), "pace": pace, "newest": False},
             "force": {
                 "calibration_file": str(d / "board_calibration.json"),
                 "sensor": {"backend": "replay", "file": str(file), "pace": pace},
@@ -182,8 +186,7 @@ def _sensing_config(d: Path, file: Path, pace: bool = True) -> SensingConfig:
 def test_record_writes_every_device_into_one_complete_mcap(recorded):
     counts = recorded["counts"]
     assert counts["ahat"] == FRAMES and counts["force"] == len(recorded["reports"])
-    assert 1 <= counts["us"] <= VIDEO_FRAMES and 1 <= counts["pov"] <= VIDEO_FRAMES
-    assert any("us: stopped" in n for n in recorded["notes"])  # the AVI ended: said, not fatal
+    assert counts["us"] == counts["pov"] == VIDEO_FRAMES
     line = recorded["progress"].strip().splitlines()[-1].split("\r")[-1]
     assert "ahat" in line and "force" in line and line.endswith("MB")
     rec = DeviceRecording(recorded["file"])
@@ -208,6 +211,46 @@ def test_record_writes_every_device_into_one_complete_mcap(recorded):
     assert np.all(np.diff([s.fields["t_receive"] for s in got[HID_REPORT]]) >= 0)
     us = got[VIDEO["us"]][0]
     assert us.fields["pixel_spacing_mm"] == [0.3, 0.3] and us.fields["width"] == 96
+
+
+def test_a_device_that_stops_ends_its_track_and_the_others_go_on(tmp_path):
+    """A video source that stops (a pulled cable) ends its track, said in the notes; the
+    force board goes on being recorded."""
+    from fake_hidapi import FakeHid
+
+    from humantele.forcesense.hid import HidForceSensor
+    from humantele.video.base import VideoFrame, VideoSource
+
+    class Stops(VideoSource):
+        size, fps = (8, 8), 30.0
+
+        def open(self) -> None:
+            self.n = 0
+
+        def read(self) -> VideoFrame:
+            self.n += 1
+            if self.n > 2:
+                raise VideoSourceError("capture card unplugged")
+            return VideoFrame(np.zeros((8, 8, 3), np.uint8), self.n, time.monotonic())
+
+        def close(self) -> None:
+            pass
+
+    reports = [encode_report(k, k * 10_000, [0.1] * 3, [0.2] * 3) for k in range(20)]
+    sensor = HidForceSensor(device=FakeHid(0x1209, 0x4854, reports).device())
+    plan = record_cmd.DevicePlan([("us", Stops(), "video"), ("force", sensor, "hid")])
+    writer = record_cmd.DeviceRecordingWriter(tmp_path / "r.mcap")
+    rec = record_cmd.DeviceRecorder(plan, writer)
+    rec.open()
+    rec.start()
+    deadline = time.monotonic() + 30
+    while rec.counts["force"] < 20 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    rec.finish()
+    writer.close()
+    assert rec.counts == {"us": 2, "force": 20}
+    assert rec.notes == ["us: stopped (capture card unplugged)"]
+    assert DeviceRecording(tmp_path / "r.mcap").complete
 
 
 def test_replay_backends_place_the_probe_where_the_simulation_put_it(recorded):
@@ -249,6 +292,17 @@ def test_replay_is_paced_at_the_recorded_times(recorded):
     src.close()
     assert len(times) == FRAMES
     assert np.allclose(np.diff(times), DTS / 1e7, atol=1e-9)
+    assert src.dropped.get("stale", 0) == 0
+    # a reader 10 frame periods late skips to the newest frame due, as the hl2ss client does
+    src = ReplayFrameSource(ReplayFrameConfig(file=str(recorded["file"])), lambda: now[0], sleep)
+    src.open()
+    first = src.read()
+    now[0] += 10 * DTS / 1e7 + 1e-4
+    late = src.read()
+    src.close()
+    assert first.device_time_s == pytest.approx(TS0 / 1e7)
+    assert late.device_time_s == pytest.approx((TS0 + 10 * DTS) / 1e7)
+    assert src.dropped["stale"] == 9
     now[0] = 0.0
     sensor = ReplayForceSensor(ReplayForceConfig(file=str(recorded["file"])), lambda: now[0], sleep)
     sensor.open()
@@ -306,6 +360,11 @@ def test_replay_backends_are_a_real_clinic_s_devices_in_the_follower_config(tmp_
 
     rec = str(tmp_path / "clinic.mcap")
     video = {"us": {"backend": "replay", "file": rec}, "pov": {"backend": "replay", "file": rec}}
+    with pytest.raises(ValueError, match="pixel_spacing_mm"):  # as any real US source
+        FollowerConfig.model_validate(
+            {"clinic": {"backend": "devices"}, "video": {"enabled": True, **video}}
+        )
+    video["us"].update(pixel_spacing_mm=[0.3, 0.3], depth_origin_row=4.0)
     c = FollowerConfig.model_validate(
         {"clinic": {"backend": "devices"}, "video": {"enabled": True, **video}}
     )
@@ -465,6 +524,8 @@ enabled = true
 backend = "replay"
 file = "{rec}"
 loop = true
+pixel_spacing_mm = [0.3, 0.3]
+depth_origin_row = 4.0
 [follower.video.pov]
 backend = "replay"
 file = "{rec}"

@@ -73,7 +73,8 @@ class DevicePlan:
 
 
 def _raw_hl2ss_source(config: Any) -> Any:
-    """An hl2ss source that keeps the frames raw (not undistorted): the file keeps what the
+    """An hl2ss source that keeps every frame (``newest = false``: none skipped when the
+    recorder falls behind) and keeps them raw (not undistorted): the file keeps what the
     headset sent; the replay undistorts with the recorded calibration."""
     from humantele.tracking.hl2ss_source import Hl2ssFrameSource
 
@@ -82,7 +83,7 @@ def _raw_hl2ss_source(config: Any) -> Any:
             super()._set_calibration(cal)
             self._undistort = False
 
-    return RawHl2ssSource(config)
+    return RawHl2ssSource(config.model_copy(update={"newest": False}))
 
 
 def plan_devices(config_path: str | Path) -> DevicePlan:

@@ -10,8 +10,10 @@ counted in ``no_pose``, as the hl2ss backend does.
 
 Pacing (``pace = true``): ``read`` blocks until the frame's recorded time (its hl2ss
 timestamp, 100 ns ticks, relative to the first frame and to the first ``read``), as the stream
-would; a late reader gets the frames in order, as from the stream's socket. ``loop``: start
-again at the end; else ``read`` returns None (counted in ``dropped["end"]``).
+would. A reader that fell behind skips to the newest frame already due, the older ones counted
+in ``dropped["stale"]``, as the hl2ss backend does (``newest = false``: every frame in order).
+``device_time_s`` is the frame's hl2ss timestamp in s. ``loop``: start again at the end; else
+``read`` returns None (counted in ``dropped["end"]``).
 
 ``open`` raises :class:`FrameSourceUnavailable` (one line) for a file that is not a device
 recording or holds no AHAT frame; a truncated file is replayed up to its torn tail, logged.
@@ -51,6 +53,11 @@ class ReplayFrameConfig(ConfigModel):
     file: str = Field(..., min_length=1, description="MCAP from `humantele devices record`")
     loop: bool = Field(False, description="start again at the end")
     pace: bool = Field(True, description="at the recorded times (False: as fast as read)")
+    newest: bool = Field(
+        True,
+        description="a paced reader that fell behind skips to the newest frame due (counted "
+        "as stale), as the hl2ss backend; false: every frame in order",
+    )
 
 
 class ReplayFrameSource(FrameSource):
@@ -143,10 +150,18 @@ class ReplayFrameSource(FrameSource):
             now = self._clock()
             if self._t0 is None:
                 self._t0, self._ts0 = now, ts
+            while self.config.newest and self._next is not None and self._due(self._next) <= now:
+                s, self._next = self._next, self._advance()  # behind: the newer one is due
+                ts = int(s.fields.get("timestamp", 0))
+                self.dropped["stale"] = self.dropped.get("stale", 0) + 1
             wait = self._t0 + (ts - self._ts0) / TICKS_PER_S - now
             if wait > 0:
                 self._sleep(wait)
         return self._frame(s, ts, t)
+
+    def _due(self, s: Sample) -> float:
+        assert self._t0 is not None
+        return self._t0 + (int(s.fields.get("timestamp", 0)) - self._ts0) / TICKS_PER_S
 
     def _frame(self, s: Sample, ts: int, t: float | None) -> TrackingFrame | None:
         try:
@@ -180,6 +195,7 @@ class ReplayFrameSource(FrameSource):
             seq=self._seq,
             T_world_camera=T_world_camera,
             T_world_rig=T_world_rig,
+            device_time_s=ts / TICKS_PER_S,
         )
 
     def close(self) -> None:
