@@ -128,8 +128,9 @@ backend = "hid"
 """
 
 
-def _replay_hid_module(hex_path: Path):
-    """tests/devices/replay_hid/hid.py (the board replayed at 100 Hz) as the ``hid`` module."""
+def _replay_hid_module():
+    """tests/devices/replay_hid/hid.py as the ``hid`` module: the board replayed at 100 Hz from
+    the .hex file ``HUMANTELE_HID_REPLAY`` names."""
     spec = importlib.util.spec_from_file_location("hid", HERE / "replay_hid" / "hid.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
@@ -147,7 +148,7 @@ def recorded(tmp_path_factory):
         Hl2ssReplayServer([clinic["records"]], clinic["calibration"], rate_hz=45) as server,
     ):
         mp.setenv("HUMANTELE_HID_REPLAY", str(out / "board.hex"))
-        mp.setitem(sys.modules, "hid", _replay_hid_module(out / "board.hex"))
+        mp.setitem(sys.modules, "hid", _replay_hid_module())
         cfg = out / "follower.toml"
         cfg.write_text(_follower_toml(out, server.port))
         counts, notes = record_cmd.record(
