@@ -19,7 +19,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "analyze": ("humantele.analysis.cli", "the study's analysis of recorded sessions"),
     "devices": (
         "humantele.devices.check",
-        "list devices and read a few samples from each; save the hl2ss calibration",
+        "list devices and read a few samples from each; save the hl2ss calibration; record "
+        "the follower's devices to replay them",
     ),
 }
 

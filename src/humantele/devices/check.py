@@ -44,9 +44,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--only", choices=["haptic", "tracker", "force", "hid"], action="append",
                    help="check only these (repeatable)")  # fmt: skip
     p.add_argument("--json", action="store_true", help="print the results as JSON")
-    from humantele.devices import hl2ss_calibration
+    from humantele.devices import hl2ss_calibration, record
 
     hl2ss_calibration.add_parser(sub)
+    record.add_parser(sub)
 
 
 def list_hid() -> list[dict[str, Any]]:
@@ -242,10 +243,15 @@ def run(args: argparse.Namespace) -> int:
         from humantele.devices import hl2ss_calibration
 
         return hl2ss_calibration.run(args)
+    if getattr(args, "action", None) == "record":
+        from humantele.devices import record
+
+        return record.run(args)
     if getattr(args, "action", None) != "check":
         print(
             "usage: humantele devices check [--expert-config F] [--follower-config F]\n"
-            "       humantele devices hl2ss-calibration --host H --out FILE"
+            "       humantele devices hl2ss-calibration --host H --out FILE\n"
+            "       humantele devices record --follower-config F --out REC.mcap [--duration S]"
         )
         return 2
     checks, system = run_checks(args)

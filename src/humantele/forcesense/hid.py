@@ -24,6 +24,8 @@ dropped and counted by reason; nothing raises into the caller's loop.
 from __future__ import annotations
 
 import struct
+import time
+from collections.abc import Callable
 from typing import Literal
 
 import numpy as np
@@ -125,7 +127,10 @@ class HidForceSensor(ForceSensor):
     """Reads reports from the board; ``read`` returns the newest good reading or None.
 
     ``device``: an already open hidapi-like device (``read(n, timeout_ms)``, ``close()``), for
-    tests; None: ``open()`` finds the board by its USB ids.
+    tests; None: ``open()`` finds the board by its USB ids. ``on_report``: called with every
+    report as read (the bytes, before parsing) and its receive time (s, ``time.monotonic``),
+    for ``humantele devices record``; a failing callback is counted in ``dropped["hook"]``
+    and does not stop the reading.
     """
 
     name = "hid force sensor"
@@ -135,6 +140,7 @@ class HidForceSensor(ForceSensor):
         self.dropped: dict[str, int] = {}
         self.received = 0
         self._dev = device
+        self.on_report: Callable[[bytes, float], None] | None = None
 
     def open(self) -> None:
         """Open the board; ForceSensorUnavailable saying which USB id was looked for."""
@@ -189,6 +195,11 @@ class HidForceSensor(ForceSensor):
                 break
             if not data:
                 break
+            if self.on_report is not None:
+                try:
+                    self.on_report(bytes(data), time.monotonic())
+                except Exception:  # noqa: BLE001 - the recorder's fault must not stop reading
+                    self.dropped["hook"] = self.dropped.get("hook", 0) + 1
             r = self.feed(data)
             newest = r or newest
             timeout = 0

@@ -1,8 +1,10 @@
 """Force sensor configuration and factory: one config union, one function.
 
 Each backend's configuration has a ``backend`` field that picks it: ``sim`` (the simulated
-board, :mod:`humantele.forcesense.sim`) or ``hid`` (the board over USB HID,
-:mod:`humantele.forcesense.hid`); both give :class:`~humantele.forcesense.base.ForceSensor` s.
+board, :mod:`humantele.forcesense.sim`), ``hid`` (the board over USB HID,
+:mod:`humantele.forcesense.hid`) or ``replay`` (a device recording's HID reports through the
+HID reader, :mod:`humantele.forcesense.replay`); all give
+:class:`~humantele.forcesense.base.ForceSensor` s.
 """
 
 from __future__ import annotations
@@ -16,10 +18,14 @@ from humantele.config import ConfigModel, load_config, named_config_path
 from humantele.forcesense.base import ForceSensor
 from humantele.forcesense.contact import ContactConfig
 from humantele.forcesense.hid import HidForceConfig, HidForceSensor
+from humantele.forcesense.replay import ReplayForceConfig, ReplayForceSensor
 from humantele.forcesense.sim_config import SimForceConfig
 
-ForceBackendConfig = Annotated[SimForceConfig | HidForceConfig, Field(discriminator="backend")]
-"""A force sensor board's configuration, picked by its ``backend`` field: "sim" or "hid"."""
+ForceBackendConfig = Annotated[
+    SimForceConfig | HidForceConfig | ReplayForceConfig, Field(discriminator="backend")
+]
+"""A force sensor board's configuration, picked by its ``backend`` field: "sim", "hid" or
+"replay"."""
 
 
 class ForceSensorConfig(ConfigModel):
@@ -31,7 +37,9 @@ class ForceSensorConfig(ConfigModel):
     contact: ContactConfig = Field(default_factory=ContactConfig)
 
 
-def make_force_sensor(config: SimForceConfig | HidForceConfig) -> ForceSensor:
+def make_force_sensor(
+    config: SimForceConfig | HidForceConfig | ReplayForceConfig,
+) -> ForceSensor:
     """The force sensor a configuration asks for, not yet opened (``open()`` raises
     ForceSensorUnavailable when the board is missing)."""
     if isinstance(config, SimForceConfig):
@@ -40,6 +48,8 @@ def make_force_sensor(config: SimForceConfig | HidForceConfig) -> ForceSensor:
         return SimForceSensor(config)
     if isinstance(config, HidForceConfig):
         return HidForceSensor(config)
+    if isinstance(config, ReplayForceConfig):
+        return ReplayForceSensor(config)
     raise TypeError(f"not a force sensor configuration: {type(config).__name__}")
 
 

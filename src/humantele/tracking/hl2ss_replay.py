@@ -9,15 +9,24 @@ sends the calibration (closes when it has none). Modes 0/1 send the packets of t
 the rig pose in mode 1 (zeros for a record without one, as the app sends when the headset is
 not located).
 
-A turn is a list of items: an :class:`AhatRecord` (encoded for the client's mode), ``bytes``
+A turn is a list of items (or any iterable, iterated again for each client: :class:`McapTurn`
+reads a device recording lazily): an :class:`AhatRecord` (encoded for the client's mode), ``bytes``
 (sent as they are: corrupt packets for tests) or None (the server drops the connection there).
 Refused and calibration connections do not use up a turn; after the last turn, new clients
 are closed at once (``repeat=True``: every client gets the first turn again). ``rate_hz``
-paces the records as the headset would (None: as fast as the client reads).
+paces the records as the headset would (None: as fast as the client reads);
+``recorded_times=True`` paces them at their own timestamps instead (100 ns ticks, from the
+first record sent; a recording's real timing, gaps and jitter included).
 
-In its own process, serving records saved with :func:`save_records`::
+In its own process, serving records saved with :func:`save_records` (``.npz``) or a device
+recording made by ``humantele devices record`` (``.mcap``: the frames and rig poses exactly as
+the headset sent them, and its calibration; a truncated one is served up to its torn tail,
+said on stderr; a file that is not one is refused in one line)::
 
-    python -m humantele.tracking.hl2ss_replay FILE.npz [--host H] [--port P] [--rate 45]
+    python -m humantele.tracking.hl2ss_replay FILE.npz|REC.mcap [--host H] [--port P] [--rate R]
+
+(``--rate``: frames per second, 0 unpaced; default 45 for ``.npz``, the recorded times for
+``.mcap``.)
 
 prints ``hl2ss replay listening on H:P`` once it listens and serves until stopped.
 """
@@ -31,6 +40,7 @@ import socket
 import sys
 import threading
 import time
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -56,19 +66,24 @@ from humantele.tracking.hl2ss_protocol import (
 @dataclass
 class AhatRecord:
     """One AHAT frame to replay: device timestamp (100 ns ticks), depth (mm) and AB images,
-    sensor ticks, and the rig's pose in the app's world (None: not located)."""
+    sensor ticks, and the rig's pose in the app's world (None: not located); ``pose_hl2ss``:
+    the pose matrix exactly as a headset sent it (recorded; sent as it is when given)."""
 
     timestamp: int
     depth_mm: NDArray[np.uint16]
     ab: NDArray[np.uint16]
     sensor_ticks: int = 0
     T_world_rig: Pose | None = None
+    pose_hl2ss: NDArray[np.float32] | None = None
 
     def packet(self, mode: int) -> bytes:
         pose = None
         if mode == MODE_FRAMES_POSE:
-            pose = (np.zeros((4, 4), np.float32) if self.T_world_rig is None
-                    else hl2ss_matrix_from_pose(self.T_world_rig))  # fmt: skip
+            if self.pose_hl2ss is not None:
+                pose = self.pose_hl2ss
+            else:
+                pose = (np.zeros((4, 4), np.float32) if self.T_world_rig is None
+                        else hl2ss_matrix_from_pose(self.T_world_rig))  # fmt: skip
         return encode_ahat_packet(self.timestamp, self.depth_mm, self.ab, self.sensor_ticks, pose)
 
 
@@ -81,16 +96,18 @@ class Hl2ssReplayServer:
 
     def __init__(
         self,
-        turns: list[list[TurnItem]],
+        turns: list[Iterable[TurnItem]],
         calibration: Hl2ssAhatCalibration | None = None,
         host: str = "127.0.0.1",
         port: int = 0,
         repeat: bool = False,
         rate_hz: float | None = None,
+        recorded_times: bool = False,
     ):
         self.turns = list(turns)
         self.repeat = repeat
         self.rate_hz = rate_hz
+        self.recorded_times = recorded_times
         self.calibration = calibration
         self._calibration_bytes = None if calibration is None else calibration.to_bytes()
         self.configs: list[AhatConfiguration] = []  # accepted stream configurations
@@ -149,6 +166,7 @@ class Hl2ssReplayServer:
         items = self.turns[0] if self.repeat else self.turns.pop(0)
         k = 0
         t0 = time.monotonic()
+        ts0: int | None = None
         for item in items:
             if item is None:
                 return  # drop the connection here
@@ -157,8 +175,14 @@ class Hl2ssReplayServer:
                 k += 1
                 if not send:
                     continue
-                if self.rate_hz:
-                    delay = t0 + (k - 1) / self.rate_hz - time.monotonic()
+                due = None
+                if self.recorded_times:
+                    ts0 = item.timestamp if ts0 is None else ts0
+                    due = t0 + (item.timestamp - ts0) / 1e7
+                elif self.rate_hz:
+                    due = t0 + (k - 1) / self.rate_hz
+                if due is not None:
+                    delay = due - time.monotonic()
                     if delay > 0 and self._stop.wait(delay):
                         return
                 data = item.packet(cfg.mode)
@@ -210,6 +234,70 @@ def save_records(
     np.savez_compressed(path, **arrays)
 
 
+class McapTurn:
+    """The AHAT frames of a device recording (``humantele devices record``) as a turn read
+    lazily from the file, again for every client (a long recording is not held in memory).
+    Construction checks the file (ValueError, one line: not a device recording, or no AHAT
+    frame) and takes its calibration; ``problem`` says what cut it short (None: complete),
+    once the reading reached the torn tail (and at once for a file without footer);
+    ``on_problem(message)`` is called when a reading stops at it."""
+
+    def __init__(self, path: str | Path, on_problem: Callable[[str], None] | None = None):
+        from humantele.devices.replay_file import (
+            AHAT_CALIBRATION,
+            AHAT_FRAME,
+            DeviceRecording,
+            DeviceRecordingError,
+        )
+
+        self.path, self.on_problem = Path(path), on_problem
+        self._topics = {AHAT_CALIBRATION, AHAT_FRAME}
+        try:
+            self._rec = DeviceRecording(path)
+        except DeviceRecordingError as exc:
+            raise ValueError(f"hl2ss replay: {exc}") from None
+        self.calibration: Hl2ssAhatCalibration | None = None
+        frames = iter(self)
+        first = next(frames, None)
+        frames.close()
+        if first is None:
+            raise ValueError(f"hl2ss replay: {path} holds no AHAT frame"
+                             + ("" if self.problem is None else f" ({self.problem})"))  # fmt: skip
+
+    @property
+    def problem(self) -> str | None:
+        return self._rec.problem
+
+    def __iter__(self) -> Iterator[AhatRecord]:
+        from humantele.devices.replay_file import AHAT_CALIBRATION
+
+        n = 0
+        for s in self._rec.samples(self._topics):
+            if s.topic == AHAT_CALIBRATION:
+                if self.calibration is None:
+                    self.calibration = Hl2ssAhatCalibration.from_bytes(
+                        bytes(s.blobs["calibration"]))  # fmt: skip
+                continue
+            m = s.blobs.get("pose")
+            m = None if m is None else np.asarray(m, np.float32).reshape(4, 4)
+            n += 1
+            yield AhatRecord(int(s.fields["timestamp"]), s.blobs["depth"], s.blobs["ab"],
+                             int(s.fields.get("sensor_ticks", 0)),
+                             None if m is None else pose_from_hl2ss(m)[0], m)  # fmt: skip
+        if self._rec.problem and self.on_problem is not None:
+            self.on_problem(f"{self._rec.problem}: served its first {n} frames")
+
+
+def load_mcap_records(
+    path: str | Path,
+) -> tuple[list[AhatRecord], Hl2ssAhatCalibration | None, str | None]:
+    """All AHAT frames of a device recording in memory (short recordings, tests), its
+    calibration and what cut it short (None: complete); ValueError as :class:`McapTurn`."""
+    turn = McapTurn(path)
+    records = list(turn)
+    return records, turn.calibration, turn.problem
+
+
 def load_records(path: str | Path) -> tuple[list[AhatRecord], Hl2ssAhatCalibration | None]:
     """The records and calibration :func:`save_records` wrote; ValueError naming the file."""
     try:
@@ -228,13 +316,27 @@ def load_records(path: str | Path) -> tuple[list[AhatRecord], Hl2ssAhatCalibrati
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description="serve recorded AHAT frames as the hl2ss app does")
-    ap.add_argument("file", help=".npz written by save_records")
+    ap.add_argument("file", help=".npz written by save_records, or a device recording (.mcap)")
     ap.add_argument("--host", default="127.0.0.1")
     ap.add_argument("--port", type=int, default=0, help="0: any free port (printed)")
-    ap.add_argument("--rate", type=float, default=45.0, help="frames per second (0: unpaced)")
+    ap.add_argument("--rate", type=float, default=None,
+                    help="frames per second (0: unpaced; default: 45 for .npz, the recorded "
+                    "times for .mcap)")  # fmt: skip
     args = ap.parse_args(argv)
+    mcap = Path(args.file).suffix != ".npz"
+
+    def say(message: str) -> None:
+        print(f"hl2ss replay: {message}", file=sys.stderr, flush=True)
+
+    records: Iterable[TurnItem]
     try:
-        records, cal = load_records(args.file)
+        if not mcap:
+            records, cal = load_records(args.file)
+        else:
+            records = turn = McapTurn(args.file, say)
+            cal = turn.calibration
+            if turn.problem:
+                say(turn.problem)
     except ValueError as exc:
         print(exc, file=sys.stderr)
         return 1
@@ -242,7 +344,8 @@ def main(argv: list[str] | None = None) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     with Hl2ssReplayServer([records], cal, args.host, args.port, repeat=True,
-                           rate_hz=args.rate or None) as srv:  # fmt: skip
+                           rate_hz=(45.0 if args.rate is None and not mcap else args.rate) or None,
+                           recorded_times=mcap and args.rate is None) as srv:  # fmt: skip
         print(f"hl2ss replay listening on {args.host}:{srv.port}", flush=True)
         stop.wait()
     return 0

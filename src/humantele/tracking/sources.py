@@ -1,8 +1,9 @@
 """Frame source configurations and the factory: one config union, one function.
 
 Each backend's configuration has a ``backend`` field that picks it: ``sim`` (rendered AHAT-like
-frames, :mod:`humantele.tracking.sim`) or ``opencv`` (a camera OpenCV can open,
-:mod:`humantele.tracking.opencv_source`).
+frames, :mod:`humantele.tracking.sim`), ``opencv`` (a camera OpenCV can open,
+:mod:`humantele.tracking.opencv_source`), ``hl2ss`` (the HoloLens 2 AHAT stream) or ``replay``
+(the AHAT frames of a device recording, :mod:`humantele.tracking.replay_source`).
 """
 
 from __future__ import annotations
@@ -14,18 +15,20 @@ from pydantic import Field
 from humantele.tracking.frames import FrameSource
 from humantele.tracking.hl2ss_source import Hl2ssFrameConfig, Hl2ssFrameSource
 from humantele.tracking.opencv_source import OpenCVFrameConfig, OpenCVFrameSource
+from humantele.tracking.replay_source import ReplayFrameConfig, ReplayFrameSource
 from humantele.tracking.sim_config import SimFrameConfig
 from humantele.tracking.tool import ToolDefinition
 
 FrameSourceConfig = Annotated[
-    SimFrameConfig | OpenCVFrameConfig | Hl2ssFrameConfig, Field(discriminator="backend")
+    SimFrameConfig | OpenCVFrameConfig | Hl2ssFrameConfig | ReplayFrameConfig,
+    Field(discriminator="backend"),
 ]
-"""A tracking camera's configuration, picked by its ``backend`` field: "sim", "opencv" or
-"hl2ss" (the HoloLens 2 AHAT stream)."""
+"""A tracking camera's configuration, picked by its ``backend`` field: "sim", "opencv",
+"hl2ss" (the HoloLens 2 AHAT stream) or "replay" (a device recording's AHAT frames)."""
 
 
 def make_frame_source(
-    config: SimFrameConfig | OpenCVFrameConfig | Hl2ssFrameConfig,
+    config: SimFrameConfig | OpenCVFrameConfig | Hl2ssFrameConfig | ReplayFrameConfig,
     tool: ToolDefinition | None = None,
 ) -> FrameSource:
     """The frame source a configuration asks for, not yet opened. ``tool`` is the marker tree
@@ -38,4 +41,6 @@ def make_frame_source(
         return OpenCVFrameSource(config)
     if isinstance(config, Hl2ssFrameConfig):
         return Hl2ssFrameSource(config)
+    if isinstance(config, ReplayFrameConfig):
+        return ReplayFrameSource(config)
     raise TypeError(f"not a frame source configuration: {type(config).__name__}")

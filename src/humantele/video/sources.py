@@ -3,7 +3,8 @@
 The follower has two tracks: the ultrasound image (``UltrasoundSourceConfig``: ``sim`` or
 ``opencv``, e.g. a capture card on the US machine's video output) and the point of view
 (``PovSourceConfig``: ``sim`` or ``opencv``, e.g. a webcam; the headset's PV camera will be
-another backend here). Each is picked by its ``backend`` field.
+another backend here). Each is picked by its ``backend`` field; ``replay`` (either track) gives
+the frames of a device recording (:mod:`humantele.video.replay_source`).
 """
 
 from __future__ import annotations
@@ -14,16 +15,19 @@ from pydantic import Field
 
 from humantele.video.base import VideoSource
 from humantele.video.opencv_source import OpenCVVideoConfig, OpenCVVideoSource
+from humantele.video.replay_source import ReplayPovConfig, ReplayVideoConfig, ReplayVideoSource
 from humantele.video.sim_config import SimPovConfig, SimUltrasoundConfig
 
 if TYPE_CHECKING:
     from humantele.video.scene import Scene
 
 UltrasoundSourceConfig = Annotated[
-    SimUltrasoundConfig | OpenCVVideoConfig, Field(discriminator="backend")
+    SimUltrasoundConfig | OpenCVVideoConfig | ReplayVideoConfig, Field(discriminator="backend")
 ]
-PovSourceConfig = Annotated[SimPovConfig | OpenCVVideoConfig, Field(discriminator="backend")]
-AnyVideoConfig = SimUltrasoundConfig | SimPovConfig | OpenCVVideoConfig
+PovSourceConfig = Annotated[
+    SimPovConfig | OpenCVVideoConfig | ReplayPovConfig, Field(discriminator="backend")
+]
+AnyVideoConfig = SimUltrasoundConfig | SimPovConfig | OpenCVVideoConfig | ReplayVideoConfig
 
 
 def make_video_source(config: AnyVideoConfig, scene: Scene | None = None) -> VideoSource:
@@ -39,4 +43,6 @@ def make_video_source(config: AnyVideoConfig, scene: Scene | None = None) -> Vid
         return SimPov(config, scene)
     if isinstance(config, OpenCVVideoConfig):
         return OpenCVVideoSource(config)
+    if isinstance(config, ReplayVideoConfig):
+        return ReplayVideoSource(config)
     raise TypeError(f"not a video source configuration: {type(config).__name__}")
