@@ -107,7 +107,7 @@ def video_stream(name: str, samples: list[dict]) -> VideoStream | None:
 
 def _where_it_stops(rec: Recording) -> str:
     last = [float(rec.times(topic)[-1]) for topic in rec.messages if rec.count(topic)]
-    return f" (last sample at t = {max(last):.1f} s)" if last else " (nothing in it)"
+    return f" (last sample at t = {max(last):.1f} s)" if last else " (nothing intact)"
 
 
 def load(paths: Iterable[str | Path]) -> tuple[list[ExportSession], list[str]]:
