@@ -15,7 +15,7 @@ from aiortc.codecs.vpx import Vp8Decoder
 from aiortc.jitterbuffer import JitterFrame
 
 from humantele.export.source import load
-from humantele.export.video import _first_decodable
+from humantele.export.video import first_decodable
 from humantele.video.fidelity import psnr
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -54,7 +54,7 @@ def test_demo_video_recorded_at_full_rate_exports_the_frames_the_expert_decoded(
     assert (out / f"{base}.mcap").stat().st_size > 10_000
     frames = es.video["us"].frames
     dec, expert = Vp8Decoder(), []
-    for f in frames[_first_decodable(frames, iv.start) :]:
+    for f in frames[first_decodable(frames, iv.start) :]:
         if f.t > iv.stop:
             break
         pics = dec.decode(JitterFrame(f.data, 0))

@@ -23,7 +23,13 @@ from typing import Any
 from humantele.config import ConfigError
 from humantele.export.mcapfile import ScanMcap
 from humantele.export.source import ExportSession, load
-from humantele.export.video import TranscodeJob, TranscodeResult, transcode
+from humantele.export.video import (
+    EncodedFrame,
+    TranscodeJob,
+    TranscodeResult,
+    first_decodable,
+    transcode,
+)
 
 STREAMS = ("us", "pov")
 
@@ -133,6 +139,15 @@ def clip_window(start: float, stop: float, a: float | None, b: float | None) -> 
     return lo, hi
 
 
+def clip_frames(frames: list[EncodedFrame], lo: float, hi: float) -> list[EncodedFrame]:
+    """The frames a clip [lo, hi] needs: from the keyframe its decoding starts at to ``hi``
+    (a worker is sent these, not the session's)."""
+    begin = first_decodable(frames, lo)
+    if begin is None:
+        return [f for f in frames if lo <= f.t <= hi]  # none decodable: counted as such
+    return [f for f in frames[begin:] if f.t <= hi]
+
+
 def plan(
     sessions: list[ExportSession], args: argparse.Namespace, out: Path
 ) -> tuple[list[tuple[ExportSession, Any, float, float]], list[TranscodeJob], list[str]]:
@@ -162,7 +177,7 @@ def plan(
                 jobs.append(
                     TranscodeJob(
                         f"{es.session_id}_scan{iv.scan}_{name}",
-                        stream.frames,
+                        clip_frames(stream.frames, lo, hi),
                         lo,
                         hi,
                         stream.codec,

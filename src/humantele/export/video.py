@@ -67,7 +67,7 @@ class TranscodeResult:
     error: str | None = None
 
 
-def _first_decodable(frames: list[EncodedFrame], start: float) -> int | None:
+def first_decodable(frames: list[EncodedFrame], start: float) -> int | None:
     """Index of the keyframe decoding should start at: the last one at or before the first
     frame at/after ``start``, else the first one after it; None when there is none."""
     first = next((i for i, f in enumerate(frames) if f.t >= start), None)
@@ -116,7 +116,7 @@ def _transcode(
     frames = job.frames
     in_clip = [f for f in frames if job.start <= f.t <= job.stop]
     res.frames_in = len(in_clip)
-    begin = _first_decodable(frames, job.start)
+    begin = first_decodable(frames, job.start)
     if begin is None or not in_clip:
         res.skipped_before_keyframe = len(in_clip)
         return
