@@ -164,3 +164,30 @@ def test_undecodable_frames_are_counted_not_fatal(tmp_path):
     assert res.frames_out + res.decode_errors + res.skipped_before_keyframe == 20
     assert res.frames_out >= 15 and len(res.h264) == res.frames_out
     assert np.isfinite(res.duration_s)
+
+
+def test_an_h264_link_recording_transcodes_too(tmp_path):
+    """[expert.video] codec = "h264": the recorded access units (Annex B) decode and export."""
+    import fractions
+
+    from video_fixtures import H, W
+
+    from humantele.media.jitter import h264_is_keyframe
+
+    enc = av.CodecContext.create("libx264", "w")
+    enc.width, enc.height, enc.pix_fmt = W, H, "yuv420p"
+    enc.time_base = fractions.Fraction(1, FPS)
+    enc.gop_size, enc.max_b_frames = 10, 0
+    frames = []
+    for i in range(30):
+        f = av.VideoFrame.from_ndarray(picture(i), format="bgr24").reformat(format="yuv420p")
+        f.pts = i
+        for p in enc.encode(f):
+            data = bytes(p)
+            frames.append(EncodedFrame(float(p.pts) / FPS, data, h264_is_keyframe(data)))
+    assert frames[0].keyframe
+    res = transcode(TranscodeJob("h", frames, 0.0, 2.0, "h264", tmp_path / "h.mp4"))
+    assert res.error is None and res.frames_out == len(frames) and res.decode_errors == 0
+    with av.open(str(tmp_path / "h.mp4")) as c:
+        first = next(c.decode(video=0)).to_ndarray(format="bgr24")
+    assert psnr(picture(0), first) > 30.0
