@@ -49,6 +49,7 @@ def test_each_scan_gives_an_mp4_and_a_foxglove_file_that_play(files, tmp_path, c
     mp4s = sorted(out.glob("*.mp4"))
     assert [p.name for p in mp4s] == ["vid01_scan1_us.mp4", "vid01_scan2_us.mp4"]
     assert "no pov video recorded" in printed.err  # the fixture records the us stream only
+    assert b"vid01" not in mp4s[0].read_bytes()  # a rater's clip names no session
     # the MP4: H.264, the scan's frames (about its length at 20 fps), the pictures recorded
     with av.open(str(mp4s[0])) as c:
         stream = c.streams.video[0]
