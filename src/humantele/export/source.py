@@ -140,7 +140,10 @@ def load(paths: Iterable[str | Path]) -> tuple[list[ExportSession], list[str]]:
         video: dict[str, VideoStream] = {}
         for name, topic in VIDEO_TOPICS.items():
             samples = [s for r in recs for s in r.samples(topic)]
+            for r in recs:  # the base64 text is freed as the frames are decoded (memory: an
+                r.messages.pop(topic, None)  # hour of both streams is ~1.3 GB of frames)
             stream = video_stream(name, samples)
+            del samples
             if stream is not None:
                 video[name] = stream
                 if stream.bad:
