@@ -17,6 +17,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "follower": ("humantele.follower.cli", "run the follower daemon (tracking, force, video)"),
     "signal": ("humantele.signaling.server", "run the signaling server"),
     "analyze": ("humantele.analysis.cli", "the study's analysis of recorded sessions"),
+    "export": (
+        "humantele.export.cli",
+        "recorded video per scan: MP4 (H.264) for raters, MCAP for Foxglove",
+    ),
     "devices": (
         "humantele.devices.check",
         "list devices and read a few samples from each; save the hl2ss calibration; record "

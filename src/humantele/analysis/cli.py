@@ -56,6 +56,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=50.0,
         help="longest gap in the virtual pose to interpolate over (ms)",
     )
+    from humantele.analysis import rating
+
+    rating.add_arguments(parser)
 
 
 def _mean_sd(values: list[float | None]) -> dict[str, float | int | None]:
@@ -323,6 +326,10 @@ def _parse_scans(text: str) -> tuple[int, ...]:
 
 
 def run(args: argparse.Namespace) -> int:
+    if getattr(args, "rating_sheet", None) or getattr(args, "ratings", None):
+        from humantele.analysis import rating
+
+        return rating.run(args)
     if not (args.recordings or args.scores or args.tlx or args.usability):
         print(
             "humantele analyze: give recordings and/or --scores/--tlx/--usability", file=sys.stderr

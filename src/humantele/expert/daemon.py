@@ -169,7 +169,13 @@ class ExpertDaemon(Daemon):
         )
         # The follower's us and pov tracks: the latest decoded frame of each, with its capture
         # time on this clock (self.video.latest("us")), for the console.
-        self.video = VideoReceiver(config.video, self.link.clock, self.link.now, self.record_any)
+        self.video = VideoReceiver(
+            config.video,
+            self.link.clock,
+            self.link.now,
+            self.record_any,
+            recording=lambda: self.rec is not None,  # then every frame is recorded encoded
+        )
         self.pose_seq = 0
         self.poses_sent = 0
         self.pose_send_failures = 0

@@ -14,12 +14,19 @@ aiortc (1.16) has no supported way to do these three things, each needed for the
    have piled up and then stays that far behind.
 3. :func:`newest_frame`: the newest decoded frame of a remote track, dropping the older ones
    queued while the event loop was held up (aiortc's track has only ``recv()``, one by one).
+4. :class:`EncodedFrameTap`: the encoded frames as they leave the jitter buffer for aiortc's
+   decoder thread (depacketised, before decoding: a VP8 frame or an H.264 access unit in
+   Annex B), with their RTP timestamp as received, for the recording. It wraps the jitter
+   buffer given to :func:`use_jitter_buffer`; aiortc rewrites the frame's timestamp only after
+   ``add`` returns.
 
 ``tests/media/test_aiortc_hooks.py`` fails if aiortc renames or retypes what these touch.
 """
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Callable
 from typing import Any
 
 from aiortc import RTCRtpReceiver, RTCRtpSender
@@ -29,6 +36,7 @@ from aiortc.jitterbuffer import JitterBuffer
 _SENDER_ENCODER = "_RTCRtpSender__encoder"
 _RECEIVER_JITTER = "_RTCRtpReceiver__jitter_buffer"
 _TRACK_QUEUE = "_queue"
+log = logging.getLogger(__name__)
 
 
 class AiortcChanged(RuntimeError):
@@ -76,3 +84,35 @@ def newest_frame(track: Any, frame: Any) -> tuple[Any, int]:
         skipped += 1
         frame = newer
     return frame, skipped
+
+
+class EncodedFrameTap:
+    """A jitter buffer (``add(packet) -> (pli, frame or None)``) that also hands each frame it
+    releases to ``on_frame(data, rtp_timestamp)`` (bytes as aiortc will decode them; the RTP
+    timestamp, 90 kHz, as the sender set it). ``on_frame`` runs on the event loop, inside
+    aiortc's packet handler: it must only queue. Its failures are logged once and counted in
+    ``tap_errors``, never raised into aiortc's receive path."""
+
+    def __init__(self, buffer: Any, on_frame: Callable[[bytes, int], Any]) -> None:
+        self.buffer = buffer
+        self.on_frame = on_frame
+        self.tapped = 0
+        self.tap_errors = 0
+
+    def add(self, packet: Any) -> tuple[bool, Any]:
+        pli, frame = self.buffer.add(packet)
+        if frame is not None:
+            try:
+                self.on_frame(frame.data, int(frame.timestamp))
+                self.tapped += 1
+            except Exception:  # noqa: BLE001 - the recording must never stop the video
+                if not self.tap_errors:
+                    log.exception("encoded frame tap failed (counting the rest)")
+                self.tap_errors += 1
+        return pli, frame
+
+    def __getattr__(self, name: str) -> Any:  # counters, capacity... of the wrapped buffer
+        return getattr(self.__dict__["buffer"], name)
+
+    def __len__(self) -> int:
+        return len(self.buffer)

@@ -149,3 +149,8 @@ class ExpertVideoConfig(ConfigModel):
         "frames up to the next keyframe are dropped and a keyframe asked for",
     )  # fmt: skip
     record_frames: bool = Field(True, description="record every received frame's timestamps")
+    record_encoded: bool = Field(
+        True,
+        description="record every received frame, encoded as it arrived (/expert/us_video, "
+        "/expert/pov_video; for humantele export), when recording",
+    )

@@ -20,6 +20,13 @@ in it, :mod:`humantele.media.encoders`). Nothing on the
 loop converts or copies the picture: :meth:`ReceivedFrame.image` does that for whoever shows
 it, in its own thread.
 
+Recording (when ``record`` is given): every frame of both tracks as it arrived, encoded
+(:class:`~humantele.media.aiortc_hooks.EncodedFrameTap` on the jitter buffer: the bytes aiortc
+decodes, so no re-encoding and no copy beyond the recorder's), on ``/expert/us_video`` and
+``/expert/pov_video`` with its codec, keyframe flag, RTP timestamp, receive time and, once
+the stream's RTP clock is anchored, capture time (expert clock). ``humantele export`` makes
+MP4 and Foxglove files of them.
+
 Frame age (``age_s``) is capture to decoded-at-the-expert ("glass to glass" without the
 display). Frames whose counter does not read or whose record was lost are kept (they are the
 latest picture) with an unknown age, and counted.
@@ -41,11 +48,12 @@ import numpy as np
 from aiortc import RTCPeerConnection, RTCRtpSender
 from aiortc.mediastreams import MediaStreamError
 
-from humantele.media.aiortc_hooks import newest_frame, use_jitter_buffer
+from humantele.media.aiortc_hooks import EncodedFrameTap, newest_frame, use_jitter_buffer
 from humantele.media.config import TRACKS, ExpertVideoConfig
 from humantele.media.frameinfo import FrameInfo, FrameInfoError
 from humantele.media.jitter import KEYFRAME_TESTS, BoundedJitterBuffer
 from humantele.media.sender import VIDEO_CHANNEL_ID
+from humantele.recording.schemas import VIDEO_TOPICS
 from humantele.runtime.stats import percentile_ms
 from humantele.transport.clocksync import ClockSync
 from humantele.video.counter import CELL, COLS, ROWS, read_counter, unwrap
@@ -140,6 +148,9 @@ class TrackStats:
         self.anchors = 0  # times the anchor moved (a new stream, a sender's clock jump)
         self.candidates: set[int] | None = None  # anchors the last unstamped frame allows
         self.size: tuple[int, int] | None = None
+        self.encoded_recorded = 0  # encoded frames queued for the recording
+        self.rtp_origin: int | None = None  # aiortc's pts = RTP timestamp - origin (unwrapped)
+        self.rtp_last: int | None = None
 
     def fps(self, now: float, window_s: float = 2.0) -> float:
         n = sum(1 for t in self.arrivals if now - t <= window_s)
@@ -163,12 +174,15 @@ class TrackStats:
             "stale_dropped": self.stale_dropped,
             "skipped": self.skipped,
             "size": list(self.size) if self.size else None,
+            "encoded_recorded": self.encoded_recorded,
         }
 
 
 class VideoReceiver:
     """The expert's two tracks; ``clock`` is the link's ClockSync, ``now`` the expert's clock,
-    ``record(topic, t, payload)`` records (None: no recording)."""
+    ``record(topic, t, payload)`` records (None: no recording); ``recording()`` says whether a
+    recording is open (then, with ``record_encoded``, each new connection's frames are
+    recorded encoded; default: whenever ``record`` is given)."""
 
     def __init__(
         self,
@@ -176,8 +190,10 @@ class VideoReceiver:
         clock: ClockSync,
         now: Callable[[], float] = time.monotonic,
         record: Record | None = None,
+        recording: Callable[[], bool] | None = None,
     ) -> None:
         self.config = config
+        self.recording = recording or (lambda: record is not None)
         self.clock = clock
         self.now = now
         self.record = record
@@ -217,6 +233,7 @@ class VideoReceiver:
         for name in TRACKS:  # a new follower process numbers its frames from 1 again
             self.stats_by_track[name].last_seq = None
             self.stats_by_track[name].anchor = None  # and its RTP timestamps start anew
+            self.stats_by_track[name].rtp_origin = None
             self._infos[name].clear()
             self._seq_at[name].clear()
         # The codec alone, without RTX: aiortc routes an RTX packet by its payload type when
@@ -233,7 +250,11 @@ class VideoReceiver:
             buffer = BoundedJitterBuffer(
                 KEYFRAME_TESTS[self.config.codec], self.config.loss_wait_ms / 1000.0
             )
-            use_jitter_buffer(transceiver.receiver, buffer)
+            if self.record is not None and self.config.record_encoded and self.recording():
+                tap = EncodedFrameTap(buffer, self._encoded_recorder(name))
+                use_jitter_buffer(transceiver.receiver, tap)
+            else:
+                use_jitter_buffer(transceiver.receiver, buffer)
             self._jitter[name] = buffer
             names[id(transceiver.receiver)] = name
         channel = pc.createDataChannel(
@@ -247,6 +268,40 @@ class VideoReceiver:
                     self._spawn(self._consume(pc, names[id(t.receiver)], track))
 
         pc.on("track", on_track)
+
+    def _encoded_recorder(self, name: str) -> Callable[[bytes, int], None]:
+        """The tap's callback for track ``name``: record the encoded frame (see module doc)."""
+        st = self.stats_by_track[name]
+        topic = VIDEO_TOPICS[name]
+        codec = self.config.codec
+        is_key = KEYFRAME_TESTS[codec]
+
+        def on_frame(data: bytes, rtp_timestamp: int) -> None:
+            t = self.now()
+            # aiortc's TimestampMapper: pts counts from the first frame it decodes (this one
+            # when st.rtp_origin is None), unwrapping the 32-bit RTP timestamp
+            if st.rtp_origin is None:
+                st.rtp_origin = rtp_timestamp
+            elif st.rtp_last is not None and rtp_timestamp < st.rtp_last:
+                st.rtp_origin -= 1 << 32
+            st.rtp_last = rtp_timestamp
+            payload: dict[str, Any] = {
+                "data": data,
+                "codec": codec,
+                "keyframe": is_key(data),
+                "rtp_timestamp": rtp_timestamp,
+            }
+            if st.anchor is not None:
+                t_capture = self.clock.to_local(
+                    (rtp_timestamp - st.rtp_origin + st.anchor) / VIDEO_RATE
+                )
+                if t_capture is not None:
+                    payload["t_capture"] = t_capture
+            assert self.record is not None
+            self.record(topic, t, payload)
+            st.encoded_recorded += 1
+
+        return on_frame
 
     def _spawn(self, coro: Any) -> None:
         task = asyncio.ensure_future(coro)

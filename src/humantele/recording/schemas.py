@@ -44,7 +44,10 @@ _KINDS: dict[str, dict[str, Any]] = {
     "vec2": {"type": "array", "items": {"type": "number"}, "minItems": 2, "maxItems": 2},
     "vec3": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
     "quat": {"type": "array", "items": {"type": "number"}, "minItems": 4, "maxItems": 4},
+    "bytes": {"type": "string", "contentEncoding": "base64"},
 }
+# An encoded video frame (one /expert/*_video message): at most this many bytes.
+MAX_FRAME_BYTES = 4 << 20
 
 
 @dataclass(frozen=True)
@@ -89,6 +92,22 @@ _VIDEO = {
     "height": ("integer", "size sent, px (sent)"),
     "age_s": ("number", "capture (follower) to decoded (expert), s, via clock sync (received)"),
 }
+_ENCODED_VIDEO = {
+    "data": (
+        "bytes",
+        "the encoded frame as received: a VP8 frame, or an H.264 access unit "
+        "(Annex B); depacketised, not decoded",
+    ),
+    "codec": ("string", "'vp8' or 'h264'"),
+    "keyframe": ("boolean", "the frame decodes on its own (VP8 key frame; H.264 IDR or SPS)"),
+    "rtp_timestamp": ("integer", "its RTP timestamp as received, 90 kHz, sender's clock"),
+    "t_capture": (
+        "number",
+        "capture time on this (expert) clock via clock sync, s; absent "
+        "until the stream's RTP clock is tied to the follower's (its first frames)",
+    ),
+}
+VIDEO_TOPICS = {"us": "/expert/us_video", "pov": "/expert/pov_video"}
 IMAGE_SCHEMA = "foxglove.CompressedImage"
 IMAGE_TOPICS = ("/follower/us_image", "/follower/pov_image")
 
@@ -197,6 +216,17 @@ CHANNELS: dict[str, ChannelSpec] = {
             },
             ("event",),
             enums={"event": ("freeze", "live", "caliper", "annotation", "capture")},
+        ),
+        *(
+            ChannelSpec(
+                topic,
+                f"the {name} stream's encoded frames as the expert received them, every frame "
+                "(t: when complete at the expert, before decoding, expert clock)",
+                _ENCODED_VIDEO,
+                ("data", "codec", "keyframe", "rtp_timestamp"),
+                enums={"codec": ("vp8", "h264")},
+            )
+            for name, topic in VIDEO_TOPICS.items()
         ),
         ChannelSpec(
             "/follower/us_image",
@@ -353,6 +383,10 @@ def _value(kind: str, v: Any) -> Any:
         if not isinstance(v, str) or len(v) > _MAX_STRING:
             raise ValueError(f"expected a string of at most {_MAX_STRING} characters")
         return v
+    if kind == "bytes":
+        if not isinstance(v, bytes | bytearray | memoryview) or not 0 < len(v) <= MAX_FRAME_BYTES:
+            raise ValueError(f"expected 1 to {MAX_FRAME_BYTES} bytes")
+        return base64.b64encode(v).decode("ascii")
     if kind == "boolean":
         if not isinstance(v, bool | int) or v not in (0, 1):
             raise ValueError("expected a boolean")

@@ -61,6 +61,11 @@ class RecorderConfig(ConfigModel):
     poll_interval_s: float = Field(0.05, gt=0.0, le=0.1, description="writer thread wake-up")
     batch_max_samples: int = Field(100, ge=1, le=10_000, description="samples per packed message")
     queue_size: int = Field(200_000, ge=100, description="samples waiting; beyond: dropped")
+    queue_mb: float = Field(
+        64.0,
+        gt=0.0,
+        description="bytes payloads (video frames, files) waiting, MB; beyond: dropped",
+    )
     min_free_mb: float = Field(50.0, ge=0.0, description="free disk space needed to start, MB")
     compression: Literal["zstd", "none"] = "zstd"
     fsync: bool = True
@@ -278,6 +283,9 @@ class Recorder:
         self.stats = RecorderStats()
         self._queue: collections.deque[tuple[str, float, Any, int]] = collections.deque()
         self._maxlen = self.config.queue_size
+        self._max_bytes = int(self.config.queue_mb * 1e6)
+        self._bytes_in = 0  # bytes payloads queued (caller side only)
+        self._bytes_out = 0  # of those, taken by the writer thread (writer side only)
         self._closing = False
         self._failed = False
         self._wake = threading.Event()
@@ -310,6 +318,12 @@ class Recorder:
         if len(self._queue) >= self._maxlen:
             self.stats.dropped_overflow += 1
             return False
+        data = payload.get("data") if isinstance(payload, dict) else None
+        if isinstance(data, bytes | bytearray):  # a video frame or a file: bound the memory
+            if self._bytes_in + len(data) - self._bytes_out > self._max_bytes:
+                self.stats.dropped_overflow += 1
+                return False
+            self._bytes_in += len(data)
         self._queue.append((topic, t, payload, time.time_ns()))
         self.stats.queued += 1
         return True
@@ -373,6 +387,9 @@ class Recorder:
         q, logfile, stats = self._queue, self._log, self.stats
         while q:
             topic, t, payload, log_time_ns = q.popleft()
+            data = payload.get("data") if isinstance(payload, dict) else None
+            if isinstance(data, bytes | bytearray):
+                self._bytes_out += len(data)
             try:
                 if topic == ATTACHMENT:
                     logfile.attach(

@@ -1,0 +1,67 @@
+"""The whole path on the demo with its video tracks: the expert records every US and POV frame
+as received, `humantele export` makes the MP4s and the Foxglove file, and an exported frame
+is the frame the expert decoded (aiortc's own decoder on the same bytes), up to H.264's loss."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import av
+import pytest
+from aiortc.codecs.vpx import Vp8Decoder
+from aiortc.jitterbuffer import JitterFrame
+
+from humantele.export.source import load
+from humantele.export.video import first_decodable
+from humantele.video.fidelity import psnr
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_demo_video_recorded_at_full_rate_exports_the_frames_the_expert_decoded(tmp_path):
+    env = {k: v for k, v in os.environ.items() if k != "HUMANTELE_TOKEN"}
+    demo = subprocess.run(
+        [sys.executable, "-m", "humantele", "demo", "--config", str(ROOT / "configs/demo.toml"),
+         "--duration", "25", "--json", "--record", str(tmp_path / "d.mcap")],
+        capture_output=True, text=True, env=env, cwd=ROOT, timeout=180,
+    )  # fmt: skip
+    assert demo.returncode == 0, demo.stderr[-3000:]
+    files = [tmp_path / "d.expert.mcap", tmp_path / "d.follower.mcap"]
+    sessions, problems = load(files)
+    assert problems == []
+    (es,) = sessions
+    for name in ("us", "pov"):  # every frame the expert's jitter buffer released, recorded
+        stream = es.video[name]
+        assert stream.codec == "vp8" and len(stream.frames) > 50
+        assert stream.frames[0].keyframe and stream.estimated < 5
+    out = tmp_path / "export"
+    exp = subprocess.run(
+        [sys.executable, "-m", "humantele", "export", *map(str, files), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
+    assert exp.returncode == 0, exp.stderr[-3000:]
+    assert "Traceback" not in exp.stderr
+    (iv,) = es.scans
+    base = f"{es.session_id}_scan{iv.scan}"
+    assert (out / f"{base}.mcap").stat().st_size > 10_000
+    frames = es.video["us"].frames
+    dec, expert = Vp8Decoder(), []
+    for f in frames[first_decodable(frames, iv.start) :]:
+        if f.t > iv.stop:
+            break
+        pics = dec.decode(JitterFrame(f.data, 0))
+        if f.t >= iv.start:
+            expert += [p.to_ndarray(format="bgr24") for p in pics]
+    with av.open(str(out / f"{base}_us.mp4")) as c:
+        exported = [p.to_ndarray(format="bgr24") for p in c.decode(video=0)]
+    assert len(exported) == len(expert) > 20
+    for k in (0, len(expert) // 2, len(expert) - 1):
+        assert psnr(expert[k], exported[k]) > 35.0
