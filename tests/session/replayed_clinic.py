@@ -28,6 +28,7 @@ from humantele.tracking.sim import SimFrameConfig, SimFrameSource
 from humantele.tracking.tool import load_tool
 
 RATE_HZ = 45.0
+HID_RATE_HZ = 100.0  # the board's (tests/devices/replay_hid replays at this rate)
 TICKS = 222_222  # hl2ss timestamps: 100 ns ticks, one frame at 45 Hz
 T0_TICKS = 10_000_000
 T_RIG_CAMERA = Pose([0.003, -0.08, -0.01], quat_from_axis_angle([0.0, 1.0, 0.2], 0.15))
@@ -96,9 +97,9 @@ def make_recording(out: Path, seconds: float, targets: Callable[[float], Pose],
         rig = now.T_world_camera @ T_RIG_CAMERA.inverse()
         records.append(AhatRecord(T0_TICKS + k * TICKS, frame.depth_mm, frame.ir, k, rig))
         truth[round(device_time(k), 6)] = now.T_world_tip
-        for j in range(2 + (k % 4 == 0)):  # ~100 Hz of reports beside 45 Hz of frames
-            board.set_force(probe.rotation_matrix.T @ now.force_world)
-            r = board.read(t + j / 100.0)
+        board.set_force(probe.rotation_matrix.T @ now.force_world)
+        while len(reports) / HID_RATE_HZ < (k + 1) / RATE_HZ:  # 100 Hz of reports exactly
+            r = board.read(len(reports) / HID_RATE_HZ)
             reports.append(encode_report(len(reports), int(r.t * 1e6), r.a, r.b, r.temperature_c))
     calibration = Hl2ssAhatCalibration.pinhole(camera.intrinsics, T_RIG_CAMERA)
     save_records(out / "ahat.npz", records, calibration)
@@ -154,21 +155,25 @@ backend = "hid"
 """
 
 
-def replay_env(rec: Path) -> dict[str, str]:
-    """Environment additions for the follower: the replayed ``hid`` module and its reports."""
+def replay_env(rec: Path, loop: bool = False) -> dict[str, str]:
+    """Environment additions for the follower: the replayed ``hid`` module and its reports
+    (``loop``: again and again, as the frames with the server's ``--loop``)."""
     import os
 
     path = os.pathsep.join([str(REPLAY_HID), os.environ.get("PYTHONPATH", "")])
-    return {"PYTHONPATH": path, "HUMANTELE_HID_REPLAY": str(rec / "board.hex")}
+    return {"PYTHONPATH": path, "HUMANTELE_HID_REPLAY": str(rec / "board.hex"),
+            "HUMANTELE_HID_LOOP": "1" if loop else "0"}  # fmt: skip
 
 
-def start_hl2ss_server(npz: Path):  # -> (subprocess.Popen, port)
-    """The hl2ss replay server in its own process (paced at 45 Hz, as the headset sends)."""
+def start_hl2ss_server(npz: Path, loop: bool = False):  # -> (subprocess.Popen, port)
+    """The hl2ss replay server in its own process (paced at 45 Hz, as the headset sends;
+    ``loop``: the recording again at its end)."""
     import subprocess
     import sys
 
     server = subprocess.Popen(
-        [sys.executable, "-m", "humantele.tracking.hl2ss_replay", str(npz)],
+        [sys.executable, "-m", "humantele.tracking.hl2ss_replay", str(npz),
+         *(["--loop"] if loop else [])],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
     )  # fmt: skip
     line = server.stdout.readline()

@@ -49,7 +49,9 @@ async def test_session_with_no_simulator_in_the_follower(session, tmp_path):
     targets, presses_end = calibration_presses(world)
     (tmp_path / "rec").mkdir()
     rec = make_recording(tmp_path / "rec", presses_end + REST_S, targets, world)
-    server, port = start_hl2ss_server(rec.dir / "ahat.npz")
+    # Looped, frames and force board alike (both at their rates from the sensing's start): a
+    # press the follower was not yet measuring comes round again, as a technician re-presses.
+    server, port = start_hl2ss_server(rec.dir / "ahat.npz", loop=True)
     try:
         # the expert on the fake libHD (a configured Touch driver directory)
         (tmp_path / "3DSystems" / "config").mkdir(parents=True)
@@ -61,13 +63,14 @@ async def test_session_with_no_simulator_in_the_follower(session, tmp_path):
         await session.start("expert", "--config", str(expert_cfg))
         follower_cfg = tmp_path / "follower.toml"
         follower_cfg.write_text(follower_config(rec.dir, port, session.state_dir))
-        session.env.update(replay_env(rec.dir))
+        session.env.update(replay_env(rec.dir, loop=True))
         await session.start("follower", "--config", str(follower_cfg),
                             "--record", str(tmp_path / "f.mcap"))  # fmt: skip
         await session.wait("the follower calibrated from the replayed presses",
                            lambda e, f: f.get("calibrated") is True, timeout=120)  # fmt: skip
         await session.wait("poses from the expert's Touch X, the model at the expert",
-                           lambda e, f: f.get("poses_received", 0) > 50 and e.get("has_model"),
+                           lambda e, f: f.get("poses_received", 0) > 50 and e.get("has_model")
+                           and f.get("states_sent", 0) > 60,  # 60 tracked frames calibrated
                            timeout=60)  # fmt: skip
         figures = session.stats("follower")
         assert await session.terminate("follower") == 0

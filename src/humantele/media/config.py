@@ -98,7 +98,8 @@ class FollowerVideoConfig(ConfigModel):
         """A real scanner's picture says its scale: calipers, the depth scale and the
         OpenIGTLink image need them (the sim's come from its probe model)."""
         us = self.us
-        if self.enabled and getattr(us, "backend", "") != "sim":
+        # (a replay gives the recorded scale unless it is set)
+        if self.enabled and getattr(us, "backend", "") not in ("sim", "replay"):
             missing = [n for n in ("pixel_spacing_mm", "depth_origin_row")
                        if getattr(us, n, None) is None]  # fmt: skip
             if missing:

@@ -90,6 +90,9 @@ class AhatRecord:
 TurnItem = AhatRecord | bytes | None
 
 
+_AGAIN = object()  # between two rounds of a looped turn
+
+
 class Hl2ssReplayServer:
     """Serves ``turns`` (one per accepted stream connection) on ``host``:``port`` (0: any free
     port, see ``port``) from a background thread; ``close()`` stops it."""
@@ -101,11 +104,13 @@ class Hl2ssReplayServer:
         host: str = "127.0.0.1",
         port: int = 0,
         repeat: bool = False,
+        loop: bool = False,
         rate_hz: float | None = None,
         recorded_times: bool = False,
     ):
         self.turns = list(turns)
         self.repeat = repeat
+        self.loop = loop  # within a connection: the turn again at its end, as a live headset
         self.rate_hz = rate_hz
         self.recorded_times = recorded_times
         self.calibration = calibration
@@ -167,9 +172,13 @@ class Hl2ssReplayServer:
         k = 0
         t0 = time.monotonic()
         ts0: int | None = None
-        for item in items:
+        for item in self._items(items):
             if item is None:
                 return  # drop the connection here
+            if item is _AGAIN:  # looping: recorded times start again (a rate keeps counting)
+                if self.recorded_times:
+                    t0, ts0 = time.monotonic() + 1.0 / 45.0, None
+                continue
             if isinstance(item, AhatRecord):
                 send = k % cfg.divisor == 0
                 k += 1
@@ -199,6 +208,14 @@ class Hl2ssReplayServer:
                     return
             except TimeoutError:
                 continue
+
+    def _items(self, items: Iterable[TurnItem]) -> Iterator[TurnItem | object]:
+        """The turn's items; with ``loop``, again and again (``_AGAIN`` between rounds)."""
+        while True:
+            yield from items
+            if not self.loop:
+                return
+            yield _AGAIN
 
     def close(self) -> None:
         self._stop.set()
@@ -319,6 +336,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("file", help=".npz written by save_records, or a device recording (.mcap)")
     ap.add_argument("--host", default="127.0.0.1")
     ap.add_argument("--port", type=int, default=0, help="0: any free port (printed)")
+    ap.add_argument("--loop", action="store_true", help="start again at the end (per client)")
     ap.add_argument("--rate", type=float, default=None,
                     help="frames per second (0: unpaced; default: 45 for .npz, the recorded "
                     "times for .mcap)")  # fmt: skip
@@ -343,7 +361,7 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    with Hl2ssReplayServer([records], cal, args.host, args.port, repeat=True,
+    with Hl2ssReplayServer([records], cal, args.host, args.port, repeat=True, loop=args.loop,
                            rate_hz=(45.0 if args.rate is None and not mcap else args.rate) or None,
                            recorded_times=mcap and args.rate is None) as srv:  # fmt: skip
         print(f"hl2ss replay listening on {args.host}:{srv.port}", flush=True)

@@ -1,6 +1,7 @@
 """A stand-in for hidapi's ``hid`` module in another process: a recorded force board (a .hex
 recording, ``HUMANTELE_HID_REPLAY``) replayed at the board's rate (``HUMANTELE_HID_RATE_HZ``,
-default 100) from the moment it is opened, so the follower's real HID reader (open by USB id,
+default 100; ``HUMANTELE_HID_LOOP=1``: again and again) from the moment it is opened, so the
+follower's real HID reader (open by USB id,
 drain, parse, CRC) reads it as it reads the board. Put this folder first on ``PYTHONPATH``.
 """
 
@@ -32,6 +33,7 @@ class device:  # noqa: N801 (hidapi's name)
         self._t0 = 0.0
         self._next = 0
         self._rate = float(os.environ.get("HUMANTELE_HID_RATE_HZ", "100"))
+        self._loop = os.environ.get("HUMANTELE_HID_LOOP") == "1"  # again at the end
 
     def open_path(self, path: bytes) -> None:
         if path != PATH:
@@ -43,7 +45,7 @@ class device:  # noqa: N801 (hidapi's name)
 
     def read(self, size: int, timeout_ms: int = 0) -> list[int]:
         """The next report once the board has sent it (waiting up to ``timeout_ms``)."""
-        if self._next >= len(self._reports):
+        if not self._reports or (self._next >= len(self._reports) and not self._loop):
             return []
         due = self._t0 + self._next / self._rate
         wait = due - time.monotonic()
@@ -53,7 +55,7 @@ class device:  # noqa: N801 (hidapi's name)
         if wait > 0:
             time.sleep(wait)
         self._next += 1
-        return list(self._reports[self._next - 1][:size])
+        return list(self._reports[(self._next - 1) % len(self._reports)][:size])
 
     def close(self) -> None:
         self._reports = []
