@@ -3,7 +3,10 @@
 Messages are encoded by ``pyigtl`` (the Slicer community's Python OpenIGTLink); the server is
 ours, on the daemon's asyncio loop, because pyigtl's own server serves one client, installs
 signal handlers and busy-waits in ``send_message(wait=True)``. Any number of clients up to
-``max_clients`` connect and reconnect; each gets every message while its socket keeps up.
+``max_clients`` connect and reconnect; each gets every message while its socket keeps up. A
+client that comes when all places are taken gets the place of the longest idle one (the one
+that connected or last sent anything longest ago; ``stats()["evicted"]``), so idle or
+forgotten connections never keep Slicer out.
 A slow or stalled client never blocks the daemon: once more than ``max_queued_bytes`` wait for
 it, new messages to it are dropped and counted (``stats()["dropped"]``), never queued without
 bound (one message always fits an empty queue). Images are packed on a worker thread; an
@@ -121,6 +124,7 @@ def _wall_offset() -> float:
 class _Client:
     writer: asyncio.StreamWriter
     peer: str
+    active_t: float = field(default_factory=time.monotonic)  # connected or last sent us bytes
     sent: int = 0
     dropped: int = 0
     bytes_in: int = 0
@@ -130,6 +134,7 @@ class _Client:
 class IgtlStats:
     connections: int = 0
     refused: int = 0
+    evicted: int = 0
     sent: dict[str, int] = field(default_factory=dict)
     dropped: dict[str, int] = field(default_factory=dict)
     bytes_sent: int = 0
@@ -195,10 +200,12 @@ class IgtlServer:
     # ------------------------------------------------------------------ clients
     async def _on_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         peer = str(writer.get_extra_info("peername"))
-        if len(self._clients) >= self.config.max_clients:
+        if self._server is None:  # stopping
             self.stats_.refused += 1
             writer.close()
             return
+        if len(self._clients) >= self.config.max_clients:
+            self._evict_idlest()
         task = asyncio.current_task()
         if task is not None:
             self._tasks.add(task)
@@ -212,6 +219,7 @@ class IgtlServer:
                 if not data:
                     break
                 client.bytes_in += len(data)
+                client.active_t = time.monotonic()
         except (ConnectionError, OSError, asyncio.CancelledError):
             pass
         finally:
@@ -221,6 +229,15 @@ class IgtlServer:
                 self._tasks.discard(task)
             log.info("igtl: client %s left (%d sent, %d dropped)", peer, client.sent,
                      client.dropped)  # fmt: skip
+
+    def _evict_idlest(self) -> None:
+        """Close the client idle longest (connected or last sent bytes longest ago) to make
+        room; its reader then ends and removes it."""
+        idlest = min(self._clients, key=lambda c: c.active_t)
+        self._clients.discard(idlest)
+        idlest.writer.close()
+        self.stats_.evicted += 1
+        log.info("igtl: client %s closed: idle longest, its place taken by a new one", idlest.peer)
 
     def _send(self, kind: str, data: bytes) -> None:
         st = self.stats_
@@ -332,6 +349,7 @@ class IgtlServer:
             "clients": len(self._clients),
             "connections": s.connections,
             "refused": s.refused,
+            "evicted": s.evicted,
             "sent": dict(s.sent),
             "dropped": dict(s.dropped),
             "bytes_sent": s.bytes_sent,
