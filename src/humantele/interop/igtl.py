@@ -18,8 +18,10 @@ patient in Slicer's RAS convention (Right, Anterior, Superior) built from the pa
 z to the patient's right): R = z, A = y, S = -x. Device names (at most 20 characters):
 
 =====================  =======================================================================
-``ProbeToPatient``     tracked real probe tip frame -> patient RAS (follower: measured;
-                       expert: as received)
+``ProbeToWorld``       follower: tracked real probe tip frame -> the tracker's world, with
+                       each tracker frame the probe is tracked in, from the start
+``ProbeToPatient``     tracked real probe tip frame -> patient RAS (follower: measured, once
+                       calibrated; expert: as received)
 ``VirtProbeToPatient`` virtual probe tip frame -> patient RAS (follower: the expert's pose)
 ``StylusToPatient``    expert: the stylus mapped onto the patient (what it sends)
 ``PatientToWorld``     patient RAS -> the headset's world frame (follower, once calibrated)
@@ -52,6 +54,7 @@ from humantele.geometry import Pose
 log = logging.getLogger(__name__)
 
 PROBE = "ProbeToPatient"
+PROBE_WORLD = "ProbeToWorld"
 VIRTUAL_PROBE = "VirtProbeToPatient"
 STYLUS = "StylusToPatient"
 PATIENT = "PatientToWorld"
