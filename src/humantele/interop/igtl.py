@@ -347,6 +347,7 @@ class IgtlServer:
     def stats(self) -> dict[str, Any]:
         s = self.stats_
         return {
+            "host": self.config.host,
             "port": self.port,
             "error": self.error,
             "clients": len(self._clients),
