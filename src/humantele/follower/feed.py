@@ -62,6 +62,7 @@ from humantele.runtime.stats import percentile_ms
 from humantele.signaling.messages import is_loopback
 from humantele.web.guard import MessageBudget
 from humantele.web.pagesocket import PageClient, PageLimits, PageSockets, validated
+from humantele.web.static import add_page_files
 from humantele.web.tls import Certificate, ensure_certificate, local_hosts
 
 WEB_DIR = Path(str(resources.files("humantele.follower") / "web"))
@@ -241,7 +242,7 @@ class RendererFeed:
         app = web.Application()
         app.router.add_get("/", self._page)
         app.router.add_get(self.config.path, self._handle)
-        app.router.add_static("/web/", WEB_DIR, follow_symlinks=False)
+        add_page_files(app, WEB_DIR)  # only its own files; any other name: 404
         self._runner = web.AppRunner(app, handle_signals=False, access_log=None)
         await self._runner.setup()
         site = web.TCPSite(

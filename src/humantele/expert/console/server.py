@@ -62,6 +62,7 @@ from humantele.video.base import VideoFrame
 from humantele.video.counter import unwrap
 from humantele.web.guard import MessageBudget
 from humantele.web.pagesocket import PageClient, PageLimits, PageSockets, validated
+from humantele.web.static import add_page_files
 
 log = logging.getLogger(__name__)
 
@@ -235,7 +236,7 @@ class ConsoleServer:
         app = web.Application(middlewares=[self._host_guard])
         app.router.add_get("/", self._page)
         app.router.add_get("/ws", self._handle)
-        app.router.add_static("/web/", WEB_DIR, follow_symlinks=False)
+        add_page_files(app, WEB_DIR)  # only its own files; any other name: 404
         self._runner = web.AppRunner(app, handle_signals=False, access_log=None)
         await self._runner.setup()
         site = web.TCPSite(self._runner, self.config.host, self.config.port)
