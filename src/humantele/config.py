@@ -165,6 +165,44 @@ Quaternion = Annotated[tuple[float, float, float, float], AfterValidator(_normal
 """A rotation (x, y, z, w): finite, normalisable, stored normalised."""
 
 
+def _directory(v: str) -> str:
+    """A directory field's value: not empty, no NUL, and no file where a directory must be."""
+    if not v.strip():
+        raise ValueError("empty: give a directory (e.g. ~/.local/state/humantele/...)")
+    if "\0" in v:
+        raise ValueError("a path cannot hold a NUL character")
+    p = Path(v).expanduser()
+    for q in (p, *p.parents):
+        try:
+            if q.exists():
+                if not q.is_dir():
+                    raise ValueError(f"{str(q)!r} is a file, not a directory")
+                break
+        except OSError as exc:  # e.g. a name too long for the file system
+            raise ValueError(f"{v[:60]!r}: {exc.strerror or exc}") from None
+    return v
+
+
+DirectoryField = Annotated[str, AfterValidator(_directory)]
+"""A directory a daemon writes into (``~`` allowed; made when needed): refused at load when
+empty or when a file stands where it or one of its parents must be."""
+
+
+def directory_problem(path: str | Path) -> str | None:
+    """Why the daemon cannot write files into ``path`` (made if missing), or None: for the check
+    at start of a :data:`DirectoryField` (whose owner says which field it is)."""
+    import tempfile
+
+    p = Path(path).expanduser()
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=p):
+            pass
+    except OSError as exc:
+        return f"cannot be written: {exc.strerror or exc}"
+    return None
+
+
 M = TypeVar("M", bound=BaseModel)
 
 
