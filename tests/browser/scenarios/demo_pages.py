@@ -22,6 +22,19 @@ def expert_console(demo) -> dict:
     return demo.stats("expert").get("console") or {}
 
 
+async def scan_state(ctx, page, demo, expression: str) -> None:
+    """Wait for the page's scan state; on failure say what the console refused (a click
+    dropped as part of a "flood" of the page's echoes, a closed socket...)."""
+    try:
+        await ctx.until(page, expression, 60)
+    except AssertionError as exc:
+        c = expert_console(demo)
+        raise AssertionError(
+            f"{exc}; console refused {c.get('refused')}, events {c.get('events')}, "
+            f"expert scan {demo.stats('expert').get('scan')}"
+        ) from None
+
+
 HEADSET_LIVE = (
     "(() => { const h = headset.hud(); return ['green', 'amber', 'red'].includes(h.cue)"
     " && h.guide.live && headset.state.model ? h : null; })()"
@@ -110,12 +123,12 @@ async def run(ctx) -> dict:
     scripted = await page.evaluate("consoleApp.state.scan")
     if scripted:  # the demo's scripted scan already runs: stop it first
         await page.click("#scan")
-        await ctx.until(page, "consoleApp.state.scan === null", 60)
+        await scan_state(ctx, page, demo, "consoleApp.state.scan === null")
     await page.click("#scan")
-    await ctx.until(page, "consoleApp.state.scan !== null", 60)
+    await scan_state(ctx, page, demo, "consoleApp.state.scan !== null")
     first = await page.evaluate("consoleApp.state.scan")
     await page.click("#scan")
-    await ctx.until(page, "consoleApp.state.scan === null", 60)
+    await scan_state(ctx, page, demo, "consoleApp.state.scan === null")
     await page.click("#scan")
     await ctx.until(page, f"consoleApp.state.scan === {first + 1}", 60)
     data["scan_button"] = await page.text_content("#scan")
