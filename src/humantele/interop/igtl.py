@@ -136,7 +136,7 @@ class _Client:
 @dataclass
 class IgtlStats:
     connections: int = 0
-    refused: int = 0
+    refused: int = 0  # none since a newcomer evicts the idlest (key kept for stats readers)
     evicted: int = 0
     sent: dict[str, int] = field(default_factory=dict)
     dropped: dict[str, int] = field(default_factory=dict)
@@ -203,10 +203,6 @@ class IgtlServer:
     # ------------------------------------------------------------------ clients
     async def _on_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         peer = str(writer.get_extra_info("peername"))
-        if self._server is None:  # stopping
-            self.stats_.refused += 1
-            writer.close()
-            return
         if len(self._clients) >= self.config.max_clients:
             self._evict_idlest()
         task = asyncio.current_task()
