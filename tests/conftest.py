@@ -8,9 +8,15 @@ not run two at a time on a 2-core machine, or they starve each other's real-time
 all go to one worker, one after the other (the xdist group ``processes``), and the other tests
 run on the other worker beside them. Such a test is marked ``slow`` or uses a fixture that
 starts those processes.
+
+Whatever a test process started is killed with its process group when pytest ends, also on
+Ctrl-C, SIGTERM or SIGHUP (``procgroups``): stopping pytest leaves no daemon or Chromium.
+In the xdist controller (whose children are the workers) each worker does it for itself.
 """
 
 import pytest
+
+from procgroups import pytest_configure, pytest_unconfigure  # noqa: F401 - the hooks
 
 PROCESS_FIXTURES = {"session", "demo_run", "browser_scenario"}
 

@@ -9,6 +9,7 @@ probe's tool, ...) must come from the installed package's data, not from the rep
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -16,6 +17,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 import venv
 import zipfile
 from pathlib import Path
@@ -78,6 +80,7 @@ def test_wheel_holds_every_data_file_of_the_package_and_nothing_from_configs(whe
     assert not [n for n in names if n.startswith("configs/")]
 
 
+@pytest.mark.e2e
 def test_installed_wheel_runs_the_demo_outside_the_checkout(wheel: Path, tmp_path: Path):
     env_dir = tmp_path / "venv"
     venv.EnvBuilder(system_site_packages=True, with_pip=False).create(env_dir)
@@ -101,26 +104,59 @@ def test_installed_wheel_runs_the_demo_outside_the_checkout(wheel: Path, tmp_pat
     ).stdout.split()  # fmt: skip
     assert Path(where[0]).is_relative_to(env_dir), where  # the wheel's copy, not the checkout
     assert where[1:] == ["(4,", "3)"]
-    # The installed demo, stopped (SIGTERM) once the status line shows poses flowing.
+    # The installed demo, stopped (SIGTERM) once the status line shows poses flowing. Its
+    # output is read by threads into lists (all of it is kept for the failure message), its
+    # run directory (the daemons' logs, kept when it fails) is made under tmp_path, and its
+    # process group is killed whatever happens.
+    env["TMPDIR"] = str(tmp_path / "tmp")
+    (tmp_path / "tmp").mkdir()
     demo = subprocess.Popen(
         [str(env_dir / "bin" / "humantele"), "demo", "--duration", "120", "--json"],
         cwd=work, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True,
     )  # fmt: skip
-    watchdog = threading.Timer(180.0, demo.kill)  # never hang the suite
-    watchdog.start()
+    out: list[str] = []
+    err: list[str] = []
+    readers = [
+        threading.Thread(target=lambda: out.extend(demo.stdout), daemon=True),
+        threading.Thread(target=lambda: err.extend(demo.stderr), daemon=True),
+    ]
+    for r in readers:
+        r.start()
+
+    def report() -> str:
+        logs = "".join(
+            f"\n--- {log} (last 40 lines)\n" + "".join(log.read_text().splitlines(True)[-40:])
+            for log in sorted((tmp_path / "tmp").glob("humantele-demo-*/*.log"))
+        )
+        return (
+            f"exit code {demo.returncode}\n--- stdout\n{''.join(out)[-3000:]}\n--- stderr\n"
+            f"{''.join(err)[-6000:]}{logs}"
+        )
+
+    def flowing() -> bool:
+        return any("link connected" in ln and "poses 0 Hz" not in ln for ln in list(err))
+
     try:
-        for line in demo.stderr:  # every 2 s; ends early if the demo does
-            if "link connected" in line and "poses 0 Hz" not in line:
-                break
+        # Bounded by the demo's progress: it prints a status line every 2 s and gives up on
+        # a daemon that does not start within 120 s (exit 1, said on stderr).
+        t_end = time.monotonic() + 300.0
+        while not flowing() and demo.poll() is None and time.monotonic() < t_end:
+            time.sleep(0.2)
+        assert flowing(), f"poses never flowed\n{report()}"
         demo.send_signal(signal.SIGTERM)
-        out, err = demo.communicate(timeout=60)
+        demo.wait(120)  # the demo's daemons get 20 s each to stop
+        for r in readers:
+            r.join(10)
     finally:
-        watchdog.cancel()
         if demo.poll() is None:
-            demo.kill()
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(demo.pid, signal.SIGKILL)
             demo.wait()
-    assert demo.returncode == 0, f"{out[-3000:]}\n{err[-3000:]}"
-    summary = json.loads(out.strip().splitlines()[-1])
-    assert summary["exit_codes"] == {"expert": 0, "follower": 0}
+        with contextlib.suppress(ProcessLookupError):  # what it left behind, if anything
+            os.killpg(demo.pid, signal.SIGKILL)
+    assert demo.returncode == 0, report()
+    summary = json.loads("".join(out).strip().splitlines()[-1])
+    assert summary["exit_codes"] == {"expert": 0, "follower": 0}, report()
     assert summary["poses_sent"] > 0 and summary["poses_received"] > 0
     assert not (work / "configs").exists()

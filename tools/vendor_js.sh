@@ -3,6 +3,8 @@
 # no CDN at run time):
 #   three.js -> src/humantele/follower/web/vendor/three/ (the headset page)
 #   IWER     -> tests/browser/vendor/iwer/ (Meta's WebXR emulator; browser tests only)
+# Each folder gets VERSION (package@version) and SHA256SUMS (`sha256sum -c SHA256SUMS` checks
+# it; tests/test_vendored_js.py does too): what was vendored, and that nobody edited it since.
 # Usage: tools/vendor_js.sh [THREE_VERSION] [IWER_VERSION]   (needs npm; then run the tests,
 # check `git diff --stat`, and commit with the versions in the message)
 set -euo pipefail
@@ -29,4 +31,10 @@ rm -rf "$iwer"
 mkdir -p "$iwer"
 cp "$tmp/iwer/package/build/iwer.min.js" "$tmp/iwer/package/LICENSE" "$iwer/"
 echo "iwer@$IWER_VERSION" > "$iwer/VERSION"
+manifest() {  # SHA256SUMS of every file under $1 (but itself), sorted, paths relative to $1
+  (cd "$1" && find . -type f ! -name SHA256SUMS | sed 's|^\./||' | LC_ALL=C sort \
+     | xargs sha256sum > SHA256SUMS)
+}
+manifest "$three"
+manifest "$iwer"
 echo "vendored three@$THREE_VERSION and iwer@$IWER_VERSION"

@@ -9,7 +9,12 @@ the user's own file.
 
 Every model derives from :class:`ConfigModel`: unknown fields are refused, every float (also
 inside tuples, lists and tables) must be finite, and every field has a default that runs the
-demo. Rotations are :data:`Quaternion` fields, refused unless normalisable. A bad value fails at
+demo. What a file or the command line gives (:func:`validate_config`) is read with strict
+scalar types: a string is never taken for a number or a boolean (``port = "8767"``,
+``enabled = "yes"``), nor a number for a boolean, a boolean for a number, or a float for an
+integer; an integer is a float, and arrays fill tuples and lists (pydantic's own strict mode
+would refuse those TOML arrays, and its JSON mode is lost under a model's "before" validator).
+Rotations are :data:`Quaternion` fields, refused unless normalisable. A bad value fails at
 start with :class:`ConfigError`, whose message names the file, the field and the reason.
 """
 
@@ -18,12 +23,24 @@ from __future__ import annotations
 import json
 import math
 import tomllib
+import types
+import typing
 from importlib import resources
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, TypeVar
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, ValidationError, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    ValidationError,
+    ValidationInfo,
+    model_validator,
+)
 from pydantic_core import PydanticCustomError
+
+STRICT_CONTEXT = {"strict_scalars": True}
+"""Validation context of :func:`validate_config`: the models check scalar types strictly."""
 
 
 class ConfigError(ValueError):
@@ -44,14 +61,97 @@ class ConfigModel(BaseModel):
 
     @model_validator(mode="before")
     @classmethod
-    def _refuse_moved_fields(cls, data: Any) -> Any:
+    def _refuse_moved_fields(cls, data: Any, info: ValidationInfo) -> Any:
         if isinstance(data, dict):
             for name, hint in cls.moved_fields.items():
                 if name in data:
                     raise PydanticCustomError(
                         "moved_field", "no longer set here: {hint}", {"field": name, "hint": hint}
                     )
+            if info.context and info.context.get("strict_scalars"):
+                _check_scalars(cls, data)
         return data
+
+
+# --- strict scalar types for what files and command lines give -----------------------------
+
+_Kind = Any  # "bool" | "int" | "float" | ("seq", tuple[_Kind, ...], repeat) | ("map", _Kind) | None
+_kinds: dict[type, dict[str, _Kind]] = {}
+
+
+def _kind(tp: Any) -> _Kind:
+    """What scalar check an annotation asks for (None: leave it to pydantic)."""
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin is Annotated:
+        return _kind(args[0])
+    if tp is bool:
+        return "bool"
+    if tp is int:
+        return "int"
+    if tp is float:
+        return "float"
+    if origin in (typing.Union, types.UnionType):
+        kinds = {_kind(a) for a in args if a is not type(None)}
+        if len(kinds) == 1:
+            return kinds.pop()
+        return "float" if kinds == {"int", "float"} else None
+    if origin in (tuple, list, set, frozenset) and args:
+        if origin is tuple and args[-1] is not Ellipsis:
+            return ("seq", tuple(_kind(a) for a in args), False)
+        return ("seq", (_kind(args[0]),), True)
+    if origin is dict and len(args) == 2:
+        return ("map", _kind(args[1]))
+    return None
+
+
+def _field_kinds(cls: type[BaseModel]) -> dict[str, _Kind]:
+    kinds = _kinds.get(cls)
+    if kinds is None:
+        kinds = {n: _kind(f.annotation) for n, f in cls.model_fields.items()}
+        _kinds[cls] = kinds = {n: k for n, k in kinds.items() if k is not None}
+    return kinds
+
+
+_WORDS = {"bool": "true or false", "int": "an integer", "float": "a number"}
+
+
+def _wrong(kind: _Kind, value: Any) -> str | None:
+    """Why ``value`` does not fit ``kind`` strictly, or None."""
+    if kind in _WORDS:
+        is_bool = isinstance(value, bool)
+        ok = (
+            is_bool
+            if kind == "bool"
+            else not is_bool and isinstance(value, int | float if kind == "float" else int)
+        )
+        if ok:
+            return None
+        if not isinstance(value, str | int | float):
+            return None  # a table or an array: pydantic says what it wants
+        shown = f"the string {value!r}" if isinstance(value, str) else repr(value)
+        return f"must be {_WORDS[kind]}, not {shown}"
+    if isinstance(kind, tuple) and kind[0] == "seq" and isinstance(value, list | tuple):
+        _, items, repeat = kind
+        for i, v in enumerate(value):
+            item = items[0] if repeat else (items[i] if i < len(items) else None)
+            why = _wrong(item, v)
+            if why is not None:
+                return f"item {i} {why}"
+    if isinstance(kind, tuple) and kind[0] == "map" and isinstance(value, dict):
+        for k, v in value.items():
+            why = _wrong(kind[1], v)
+            if why is not None:
+                return f"{k!r} {why}"
+    return None
+
+
+def _check_scalars(cls: type[BaseModel], data: dict[str, Any]) -> None:
+    """Refuse the first field of ``data`` whose scalar type is wrong (names the field)."""
+    for name, kind in _field_kinds(cls).items():
+        if name in data:
+            why = _wrong(kind, data[name])
+            if why is not None:
+                raise PydanticCustomError("strict_type", "{why}", {"field": name, "why": why})
 
 
 def _normalised(q: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
@@ -63,6 +163,44 @@ def _normalised(q: tuple[float, float, float, float]) -> tuple[float, float, flo
 
 Quaternion = Annotated[tuple[float, float, float, float], AfterValidator(_normalised)]
 """A rotation (x, y, z, w): finite, normalisable, stored normalised."""
+
+
+def _directory(v: str) -> str:
+    """A directory field's value: not empty, no NUL, and no file where a directory must be."""
+    if not v.strip():
+        raise ValueError("empty: give a directory (e.g. ~/.local/state/humantele/...)")
+    if "\0" in v:
+        raise ValueError("a path cannot hold a NUL character")
+    p = Path(v).expanduser()
+    for q in (p, *p.parents):
+        try:
+            if q.exists():
+                if not q.is_dir():
+                    raise ValueError(f"{str(q)!r} is a file, not a directory")
+                break
+        except OSError as exc:  # e.g. a name too long for the file system
+            raise ValueError(f"{v[:60]!r}: {exc.strerror or exc}") from None
+    return v
+
+
+DirectoryField = Annotated[str, AfterValidator(_directory)]
+"""A directory a daemon writes into (``~`` allowed; made when needed): refused at load when
+empty or when a file stands where it or one of its parents must be."""
+
+
+def directory_problem(path: str | Path) -> str | None:
+    """Why the daemon cannot write files into ``path`` (made if missing), or None: for the check
+    at start of a :data:`DirectoryField` (whose owner says which field it is)."""
+    import tempfile
+
+    p = Path(path).expanduser()
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=p):
+            pass
+    except OSError as exc:
+        return f"cannot be written: {exc.strerror or exc}"
+    return None
 
 
 M = TypeVar("M", bound=BaseModel)
@@ -95,7 +233,7 @@ def describe_validation_error(err: ValidationError, source: str = "") -> str:
     prefix = f"{source}: " if source else ""
     for e in err.errors():
         parts = [str(part) for part in e["loc"]]
-        if e["type"] == "moved_field":  # name the field itself, not the section it was in
+        if e["type"] in ("moved_field", "strict_type"):  # the field, not the section it is in
             parts.append(e["ctx"]["field"])
         loc = ".".join(parts)
         special = _backend_message(e, loc)
@@ -146,9 +284,10 @@ def _depth(value: Any, level: int = 0) -> int:
 
 
 def validate_config(model: type[M], data: dict[str, Any], source: str = "") -> M:
-    """Validate a mapping into ``model``; ConfigError naming each bad field."""
+    """Validate a mapping (from a file or the command line) into ``model``, scalar types
+    strictly (see the module docstring); ConfigError naming each bad field."""
     try:
-        return model.model_validate(data)
+        return model.model_validate(data, context=STRICT_CONTEXT)
     except ValidationError as exc:
         raise ConfigError(describe_validation_error(exc, source)) from exc
 

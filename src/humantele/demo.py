@@ -44,7 +44,7 @@ from typing import Any
 
 from pydantic import field_validator
 
-from humantele.cliargs import duration_s, log_level
+from humantele.cliargs import duration_s, log_level, port
 from humantele.recording.schemas import check_participant_id
 from humantele.runtime.process import PARENT_PID_ENV, ignore_stop_signals, on_stop_signals
 from humantele.runtime.stats import read_stats
@@ -106,6 +106,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--keep", action="store_true", help="keep the run directory (logs)")
     parser.add_argument(
         "--log-level", type=log_level, default="WARNING", help="daemons' logging level"
+    )
+    parser.add_argument(
+        "--igtl-port",
+        type=port,
+        metavar="PORT",
+        help="the follower serves OpenIGTLink for 3D Slicer on this port (18944: Slicer's "
+        "default; 0 picks one; docs/slicer.md)",
     )
     parser.add_argument(
         "--record",
@@ -216,6 +223,10 @@ def _page_urls(e: dict[str, Any], f: dict[str, Any]) -> dict[str, str]:
         urls["console (sonographer)"] = e["console"]["url"]
     if (f.get("feed") or {}).get("page_url"):
         urls["headset page (follower)"] = f["feed"]["page_url"]
+    igtl = f.get("igtl") or {}
+    if igtl.get("port"):
+        host = igtl.get("host") or "127.0.0.1"
+        urls["OpenIGTLink (follower, 3D Slicer)"] = f"{host}:{igtl['port']}"
     return urls
 
 
@@ -358,6 +369,8 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
     for role, path in child_configs.items():
         if path:
             cmds[role] += ["--config", path]
+    if getattr(args, "igtl_port", None) is not None:
+        cmds["follower"] += ["--igtl-port", str(args.igtl_port)]
     scale = us_scale(child_configs["follower"])
     if scale is not None:  # the console's calipers and depth scale on the sim ultrasound
         spacing, depth0 = scale

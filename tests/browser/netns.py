@@ -15,6 +15,7 @@ From a shell (e.g. the feed latency on a quiet machine)::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import shutil
@@ -105,11 +106,13 @@ def run_scenario(
         try:
             proc.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
             raise ScenarioError(
                 f"scenario {name} did not finish in {timeout_s} s\n" + _format(_logs(out_dir))
             ) from None
+        finally:  # also on Ctrl-C: Chromium and the daemons go with the runner's group
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
     try:
         result = json.loads((out_dir / "result.json").read_text())
     except (OSError, ValueError):

@@ -115,6 +115,33 @@ class Ctx:
             await asyncio.sleep(0.05)
         raise AssertionError(f"page: {expression!r} still {value!r} after {timeout} s")
 
+    async def until_progress(
+        self, page: Page, expression: str, progress: str, stall_s: float = 90.0,
+        cap_s: float = 900.0,
+    ) -> Any:  # fmt: skip
+        """Poll ``expression`` (JavaScript) until it is truthy, for as long as ``progress``
+        (JavaScript, a JSON-able value such as frame counters) keeps changing: it fails when
+        ``progress`` has not changed for ``stall_s`` (from the start: nothing yet) or after
+        ``cap_s`` in all. A page that draws slowly on a loaded machine gets there; one that
+        stopped drawing fails within ``stall_s``."""
+        t0 = time.monotonic()
+        last, changed = None, t0
+        value = None
+        while True:
+            value = await page.evaluate(expression)
+            if value:
+                return value
+            now = time.monotonic()
+            seen = await page.evaluate(progress)
+            if seen != last:
+                last, changed = seen, now
+            if now - changed > stall_s or now - t0 > cap_s:
+                raise AssertionError(
+                    f"page: {expression!r} still {value!r} after {now - t0:.0f} s; "
+                    f"{progress!r} = {last!r}, unchanged for {now - changed:.0f} s"
+                )
+            await asyncio.sleep(0.1)
+
     async def wait(self, what: str, pred, timeout: float = 30.0) -> None:
         """Poll ``pred()`` (here, in the scenario) until it is true."""
         end = time.monotonic() + timeout

@@ -151,14 +151,11 @@ async def test_stalled_client_gets_drops_and_a_live_client_gets_everything():
     await srv.stop()
 
 
-async def test_client_that_leaves_and_returns_is_served_again_and_extra_clients_refused():
+async def test_client_that_leaves_and_returns_is_served_again():
     srv = await started(max_clients=1)
     m = np.eye(4)
     for round_ in range(2):
         reader, writer = await connect(srv)
-        extra_r, extra_w = await asyncio.open_connection("127.0.0.1", srv.port)
-        assert await asyncio.wait_for(extra_r.read(10), 5) == b""  # refused: closed at once
-        extra_w.close()
         got: list = []
         task = asyncio.create_task(read_messages(reader, got, stop_after=1))
         srv._last.clear()  # noqa: SLF001
@@ -172,8 +169,46 @@ async def test_client_that_leaves_and_returns_is_served_again_and_extra_clients_
                 break
             await asyncio.sleep(0.005)
     st = srv.stats()
-    assert st["connections"] == 2 and st["refused"] == 2 and st["clients"] == 0
+    assert st["connections"] == 2 and st["evicted"] == 0 and st["clients"] == 0
     assert not srv.publish_transform("ProbeToPatient", m, 9.0)  # nobody listening: no work
+    await srv.stop()
+
+
+async def until(cond, what: str, timeout_s: float = 10.0) -> None:
+    loop = asyncio.get_running_loop()
+    end = loop.time() + timeout_s
+    while not cond():
+        assert loop.time() < end, f"{what} still not true after {timeout_s} s"
+        await asyncio.sleep(0.005)
+
+
+async def test_idle_clients_never_keep_slicer_out_the_idlest_gives_way():
+    """Four idle connections fill the places; a fifth (Slicer) still gets in and is served:
+    the one idle longest is closed. One that sent bytes since is not the idlest."""
+    srv = await started(max_clients=4)
+    idle = []
+    for i in range(4):
+        idle.append(await asyncio.open_connection("127.0.0.1", srv.port))
+        await until(lambda n=i + 1: srv.clients == n, f"{i + 1} clients")
+    # The first one speaks (as Slicer's STATUS would): the second is now the idlest.
+    idle[0][1].write(b"x" * 58)
+    await until(lambda: any(c.bytes_in for c in srv._clients), "bytes read")  # noqa: SLF001
+    slicer_r, slicer_w = await asyncio.open_connection("127.0.0.1", srv.port)
+    await until(lambda: srv.stats()["evicted"] == 1, "an eviction")
+    assert await asyncio.wait_for(idle[1][0].read(10), 5) == b""  # the idlest: closed
+    got: list = []
+    task = asyncio.create_task(read_messages(slicer_r, got, stop_after=1))
+    await until(lambda: srv.clients == 4, "4 clients")
+    assert srv.publish_transform("ProbeToPatient", np.eye(4), 1.0)
+    await asyncio.wait_for(task, 5)
+    assert [m.device_name for _, m in got] == ["ProbeToPatient"]
+    for i in (0, 2, 3):  # the others are still served
+        assert not idle[i][0].at_eof()
+    st = srv.stats()
+    assert st["connections"] == 5 and st["evicted"] == 1 and st["clients"] == 4
+    for _, w in idle:
+        w.close()
+    slicer_w.close()
     await srv.stop()
 
 

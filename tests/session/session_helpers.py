@@ -118,11 +118,26 @@ class Session:
         self.stopped.add(role)
         if proc.returncode is None:
             proc.send_signal(signal.SIGTERM)
-        return await asyncio.wait_for(proc.wait(), timeout)
+        try:
+            return await asyncio.wait_for(proc.wait(), timeout)
+        except TimeoutError:
+            raise AssertionError(f"{role} still running {timeout} s after SIGTERM\n"
+                                 f"{self.logs()}") from None  # fmt: skip
+
+    def logs(self, tail: int = 3000) -> str:
+        """The daemons' logs (stderr and stdout), the last ``tail`` characters of each."""
+        return "\n".join(
+            f"--- {p.name}\n{p.read_text(errors='replace')[-tail:]}"
+            for p in sorted(self.tmp.glob("*.log"))
+        )
 
     async def close(self) -> None:
+        """Kill what is still running, the daemons' children (servo, sensing, video) too."""
         for proc in self.procs.values():
             if proc.returncode is None:
+                for child in descendants(proc.pid):
+                    with contextlib.suppress(OSError):
+                        os.kill(child, signal.SIGKILL)
                 proc.kill()
                 await proc.wait()
         await self.server.stop()

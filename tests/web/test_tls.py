@@ -62,3 +62,31 @@ def test_message_budget_refuses_beyond_rate_and_burst():
     assert b.take() and not b.take()
     now[0] += 100.0  # never more than the burst saved up
     assert sum(b.take() for _ in range(20)) == 5
+
+
+def test_host_names_a_certificate_cannot_hold_are_refused_with_the_reason(tmp_path):
+    import pytest
+
+    from humantele.web.tls import check_host_name
+
+    for good in ("scanner.clinic.example", "pc-1", "10.1.2.3", "fe80::1", "a" * 63 + ".lan"):
+        check_host_name(good)
+    cases = {
+        "scanner pc": "characters a certificate cannot name: ' '",
+        "a\x00b": r"characters a certificate cannot name: '\\x00'",
+        "a" * 300: "has 300 characters",
+        "a" * 64 + ".lan": "longer than 63",
+        "*.clinic.example": "'\\*'",
+        "-pc.lan": "starts or ends with '-'",
+        "a..b": "empty",
+        "": "empty host name",
+        "scanner.clinic.example/x": "'/'",
+    }
+    for bad, why in cases.items():
+        with pytest.raises(ValueError, match=why):
+            check_host_name(bad)
+        with pytest.raises(ValueError, match=why):  # never written into a certificate
+            ensure_certificate(tmp_path / "tls", ["127.0.0.1", bad])
+        with pytest.raises(ValueError, match=why):
+            local_hosts("127.0.0.1", [bad])
+    assert not (tmp_path / "tls" / "cert.pem").exists()

@@ -83,10 +83,16 @@ def analyze(
     pairs: list[tuple[Session, ScanResult]] = []
     for s in sessions:
         pairs += [(s, r) for r in analyze_scans(s, max_gap_s)]
-    scans = [r.as_dict() for _, r in pairs]
+    every = [r.as_dict() for _, r in pairs]
+    scans = [s for s in every if s["complete"]]  # what the tables and summaries use
     report: dict[str, Any] = {
-        "scans": scans,
+        "scans": every,
         "summary": {key: _mean_sd([s[key] for s in scans]) for key, _ in METRICS},
+        "incomplete_scans": [
+            {"session": s["session"], "scan": s["scan"], "reason": s["incomplete_reason"]}
+            for s in every
+            if not s["complete"]
+        ],
         "sessions": [
             {
                 "session": s.session_id,
@@ -180,13 +186,15 @@ def _f(v: float | None, digits: int) -> str:
 
 
 def format_report(report: dict[str, Any]) -> str:
-    """The report as text: the paper's Table II layout, then the other results."""
+    """The report as text: the paper's Table II layout (complete scans only), then the other
+    results."""
     out = []
-    if report["scans"]:
+    complete = [s for s in report["scans"] if s.get("complete", True)]
+    if report["scans"] and not complete:
+        out += ["Alignment error per scan: no complete scan (see below)", ""]
+    if complete:
         digits = {"position_rmse_mm": 1, "centered_position_rmse_mm": 1}
-        rows = [
-            [s["scan"]] + [_f(s[k], digits.get(k, 2)) for k, _ in METRICS] for s in report["scans"]
-        ]
+        rows = [[s["scan"]] + [_f(s[k], digits.get(k, 2)) for k, _ in METRICS] for s in complete]
         summ = report["summary"]
         rows.append(
             ["Mean ± SD"]
@@ -201,6 +209,14 @@ def format_report(report: dict[str, Any]) -> str:
             markdown_table(["Scan"] + [h for _, h in METRICS], rows),
             "",
         ]
+    if report.get("incomplete_scans"):
+        out += ["Incomplete scans, left out of the tables and the mean ± SD:"]
+        out += [
+            f"- scan {s['scan']} of session {s['session']}: {s['reason']}"
+            for s in report["incomplete_scans"]
+        ]
+        out.append("")
+    if report["scans"]:
         for s in report["sessions"]:
             c = s["clock"]
             out.append(

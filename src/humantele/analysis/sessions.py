@@ -3,7 +3,10 @@
 Files with the same ``session_id`` (an expert file and a follower file, or one demo file) form
 one session. Scans come from the expert's ``/expert/scan`` start/stop events (expert clock); a
 scan without a stop ends at the last expert sample (a crash) and is marked incomplete. A
-session without scan events is analysed whole, as scan 0, with a warning.
+session without scan events is analysed whole, as scan 0, with a warning; when a file of the
+expert's side is cut (not closed, or unreadable past some point) that scan 0 is incomplete
+too: its start and end are unknown (the lost part may hold the scan events). Incomplete scans
+are reported but left out of the tables and summaries (:mod:`humantele.analysis.cli`).
 """
 
 from __future__ import annotations
@@ -46,6 +49,7 @@ class ScanInterval:
     follower_id: str = ""
     sonographer_id: str = ""
     complete: bool = True
+    why_incomplete: str = ""  # when not complete: why (said in the report)
 
 
 @dataclass
@@ -88,6 +92,7 @@ class ScanResult:
             "follower_id": iv.follower_id,
             "sonographer_id": iv.sonographer_id,
             "complete": iv.complete,
+            "incomplete_reason": None if iv.complete else iv.why_incomplete,
             "duration_s": round(iv.stop - iv.start, 3),
             "frames": self.frames_total,
             "frames_tracked": self.frames_tracked,
@@ -171,7 +176,12 @@ def build_session(session_id: str, recordings: list[Recording]) -> Session:
     uq_t = clock.to_expert(np.array([a for a, _ in uq], dtype=float)) if uq else np.empty(0)
     uq_v = np.array([b for _, b in uq], dtype=float)
     virtual = PoseTrack(t_v, p_v, q_v)
-    scans = _scan_intervals(gather("/expert/scan"), virtual, real, session_id, warnings)
+    cut = [  # the expert's side (the scan events and the virtual pose) not read to its end
+        f"{rec.path.name} ({rec.problem})"
+        for rec in recordings
+        if rec.problem and rec.session.get("role", "") != "follower"
+    ]
+    scans = _scan_intervals(gather("/expert/scan"), virtual, real, session_id, warnings, cut)
     return Session(
         session_id=session_id,
         files=[rec.path for rec in recordings],
@@ -187,7 +197,12 @@ def build_session(session_id: str, recordings: list[Recording]) -> Session:
 
 
 def _scan_intervals(
-    events: list[dict], virtual: PoseTrack, real: PoseTrack, session_id: str, warnings: list[str]
+    events: list[dict],
+    virtual: PoseTrack,
+    real: PoseTrack,
+    session_id: str,
+    warnings: list[str],
+    cut: list[str] = (),  # type: ignore[assignment]
 ) -> list[ScanInterval]:
     end = float(virtual.t[-1]) if len(virtual) else (float(real.t[-1]) if len(real) else 0.0)
     begin = float(virtual.t[0]) if len(virtual) else 0.0
@@ -210,11 +225,20 @@ def _scan_intervals(
             out.append(iv)
     for iv in open_.values():
         iv.complete = False
+        iv.why_incomplete = "no stop event: its end is unknown (the recording ends first)"
         warnings.append(f"session {session_id}: scan {iv.scan} has no stop (ends at the data)")
         out.append(iv)
     if not events:
         warnings.append(f"session {session_id}: no scan start/stop events; whole session = scan 0")
-        out.append(ScanInterval(0, begin, end))
+        whole = ScanInterval(0, begin, end)
+        if cut:
+            whole.complete = False
+            whole.why_incomplete = (
+                "no scan events, and the expert's recording is cut: "
+                + "; ".join(cut)
+                + " (the lost part may hold the scan's start and stop)"
+            )
+        out.append(whole)
     return sorted(out, key=lambda iv: (iv.start, iv.scan))
 
 

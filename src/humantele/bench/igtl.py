@@ -147,17 +147,15 @@ async def _run(
 
 def _children_cpu(pid: int) -> float:
     """CPU seconds of ``pid``'s child processes (video sources, sensing, a sim ultrasound)."""
+    import psutil
+
     from humantele.runtime.stats import process_cpu_seconds
 
-    total = 0.0
-    for task in Path(f"/proc/{pid}/task").glob("*"):
-        try:
-            kids = (task / "children").read_text().split()
-        except OSError:
-            continue
-        for k in kids:
-            total += process_cpu_seconds(int(k)) or 0.0
-    return total
+    try:
+        kids = psutil.Process(pid).children()
+    except psutil.Error:
+        return 0.0
+    return sum(process_cpu_seconds(k.pid) or 0.0 for k in kids)
 
 
 def _lat(messages: list, name: str) -> dict:

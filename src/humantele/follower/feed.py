@@ -63,7 +63,8 @@ from humantele.runtime.stats import percentile_ms
 from humantele.signaling.messages import is_loopback
 from humantele.web.guard import MessageBudget
 from humantele.web.pagesocket import PageClient, PageLimits, PageSockets, validated
-from humantele.web.tls import Certificate, ensure_certificate, local_hosts
+from humantele.web.static import add_page_files
+from humantele.web.tls import Certificate, HostName, ensure_certificate, local_hosts
 
 WEB_DIR = Path(str(resources.files("humantele.follower") / "web"))
 TLS_SUBDIR = "tls"
@@ -79,9 +80,11 @@ class FeedConfig(ConfigModel):
     enabled: bool = True
     host: str = Field("0.0.0.0", description="address to listen on ('0.0.0.0': all)")
     port: int = Field(8766, ge=0, le=65535)
-    path: str = Field("/feed", pattern=r"^/[A-Za-z0-9_/.-]*$")
+    path: str = Field(  # segments of safe characters: no "//", no "/.." nor "/."
+        "/feed", max_length=200, pattern=r"^(/[A-Za-z0-9_-][A-Za-z0-9_.-]*)+$"
+    )
     tls: bool = Field(True, description="https/wss with the self-signed certificate in state_dir")
-    hosts: list[str] = Field(
+    hosts: list[HostName] = Field(
         default_factory=list, description="more names for the certificate, e.g. a DNS name"
     )
     max_clients: int = Field(8, ge=1, le=256, description="pages at once; more are refused")
@@ -253,7 +256,7 @@ class RendererFeed:
         app = web.Application()
         app.router.add_get("/", self._page)
         app.router.add_get(self.config.path, self._handle)
-        app.router.add_static("/web/", WEB_DIR, follow_symlinks=False)
+        add_page_files(app, WEB_DIR)  # only its own files; any other name: 404
         self._runner = web.AppRunner(app, handle_signals=False, access_log=None)
         await self._runner.setup()
         site = web.TCPSite(

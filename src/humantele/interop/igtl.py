@@ -3,7 +3,10 @@
 Messages are encoded by ``pyigtl`` (the Slicer community's Python OpenIGTLink); the server is
 ours, on the daemon's asyncio loop, because pyigtl's own server serves one client, installs
 signal handlers and busy-waits in ``send_message(wait=True)``. Any number of clients up to
-``max_clients`` connect and reconnect; each gets every message while its socket keeps up.
+``max_clients`` connect and reconnect; each gets every message while its socket keeps up. A
+client that comes when all places are taken gets the place of the longest idle one (the one
+that connected or last sent anything longest ago; ``stats()["evicted"]``), so idle or
+forgotten connections never keep Slicer out.
 A slow or stalled client never blocks the daemon: once more than ``max_queued_bytes`` wait for
 it, new messages to it are dropped and counted (``stats()["dropped"]``), never queued without
 bound (one message always fits an empty queue). Images are packed on a worker thread; an
@@ -15,8 +18,10 @@ patient in Slicer's RAS convention (Right, Anterior, Superior) built from the pa
 z to the patient's right): R = z, A = y, S = -x. Device names (at most 20 characters):
 
 =====================  =======================================================================
-``ProbeToPatient``     tracked real probe tip frame -> patient RAS (follower: measured;
-                       expert: as received)
+``ProbeToWorld``       follower: tracked real probe tip frame -> the tracker's world, with
+                       each tracker frame the probe is tracked in, from the start
+``ProbeToPatient``     tracked real probe tip frame -> patient RAS (follower: measured, once
+                       calibrated; expert: as received)
 ``VirtProbeToPatient`` virtual probe tip frame -> patient RAS (follower: the expert's pose)
 ``StylusToPatient``    expert: the stylus mapped onto the patient (what it sends)
 ``PatientToWorld``     patient RAS -> the headset's world frame (follower, once calibrated)
@@ -49,6 +54,7 @@ from humantele.geometry import Pose
 log = logging.getLogger(__name__)
 
 PROBE = "ProbeToPatient"
+PROBE_WORLD = "ProbeToWorld"
 VIRTUAL_PROBE = "VirtProbeToPatient"
 STYLUS = "StylusToPatient"
 PATIENT = "PatientToWorld"
@@ -121,6 +127,7 @@ def _wall_offset() -> float:
 class _Client:
     writer: asyncio.StreamWriter
     peer: str
+    active_t: float = field(default_factory=time.monotonic)  # connected or last sent us bytes
     sent: int = 0
     dropped: int = 0
     bytes_in: int = 0
@@ -129,7 +136,8 @@ class _Client:
 @dataclass
 class IgtlStats:
     connections: int = 0
-    refused: int = 0
+    refused: int = 0  # none since a newcomer evicts the idlest (key kept for stats readers)
+    evicted: int = 0
     sent: dict[str, int] = field(default_factory=dict)
     dropped: dict[str, int] = field(default_factory=dict)
     bytes_sent: int = 0
@@ -196,9 +204,7 @@ class IgtlServer:
     async def _on_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         peer = str(writer.get_extra_info("peername"))
         if len(self._clients) >= self.config.max_clients:
-            self.stats_.refused += 1
-            writer.close()
-            return
+            self._evict_idlest()
         task = asyncio.current_task()
         if task is not None:
             self._tasks.add(task)
@@ -212,6 +218,7 @@ class IgtlServer:
                 if not data:
                     break
                 client.bytes_in += len(data)
+                client.active_t = time.monotonic()
         except (ConnectionError, OSError, asyncio.CancelledError):
             pass
         finally:
@@ -221,6 +228,15 @@ class IgtlServer:
                 self._tasks.discard(task)
             log.info("igtl: client %s left (%d sent, %d dropped)", peer, client.sent,
                      client.dropped)  # fmt: skip
+
+    def _evict_idlest(self) -> None:
+        """Close the client idle longest (connected or last sent bytes longest ago) to make
+        room; its reader then ends and removes it."""
+        idlest = min(self._clients, key=lambda c: c.active_t)
+        self._clients.discard(idlest)
+        idlest.writer.close()
+        self.stats_.evicted += 1
+        log.info("igtl: client %s closed: idle longest, its place taken by a new one", idlest.peer)
 
     def _send(self, kind: str, data: bytes) -> None:
         st = self.stats_
@@ -327,11 +343,13 @@ class IgtlServer:
     def stats(self) -> dict[str, Any]:
         s = self.stats_
         return {
+            "host": self.config.host,
             "port": self.port,
             "error": self.error,
             "clients": len(self._clients),
             "connections": s.connections,
             "refused": s.refused,
+            "evicted": s.evicted,
             "sent": dict(s.sent),
             "dropped": dict(s.dropped),
             "bytes_sent": s.bytes_sent,

@@ -1,7 +1,8 @@
 """What each daemon serves over OpenIGTLink (:mod:`.igtl`): small adapters the daemons call
 once per tick, so the daemons hold one line per hook.
 
-Follower: ``ProbeToPatient`` (measured), ``VirtProbeToPatient`` (the expert's pose),
+Follower: ``ProbeToWorld`` (measured, from the start), ``ProbeToPatient`` (measured, once
+calibrated), ``VirtProbeToPatient`` (the expert's pose),
 ``PatientToWorld``, ``ProbeForce`` and, with ``image``, the ultrasound ``Image`` and
 ``ImageToProbe``. The image is the follower's own ultrasound track (the frames it sends the
 expert, :mod:`humantele.media.sender`; pixel size from its sim ultrasound's geometry); with the
@@ -32,12 +33,14 @@ from humantele.interop.igtl import (
     IMAGE_TO_PROBE,
     PATIENT,
     PROBE,
+    PROBE_WORLD,
     STYLUS,
     VIRTUAL_PROBE,
     IgtlConfig,
     IgtlServer,
     force_text,
     image_to_probe,
+    matrix_mm,
     ras_from_patient,
     world_from_ras,
 )
@@ -219,14 +222,17 @@ class FollowerIgtl(_Served):
             srv.publish_transform(IMAGE_TO_PROBE, self.T_tip_image, t)
 
     def on_measurement(self, t: float, calibration: Any | None, m: Any) -> None:
-        """One tracker frame measured at ``t``: ``ProbeToPatient`` (once calibrated, when
-        tracked) and ``ProbeForce``, stamped with the frame's time."""
+        """One tracker frame measured at ``t``: ``ProbeToWorld`` (when tracked, from the
+        start), ``ProbeToPatient`` (when tracked, once calibrated) and ``ProbeForce``, stamped
+        with the frame's time."""
         srv = self.server
         if not isinstance(srv, IgtlServer) or not srv.clients:
             return
-        if calibration is not None and m.T_world_tip is not None:
-            T = calibration.T_world_patient.inverse() @ m.T_world_tip
-            srv.publish_transform(PROBE, ras_from_patient(T), t)
+        if m.T_world_tip is not None:
+            srv.publish_transform(PROBE_WORLD, matrix_mm(m.T_world_tip), t)
+            if calibration is not None:
+                T = calibration.T_world_patient.inverse() @ m.T_world_tip
+                srv.publish_transform(PROBE, ras_from_patient(T), t)
         srv.publish_string(FORCE, force_text(m.force_tip, m.contact), t)
 
 

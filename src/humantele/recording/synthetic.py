@@ -55,6 +55,7 @@ class SyntheticSession(ConfigModel):
     sync_period_s: float = Field(1.0, gt=0.0)
     sync_noise_s: float = Field(0.0005, ge=0.0)
     record_clock_sync: bool = True
+    record_scan_events: bool = Field(True, description="False: no /expert/scan start/stop")
     follower_id: str = "F01"
     sonographer_id: str = "S1"
     session_id: str = "sim0001"
@@ -166,10 +167,11 @@ def write_synthetic(
         scan = cfg.first_scan + k
         truth.scans.append((scan, start, start + length))
         ids = {"follower_id": cfg.follower_id, "sonographer_id": cfg.sonographer_id}
-        events.append((start, "/expert/scan", start, {"event": "start", "scan": scan, **ids}))
-        events.append(
-            (start + length, "/expert/scan", start + length, {"event": "stop", "scan": scan})
-        )
+        if cfg.record_scan_events:
+            events.append((start, "/expert/scan", start, {"event": "start", "scan": scan, **ids}))
+            events.append(
+                (start + length, "/expert/scan", start + length, {"event": "stop", "scan": scan})
+            )
         if cfg.us_quality is not None:  # the sim US known answer, follower clock
             q = float(cfg.us_quality[k % len(cfg.us_quality)])
             for n, te in enumerate(np.arange(start + 0.05, start + length, 0.1)):

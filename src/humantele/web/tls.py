@@ -7,6 +7,11 @@ on first run (ECDSA P-256, with the host names and addresses the page is served 
 subjectAltNames) and reuses it after, so a headset that accepted it once keeps working. The
 user checks the SHA-256 fingerprint the daemon prints against the one the browser shows.
 
+Host names are checked (:func:`check_host_name`, :data:`HostName` for configuration fields):
+an IP address, or a DNS name of letters, digits and hyphens (labels of 1-63, 253 in all); a
+space, a NUL, a wildcard or 300 characters is refused with the reason, never written into a
+certificate.
+
 Files in ``directory``: ``cert.pem`` and ``key.pem`` (the private key, mode 0600, never
 printed). A certificate that is unreadable, expires within :data:`RENEW_BEFORE`, or lacks a
 host now asked for is replaced (a new fingerprint; the reason is logged).
@@ -18,15 +23,18 @@ import datetime as dt
 import ipaddress
 import logging
 import os
+import re
 import socket
 import ssl
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import NameOID
+from pydantic import AfterValidator
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +43,43 @@ KEY_FILE = "key.pem"
 VALIDITY = dt.timedelta(days=825)
 RENEW_BEFORE = dt.timedelta(days=7)
 LOOPBACK_HOSTS = ("localhost", "127.0.0.1", "::1")
+MAX_HOST_NAME = 253  # characters in a DNS name (RFC 1035), labels up to 63
+_LABEL = re.compile(r"[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?")
+
+
+def check_host_name(host: str) -> str:
+    """``host`` if a certificate can name it (an IP address, or a DNS name of letters, digits
+    and hyphens: labels of 1-63 characters that neither start nor end with a hyphen, 253
+    characters in all); ValueError saying why not."""
+    if not isinstance(host, str):
+        raise ValueError(f"a host name is text, not {type(host).__name__}")
+    try:
+        return str(ipaddress.ip_address(host))
+    except ValueError:
+        pass
+    shown = repr(host if len(host) <= 40 else host[:40] + "...")
+    if not host:
+        raise ValueError("empty host name")
+    if len(host) > MAX_HOST_NAME:
+        raise ValueError(f"host name {shown} has {len(host)} characters (at most {MAX_HOST_NAME})")
+    bad = sorted({c for c in host if not (c.isascii() and (c.isalnum() or c in ".-"))})
+    if bad:
+        raise ValueError(
+            f"host name {shown} has characters a certificate cannot name: "
+            f"{', '.join(repr(c) for c in bad)} (letters, digits, '-' and '.' only; an IP "
+            "address, or a DNS name in its ASCII form)"
+        )
+    for label in host.split("."):
+        if not _LABEL.fullmatch(label):
+            raise ValueError(
+                f"host name {shown}: label {label[:63]!r} is empty, longer than 63 characters "
+                "or starts or ends with '-'"
+            )
+    return host
+
+
+HostName = Annotated[str, AfterValidator(check_host_name)]
+"""A configuration field holding a name or address for the certificate."""
 
 
 @dataclass(frozen=True)
@@ -83,11 +128,19 @@ def local_hosts(bind_host: str = "0.0.0.0", extra: tuple[str, ...] | list[str] =
                     hosts.append(str(s.getsockname()[0]))
             except OSError:
                 pass
+    found = len(hosts)
     hosts += list(extra)
     out: list[str] = []
-    for h in hosts:
+    for i, h in enumerate(hosts):
         h = h.split("%", 1)[0]  # an IPv6 zone id is no part of a certificate's name
-        if h and h not in out:
+        try:
+            h = check_host_name(h)
+        except ValueError as exc:
+            if i >= found:  # a name asked for: the caller says it is wrong
+                raise
+            log.warning("TLS: %s: left out of the certificate", exc)  # e.g. a host name "my_pc"
+            continue
+        if h not in out:
             out.append(h)
     return out
 
@@ -157,7 +210,9 @@ def ensure_certificate(
     directory: str | Path, hosts: list[str], common_name: str = "humantele"
 ) -> Certificate:
     """The certificate kept in ``directory`` (made there, with ``hosts`` as subjectAltNames,
-    if there is none that can be reused). Raises OSError if the directory cannot be written."""
+    if there is none that can be reused). Raises OSError if the directory cannot be written,
+    ValueError (saying which and why) for a host a certificate cannot name."""
+    hosts = [check_host_name(h) for h in hosts]
     directory = Path(directory).expanduser()
     directory.mkdir(parents=True, exist_ok=True)
     cert_path, key_path = directory / CERT_FILE, directory / KEY_FILE

@@ -22,6 +22,19 @@ def expert_console(demo) -> dict:
     return demo.stats("expert").get("console") or {}
 
 
+async def scan_state(ctx, page, demo, expression: str) -> None:
+    """Wait for the page's scan state; on failure say what the console refused (a click
+    dropped as part of a "flood" of the page's echoes, a closed socket...)."""
+    try:
+        await ctx.until(page, expression, 60)
+    except AssertionError as exc:
+        c = expert_console(demo)
+        raise AssertionError(
+            f"{exc}; console refused {c.get('refused')}, events {c.get('events')}, "
+            f"expert scan {demo.stats('expert').get('scan')}"
+        ) from None
+
+
 HEADSET_LIVE = (
     "(() => { const h = headset.hud(); return ['green', 'amber', 'red'].includes(h.cue)"
     " && h.guide.live && headset.state.model ? h : null; })()"
@@ -62,9 +75,15 @@ async def run(ctx) -> dict:
     page = await ctx.page(url, width=1440, height=900)
     data: dict = {"url": url}
 
-    # 1. Both videos play: frames drawn, pictures change, not black.
-    await ctx.until(
-        page, "window.consoleApp && consoleApp.frames.us > 10 && consoleApp.frames.pov > 10", 90
+    # 1. Both videos play: frames drawn, pictures change, not black. The sim pictures are
+    # rendered in a child process spawned when the page opens: on a loaded machine it can
+    # take a long time to draw 10 frames, so the bound is on progress (a counter that stops),
+    # not on a total.
+    await ctx.until_progress(
+        page,
+        "window.consoleApp && consoleApp.frames.us > 10 && consoleApp.frames.pov > 10",
+        "window.consoleApp ? [consoleApp.frames.us, consoleApp.frames.pov] : null",
+        stall_s=90,
     )
     a = {t: await pixels(page, t) for t in ("us", "pov")}
     f0, t0 = await page.evaluate("({...consoleApp.frames})"), asyncio.get_running_loop().time()
@@ -104,12 +123,12 @@ async def run(ctx) -> dict:
     scripted = await page.evaluate("consoleApp.state.scan")
     if scripted:  # the demo's scripted scan already runs: stop it first
         await page.click("#scan")
-        await ctx.until(page, "consoleApp.state.scan === null", 60)
+        await scan_state(ctx, page, demo, "consoleApp.state.scan === null")
     await page.click("#scan")
-    await ctx.until(page, "consoleApp.state.scan !== null", 60)
+    await scan_state(ctx, page, demo, "consoleApp.state.scan !== null")
     first = await page.evaluate("consoleApp.state.scan")
     await page.click("#scan")
-    await ctx.until(page, "consoleApp.state.scan === null", 60)
+    await scan_state(ctx, page, demo, "consoleApp.state.scan === null")
     await page.click("#scan")
     await ctx.until(page, f"consoleApp.state.scan === {first + 1}", 60)
     data["scan_button"] = await page.text_content("#scan")

@@ -36,14 +36,63 @@ class FrameProvider(Protocol):
     def latest(self, track: str) -> VideoFrame | None: ...
 
 
-class SourceFrames:
+class _OnDemand:
+    """``start``/``stop`` from any thread, in any order and overlap (the console starts its
+    sources when a page opens, on the event loop, and stops them in a worker thread when the
+    last one closes; pages may open and close faster than a stop takes): one switch at a time,
+    and whoever holds the switch applies the last request when it is done. :meth:`start`
+    never blocks (it is called on the event loop); :meth:`stop` waits for its switch."""
+
+    def __init__(self) -> None:
+        self._switch = threading.Lock()
+        self._want = False
+
+    def start(self) -> None:
+        """Run (nothing if running; done by a stop in progress when that stop ends)."""
+        self._want = True
+        self._apply(block=False)
+
+    def stop(self, timeout: float = 3.0) -> None:
+        """Stop (nothing if stopped), waiting up to ``timeout`` s for each thread or child."""
+        self._want = False
+        self._apply(block=True, timeout=timeout)
+
+    def _apply(self, block: bool, timeout: float = 3.0) -> None:
+        while True:
+            if not self._switch.acquire(blocking=block):
+                return  # the holder applies self._want once it is done
+            try:
+                want = self._want
+                if want and not self._running():
+                    self._start_locked()
+                elif not want and self._running():
+                    self._stop_locked(timeout)
+            finally:
+                self._switch.release()
+            if self._want == want:  # read after the release: a request that found the
+                return  # switch taken set _want before trying it, so one of us sees it
+            block = False
+
+    def _running(self) -> bool:
+        raise NotImplementedError
+
+    def _start_locked(self) -> None:
+        raise NotImplementedError
+
+    def _stop_locked(self, timeout: float) -> None:
+        raise NotImplementedError
+
+
+class SourceFrames(_OnDemand):
     """A :class:`FrameProvider` reading local video sources, one daemon thread per track.
 
     ``sources``: track name -> source (not yet opened). :meth:`start` opens them in their
-    threads; :meth:`stop` ends the threads and closes the sources. A source that fails is
-    logged once and its track gives no new frames (``errors`` says why)."""
+    threads; :meth:`stop` ends the threads and closes the sources (see :class:`_OnDemand`). A
+    source that fails is logged once and its track gives no new frames (``errors`` says
+    why)."""
 
     def __init__(self, sources: Mapping[str, VideoSource]) -> None:
+        super().__init__()
         self.sources = dict(sources)
         self.errors: dict[str, str] = {}
         self._latest: dict[str, VideoFrame] = {}
@@ -55,28 +104,32 @@ class SourceFrames:
         with self._lock:
             return self._latest.get(track)
 
-    def start(self) -> None:
-        """Open the sources and read them (nothing if already reading)."""
-        if self._threads:
-            return
-        self._stop.clear()
+    def _running(self) -> bool:
+        return bool(self._threads)
+
+    def _start_locked(self) -> None:
+        """Open the sources and read them."""
+        self._stop = threading.Event()  # a thread still ending keeps the event it was given
         for track, source in self.sources.items():
             t = threading.Thread(
-                target=self._read, args=(track, source), name=f"console-{track}", daemon=True
+                target=self._read,
+                args=(track, source, self._stop),
+                name=f"console-{track}",
+                daemon=True,
             )
             t.start()
             self._threads.append(t)
 
-    def stop(self, timeout: float = 2.0) -> None:
+    def _stop_locked(self, timeout: float) -> None:
         self._stop.set()
         for t in self._threads:
             t.join(timeout)
-        self._threads.clear()
+        self._threads = []
 
-    def _read(self, track: str, source: VideoSource) -> None:
+    def _read(self, track: str, source: VideoSource, stop: threading.Event) -> None:
         try:
             source.open()
-            while not self._stop.is_set():
+            while not stop.is_set():
                 frame = source.read()
                 if frame is not None:
                     with self._lock:
@@ -88,7 +141,7 @@ class SourceFrames:
             source.close()
 
 
-class ProcessFrames:
+class ProcessFrames(_OnDemand):
     """A :class:`FrameProvider` rendering sim sources in a child process (``spawn``), so their
     Python work never competes with the daemon's event loop for the GIL.
 
@@ -96,9 +149,10 @@ class ProcessFrames:
     snapshots the child renders (sent ``scene_hz`` times a second, latest wins). Frames come
     back whole (BGR arrays) with their number and capture time: ``time.monotonic()`` is one
     clock for every process of a Linux machine. :meth:`start`/:meth:`stop` as
-    :class:`SourceFrames`."""
+    :class:`SourceFrames` (:class:`_OnDemand`)."""
 
     def __init__(self, configs: Mapping[str, Any], scene: Any, scene_hz: float = 30.0) -> None:
+        super().__init__()
         self.configs = dict(configs)
         self.scene = scene
         self.scene_hz = scene_hz
@@ -113,60 +167,61 @@ class ProcessFrames:
         with self._lock:
             return self._latest.get(track)
 
-    def start(self) -> None:
-        if self._proc is not None:
-            return
+    def _running(self) -> bool:
+        return self._proc is not None
+
+    def _start_locked(self) -> None:
         ctx = mp.get_context("spawn")
-        self._stop = ctx.Event()
-        self._scene_q = ctx.Queue(maxsize=2)
-        self._out_q = ctx.Queue(maxsize=4)
-        self._proc = ctx.Process(
+        stop, scene_q, out_q = ctx.Event(), ctx.Queue(maxsize=2), ctx.Queue(maxsize=4)
+        proc = ctx.Process(
             target=_render_child,
-            args=(self.configs, self._scene_q, self._out_q, self._stop),
+            args=(self.configs, scene_q, out_q, stop),
             name="humantele-console-sim",
             daemon=True,
         )
-        self._proc.start()
+        proc.start()
+        self._stop, self._scene_q, self._out_q, self._proc = stop, scene_q, out_q, proc
         self._threads = [
-            threading.Thread(target=self._feed, name="console-scene", daemon=True),
-            threading.Thread(target=self._collect, name="console-frames", daemon=True),
-        ]
+            threading.Thread(target=self._feed, args=(stop, scene_q), name="console-scene",
+                             daemon=True),
+            threading.Thread(target=self._collect, args=(stop, out_q), name="console-frames",
+                             daemon=True),
+        ]  # fmt: skip
         for t in self._threads:
             t.start()
 
-    def stop(self, timeout: float = 3.0) -> None:
-        if self._proc is None:
-            return
+    def _stop_locked(self, timeout: float) -> None:
+        proc, threads = self._proc, self._threads
         self._stop.set()
-        for t in self._threads:
+        for t in threads:
             t.join(timeout)
-        self._proc.join(timeout)
-        if self._proc.is_alive():
-            self._proc.kill()
-            self._proc.join(timeout)
+        proc.join(timeout)
+        if proc.is_alive():
+            proc.kill()
+            proc.join(timeout)
         for q in (self._scene_q, self._out_q):
             q.cancel_join_thread()
             q.close()
         self._proc = None
         self._threads = []
 
-    def _feed(self) -> None:
+    def _feed(self, stop: Any, scene_q: Any) -> None:
         period = 1.0 / self.scene_hz
-        while not self._stop.wait(period):
+        while not stop.wait(period):
             try:
                 snap = self.scene()
             except Exception:  # noqa: BLE001 - counted by the child as a dark frame
                 snap = None
-            with contextlib.suppress(queue.Full):
-                self._scene_q.put_nowait(snap)
+            with contextlib.suppress(queue.Full, ValueError, OSError):  # (closed at a stop)
+                scene_q.put_nowait(snap)
 
-    def _collect(self) -> None:
-        while not self._stop.is_set():
+    def _collect(self, stop: Any, out_q: Any) -> None:
+        while not stop.is_set():
             try:
-                item = self._out_q.get(timeout=0.2)
+                item = out_q.get(timeout=0.2)
             except queue.Empty:
                 continue
-            except (EOFError, OSError):
+            except (EOFError, OSError, ValueError):  # (closed at a stop)
                 return
             track, image, seq, t, spacing, depth0, error = item
             if error:

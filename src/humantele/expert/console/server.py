@@ -38,7 +38,7 @@ import numpy as np
 from aiohttp import web
 from pydantic import Field, field_validator
 
-from humantele.config import ConfigModel
+from humantele.config import ConfigModel, DirectoryField, directory_problem
 from humantele.expert.console.captures import save_capture
 from humantele.expert.console.cine import CineBuffer, CineFrame
 from humantele.expert.console.frames import TRACKS, FrameProvider
@@ -62,6 +62,7 @@ from humantele.video.base import VideoFrame
 from humantele.video.counter import unwrap
 from humantele.web.guard import MessageBudget
 from humantele.web.pagesocket import PageClient, PageLimits, PageSockets, validated
+from humantele.web.static import add_page_files
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +102,7 @@ class ConsoleConfig(ConfigModel):
     state_rate_hz: float = Field(20.0, gt=0, le=100)
     stale_after_s: float = Field(1.0, gt=0, le=60, description="older video or pose: stale")
     cine_seconds: float = Field(10.0, gt=0, le=60)
-    captures_dir: str = Field(
+    captures_dir: DirectoryField = Field(
         "~/.local/state/humantele/captures", description="captured frames and their poses"
     )
     max_clients: int = Field(1, ge=1, le=8, description="consoles at once; more are refused")
@@ -232,10 +233,14 @@ class ConsoleServer:
     # --- server ---------------------------------------------------------------------------
 
     async def start(self) -> None:
+        problem = directory_problem(self.config.captures_dir)  # said now, not at the 1st capture
+        if problem:
+            log.error("console: [expert.console] captures_dir %r %s: captures will be refused",
+                      self.config.captures_dir, problem)  # fmt: skip
         app = web.Application(middlewares=[self._host_guard])
         app.router.add_get("/", self._page)
         app.router.add_get("/ws", self._handle)
-        app.router.add_static("/web/", WEB_DIR, follow_symlinks=False)
+        add_page_files(app, WEB_DIR)  # only its own files; any other name: 404
         self._runner = web.AppRunner(app, handle_signals=False, access_log=None)
         await self._runner.setup()
         site = web.TCPSite(self._runner, self.config.host, self.config.port)

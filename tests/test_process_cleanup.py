@@ -1,0 +1,80 @@
+"""Stopping pytest leaves nothing running (issue 20 item 8): a test that started a process
+group (as the browser and demo fixtures do: ``start_new_session``) and a grandchild in it,
+then pytest stopped by Ctrl-C (SIGINT), SIGTERM or SIGHUP: all of them are gone."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from procgroups import descendants
+
+HERE = Path(__file__).resolve().parent
+
+TEST = """
+import os, subprocess, sys, time
+from pathlib import Path
+
+def test_starts_a_group_and_hangs():
+    # A leader in its own session (as a fixture's Chromium or demo) with a grandchild.
+    p = subprocess.Popen([sys.executable, "-c",
+        "import subprocess, sys, time; subprocess.Popen([sys.executable, '-c', "
+        "'import time; time.sleep(600)']); time.sleep(600)"], start_new_session=True)
+    Path(os.environ["PIDFILE"]).write_text(str(p.pid))
+    time.sleep(600)
+"""
+
+
+def alive(pid: int) -> bool:
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
+def test_stopping_pytest_kills_what_its_tests_started(tmp_path, sig):
+    (tmp_path / "test_hang.py").write_text(TEST)
+    pidfile = tmp_path / "pid"
+    env = {**os.environ, "PIDFILE": str(pidfile)}
+    env["PYTHONPATH"] = os.pathsep.join([str(HERE), env.get("PYTHONPATH", "")])
+    pytest_proc = subprocess.Popen(
+        [sys.executable, "-m", "pytest", "-q", "-p", "procgroups", "-p", "no:cacheprovider",
+         "-n", "0", "-o", "addopts=", str(tmp_path / "test_hang.py")],
+        cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )  # fmt: skip
+    try:
+        t_end = time.monotonic() + 120
+        started: set[int] = set()
+        while len(started) < 2:  # the leader and its grandchild
+            assert pytest_proc.poll() is None, pytest_proc.stdout.read().decode()
+            assert time.monotonic() < t_end, "the test's processes never started"
+            if pidfile.exists():
+                started = descendants(pytest_proc.pid)
+            time.sleep(0.1)
+        leader = int(pidfile.read_text())
+        assert leader in started
+        os.kill(pytest_proc.pid, sig)
+        pytest_proc.wait(60)
+        t_end = time.monotonic() + 30
+        while any(alive(p) for p in started) and time.monotonic() < t_end:
+            time.sleep(0.1)
+        assert not [p for p in started if alive(p)], "left running after pytest stopped"
+    finally:
+        for p in descendants(pytest_proc.pid) | started:
+            try:
+                os.kill(p, signal.SIGKILL)
+            except OSError:
+                pass
+        if pytest_proc.poll() is None:
+            os.killpg(pytest_proc.pid, signal.SIGKILL)
+            pytest_proc.wait()
