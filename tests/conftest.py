@@ -7,7 +7,8 @@ that run real processes for seconds (the daemons, the servo, the demo, coturn, a
 not run two at a time on a 2-core machine, or they starve each other's real-time loops: they
 all go to one worker, one after the other (the xdist group ``processes``), and the other tests
 run on the other worker beside them. Such a test is marked ``slow`` or uses a fixture that
-starts those processes.
+starts those processes; it is also marked ``e2e``, so ``python -m pytest -q -m "not e2e"`` is
+the fast lane for everyday work (the README's command runs everything).
 
 Whatever a test process started is killed with its process group when pytest ends, also on
 Ctrl-C, SIGTERM or SIGHUP (``procgroups``): stopping pytest leaves no daemon or Chromium.
@@ -26,3 +27,4 @@ def pytest_collection_modifyitems(items):
     for item in items:
         if item.get_closest_marker("slow") or PROCESS_FIXTURES & set(item.fixturenames):
             item.add_marker(pytest.mark.xdist_group("processes"))
+            item.add_marker(pytest.mark.e2e)  # the fast lane, -m "not e2e", leaves them out

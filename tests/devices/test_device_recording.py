@@ -361,10 +361,12 @@ def test_replay_backends_are_a_real_clinic_s_devices_in_the_follower_config(tmp_
 
     rec = str(tmp_path / "clinic.mcap")
     video = {"us": {"backend": "replay", "file": rec}, "pov": {"backend": "replay", "file": rec}}
-    with pytest.raises(ValueError, match="pixel_spacing_mm"):  # as any real US source
-        FollowerConfig.model_validate(
-            {"clinic": {"backend": "devices"}, "video": {"enabled": True, **video}}
-        )
+    FollowerConfig.model_validate(  # the replay gives the scale it recorded
+        {"clinic": {"backend": "devices"}, "video": {"enabled": True, **video}}
+    )
+    with pytest.raises(ValueError, match="pixel_spacing_mm"):  # a capture card must say it
+        FollowerConfig.model_validate({"clinic": {"backend": "devices"}, "video": {
+            "enabled": True, "us": {"backend": "opencv"}, "pov": video["pov"]}})  # fmt: skip
     video["us"].update(pixel_spacing_mm=[0.3, 0.3], depth_origin_row=4.0)
     c = FollowerConfig.model_validate(
         {"clinic": {"backend": "devices"}, "video": {"enabled": True, **video}}
