@@ -76,6 +76,7 @@ from humantele.follower.calibration import (
     Calibrator,
 )
 from humantele.follower.feed import FeedConfig, RendererFeed, model_fields
+from humantele.follower.registration import HeadsetRegistration, RegistrationConfig
 from humantele.follower.sensing import ProbeSensing, SensingConfig
 from humantele.follower.sensing_process import SensingProcess
 from humantele.follower.sim_human import (
@@ -160,6 +161,7 @@ class FollowerConfig(ConfigModel):
     session: SessionConfig = SessionConfig()
     recording: RecorderConfig = RecorderConfig()
     igtl: IgtlConfig = IgtlConfig()
+    registration: RegistrationConfig = RegistrationConfig()
 
 
 @dataclass
@@ -306,6 +308,10 @@ class FollowerDaemon(Daemon):
         self.last_measure_t = -math.inf
         self.measurements = 0
         self.feed = RendererFeed(config.feed, self.state_dir)
+        self.registration = HeadsetRegistration(
+            config.registration, self.state_dir, self.feed.publish, lambda: self.clock()
+        )
+        self.feed.page_handler = self.registration.on_page_message
         # Video: the us and pov tracks (humantele.media.sender), fed by the sim world's latest
         # snapshot (self.scene_snapshot, updated each tick) for the sim sources.
         self._scene: SceneSnapshot | None = None
@@ -703,6 +709,7 @@ class FollowerDaemon(Daemon):
         self.send_state(frame.t, m)
         self.record_measurement(frame.t, m)
         self.igtl.on_measurement(frame.t, self.calibration, m)
+        self.registration.on_measurement(frame.t, m.T_world_tip, frame.truth.T_world_camera)
 
     # --- recording ------------------------------------------------------------------------
 
@@ -792,6 +799,7 @@ class FollowerDaemon(Daemon):
             "feed_clients": len(self.feed.clients),
             "feed_url": self.feed.url if self.feed.port else None,
             "feed": self.feed.stats(),
+            "registration": self.registration.stats(),
             "ticks": self.ticks,
             "measurements": self.measurements,
             "tracking_lost": self.tracking_lost,
