@@ -5,7 +5,9 @@
 // controls (tablet, laptop). Everything comes from the follower's feed, a WebSocket on this
 // page's origin; the page echoes, for a sample of frames, which pose it drew (the feed's
 // latency figure). Frames: the feed's world frame is three.js's (y up, metres, quaternions
-// x, y, z, w); in AR it is taken as the headset's local-floor space.
+// x, y, z, w); in AR the page draws in the headset's local-floor space, and the feed's
+// objects hang under a root placed at T_xr_world, the follower's registration of the two
+// (registration.js; nothing from the feed is drawn in AR before there is one).
 
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
@@ -19,6 +21,7 @@ import {
   grade,
   guideState,
 } from './cue.js';
+import { makeRegistration } from './registration.js';
 import { makeArrow, makeBed, makeLabel, makeOutline, makeTransducer } from './scene.js';
 
 const LOOK_ABOVE = new THREE.Vector3(0, 0.1, 0); // the view centres on the probe's handle
@@ -52,6 +55,7 @@ function connect(delayMs = 500) {
   socket.onopen = () => {
     state.socket = true;
     delayMs = 500;
+    registration.hello();
   };
   socket.onmessage = (ev) => {
     if (state.frozen) return;
@@ -91,6 +95,9 @@ function onMessage(msg) {
     case 'link':
       state.link = msg.state;
       break;
+    case 'registration':
+      registration.onFeed(msg);
+      break;
   }
 }
 
@@ -129,10 +136,21 @@ const arrow = makeArrow(ARROW_COLOUR);
 const label = makeLabel();
 virtual.group.visible = ghost.group.visible = arrow.group.visible = false;
 label.sprite.visible = false;
-scene.add(virtual.group, ghost.group, arrow.group, label.sprite);
+// The feed's objects, in the tracker's world: under worldRoot (identity on a tablet or
+// laptop; T_xr_world in AR once registered).
+const worldRoot = new THREE.Group();
+scene.add(worldRoot);
+worldRoot.add(virtual.group, ghost.group, arrow.group, label.sprite);
 const objects = { virtual: virtual.group, ghost: ghost.group, arrow: arrow.group, label: label.sprite };
 const outlineRoot = new THREE.Group();
-scene.add(outlineRoot);
+worldRoot.add(outlineRoot);
+const registration = makeRegistration({ scene, worldRoot, send: sendToFeed });
+
+function sendToFeed(obj) {
+  if (!socket || socket.readyState !== WebSocket.OPEN) return false;
+  socket.send(JSON.stringify(obj));
+  return true;
+}
 let outline = null;
 let bed = null;
 let outlineOn = true;
@@ -185,6 +203,9 @@ function setHud(view) {
   $('age').textContent = view.age;
   $('link').textContent = view.link;
   $('force').textContent = view.force;
+  for (const [name, el] of Object.entries(REG_BUTTONS)) el.hidden = !view.buttons.includes(name);
+  REG_BUTTONS.register.textContent = view.registered ? 'Register again' : 'Register';
+  REG_BUTTONS.register.className = view.registered ? 'quiet' : '';
   const steps = $('steps');
   steps.hidden = !view.calibrating;
   $('landmarks').toggleAttribute('hidden', !view.calibrating); // an SVG element: no .hidden
@@ -214,6 +235,7 @@ function update(nowMs) {
     force: p && Array.isArray(p.force) ? `${Math.hypot(...p.force).toFixed(1)} N` : '–',
     calibrating,
     stepIndex: -1,
+    buttons: [],
   };
 
   ghost.group.visible = Boolean(p);
@@ -278,6 +300,7 @@ function update(nowMs) {
     label.sprite.position.copy(virtual.group.position);
     label.sprite.position.y += 0.2;
   }
+  registrationView(view, nowMs);
   setHud(view);
   if (outline) outline.group.visible = outlineOn;
   for (const o of [...Object.values(objects), outline && outline.group]) {
@@ -297,6 +320,26 @@ function update(nowMs) {
     }
   }
   lastUpdateMs = nowMs;
+}
+
+// --- registration (registration.js): what the banner says in AR until registered -----
+
+const REG_BUTTONS = { register: $('register'), take: $('reg-take'), cancel: $('reg-cancel') };
+REG_BUTTONS.register.addEventListener('click', () => registration.start());
+REG_BUTTONS.take.addEventListener('click', () => registration.take());
+REG_BUTTONS.cancel.addEventListener('click', () => registration.cancel());
+
+function registrationView(view, nowMs) {
+  const presenting = renderer.xr.isPresenting && xrSession !== null;
+  const xrFrame = presenting ? renderer.xr.getFrame() : null;
+  const reg = registration.frame(xrFrame, renderer.xr.getReferenceSpace(), nowMs, presenting);
+  if (reg && !view.calibrating) {
+    Object.assign(view, reg);
+    label.sprite.visible = false;
+  } else if (presenting && !view.calibrating) {
+    view.buttons = ['register']; // registered: may register again
+    view.registered = true;
+  }
 }
 
 // --- drawing, and the echo for the latency figure -------------------------------------------
@@ -349,6 +392,7 @@ async function enterAR() {
   renderer.xr.setReferenceSpaceType('local-floor');
   await renderer.xr.setSession(session);
   xrSession = session;
+  session.addEventListener('select', () => registration.take()); // air tap, trigger, pinch
   scene.background = null; // the room shows through
   grid.visible = false;
   document.body.classList.add('xr');
@@ -436,8 +480,11 @@ window.headset = {
       steps: [...$('steps').children].map((li) => li.className),
       guide: lastGuide,
       colour: virtual.materials[0].color.getHex(),
+      buttons: Object.keys(REG_BUTTONS).filter((k) => !REG_BUTTONS[k].hidden),
+      registration: { ...registration.state, targets: undefined },
     };
   },
+  registration,
 };
 
 connect();
