@@ -28,6 +28,7 @@ def test_ar_without_a_registration_asks_for_one_and_draws_nothing_from_the_feed(
     h = run.data["needed"]
     assert h["headline"] == "Register this headset first" and h["buttons"] == ["register"]
     assert h["registration"]["state"] == "none"
+    assert run.data["needed_root_visible"] is False
     # On the tablet (not presenting) the feed's world was drawn as it is.
     tablet = matrix(run.data["tablet_virtual"])
     assert run.data["tablet"]["cue"] != "register"
@@ -65,6 +66,7 @@ def test_watch_says_re_register_when_the_headsets_space_jumps(run):
     d = run.data["drifted"]
     assert d["headline"] == "Re-register the headset" and "moved 6" in d["detail"]
     assert d["registration"]["driftMm"] == pytest.approx(60, abs=5)
+    assert run.data["drifted_virtual_visible"] is False  # a guide known misplaced: hidden
 
 
 def test_saved_registration_offered_again_and_watched(run):

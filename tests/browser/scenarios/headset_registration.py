@@ -176,6 +176,7 @@ async def run(ctx) -> dict:
         clinic.T_world_xr_rig = Pose(T_WORLD_XR.position + [0.06, 0.0, 0.0], T_WORLD_XR.quaternion)
         data["drifted"] = await hud_when(ctx, page, "h.registration.watch === 'drifted'", 30)
         await next_frames(ctx, page)
+        data["drifted_virtual_visible"] = await page.evaluate("headset.visible('virtual')")
         await ctx.shot(page, "registration_drifted")
         ctx.mark("watched")
 

@@ -450,7 +450,7 @@ window.headset = {
   },
   visible(name) {
     const o = name === 'outline' ? outline && outline.group : objects[name];
-    return Boolean(o && o.visible);
+    return Boolean(o && o.visible && worldRoot.visible); // in AR: not before registration
   },
   // Stop taking feed messages (the picture holds still) or take them again.
   freeze(on) {

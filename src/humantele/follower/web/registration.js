@@ -15,7 +15,6 @@
 // residual_mm, T_xr_world, watch: waiting|ok|drifted, drift_mm, drift_deg}.
 
 import * as THREE from 'three';
-import { makeLabel } from './scene.js';
 
 const ID_KEY = 'humantele.headset';
 const VIEWER_EVERY_MS = 200; // the viewer pose for the watch: 5 a second
@@ -54,9 +53,42 @@ function headsetId() {
 const hex = (c) => `#${c.toString(16).padStart(6, '0')}`;
 const round5 = (v) => Math.round(v * 1e5) / 1e5; // 0.01 mm: short messages
 
+// A round badge with a number that faces the viewer (width in metres).
+function makeBadge(width) {
+  const canvas = document.createElement('canvas');
+  canvas.width = canvas.height = 128;
+  const texture = new THREE.CanvasTexture(canvas);
+  texture.colorSpace = THREE.SRGBColorSpace;
+  const sprite = new THREE.Sprite(
+    new THREE.SpriteMaterial({ map: texture, depthTest: false, transparent: true }),
+  );
+  sprite.scale.set(width, width, 1);
+  sprite.renderOrder = 31;
+  let last = '';
+  return {
+    sprite,
+    set(text, background) {
+      if (text + background === last) return;
+      last = text + background;
+      const g = canvas.getContext('2d');
+      g.clearRect(0, 0, 128, 128);
+      g.fillStyle = background;
+      g.beginPath();
+      g.arc(64, 64, 60, 0, 2 * Math.PI);
+      g.fill();
+      g.fillStyle = '#0b1620';
+      g.font = 'bold 84px "Liberation Sans", Arial, sans-serif';
+      g.textAlign = 'center';
+      g.textBaseline = 'middle';
+      g.fillText(text, 64, 70);
+      texture.needsUpdate = true;
+    },
+  };
+}
+
 function makeTarget(number) {
   const group = new THREE.Group();
-  const label = makeLabel(0.08); // the number, above the ring
+  const label = makeBadge(0.035); // the number, above the ring
   label.sprite.position.set(0, 0.04, 0);
   const ring = new THREE.Mesh(
     new THREE.TorusGeometry(0.018, 0.0025, 8, 40),
@@ -73,7 +105,7 @@ function makeTarget(number) {
   return {
     group,
     set(kind, pulse) {
-      label.set(kind === 'done' ? `${number} \u2713` : String(number), hex(COLOUR[kind]));
+      label.set(kind === 'done' ? '\u2713' : String(number), hex(COLOUR[kind]));
       ring.material.color.setHex(COLOUR[kind]);
       dot.material.color.setHex(COLOUR[kind]);
       ring.scale.setScalar(kind === 'now' ? 1 + 0.25 * pulse : 1);
@@ -208,7 +240,8 @@ export function makeRegistration({ scene, worldRoot, send }) {
       worldRoot.quaternion.set(...st.T_xr_world.quaternion);
     }
     const collecting = st.state === 'collecting' || st.state === 'starting';
-    worldRoot.visible = Boolean(st.T_xr_world) && !collecting;
+    // A guide known to be misplaced is not drawn (as one that is not live is greyed).
+    worldRoot.visible = Boolean(st.T_xr_world) && !collecting && st.watch !== 'drifted';
     return banner(collecting, nowMs);
   }
 
@@ -251,7 +284,7 @@ export function makeRegistration({ scene, worldRoot, send }) {
         headline: 'Re-register the headset',
         detail:
           `The headset's space has moved ${Math.round(st.driftMm)} mm from the tracker's: ` +
-          'the guide would be drawn in the wrong place. Press Register.',
+          'the guide is hidden until you register again. Press Register.',
         refusal: '',
         buttons: ['register'],
       };
@@ -263,6 +296,7 @@ export function makeRegistration({ scene, worldRoot, send }) {
         detail: st.message,
         refusal: '',
         buttons: ['register'],
+        registered: true,
       };
     }
     return null; // registered: the guide
