@@ -202,9 +202,11 @@ def test_the_watch_says_re_register_when_the_two_poses_drift_apart(tmp_path):
                                    "quaternion": viewer.quaternion.tolist()})  # fmt: skip
 
     rig = T_WORLD_XR @ viewer @ T_viewer_rig
+    # another headset's page says hello meanwhile: this one's watch goes on regardless
+    c.reg.on_page_message({"type": "registration", "action": "hello", "headset": "other"})
     look(12, rig)  # the offset calibrated from the first 5, then watched
     assert c.reg.counts["offset_calibrated"] == 1
-    assert c.last["watch"] == "ok" and c.last["drift_mm"] < 2.0
+    assert c.last["headset"] == ID and c.last["watch"] == "ok" and c.last["drift_mm"] < 2.0
     moved = Pose(rig.position + [0.05, 0, 0], rig.quaternion)  # the XR space jumped 5 cm
     look(6, moved)
     assert c.last["watch"] == "drifted" and c.last["drift_mm"] == pytest.approx(50, abs=3)

@@ -33,7 +33,7 @@ import logging
 import math
 import os
 import time
-from collections import Counter, deque
+from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,6 +51,7 @@ log = logging.getLogger(__name__)
 HEADSETS_FILE = "headsets.json"
 UP = np.array([0.0, 1.0, 0.0])
 TIP_KEPT_S = 3.0  # tip and rig poses kept this long (s)
+STATES_KEPT = 16  # headsets whose last state is kept (a page may send any id)
 
 
 class RegistrationConfig(ConfigModel):
@@ -340,7 +341,8 @@ class HeadsetRegistration:
         self.offset_pairs: dict[str, list[tuple[Pose, Pose]]] = {}
         self.counts: Counter[str] = Counter()
         self.bad_messages: Counter[str] = Counter()
-        self.last: dict[str, Any] = {}  # the last published state
+        self.last: dict[str, Any] = {}  # the last published state (any headset)
+        self.states: OrderedDict[str, dict[str, Any]] = OrderedDict()  # the last, per headset
         self.last_fit: RigidFit | None = None
 
     # --- from the tracker ----------------------------------------------------------------
@@ -590,19 +592,23 @@ class HeadsetRegistration:
         self._watch(m.headset, "drifted" if drifted else "ok", mm, deg)
 
     def _watch(self, headset: str, watch: str, mm: float, deg: float) -> None:
-        if self.last.get("headset") != headset or self.last.get("state") != "registered":
+        last = self.states.get(headset, {})
+        if last.get("state") != "registered":
             return
-        before = self.last.get("watch")
-        fields = {**self.last, "watch": watch, "drift_mm": round(mm, 1), "drift_deg": round(deg, 2)}
-        if watch == "drifted" and before != "drifted":
+        if watch == "drifted" and last.get("watch") != "drifted":
             self.counts["drifted"] += 1
             log.warning("follower: headset %s drifted %.0f mm %.1f deg", headset, mm, deg)
-        self.last = fields
-        self.publish("registration", {k: v for k, v in fields.items() if k != "type"})
+        self._send({**last, "watch": watch, "drift_mm": round(mm, 1), "drift_deg": round(deg, 2)})
 
     def _state(self, headset: str, state: str, message: str, **extra: Any) -> None:
-        fields = {"headset": headset, "state": state, "message": message, **extra}
+        self._send({"headset": headset, "state": state, "message": message, **extra})
+
+    def _send(self, fields: dict[str, Any]) -> None:
         self.last = fields
+        self.states[fields["headset"]] = fields
+        self.states.move_to_end(fields["headset"])
+        while len(self.states) > STATES_KEPT:
+            self.states.popitem(last=False)
         self.publish("registration", fields)
 
     # --- figures -------------------------------------------------------------------------

@@ -55,7 +55,7 @@ function connect(delayMs = 500) {
   socket.onopen = () => {
     state.socket = true;
     delayMs = 500;
-    registration.hello();
+    registration.onOpen();
   };
   socket.onmessage = (ev) => {
     if (state.frozen) return;

@@ -136,8 +136,11 @@ export function makeRegistration({ scene, worldRoot, send }) {
   let viewer = null; // the last viewer pose {position, quaternion} (XR space)
   let watchedSpace = null;
 
-  function hello() {
-    send({ type: 'registration', action: 'hello', headset: id });
+  // Hello (the follower offers this headset's registration) once in each AR session and
+  // after each reconnection during one; a tablet or laptop page never says it.
+  let saidHello = false;
+  function onOpen() {
+    saidHello = false;
   }
 
   function onFeed(msg) {
@@ -209,6 +212,10 @@ export function makeRegistration({ scene, worldRoot, send }) {
   // Each frame: the viewer pose (AR), the watch's samples, the targets' colours, and whether
   // the feed's objects may be drawn. Returns what the banner should say, or null (the guide).
   function frame(xrFrame, refSpace, nowMs, presenting) {
+    if (!presenting) saidHello = false;
+    else if (!saidHello) {
+      saidHello = send({ type: 'registration', action: 'hello', headset: id });
+    }
     if (presenting && xrFrame && refSpace) {
       if (watchedSpace !== refSpace) {
         watchedSpace = refSpace;
@@ -304,7 +311,7 @@ export function makeRegistration({ scene, worldRoot, send }) {
 
   return {
     state: st,
-    hello,
+    onOpen,
     onFeed,
     start,
     take,
