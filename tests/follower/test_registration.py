@@ -16,6 +16,7 @@ from humantele.follower.registration import (
     fit_from_trajectories,
     fit_rigid,
     refusal,
+    solve_trajectories,
     viewer_rig_offset,
 )
 from humantele.geometry import Pose, quat_from_axis_angle, quat_multiply
@@ -95,6 +96,14 @@ def test_trajectories_give_the_registration_once_the_offset_is_known():
     assert errors(T, T_WORLD_XR)[0] < 1e-9
     offset = viewer_rig_offset(T_WORLD_XR, viewers, rigs)
     assert errors(offset, T_viewer_rig)[0] < 1e-9
+    # with no offset known: both from the trajectories (hand-eye, B = Z A X)
+    Z, X = solve_trajectories(viewers, rigs)
+    assert errors(Z, T_WORLD_XR)[0] < 1e-6 and errors(X, T_viewer_rig)[0] < 1e-6
+    # ... but not from a head that only turned about one axis (here: up, looking around)
+    yaw_only = [Pose(v.position, quat_from_axis_angle([0, 1, 0], 0.2 * k))
+                for k, v in enumerate(viewers)]  # fmt: skip
+    with pytest.raises(DegenerateRegistration, match="one axis"):
+        solve_trajectories(yaw_only, [T_WORLD_XR @ v @ T_viewer_rig for v in yaw_only])
 
 
 class Clinic:

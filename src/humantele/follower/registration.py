@@ -206,6 +206,53 @@ def fit_from_trajectories(
     )
 
 
+def _nearest_rotation(M: NDArray[np.float64]) -> NDArray[np.float64]:
+    U, _, Vt = np.linalg.svd(M)
+    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0]) @ Vt
+
+
+def solve_trajectories(
+    T_xr_viewer: list[Pose], T_world_rig: list[Pose], min_turn_rad: float = 0.35
+) -> tuple[Pose, Pose]:
+    """``(T_world_xr, T_viewer_rig)`` from the headset's two trajectories alone: the
+    robot-world/hand-eye problem ``B_i = Z A_i X`` (``A_i = T_xr_viewer``, ``B_i =
+    T_world_rig``, ``Z = T_world_xr``, ``X = T_viewer_rig``), linear least squares on the
+    rotations (the null vector of the stacked Kronecker system, each block made a rotation),
+    then on the translations. Needs the head turned about two or more axes (by at least
+    ``min_turn_rad`` between the poses); raises :class:`DegenerateRegistration` otherwise."""
+    if len(T_xr_viewer) != len(T_world_rig) or len(T_xr_viewer) < 3:
+        raise DegenerateRegistration("need 3 or more simultaneous pose pairs")
+    RA = [a.rotation_matrix for a in T_xr_viewer]
+    RB = [b.rotation_matrix for b in T_world_rig]
+    rel = [RA[0].T @ r for r in RA[1:]]  # the head's turns from the first pose (viewer)
+    axes = np.array([
+        np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) for r in rel
+    ])  # fmt: skip
+    sv = np.linalg.svd(axes, compute_uv=False)
+    if len(sv) < 2 or sv[1] < 2.0 * math.sin(min_turn_rad):
+        raise DegenerateRegistration(
+            "the head turned about one axis only (or too little): turn it about two"
+        )
+    # R_Z R_A - R_B R_Y = 0 with R_Y = R_X^T; vec() column-major.
+    eye = np.eye(3)
+    rows = [
+        np.hstack([np.kron(ra.T, eye), -np.kron(eye, rb)]) for ra, rb in zip(RA, RB, strict=True)
+    ]
+    _, _, Vt = np.linalg.svd(np.vstack(rows))
+    v = Vt[-1]
+    Rz, Ry = v[:9].reshape(3, 3, order="F"), v[9:].reshape(3, 3, order="F")
+    if np.linalg.det(Rz) < 0:
+        Rz, Ry = -Rz, -Ry
+    Rz, Rx = _nearest_rotation(Rz), _nearest_rotation(Ry).T
+    # t_B = R_Z R_A t_X + R_Z t_A + t_Z
+    M = np.vstack([np.hstack([Rz @ ra, eye]) for ra in RA])
+    rhs = np.concatenate(
+        [b.position - Rz @ a.position for a, b in zip(T_xr_viewer, T_world_rig, strict=True)]
+    )
+    sol, *_ = np.linalg.lstsq(M, rhs, rcond=None)
+    return Pose(sol[3:], matrix_to_quat(Rz)), Pose(sol[:3], matrix_to_quat(Rx))
+
+
 # --- what a page sends ---------------------------------------------------------------------
 
 Coord = Annotated[float, Field(ge=-100.0, le=100.0, allow_inf_nan=False)]  # m

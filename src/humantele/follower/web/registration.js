@@ -177,7 +177,8 @@ export function makeRegistration({ scene, worldRoot, send }) {
   function start() {
     if (!viewer) return false;
     const p = new THREE.Vector3(...viewer.position);
-    const fwd = new THREE.Vector3(0, 0, -1).applyQuaternion(new THREE.Quaternion(...viewer.quaternion));
+    const look = new THREE.Quaternion(...viewer.quaternion);
+    const fwd = new THREE.Vector3(0, 0, -1).applyQuaternion(look);
     fwd.y = 0;
     if (fwd.lengthSq() < 1e-6) fwd.set(0, 0, -1);
     fwd.normalize();
@@ -226,7 +227,10 @@ export function makeRegistration({ scene, worldRoot, send }) {
       const pose = xrFrame.getViewerPose(refSpace);
       if (pose) {
         const { position: p, orientation: q } = pose.transform;
-        viewer = { position: [p.x, p.y, p.z].map(round5), quaternion: [q.x, q.y, q.z, q.w].map(round5) };
+        viewer = {
+          position: [p.x, p.y, p.z].map(round5),
+          quaternion: [q.x, q.y, q.z, q.w].map(round5),
+        };
         if (st.T_xr_world && nowMs - lastViewerMs >= VIEWER_EVERY_MS) {
           lastViewerMs = nowMs;
           send({ type: 'viewer_pose', headset: id, ...viewer });
@@ -234,7 +238,9 @@ export function makeRegistration({ scene, worldRoot, send }) {
       }
     }
     const pulse = 0.5 + 0.5 * Math.sin(nowMs / 150);
-    markers.forEach((m, i) => m.set(i < st.index ? 'done' : i === st.index ? 'now' : 'todo', pulse));
+    markers.forEach((m, i) => {
+      m.set(i < st.index ? 'done' : i === st.index ? 'now' : 'todo', pulse);
+    });
     if (!presenting) {
       // A tablet or laptop draws the feed's world as it is.
       worldRoot.position.set(0, 0, 0);
