@@ -270,3 +270,24 @@ def test_feed_routes_the_pages_registration_messages_and_counts_bad_ones():
     assert feed.refused["malformed"] == 3 and len(got) == 2
     feed._on_page_message(client, '{"type": "drawn", "pose_id": 1, "draw_to_send_ms": 0}')
     assert feed.refused["unknown_pose"] == 1  # the echoes still go their way
+
+
+def test_the_daemon_hook_routes_the_page_and_feeds_each_measurement(tmp_path):
+    """The lines the follower daemon adds: construct (routing the feed's page messages to
+    it), one call per measurement (tip and rig pose), one stats entry."""
+    from daemon_doubles import LinkDouble
+    from humantele.follower.daemon import FollowerConfig, FollowerDaemon
+
+    d = FollowerDaemon(FollowerConfig(state_dir=str(tmp_path), probe_source="truth"))
+    d.link = LinkDouble(age_s=0.01)
+    client = type("C", (), {"last_echo": 0})()
+    d.feed._on_page_message(client, json.dumps({"type": "registration", "action": "hello",
+                                                "headset": ID}))  # fmt: skip
+    assert json.loads(d.feed.latest["registration"])["state"] == "none"
+    d.start_calibration()  # the sim technician picks up the probe and presses
+    d.script_t0, t = 0.0, 0.0
+    for _ in range(300):
+        d.tick(t)
+        t += 0.01
+    assert d.registration.tips and d.registration.rigs  # 45 Hz frames reached it
+    assert d.stats()["registration"]["counts"] == {"hello": 1}
