@@ -248,6 +248,9 @@ def test_bad_page_messages_counted_never_raised(tmp_path):
     assert c.reg.bad_messages["start_without_targets"] == 1
     assert c.reg.bad_messages["degenerate_targets"] == 1 and "line" in c.last["message"]
     assert c.reg.bad_messages["take_not_collecting"] == 1
+    four = Clinic(tmp_path, RegistrationConfig(min_points=4))
+    four.send("start", targets=TARGETS[:3].tolist())
+    assert four.last["state"] == "refused" and "need 4" in four.last["message"]
     (tmp_path / "headsets.json").write_text("{not json")
     assert "headsets.json" in Clinic(tmp_path).reg.stats()["load_error"]
 

@@ -441,6 +441,12 @@ class HeadsetRegistration:
     # --- registering ---------------------------------------------------------------------
 
     def _start(self, headset: str, targets: NDArray[np.float64]) -> None:
+        if len(targets) < self.config.min_points:
+            self.bad_messages["too_few_targets"] += 1
+            self._state(
+                headset, "refused", f"{len(targets)} targets: need {self.config.min_points}."
+            )
+            return
         try:  # the targets themselves must be able to fix a transform
             fit_rigid(targets, targets, self.config.min_spread_mm / 1000.0)
         except DegenerateRegistration as exc:

@@ -392,7 +392,8 @@ async function enterAR() {
   renderer.xr.setReferenceSpaceType('local-floor');
   await renderer.xr.setSession(session);
   xrSession = session;
-  session.addEventListener('select', () => registration.take()); // air tap, trigger, pinch
+  // air tap, trigger, pinch: starts or takes a point while a registration is needed
+  session.addEventListener('select', () => registration.select());
   scene.background = null; // the room shows through
   grid.visible = false;
   document.body.classList.add('xr');

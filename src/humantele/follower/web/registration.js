@@ -205,6 +205,14 @@ export function makeRegistration({ scene, worldRoot, send }) {
     if (st.state === 'collecting') send({ type: 'registration', action: 'take', headset: id });
   }
 
+  // The XR 'select' gesture (air tap, trigger, pinch): takes the point while registering,
+  // starts a registration when one is needed (a headset without the DOM overlay has no
+  // buttons); ignored while registered, so a tap during a scan changes nothing.
+  function select() {
+    if (st.state === 'collecting') take();
+    else if (!st.T_xr_world || st.watch === 'drifted' || st.state === 'refused') start();
+  }
+
   function cancel() {
     send({ type: 'registration', action: 'cancel', headset: id });
     clearTargets();
@@ -266,7 +274,8 @@ export function makeRegistration({ scene, worldRoot, send }) {
         cue: 'register',
         headline: `Registration: target ${i + 1} of ${n}`,
         detail:
-          "Hold the probe's tip still on the blue ring for a second (or press Take point).",
+          "Hold the probe's tip still on the blue ring for a second (or press Take point, " +
+          'or air tap).',
         refusal: st.refused ? `Not taken: ${st.refused}` : '',
         buttons: ['take', 'cancel'],
       };
@@ -285,8 +294,8 @@ export function makeRegistration({ scene, worldRoot, send }) {
         cue: 'register',
         headline: 'Register this headset first',
         detail:
-          'Press Register, then touch the tracked probe\'s tip to each of the 4 targets ' +
-          'that appear in front of you.',
+          'Press Register (or air tap), then touch the tracked probe\'s tip to each of the ' +
+          '4 targets that appear in front of you.',
         refusal: '',
         buttons: ['register'],
       };
@@ -321,6 +330,7 @@ export function makeRegistration({ scene, worldRoot, send }) {
     onFeed,
     start,
     take,
+    select,
     cancel,
     frame,
     targets: () => st.targets.map((t) => t.slice()),
