@@ -152,7 +152,9 @@ async def run(ctx) -> dict:
                     await next_frames(ctx, page)
                     await ctx.shot(page, "registration_collecting")
                 await hud_when(ctx, page, f"h.registration.index > {k}")  # dwelt
-        done = await hud_when(ctx, page, "h.registration.state === 'registered'")
+        # (the banner follows the state at the page's next frame)
+        done = await hud_when(ctx, page, "h.registration.state === 'registered' && "
+                              "h.headline === 'Headset registered'")  # fmt: skip
         data["registration_s"] = time.monotonic() - t0
         data["done"] = done
         await next_frames(ctx, page)
@@ -174,7 +176,8 @@ async def run(ctx) -> dict:
         # 5. The watch: the offset calibrated, then agreeing; then the space jumps 6 cm.
         data["watch_ok"] = await hud_when(ctx, page, "h.registration.watch === 'ok'", 30)
         clinic.T_world_xr_rig = Pose(T_WORLD_XR.position + [0.06, 0.0, 0.0], T_WORLD_XR.quaternion)
-        data["drifted"] = await hud_when(ctx, page, "h.registration.watch === 'drifted'", 30)
+        data["drifted"] = await hud_when(ctx, page, "h.registration.watch === 'drifted' && "
+                                         "h.cue === 'register'", 30)  # fmt: skip
         await next_frames(ctx, page)
         data["drifted_virtual_visible"] = await page.evaluate("headset.visible('virtual')")
         await ctx.shot(page, "registration_drifted")
