@@ -176,7 +176,7 @@ def test_unwritable_state_dir_saves_best_effort_and_the_model_still_goes(tmp_pat
 
     d.link = Link()
     d.start_calibration()
-    d.script_t0 = 0.0
+    d.clinic.script_t0 = 0.0
     t = 0.0
     while d.calibration is None and t < 20.0:
         d.tick(t)

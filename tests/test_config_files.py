@@ -5,6 +5,8 @@ Named definitions (tools, HID profiles, force sensor set-ups) have one copy, ins
 example files, which must load with their models (a renamed or moved field shows up here).
 """
 
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -64,6 +66,7 @@ def test_unknown_names_list_the_packaged_ones_and_paths_are_read_as_given(tmp_pa
     [
         ("expert.toml", {"expert": ExpertConfig, "servo": ServoConfig}),
         ("follower.toml", {"follower": FollowerConfig, "sensing": SensingConfig}),
+        ("follower_hololens.toml", {"follower": FollowerConfig, "sensing": SensingConfig}),
         ("signal.toml", {None: SignalConfig}),
     ],
 )
@@ -78,3 +81,44 @@ def test_the_follower_example_shows_the_sensing_defaults_with_their_backends():
     assert sensing.camera.backend == "sim" and sensing.force.sensor.backend == "sim"
     servo = load_config(ServoConfig, EXAMPLES / "expert.toml", "servo")
     assert servo.device.backend == "sim"
+
+
+def test_the_hololens_example_is_a_real_clinic_with_every_device_it_needs():
+    """configs/follower_hololens.toml (README "With real hardware"): the devices clinic, hl2ss
+    with the rig pose and a saved calibration, the HID force board with its calibration, a
+    capture card for the US with its pixel spacing, a camera for the POV; no sim backend."""
+    path = EXAMPLES / "follower_hololens.toml"
+    follower = load_config(FollowerConfig, path, "follower")
+    sensing = load_config(SensingConfig, path, "sensing")
+    assert follower.clinic.backend == "devices" and follower.probe_source == "pipeline"
+    assert follower.feed.enabled and follower.feed.tls  # WebXR needs https
+    camera = sensing.camera
+    assert camera.backend == "hl2ss" and camera.mode == 1 and camera.port == 3804
+    assert camera.calibration_file == "hl2ss_ahat.json"
+    assert sensing.force.sensor.backend == "hid" and sensing.force.calibration_file
+    assert follower.video.enabled and not follower.video.stamp_counter
+    assert follower.video.us.backend == "opencv" and follower.video.us.pixel_spacing_mm
+    assert follower.video.pov.backend == "opencv"
+
+
+def test_loading_the_hololens_example_imports_nothing_of_the_simulator():
+    """Reading a real clinic's file builds no simulated world (checked in a fresh process:
+    this one has the simulator loaded by other tests)."""
+    code = (
+        "import sys; from humantele.config import load_config; "
+        "from humantele.follower.daemon import FollowerConfig; "
+        "from humantele.follower.sensing import SensingConfig; "
+        "from humantele.follower.clinic import simulator_modules; "
+        f"p = {str(EXAMPLES / 'follower_hololens.toml')!r}; "
+        "load_config(FollowerConfig, p, 'follower'); load_config(SensingConfig, p, 'sensing'); "
+        "print(','.join(simulator_modules()))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == ""
+
+
+def test_the_configs_readme_lists_every_example_file():
+    listed = (EXAMPLES / "README.md").read_text()
+    for f in sorted(EXAMPLES.glob("*.toml")):
+        assert f"`{f.name}`" in listed, f"configs/README.md does not describe {f.name}"

@@ -14,10 +14,13 @@ from humantele.config import ConfigError
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("humantele.demo", "run a whole session on simulated devices over loopback WebRTC"),
     "expert": ("humantele.expert.daemon", "run the expert daemon (haptic device, servo loop)"),
-    "follower": ("humantele.follower.daemon", "run the follower daemon (tracking, force, video)"),
+    "follower": ("humantele.follower.cli", "run the follower daemon (tracking, force, video)"),
     "signal": ("humantele.signaling.server", "run the signaling server"),
     "analyze": ("humantele.analysis.cli", "the study's analysis of recorded sessions"),
-    "devices": ("humantele.devices.check", "list devices and read a few samples from each"),
+    "devices": (
+        "humantele.devices.check",
+        "list devices and read a few samples from each; save the hl2ss calibration",
+    ),
 }
 
 # name -> (module, one-line help) for `humantele bench NAME`.

@@ -30,7 +30,7 @@ def run_ticks(d, t0, seconds, rate=100.0, pose_fn=None):
 def test_calibrates_then_follows_the_virtual_probe(tmp_path):
     d = make(tmp_path)
     d.start_calibration()
-    d.script_t0 = 0.0
+    d.clinic.script_t0 = 0.0
     t = run_ticks(d, 0.0, 12.0)
     assert d.calibration is not None and not d.calibrating
     assert (tmp_path / "calibration.json").exists()
@@ -62,24 +62,24 @@ def test_the_sim_technician_presses_once_the_sensing_process_measures(tmp_path):
     class Starting:  # the sensing process still importing: its tracker images are skipped
         running, ready = True, False
 
-    d.sensing_proc = Starting()
+    d.worker.proc = Starting()
     d.start_calibration()
-    d.script_t0 = 0.0
+    d.clinic.script_t0 = 0.0
     forces, t = [], 0.0
     for _ in range(500):  # 5 s, more than two presses' time
         d.tick(t)
-        forces.append(float(np.linalg.norm(d.world.force_world)))
+        forces.append(float(np.linalg.norm(d.clinic.world.force_world)))
         t += 0.01
-    assert max(forces) == 0.0 and d.sensing_starting > 0 and d.calibrator.presses == 0
-    d.sensing_proc = None  # measured in line from now
+    assert max(forces) == 0.0 and d.worker.starting > 0 and d.cal.calibrator.presses == 0
+    d.worker.proc = None  # measured in line from now
     run_ticks(d, t, 8.0)
-    assert d.calibration is not None and d.calibrator.refusals == 0
+    assert d.calibration is not None and d.cal.calibrator.refusals == 0
 
 
 def test_stale_without_poses_and_model_resent_on_hello(tmp_path):
     d = make(tmp_path)
     d.start_calibration()
-    d.script_t0 = 0.0
+    d.clinic.script_t0 = 0.0
     run_ticks(d, 0.0, 12.0)
     assert d.calibration is not None
     assert d.virtual_stale(100.0)  # no pose ever
@@ -94,7 +94,7 @@ def test_stale_without_poses_and_model_resent_on_hello(tmp_path):
     assert isinstance(d.link.controls[n], EllipsoidModel)
     # A restarted follower reuses the saved calibration: no presses needed.
     d2 = make(tmp_path)
-    assert d2.calibration is not None and d2.loaded_calibration
+    assert d2.calibration is not None and d2.cal.reused
     assert d2.calibration.ellipsoid == d.calibration.ellipsoid
 
 
@@ -107,7 +107,7 @@ def test_a_failing_sensing_step_is_lost_not_a_crash(tmp_path):
 
     d.sensing.pipeline = Broken()
     d.start_calibration()
-    d.script_t0 = 0.0
+    d.clinic.script_t0 = 0.0
     run_ticks(d, 0.0, 1.0)
     assert d.sensing.errors > 0 and d.measurement.T_world_tip is None
     assert d.calibration is None and d.link.states == []

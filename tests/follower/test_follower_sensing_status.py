@@ -4,7 +4,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from humantele.follower.daemon import FollowerConfig, Sensing
+from humantele.follower.daemon import FollowerConfig
+from humantele.follower.sensing import Sensing
 from humantele.follower.sim_world import WorldTruth
 from humantele.geometry import Pose
 from humantele.tracking.status import TrackingStatus
@@ -14,7 +15,7 @@ class FakePipeline:
     def __init__(self, status, pose):
         self.status, self.pose = status, pose
 
-    def measure(self, t, T_world_probe, force_world, camera):
+    def measure(self, t, world):
         return SimpleNamespace(status=self.status, T_world_probe=self.pose, force_world=np.zeros(3),
                                force_probe=np.zeros(3), contact=False)  # fmt: skip
 
@@ -27,13 +28,13 @@ def test_ambiguous_frames_reach_the_daemon_as_ambiguous_without_a_pose():
         return WorldTruth(t, tip, np.zeros(3), None)
 
     s.pipeline = FakePipeline("ambiguous", None)
-    m = s.measure(truth(0.0))
+    m = s.measure(0.0, truth(0.0))
     assert m.status is TrackingStatus.AMBIGUOUS and m.T_world_tip is None
     s.pipeline = FakePipeline(TrackingStatus.TRACKED, tip @ s.T_tip_probe)
-    m = s.measure(truth(0.1))
+    m = s.measure(0.1, truth(0.1))
     assert m.status is TrackingStatus.TRACKED
     np.testing.assert_allclose(m.T_world_tip.position, tip.position, atol=1e-12)
     s.pipeline = FakePipeline(TrackingStatus.TRACKED, None)  # a status without its pose: lost
-    assert s.measure(truth(0.2)).status is TrackingStatus.LOST
+    assert s.measure(0.2, truth(0.2)).status is TrackingStatus.LOST
     s.pipeline = FakePipeline("searching", None)  # not a status: a sensing error, reported lost
-    assert s.measure(truth(0.3)).status is TrackingStatus.LOST
+    assert s.measure(0.3, truth(0.3)).status is TrackingStatus.LOST

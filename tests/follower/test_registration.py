@@ -288,7 +288,7 @@ def test_the_daemon_hook_routes_the_page_and_feeds_each_measurement(tmp_path):
                                                 "headset": ID}))  # fmt: skip
     assert json.loads(d.feed.latest["registration"])["state"] == "none"
     d.start_calibration()  # the sim technician picks up the probe and presses
-    d.script_t0, t = 0.0, 0.0
+    d.clinic.script_t0, t = 0.0, 0.0
     for _ in range(300):
         d.tick(t)
         t += 0.01

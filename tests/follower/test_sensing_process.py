@@ -41,8 +41,8 @@ async def test_the_child_measures_frames_restarts_when_killed_and_stops_cleanly(
         first_pid = proc.pid
         assert first_pid != os.getpid()
         truth = world.truth(0.1)
-        assert proc.submit(1, truth)
-        assert not proc.submit(2, truth)  # one frame in flight at most
+        assert proc.submit(1, (0.1, truth))
+        assert not proc.submit(2, (0.1, truth))  # one frame in flight at most
         await _until(lambda: results)
         job, m, seconds = results[0]
         assert job == 1 and seconds > 0
@@ -53,7 +53,7 @@ async def test_the_child_measures_frames_restarts_when_killed_and_stops_cleanly(
         os.kill(first_pid, signal.SIGKILL)
         await _until(lambda: proc.restarts == 1 and proc.ready)
         assert proc.pid != first_pid and not proc.failed
-        assert proc.submit(3, world.truth(0.2))
+        assert proc.submit(3, (0.2, world.truth(0.2)))
         await _until(lambda: len(results) == 2)
         assert results[1][0] == 3 and results[1][1].status == TrackingStatus.TRACKED
     finally:
@@ -98,11 +98,13 @@ class _Link:
 async def test_the_daemon_streams_what_the_child_measured(tmp_path):
     d = FollowerDaemon(FollowerConfig(state_dir=str(tmp_path), sensing_worker="process"))
     d.link = _Link()
-    d.world.human.hand = Pose([0.35, 1.0, -0.15], probe_down_quat([0.0, 1.0, 0.0]))
-    d.sensing_proc = SensingProcess(d.config, None, d._measured_in_process, d._sensing_cannot_start)
-    d.sensing_proc.start()
+    d.clinic.world.human.hand = Pose([0.35, 1.0, -0.15], probe_down_quat([0.0, 1.0, 0.0]))
+    d.worker.proc = SensingProcess(
+        d.config, None, d.worker._measured_in_process, d.worker._cannot_start
+    )
+    d.worker.proc.start()
     try:
-        await _until(lambda: d.sensing_proc.ready)
+        await _until(lambda: d.worker.proc.ready)
         t = 0.0
         while d.measurements < 10:
             d.tick(t)
@@ -110,7 +112,7 @@ async def test_the_daemon_streams_what_the_child_measured(tmp_path):
             await asyncio.sleep(0.005)
             assert t < 600.0
     finally:
-        d.sensing_proc.close()
+        d.worker.proc.close()
     assert d.sensing.pipeline is None  # the daemon never built its own: the child measured
     assert d.measurement.T_world_tip is not None and d.tick_errors == 0
     s = d.stats()

@@ -75,6 +75,30 @@ async def test_follower_forwards_its_us_track_once_per_frame():
     await f.stop()
 
 
+async def test_follower_forwards_a_scanner_s_picture_with_its_configured_scale():
+    """A capture card's US picture: the configured pixel spacing and row of depth 0 give the
+    Image's spacing and ImageToProbe (the face's centre at the top middle)."""
+    from humantele.video.opencv_source import OpenCVVideoConfig
+
+    slot: LatestSlot = LatestSlot()
+    card = OpenCVVideoConfig(pixel_spacing_mm=(0.25, 0.25), depth_origin_row=40.0)
+    f = FollowerIgtl(IgtlConfig(enabled=True, port=0), None, (slot, card))
+    reader, writer = await connected(f)
+    slot.put(us_frame(90, 2.0, 322, 200))
+    f.tick(2.0, None, None)
+    f.tick(2.05, None, None)
+    got = await images(reader, 1)
+    (im,) = by_name(got, "Image")
+    assert im.image.shape == (1, 200, 322)
+    assert np.linalg.norm(im.ijk_to_world_matrix[:3, 0]) == pytest.approx(0.25, rel=1e-5)
+    itp = by_name(got, "ImageToProbe")[-1]
+    # pixel (row 40, col 160.5) is the tip's origin: x0 = -160.5 px, z0 = -40 px (0.25 mm)
+    assert itp.matrix[0, 3] == pytest.approx(-40.125, abs=1e-6)
+    assert itp.matrix[2, 3] == pytest.approx(-10.0, abs=1e-6)
+    writer.close()
+    await f.stop()
+
+
 async def test_expert_forwards_the_received_us_frame_with_its_scaled_spacing():
     e = ExpertIgtl(IgtlConfig(enabled=True, port=0))
     reader, writer = await connected(e)

@@ -93,3 +93,34 @@ async def test_a_receiver_that_fell_behind_takes_the_newest_decoded_frame():
     finally:
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
+
+
+def test_frames_without_a_counter_get_their_capture_time_from_the_records_and_rtp():
+    """A real source's picture is sent unaltered (no counter drawn): the frame records and the
+    RTP timestamps alone give each frame its capture time, once the frames agree on one anchor."""
+    from humantele.media.frameinfo import FrameInfo
+    from humantele.transport.clocksync import SyncSample
+
+    clock = ClockSync()
+    clock.best = SyncSample(offset=0.0, rtt=0.001, t_local=0.0)
+    rx = VideoReceiver(ExpertVideoConfig(enabled=True), clock, now=lambda: 100.0)
+    pc = object()
+    rx._pc = pc  # type: ignore[assignment]
+    rng = np.random.default_rng(1)
+    t_capture = 50.0 + np.cumsum(0.05 + rng.uniform(-0.004, 0.004, 12))  # 20 fps, jittered
+    for seq, t in enumerate(t_capture, start=1):
+        rx._on_info(pc, FrameInfo("us", seq, float(t)).encode())
+    first = int(round(t_capture[2] * 90000))  # the receiver's pts count from its first frame
+    got = []
+    for t in t_capture[2:8]:  # frames 3..8 arrive (1 and 2 were lost), no counter in them
+        frame = av.VideoFrame.from_ndarray(np.full((64, 96, 3), 90, np.uint8), format="bgr24")
+        frame = frame.reformat(format="yuv420p")
+        frame.pts = int(round(t * 90000)) - first
+        rx._on_frame("us", frame)
+        got.append(rx.latest("us").t_capture)
+    assert got[0] is None  # one frame alone allows many anchors
+    assert None not in got[2:]  # a few frames narrow them down to one (here by the third)
+    for g, t in zip(got, t_capture[2:8], strict=True):
+        assert g is None or g == pytest.approx(t, abs=3e-5)  # never a wrong capture time
+    st = rx.stats_by_track["us"]
+    assert st.unreadable == 6 and st.anchor == first  # capture time = (pts + anchor) / 90 kHz

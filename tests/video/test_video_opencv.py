@@ -86,3 +86,19 @@ def test_a_file_that_is_not_a_video_is_a_clear_error(tmp_path):
 def test_read_before_open_is_an_error(clip):
     with pytest.raises(VideoSourceError, match="before open"):
         OpenCVVideoSource(OpenCVVideoConfig(device=str(clip))).read()
+
+
+def test_a_file_plays_at_its_rate_and_loops_when_asked(clip):
+    """A file replays a recorded source: at the file's rate (not all at once, as a device
+    would not give them) and, with ``loop``, from the start again at its end."""
+    import time
+
+    src = OpenCVVideoSource(OpenCVVideoConfig(device=str(clip), loop=True, stall_reads=2))
+    src.open()
+    t0 = time.monotonic()
+    frames = [src.read() for _ in range(2 * N_FRAMES + 3)]
+    took = time.monotonic() - t0
+    assert took >= (2 * N_FRAMES + 1) / 25.0 * 0.95  # paced: a busy machine is only slower
+    numbers = [read_counter(f.image) for f in frames]
+    assert numbers == [100 + i % N_FRAMES for i in range(2 * N_FRAMES + 3)]  # looped, in order
+    assert src.counters.dropped == 0

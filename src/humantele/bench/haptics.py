@@ -5,6 +5,8 @@ world points within 20 mm of the surface, inside and outside, and measures for e
 the scalar servo-path cost (us per evaluation, median of repeats), the depth error (mm) and
 normal-angle error (deg) against ``exact`` (max and RMS), and the numpy batch throughput.
 Writes docs/img/haptics_speed_accuracy.png and the ``haptics`` section of docs/benchmarks.md.
+With ``--callback``: the Touch X servo callback's period and duration on the fake libHD under
+load instead (:mod:`humantele.bench.haptics_callback`, section ``haptics-callback``).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import argparse
 import json
 import math
 import statistics
+import subprocess
 import time
 from pathlib import Path
 
@@ -41,6 +44,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="random seed")
     parser.add_argument("--json", action="store_true", help="print one JSON object last")
     parser.add_argument("--no-write", action="store_true", help="do not write docs/ files")
+    parser.add_argument(
+        "--callback",
+        action="store_true",
+        help="the Touch X servo callback's timing on the fake libHD instead",
+    )
+    parser.add_argument(
+        "--callback-seconds", type=float, default=5.0, help="seconds per --callback row (9 rows)"
+    )
+    parser.add_argument("--callback-realtime", type=int, default=0, metavar="PRIO",
+                        help="--callback rows again with SCHED_FIFO PRIO (0: not)")  # fmt: skip
 
 
 def scene_points(
@@ -245,7 +258,34 @@ def chart(results: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def run_callback(args: argparse.Namespace) -> int:
+    """``--callback``: the servo callback rows; writes the ``haptics-callback`` section."""
+    from humantele.bench import haptics_callback as hc
+
+    if not 0.5 <= args.callback_seconds <= 120.0 or not 0 <= args.callback_realtime <= 99:
+        print("humantele bench haptics: --callback-seconds in [0.5, 120], --callback-realtime "
+              "in [0, 99]")  # fmt: skip
+        return 2
+    try:
+        rows = hc.measure(args.callback_seconds, args.callback_realtime)
+    except (RuntimeError, OSError, subprocess.CalledProcessError) as exc:
+        print(f"humantele bench haptics --callback: cannot build the fake libHD: {exc}")
+        return 1
+    table = markdown_table(hc.HEADER, hc.table_rows(rows))
+    print(table)
+    if not args.no_write:
+        write_section(
+            "haptics-callback",
+            hc.section(rows, args.callback_seconds, table, machine_line(), args.callback_realtime),
+        )
+    if args.json:
+        print(json.dumps(rows))
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if getattr(args, "callback", False):
+        return run_callback(args)
     if args.points < 10:
         print("humantele bench haptics: --points must be at least 10")
         return 2

@@ -66,7 +66,8 @@ class _Follower:
     measured off the loop (thread or process), one in flight at most."""
 
     def __init__(self, mode: str) -> None:
-        from humantele.follower.daemon import FollowerConfig, Sensing
+        from humantele.follower.daemon import FollowerConfig
+        from humantele.follower.sensing import Sensing
         from humantele.follower.sim_human import probe_down_quat
         from humantele.follower.sim_world import SimWorld
         from humantele.geometry import Pose
@@ -110,10 +111,12 @@ class _Follower:
             return
         truth = self.world.truth(t)
         if self.proc is not None:
-            self.in_flight = self.proc.submit(self.measured + self.skipped, truth)
+            self.in_flight = self.proc.submit(self.measured + self.skipped, (t, truth))
             return
         self.in_flight = True
-        fut = asyncio.get_running_loop().run_in_executor(self.executor, self.sensing.measure, truth)
+        fut = asyncio.get_running_loop().run_in_executor(
+            self.executor, self.sensing.measure, t, truth
+        )
         fut.add_done_callback(lambda f: self._took(f.result()))
 
     def close(self) -> None:

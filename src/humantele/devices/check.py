@@ -44,6 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--only", choices=["haptic", "tracker", "force", "hid"], action="append",
                    help="check only these (repeatable)")  # fmt: skip
     p.add_argument("--json", action="store_true", help="print the results as JSON")
+    from humantele.devices import hl2ss_calibration
+
+    hl2ss_calibration.add_parser(sub)
 
 
 def list_hid() -> list[dict[str, Any]]:
@@ -98,7 +101,7 @@ def check_haptic(config: Any, n: int) -> Check:
             "spread_mm": round(float(np.ptp(p, axis=0).max()), 3),
             "buttons": int(states[-1].buttons), "has_force": bool(dev.has_force)}  # fmt: skip
     extra = []
-    for attr in ("calibration", "model", "force_limit_n"):
+    for attr in ("calibration", "model", "force_limit_n", "continuous_force_n"):
         if getattr(dev, attr, None) not in (None, ""):
             extra.append(f"{attr} {getattr(dev, attr)}")
     summary = (f"{len(states)} states, stylus at {figs['position_mm']} mm (spread "
@@ -118,10 +121,11 @@ def check_tracker(config: Any, tool: str, n: int) -> Check:
     backend = config.backend
     try:
         src = make_frame_source(config)
+        src.open()
     except (FrameSourceUnavailable, OSError, ValueError) as exc:
         return Check("tracker camera", backend, False, str(exc))
     tracker = Tracker(load_tool(tool))
-    frames, tracked = 0, 0
+    frames, tracked, with_pose = 0, 0, 0
     last = None
     try:
         for _ in range(n):
@@ -131,6 +135,7 @@ def check_tracker(config: Any, tool: str, n: int) -> Check:
             frames += 1
             last = f
             tracked += tracker.process(f).status == "tracked"
+            with_pose += f.T_world_camera is not None
     finally:
         src.close()
     if last is None:
@@ -138,10 +143,11 @@ def check_tracker(config: Any, tool: str, n: int) -> Check:
     valid = None if last.depth_mm is None else float(np.mean(last.depth_mm > 0))
     figs = {"frames": frames, "size": list(last.ir.shape[::-1]), "ir_max": int(last.ir.max()),
             "depth_valid": None if valid is None else round(valid, 3),
-            "tracked": tracked}  # fmt: skip
+            "tracked": tracked, "camera_pose": with_pose}  # fmt: skip
     depth = "no depth" if valid is None else f"depth valid {100 * valid:.0f} %"
     summary = (f"{frames}/{n} frames {figs['size'][0]}x{figs['size'][1]}, IR max "
-               f"{figs['ir_max']}, {depth}, probe tracked in {tracked}")  # fmt: skip
+               f"{figs['ir_max']}, {depth}, probe tracked in {tracked}, camera pose in "
+               f"{with_pose}")  # fmt: skip
     return Check("tracker camera", backend, True, summary, figs)
 
 
@@ -223,12 +229,24 @@ def run_checks(args: argparse.Namespace) -> tuple[list[Check], dict[str, Any]]:
     if "hid" in only:
         system["hid"] = list_hid()
         system["openhaptics_libHD"] = ctypes.util.find_library("HD")
+        system["touch_driver"] = ctypes.util.find_library("PhantomIOLib42")
+        from humantele.haptics.devices.touchx import gtdd_home_problem
+
+        system["gtdd_home"] = os.environ.get("GTDD_HOME")
+        system["gtdd_home_problem"] = gtdd_home_problem()
     return checks, system
 
 
 def run(args: argparse.Namespace) -> int:
+    if getattr(args, "action", None) == "hl2ss-calibration":
+        from humantele.devices import hl2ss_calibration
+
+        return hl2ss_calibration.run(args)
     if getattr(args, "action", None) != "check":
-        print("usage: humantele devices check [--expert-config F] [--follower-config F]")
+        print(
+            "usage: humantele devices check [--expert-config F] [--follower-config F]\n"
+            "       humantele devices hl2ss-calibration --host H --out FILE"
+        )
         return 2
     checks, system = run_checks(args)
     if args.json:
@@ -246,6 +264,12 @@ def run(args: argparse.Namespace) -> int:
                       f"{h['product']} {h['path']}{perm[h['readable']]}")  # fmt: skip
             lib = system["openhaptics_libHD"]
             print(f"OpenHaptics libHD: {lib or 'not found (only needed for the touchx backend)'}")
+            drv = system["touch_driver"]
+            print(
+                "3D Systems Touch driver (libPhantomIOLib42.so): "
+                f"{drv or 'not found (the touchx backend needs it for a Touch / Touch X)'}"
+            )
+            print(f"GTDD_HOME: {system['gtdd_home_problem'] or system['gtdd_home']}")
     return 0 if all(c.ok for c in checks) else 1
 
 

@@ -60,6 +60,7 @@ from typing import Annotated, Any, Literal
 from aiohttp import web
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 
+from humantele.cliargs import socket_error
 from humantele.config import ConfigModel
 from humantele.follower.registration import RegistrationMessage, ViewerPoseMessage
 from humantele.runtime.stats import percentile_ms
@@ -228,6 +229,17 @@ class RendererFeed:
     @property
     def fingerprint(self) -> str | None:
         return None if self.certificate is None else self.certificate.fingerprint_sha256
+
+    def start_error(self, exc: OSError, state_dir: Path) -> str:
+        """One line for a feed that cannot start (port taken, unknown host, unwritable
+        certificate in ``state_dir``)."""
+        if exc.filename is not None:  # the TLS certificate in the state directory
+            return (
+                f"humantele follower: renderer feed: cannot write {exc.filename}: "
+                f"{exc.strerror or exc} (check --state-dir {state_dir})"
+            )
+        c = self.config
+        return socket_error("humantele follower: renderer feed", c.host, c.port, exc)
 
     def banner(self) -> str:
         """One line for the console: where the page is and the certificate to check."""

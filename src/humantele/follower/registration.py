@@ -392,6 +392,15 @@ class HeadsetRegistration:
         self.states: OrderedDict[str, dict[str, Any]] = OrderedDict()  # the last, per headset
         self.last_fit: RigidFit | None = None
 
+    @classmethod
+    def attach(cls, follower_config: Any, feed: Any) -> HeadsetRegistration:
+        """One for the follower daemon: its ``registration`` settings, kept under its
+        ``state_dir``, publishing to ``feed`` (a :class:`~humantele.follower.feed.RendererFeed`)
+        and taking the page messages it routes (``feed.page_handler``)."""
+        reg = cls(follower_config.registration, follower_config.state_dir, feed.publish)
+        feed.page_handler = reg.on_page_message
+        return reg
+
     # --- from the tracker ----------------------------------------------------------------
 
     def on_measurement(self, t: float, tip_world: Pose | None, T_world_rig: Pose | None) -> None:

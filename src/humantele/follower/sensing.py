@@ -1,40 +1,52 @@
-"""What the follower daemon calls to know where the real probe is and how hard it presses.
+"""What the follower calls to know where the real probe is and how hard it presses.
 
-:class:`ProbeSensing` runs the real pipeline: the IR/depth tracker on camera frames and the
-calibrated magnetic force sensor. With the default ``sim`` backends it renders frames and
-readings of the simulated follower's probe from the true pose and force it is given, so what
-it returns is measured (noise, occlusion, lost frames), not the truth.
+:class:`ProbeSensing` runs the pipeline on the clinic's devices: the IR/depth tracker on the
+camera's frames, placed in the tracker's world by the camera pose each frame carries (hl2ss:
+the headset's rig pose times the AHAT extrinsics; a fixed camera: its configured pose), and
+the calibrated magnetic force sensor with its contact detector. The devices come from the
+clinic (:func:`humantele.follower.clinic.make_sensing_devices`): real backends, or the sim
+clinic's, which observe its simulated world; this module never looks behind them.
 
-Frames: world (the headset's, y up), camera (OpenCV: x right, y down, z forward), probe
-(see humantele/defaults/tools). Units: m, N, s.
+:class:`Sensing` is the follower's view of it (tip frame, :class:`Measurement`), run in the
+sensing child (:mod:`humantele.follower.sensing_process`) or a thread.
 
-Cost per ``measure`` call with the sim backends, one core: about 2-5 ms (frame rendering about
-half, the pipeline the rest; see ``humantele bench tracking``), so 45 Hz takes < 25 % of a
-core. Run it in a thread executor if the loop must stay below a millisecond per step.
+Frames: world (the tracker's, y up), camera (OpenCV: x right, y down, z forward), probe
+(see humantele/defaults/tools), tip (origin at the face centre, +z along the beam). Units: m,
+N, s.
+
+Cost per ``measure`` call with the sim devices, one core: about 2-5 ms (frame rendering about
+half, the pipeline the rest; see ``humantele bench tracking``).
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 from pydantic import Field
 
 from humantele.config import ConfigModel
-from humantele.forcesense.calibration import ForceCalibration, calibrate_sim
+from humantele.forcesense.base import ForceSensor
+from humantele.forcesense.calibration import ForceCalibration
 from humantele.forcesense.contact import ContactDetector, ContactEvent
 from humantele.forcesense.sensors import ForceSensorConfig, calibration_path, make_force_sensor
-from humantele.forcesense.sim import SimForceConfig, SimForceSensor
+from humantele.forcesense.sim_config import SimForceConfig
 from humantele.geometry import Pose, matrix_to_quat
 from humantele.tracking.filter import FilterConfig
+from humantele.tracking.frames import FrameSource
 from humantele.tracking.pipeline import PipelineConfig, Tracker
-from humantele.tracking.sim import SimFrameConfig, SimFrameSource
+from humantele.tracking.sim_config import SimFrameConfig
 from humantele.tracking.sources import FrameSourceConfig, make_frame_source
 from humantele.tracking.status import TrackingStatus
 from humantele.tracking.tool import DEFAULT_TOOL, ToolDefinition, load_tool
+
+log = logging.getLogger(__name__)
 
 # Camera looking straight down (world -y), image x along world x, image y along world z.
 _R_WORLD_CAMERA_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]).T
@@ -42,24 +54,55 @@ _R_WORLD_CAMERA_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0
 
 class SensingConfig(ConfigModel):
     """Tracker (camera backend, pipeline, filter), force sensor, and where the camera is. The
-    tool (the probe's marker tree) is not here: it is the follower's one ``tool`` setting,
-    given to :class:`ProbeSensing`.
+    tool (the probe's marker tree) is not here: it is the follower's one ``tool`` setting.
 
-    ``camera_anchor = "above_probe"``: the headset camera is placed ``camera_height_m`` above
-    the probe's first true position, looking down (the follower's head, held steady).
-    ``"fixed"``: at ``camera_position_m`` looking down. A ``T_world_camera`` passed to
-    :meth:`ProbeSensing.measure` (the headset's own pose) overrides both.
+    ``camera_anchor = "device"``: each frame carries the camera's pose in the tracker's world
+    from the device (the headset's rig pose with hl2ss; the simulated head in the sim
+    clinic); a frame without one cannot place the probe and is counted. ``"fixed"``: a
+    camera that does not move, at ``camera_position_m`` looking down (an OpenCV camera on a
+    stand); its frames' own pose, if any, is ignored.
     """
 
-    moved_fields = {"tool": "the probe's tool is set once, in [follower] tool"}
+    moved_fields = {
+        "tool": "the probe's tool is set once, in [follower] tool",
+        "camera_height_m": "the simulated headset is [follower.clinic.head] height_m",
+    }
 
     camera: FrameSourceConfig = Field(default_factory=SimFrameConfig)
     pipeline: PipelineConfig = Field(default_factory=PipelineConfig)
     filter: FilterConfig = Field(default_factory=FilterConfig)
     force: ForceSensorConfig = Field(default_factory=ForceSensorConfig)
-    camera_anchor: Literal["above_probe", "fixed"] = "above_probe"
-    camera_height_m: float = Field(0.42, gt=0.1, le=1.0)
+    camera_anchor: Literal["device", "fixed"] = "device"
     camera_position_m: list[float] = Field(default_factory=lambda: [0.0, 0.55, 0.0])
+
+
+@dataclass
+class SensingDevices:
+    """The tracker camera and the force sensor (not yet opened), the sensor's calibration,
+    and ``observe(world)``: how the sim clinic's devices are shown its world at a frame
+    (None for real devices, which observe the room)."""
+
+    source: FrameSource
+    sensor: ForceSensor
+    calibration: ForceCalibration
+    observe: Callable[[Any], None] | None = None
+
+
+def real_sensing_devices(config: SensingConfig, tool: ToolDefinition) -> SensingDevices:
+    """The configured real backends; a ``sim`` backend here is refused (in a real clinic
+    nothing would move it), and so is a force sensor without its calibration file."""
+    if isinstance(config.camera, SimFrameConfig) or isinstance(config.force.sensor, SimForceConfig):
+        raise ValueError(
+            "a sim tracker camera or force sensor needs the simulated clinic "
+            '([follower.clinic] backend = "sim"); set [sensing.camera] and '
+            "[sensing.force.sensor] to real backends"
+        )
+    path = calibration_path(config.force)
+    if path is None:
+        raise ValueError("the force sensor needs [sensing.force] calibration_file")
+    calibration = ForceCalibration.load(path)
+    return SensingDevices(make_frame_source(config.camera, tool),
+                          make_force_sensor(config.force.sensor), calibration)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -67,7 +110,8 @@ class ProbeMeasurement:
     """One measurement. ``T_world_probe``/``tip_world`` only when tracked; ``force_world``
     (3,) N is the calibrated sensor force turned into the world frame with the last tracked
     orientation (identity before the first); ``force_probe`` the same in the probe frame;
-    ``contact`` the detector state and ``contact_event`` "press"/"release" on this call."""
+    ``contact`` the detector state and ``contact_event`` "press"/"release" on this call;
+    ``T_world_rig``: the headset's pose the frame came with (None: none)."""
 
     t: float
     status: TrackingStatus
@@ -78,38 +122,47 @@ class ProbeMeasurement:
     contact: bool
     residual_m: float
     contact_event: ContactEvent | None = None
+    T_world_rig: Pose | None = None
+    device_time_s: float | None = None
 
 
 class ProbeSensing:
     """Tracker + force sensor + contact detector, from one :class:`SensingConfig`, for the
-    probe ``tool`` (a :class:`ToolDefinition`, or its name or path for :func:`load_tool`)."""
+    probe ``tool`` (a :class:`ToolDefinition`, or its name or path for :func:`load_tool`), on
+    ``devices`` (default: the clinic's for this config: the sim clinic's when the camera is
+    ``sim``, else the real backends)."""
 
     def __init__(
-        self, config: SensingConfig | None = None, tool: ToolDefinition | str = DEFAULT_TOOL
+        self,
+        config: SensingConfig | None = None,
+        tool: ToolDefinition | str = DEFAULT_TOOL,
+        devices: SensingDevices | None = None,
     ):
         self.config = c = config or SensingConfig()
         self.tool = tool if isinstance(tool, ToolDefinition) else load_tool(tool)
-        self.source = make_frame_source(c.camera, self.tool)
-        self.tracker = Tracker(self.tool, c.pipeline, c.filter)
-        self.sensor = make_force_sensor(c.force.sensor)
-        path = calibration_path(c.force)
-        if path is not None:
-            self.calibration = ForceCalibration.load(path)
-        elif isinstance(self.sensor, SimForceSensor):
-            # calibrate a twin of the sim board (same seed: the same physical board)
-            twin = SimForceSensor(
-                c.force.sensor if isinstance(c.force.sensor, SimForceConfig) else None
+        if devices is None:
+            from humantele.follower.clinic import (
+                DeviceClinicConfig,
+                SimClinicConfig,
+                make_sensing_devices,
             )
-            self.calibration = calibrate_sim(twin)
-        else:
-            raise ValueError("the hid force sensor needs force.calibration_file")
+
+            sim = isinstance(c.camera, SimFrameConfig)
+            clinic = SimClinicConfig() if sim else DeviceClinicConfig()
+            devices = make_sensing_devices(clinic, c, self.tool)
+        self.devices = devices
+        self.source, self.sensor = devices.source, devices.sensor
+        self.calibration = devices.calibration
+        self.tracker = Tracker(self.tool, c.pipeline, c.filter)
         self.contact = ContactDetector(c.force.contact)
-        self.T_world_camera: Pose | None = None
+        self.T_world_camera: Pose | None = None  # the last frame's camera
+        self.fixed_camera: Pose | None = None
         if c.camera_anchor == "fixed":
-            self.T_world_camera = Pose(c.camera_position_m, matrix_to_quat(_R_WORLD_CAMERA_DOWN))
+            self.fixed_camera = Pose(c.camera_position_m, matrix_to_quat(_R_WORLD_CAMERA_DOWN))
         self._R_world_probe = np.eye(3)
         self._force_probe = np.zeros(3)
         self.bad_force = 0
+        self.no_camera_pose = 0  # frames the device gave without the camera's pose
         try:  # the devices last: a bad setting above fails before any hardware is touched
             self.source.open()
             self.sensor.open()
@@ -117,45 +170,28 @@ class ProbeSensing:
             self.close()
             raise
 
-    def measure(
-        self,
-        t: float,
-        T_world_probe_true: Pose | None = None,
-        force_true_world: ArrayLike | None = None,
-        T_world_camera: Pose | None = None,
-    ) -> ProbeMeasurement:
-        """Measure the probe at time ``t`` (s). The truths drive the sim backends only."""
-        if T_world_camera is not None:
-            self.T_world_camera = T_world_camera
-        if self.T_world_camera is None:
-            p = np.zeros(3) if T_world_probe_true is None else T_world_probe_true.position
-            self.T_world_camera = Pose(
-                p + [0.0, self.config.camera_height_m, 0.0],
-                matrix_to_quat(_R_WORLD_CAMERA_DOWN),
-            )
-        T_world_camera = self.T_world_camera
-        # --- pose ---
-        if isinstance(self.source, SimFrameSource):
-            if T_world_probe_true is None:
-                raise ValueError("the sim tracker needs T_world_probe_true")
-            frame = self.source.render(T_world_camera.inverse() @ T_world_probe_true, t)
-        else:
-            frame = self.source.read(t)
+    def measure(self, t: float, world: Any = None) -> ProbeMeasurement:
+        """Measure the probe at time ``t`` (s). ``world``: what the sim clinic's devices
+        observe at this frame (ignored by real devices)."""
+        if world is not None and self.devices.observe is not None:
+            self.devices.observe(world)
+        frame = self.source.read(t)
         status = TrackingStatus.LOST
-        pose_w = tip_w = None
+        pose_w = tip_w = rig = device_t = None
         residual = math.nan
         if frame is not None:
-            res = self.tracker.process(frame)
-            status, residual = res.status, res.residual_m
-            if res.T_camera_probe is not None:
-                pose_w = T_world_camera @ res.T_camera_probe
-                tip_w = pose_w.apply(self.tool.tip)
-                self._R_world_probe = pose_w.rotation_matrix
-        # --- force ---
-        if isinstance(self.sensor, SimForceSensor):
-            f_true = np.zeros(3) if force_true_world is None else np.asarray(force_true_world)
-            R_true = np.eye(3) if T_world_probe_true is None else T_world_probe_true.rotation_matrix
-            self.sensor.set_force(R_true.T @ f_true)
+            rig, device_t = frame.T_world_rig, frame.device_time_s
+            camera = self.fixed_camera or frame.T_world_camera
+            if camera is None:
+                self.no_camera_pose += 1
+            else:
+                self.T_world_camera = camera
+                res = self.tracker.process(frame)
+                status, residual = res.status, res.residual_m
+                if res.T_camera_probe is not None:
+                    pose_w = camera @ res.T_camera_probe
+                    tip_w = pose_w.apply(self.tool.tip)
+                    self._R_world_probe = pose_w.rotation_matrix
         reading = self.sensor.read(t)
         if reading is not None:
             f = self.calibration.force(reading)
@@ -175,8 +211,124 @@ class ProbeSensing:
             contact=self.contact.in_contact,
             residual_m=residual,
             contact_event=event,
+            T_world_rig=rig,
+            device_time_s=device_t,
         )
 
     def close(self) -> None:
         self.source.close()
         self.sensor.close()
+
+
+# --- the follower's view: tip frame, one measurement per tracker frame -----------------------
+
+
+@dataclass
+class Measurement:
+    """What the follower knows of its probe at one tracker frame (world frame, SI):
+    ``force_tip`` is the force in the probe's tip frame (None when unknown); ``contact``
+    comes from the force sensor; ``T_world_rig`` is the headset's pose, when the device
+    gave one."""
+
+    status: TrackingStatus
+    T_world_tip: Pose | None
+    force_world: NDArray[np.float64]
+    contact: bool
+    force_tip: NDArray[np.float64] | None = None
+    T_world_rig: Pose | None = None
+    device_time_s: float | None = None  # the tracker frame's time on the device's clock
+
+
+LOST = Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
+
+
+@dataclass
+class TrackerImage:
+    """One tracker frame to measure at ``t`` (s, the daemon's clock): ``world`` is what the
+    sim clinic's devices observe then (None with real devices; the daemon never reads it),
+    ``virtual`` and ``target`` the virtual probe and the live guide the tick had (world
+    frame, for the alignment figure)."""
+
+    t: float
+    world: Any
+    virtual: Pose | None
+    target: Pose | None
+
+
+def tip_transform(tool: ToolDefinition | str) -> Pose:
+    """``T_probe_tip``: the tip frame on the tracked probe body (from the tool definition)."""
+    tool = tool if isinstance(tool, ToolDefinition) else load_tool(tool)
+    tip, z = np.asarray(tool.tip, dtype=float), np.asarray(tool.face_direction, dtype=float)
+    z = z / np.linalg.norm(z)
+    x = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = x - z * float(x @ z)
+    x /= np.linalg.norm(x)
+    return Pose(tip, matrix_to_quat(np.column_stack([x, np.cross(z, x), z])))
+
+
+class Sensing:
+    """The follower's probe sensing: ``measure(t, world)`` gives a :class:`Measurement`; a
+    pipeline error gives a LOST measurement (counted), never a crash. ``config``: the
+    follower's (its ``tool``, ``clinic``, ``probe_source``, calibration contact force)."""
+
+    def __init__(
+        self, config: Any, sensing_config: SensingConfig | None = None, build: bool = True
+    ) -> None:
+        """``build=False``: build the pipeline at the first :meth:`measure` (the daemon's own
+        copy when a :class:`~humantele.follower.sensing_process.SensingProcess` measures)."""
+        self.config = config
+        self.T_probe_tip = tip_transform(config.tool)
+        self.T_tip_probe = self.T_probe_tip.inverse()
+        self.pipeline: Any = None
+        self.errors = 0
+        self.sensing_config = sensing_config or SensingConfig()
+        self.unbuilt = True
+        if build:
+            self.build()
+
+    def build(self) -> None:
+        """Build the pipeline on the clinic's devices (once): the sensing pipeline, or with
+        ``probe_source = "truth"`` the sim clinic's ideal sensor."""
+        if not self.unbuilt:
+            return
+        self.unbuilt = False
+        if self.pipeline is not None:  # given by the caller
+            return
+        from humantele.follower.clinic import make_sensing_devices
+
+        c = self.config
+        if c.probe_source == "truth":
+            from humantele.follower.sim_clinic import IdealSensing
+
+            self.pipeline = IdealSensing(self.T_probe_tip, c.calibration.force_off_n)
+            return
+        tool = load_tool(c.tool)
+        devices = make_sensing_devices(c.clinic, self.sensing_config, tool)
+        self.pipeline = ProbeSensing(self.sensing_config, tool, devices)
+
+    def measure(self, t: float, world: Any = None) -> Measurement:
+        if self.unbuilt:
+            self.build()
+        try:
+            m = self.pipeline.measure(t, world)
+            status = TrackingStatus(m.status)
+        except Exception:  # a sensing fault must not stop the daemon
+            self.errors += 1
+            if self.errors == 1:
+                log.exception("follower: sensing failed (counted, reported as lost)")
+            return LOST
+        force = np.asarray(m.force_world, dtype=float)
+        force_tip = self.T_tip_probe.rotate(np.asarray(m.force_probe, dtype=float))
+        if not (np.all(np.isfinite(force)) and np.all(np.isfinite(force_tip))):
+            force, force_tip = np.zeros(3), None
+        rig, device_t = getattr(m, "T_world_rig", None), getattr(m, "device_time_s", None)
+        if not status.has_pose or m.T_world_probe is None:
+            status = TrackingStatus.LOST if status.has_pose else status  # lost or ambiguous
+            return Measurement(status, None, force, bool(m.contact), force_tip, rig, device_t)
+        tip = m.T_world_probe @ self.T_probe_tip
+        return Measurement(status, tip, force, bool(m.contact), force_tip, rig, device_t)
+
+    def close(self) -> None:
+        if self.pipeline is not None:
+            with contextlib.suppress(Exception):
+                self.pipeline.close()

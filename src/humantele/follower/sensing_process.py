@@ -9,13 +9,15 @@ loop's wake-up latency with sensing beside it in a thread and in a process.
 
 :class:`SensingProcess` is the daemon's handle: a ``spawn`` child that builds the daemon's own
 :class:`~humantele.follower.daemon.Sensing` and answers one request at a time over a pipe:
-``(job, WorldTruth)`` in, ``(job, Measurement, seconds)`` out. The daemon's loop reads the
+``(job, (t, world))`` in (``world``: what the sim clinic's devices observe; None with
+real devices), ``(job, Measurement, seconds)`` out. The daemon's loop reads the
 answers with ``add_reader`` (never blocks on the child). One frame at most is in flight: the
 caller skips frames while :attr:`busy`, as it did with the thread. A child that dies is
 restarted (``max_restarts``, then :attr:`failed` and the caller falls back to its thread); a
 child that cannot build its sensing (a bad config) reports why and is not restarted. The child
-ignores SIGINT (Ctrl-C reaches the whole process group; the daemon stops it) and exits when
-the pipe closes, so it never outlives the daemon. Once started it runs at ``nice`` +10 by
+ignores SIGINT and SIGTERM (Ctrl-C and systemd reach the whole process group; the daemon stops
+it) and exits when the pipe closes, so it never outlives the daemon. Once started it runs at
+``nice`` +10 by
 default (``sensing_nice``): when the daemon's loop and the child both want the CPU, the loop,
 which only needs it briefly to read a pose, wakes first; the child still gets every idle
 moment. On an overloaded machine it then measures fewer frames (skipped, counted) rather
@@ -46,9 +48,10 @@ OnResult = Callable[[int, Any, float], None]  # (job, Measurement, seconds measu
 
 def sensing_main(config: Any, sensing_config: Any, conn: Connection, nice: int = 0) -> None:
     """The child: build the sensing, then measure each request until the pipe closes."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for sig in (signal.SIGINT, signal.SIGTERM):  # to the group: the daemon stops the child
+        signal.signal(sig, signal.SIG_IGN)
     try:
-        from humantele.follower.daemon import Sensing
+        from humantele.follower.sensing import Sensing
 
         sensing = Sensing(config, sensing_config)
     except Exception as exc:  # a config the sensing refuses: say why, once
@@ -62,7 +65,9 @@ def sensing_main(config: Any, sensing_config: Any, conn: Connection, nice: int =
         with contextlib.suppress(OSError):
             os.nice(nice)
     try:
-        conn.send(("ready", os.getpid()))
+        from humantele.follower.clinic import simulator_modules
+
+        conn.send(("ready", os.getpid(), simulator_modules()))
         while True:
             try:
                 msg = conn.recv()
@@ -70,9 +75,9 @@ def sensing_main(config: Any, sensing_config: Any, conn: Connection, nice: int =
                 break
             if msg is None:
                 break
-            job, truth = msg
+            job, (t, world) = msg
             t0 = time.perf_counter()
-            m = sensing.measure(truth)  # catches the pipeline's own faults
+            m = sensing.measure(t, world)  # catches the pipeline's own faults
             conn.send(("result", job, m, time.perf_counter() - t0, sensing.errors))
     except (BrokenPipeError, OSError):
         pass
@@ -109,6 +114,7 @@ class SensingProcess:
         self.failed = False
         self.error: str | None = None
         self.pid: int | None = None
+        self.simulator_modules: list[str] | None = None  # loaded in the child (once ready)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._proc: mp.process.BaseProcess | None = None
         self._conn: Connection | None = None
@@ -157,12 +163,12 @@ class SensingProcess:
             return None
         return process_cpu_percent(self.pid)
 
-    def submit(self, job: int, truth: Any) -> bool:
+    def submit(self, job: int, frame: Any) -> bool:
         """Send one frame to measure; False (nothing sent) if one is in flight or no child."""
         if self.busy or not self.running or self._conn is None:
             return False
         try:
-            self._conn.send((job, truth))
+            self._conn.send((job, frame))
         except (BrokenPipeError, OSError):
             self._died()
             return False
@@ -184,7 +190,7 @@ class SensingProcess:
             self.child_errors = self._errors_before + msg[4]
             self.on_result(msg[1], msg[2], msg[3])
         elif kind == "ready":
-            self.ready, self.pid = True, msg[1]
+            self.ready, self.pid, self.simulator_modules = True, msg[1], msg[2]
         elif kind == "error":
             self.failed, self.error = True, msg[1]
             self._drop_child()

@@ -24,9 +24,8 @@ from collections import deque
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from pydantic import Field
 
-from humantele.config import ConfigModel
+from humantele.follower.clinic import SimHeadConfig, SimHumanConfig, SimPatientConfig
 from humantele.geometry import (
     Pose,
     matrix_to_quat,
@@ -37,21 +36,6 @@ from humantele.geometry import (
 )
 
 UP = np.array([0.0, 1.0, 0.0])
-
-
-class SimPatientConfig(ConfigModel):
-    """The simulated patient on the bed (world frame, m, N/m)."""
-
-    bed_height_m: float = Field(0.80, description="bed surface height (world y)")
-    center_xz_m: tuple[float, float] = Field(
-        (0.35, -0.15), description="abdomen centre, world x and z"
-    )
-    yaw_deg: float = Field(20.0, ge=-180, le=180, description="body axis about world y")
-    half_width_m: float = Field(0.16, gt=0.03, le=0.4, description="lateral semi-axis a")
-    half_height_m: float = Field(0.11, gt=0.02, le=0.3, description="vertical semi-axis b")
-    half_length_m: float = Field(0.35, gt=0.05, le=1.0, description="longitudinal semi-axis")
-    tissue_stiffness_n_per_m: float = Field(600.0, gt=0, le=1e5)
-    bed_stiffness_n_per_m: float = Field(5000.0, gt=0, le=1e6)
 
 
 class SimPatient:
@@ -135,24 +119,6 @@ def probe_down_quat(normal_world: ArrayLike) -> NDArray[np.float64]:
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     return matrix_to_quat(np.column_stack([x, y, z]))
-
-
-class SimHumanConfig(ConfigModel):
-    """The simulated novice: lag 0.35 s, error 6.24 mm / 5.93 deg RMS (Black et al., C&G 2024,
-    Table 3; docs/references.md)."""
-
-    reaction_delay_s: float = Field(0.20, ge=0, le=2.0)
-    tracking_time_constant_s: float = Field(0.15, gt=0, le=2.0)
-    offset_mm: tuple[float, float, float] = Field((3.0, -2.0, 3.5), description="world frame")
-    offset_rotation_deg: tuple[float, float, float] = Field(
-        (3.0, -2.0, 3.0), description="rotation vector (deg) applied in the tip frame"
-    )
-    tremor_mm_rms: float = Field(0.8, ge=0, le=20, description="per axis")
-    tremor_deg_rms: float = Field(0.6, ge=0, le=20, description="per axis")
-    tremor_hz: float = Field(9.0, gt=1, le=30)
-    rate_hz: float = Field(100.0, gt=10, le=1000, description="nominal step rate of the model")
-    max_push_n: float = Field(30.0, gt=0, le=100, description="a person pushes no harder")
-    seed: int = 0
 
 
 class _Tremor:
@@ -297,14 +263,6 @@ class CalibrationScript:
                     quat_slerp(p0.quaternion, p1.quaternion, s),
                 )
         return wp[-1][1]
-
-
-class SimHeadConfig(ConfigModel):
-    """The follower's head (the headset camera): above the work, looking down, following the
-    probe loosely (people keep their hands in view)."""
-
-    height_m: float = Field(0.42, gt=0.1, le=1.0, description="camera above the probe tip")
-    follow_time_constant_s: float = Field(0.6, gt=0, le=10)
 
 
 # Camera looking straight down: camera x = world x, camera y (image down) = world z,

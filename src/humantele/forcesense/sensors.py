@@ -16,7 +16,7 @@ from humantele.config import ConfigModel, load_config, named_config_path
 from humantele.forcesense.base import ForceSensor
 from humantele.forcesense.contact import ContactConfig
 from humantele.forcesense.hid import HidForceConfig, HidForceSensor
-from humantele.forcesense.sim import SimForceConfig, SimForceSensor
+from humantele.forcesense.sim_config import SimForceConfig
 
 ForceBackendConfig = Annotated[SimForceConfig | HidForceConfig, Field(discriminator="backend")]
 """A force sensor board's configuration, picked by its ``backend`` field: "sim" or "hid"."""
@@ -35,6 +35,8 @@ def make_force_sensor(config: SimForceConfig | HidForceConfig) -> ForceSensor:
     """The force sensor a configuration asks for, not yet opened (``open()`` raises
     ForceSensorUnavailable when the board is missing)."""
     if isinstance(config, SimForceConfig):
+        from humantele.forcesense.sim import SimForceSensor  # only when asked: the simulator
+
         return SimForceSensor(config)
     if isinstance(config, HidForceConfig):
         return HidForceSensor(config)

@@ -1,13 +1,18 @@
 """The servo process: the 1 kHz loop on the device, fed and read through shared memory.
 
-It asks for SCHED_FIFO and a CPU (falls back, logged once, when refused), sleeps to a deadline
-and spins the last ``spin_s``; each tick is a :class:`~humantele.haptics.renderer.ForceRenderer`
-tick. It reads commands (model, registration, stop) and writes the latest sample and the
-statistics (:mod:`humantele.haptics.servo_layout`); it never waits on the daemon. SIGTERM,
-the stop command or the parent's death end the loop with the force zeroed; SIGINT is ignored
-(a terminal's Ctrl-C reaches the whole process group and the daemon stops the servo itself,
-which would otherwise see it die and restart it). A model, registration or tick that fails is
-refused and counted (:func:`apply_commands`, ``ForceRenderer.safe_tick``): the loop goes on.
+It asks for SCHED_FIFO and a CPU (falls back, logged once, when refused). A device with its own
+servo clock (``wait_tick``: the Touch X, whose OpenHaptics scheduler calls a Python callback at
+1 kHz) drives the loop: it blocks in ``wait_tick`` (the GIL free, so the device's callback,
+which needs the GIL, never waits on this thread) and renders right after each device tick; the
+switch interval is cut to ``GIL_SWITCH_S`` so any other Python thread hands the GIL over
+quickly. Otherwise it sleeps to a deadline and spins the last ``spin_s``. Each tick is a
+:class:`~humantele.haptics.renderer.ForceRenderer` tick. It reads commands (model,
+registration, stop) and writes the latest sample and the statistics
+(:mod:`humantele.haptics.servo_layout`); it never waits on the daemon. SIGTERM, the stop
+command or the parent's death end the loop with the force zeroed; SIGINT is ignored (a
+terminal's Ctrl-C reaches the whole process group and the daemon stops the servo itself, which
+would otherwise see it die and restart it). A model, registration or tick that fails is refused
+and counted (:func:`apply_commands`, ``ForceRenderer.safe_tick``): the loop goes on.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import logging
 import math
 import os
 import signal
+import sys
 import time
 
 import numpy as np
@@ -62,6 +68,8 @@ from humantele.haptics.servo_layout import (
 from humantele.haptics.shm import SeqlockArray
 
 log = logging.getLogger(__name__)
+
+GIL_SWITCH_S = 0.0002  # s, the servo process's GIL switch interval with a device-driven loop
 
 
 class PeriodTiming:
@@ -152,6 +160,11 @@ def servo_main(config_json: str, names: tuple[str, str, str], parent_pid: int, c
     try:
         config = ServoConfig.model_validate_json(config_json)
         device = make_device(config.device)
+        # Collect and freeze what the imports made before the device's own servo thread starts:
+        # a full collection holds the GIL for tens of ms, during which a device callback that
+        # needs it (the Touch X's) would miss its slot. _run's collection is then short.
+        gc.collect()
+        gc.freeze()
         device.open()
     except Exception as exc:  # noqa: BLE001 - reported to the parent, which raises it
         conn.send(("error", f"{type(exc).__name__}: {exc}"))
@@ -178,12 +191,20 @@ def servo_main(config_json: str, names: tuple[str, str, str], parent_pid: int, c
 
 
 def _run(config, device, cmd, out, st, stop, parent_pid, realtime) -> None:
+    """The loop until ``stop["flag"]``, the stop command or the parent's death. With a device
+    that has ``wait_tick`` the device's ticks pace it (see the module docstring); otherwise its
+    own deadline clock does."""
     r = ForceRenderer(config)
     period = 1.0 / config.rate_hz
     timing = PeriodTiming(period)
     model_gen = reg_gen = -1.0
     spin = config.spin_s
     sample = np.zeros(SAMPLE_LEN)
+    wait_tick = getattr(device, "wait_tick", None)
+    seen = 0
+    switch = sys.getswitchinterval()
+    if wait_tick is not None:
+        sys.setswitchinterval(min(switch, GIL_SWITCH_S))
     gc.collect()
     gc.disable()  # the loop makes no reference cycles; a GC pause would be a late tick
     clock = time.monotonic
@@ -195,15 +216,23 @@ def _run(config, device, cmd, out, st, stop, parent_pid, realtime) -> None:
     c[C_MODEL_GEN] = c[C_REG_GEN] = -1.0
     try:
         while not stop["flag"]:
-            # Wait for the deadline: sleep, then spin the last `spin` seconds.
-            delay = next_t - clock() - spin
-            if delay > 0.0:
-                time.sleep(delay)
-            while clock() < next_t:
-                pass
-            now = clock()
-            timing.add(now)
-            flags = FAULT_LATE if now - next_t > config.late_after_s else 0
+            if wait_tick is not None:
+                # The device's clock: block (GIL free) until its next tick. No tick within
+                # stale_after_s: go on with the old state, which the renderer finds stale.
+                seen = wait_tick(seen, config.stale_after_s)
+                now = clock()
+                timing.add(now)
+                flags = 0  # lateness against the device's tick is the renderer's stale check
+            else:
+                # Wait for the deadline: sleep, then spin the last `spin` seconds.
+                delay = next_t - clock() - spin
+                if delay > 0.0:
+                    time.sleep(delay)
+                while clock() < next_t:
+                    pass
+                now = clock()
+                timing.add(now)
+                flags = FAULT_LATE if now - next_t > config.late_after_s else 0
             if flags:
                 r.fault(flags, now)
             # Commands from the daemon; mid-write (the daemon preempted): last tick's copy.
@@ -249,6 +278,7 @@ def _run(config, device, cmd, out, st, stop, parent_pid, realtime) -> None:
                 next_t = clock() + period
     finally:
         gc.enable()
+        sys.setswitchinterval(switch)
         st.write(_stats_row(timing, r, realtime))
 
 

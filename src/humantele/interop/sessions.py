@@ -20,6 +20,7 @@ import logging
 import math
 import multiprocessing
 import os
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
@@ -91,13 +92,17 @@ class FollowerIgtl(_Served):
     """The follower's OpenIGTLink output; ``tick`` is called once per follower tick."""
 
     def __init__(
-        self, config: IgtlConfig, patient: Any | None = None, us: tuple[Any, Any] | None = None
+        self,
+        config: IgtlConfig,
+        scene: Callable[[], Any] | None = None,
+        us: tuple[Any, Any] | None = None,
     ) -> None:
-        """``patient``: the true patient (Ellipsoid) for the own sim ultrasound; ``us``: the
-        follower's ultrasound track, (its latest-frame slot of CapturedFrame, its source
-        config), used instead when the follower sends video."""
+        """``scene``: the sim clinic's scene (a SceneSnapshot callable) for an ultrasound of
+        our own when the follower sends no video; ``us``: the follower's ultrasound track,
+        (its latest-frame slot of CapturedFrame, its source config), used instead when it
+        does. Neither: no Image."""
         super().__init__(config)
-        self._patient = patient
+        self._scene = scene
         self._pool: ProcessPoolExecutor | None = None
         self._rendering = False
         self._last_render = -math.inf
@@ -105,17 +110,24 @@ class FollowerIgtl(_Served):
         self._us_slot = None
         self._us_seen = 0
         self._us_spacing_mm = 0.0
+        self._us_row0 = 0.0
         if self.server is None or not config.image:
             return
-        from humantele.video.sim_ultrasound import SimUltrasoundConfig
+        from humantele.video.sim_config import SimUltrasoundConfig
 
         if us is not None:
             slot, us_config = us
-            if not isinstance(us_config, SimUltrasoundConfig):
-                log.warning("igtl: the ultrasound source does not say its pixel size: no Image")
+            if not isinstance(us_config, SimUltrasoundConfig):  # a scanner: its configured scale
+                spacing = getattr(us_config, "pixel_spacing_mm", None)
+                row0 = getattr(us_config, "depth_origin_row", None)
+                if spacing is None or row0 is None:
+                    log.warning("igtl: the ultrasound source does not say its scale: no Image")
+                    return
+                self._us_slot, self._us_spacing_mm = slot, float(spacing[0])
+                self._us_row0 = float(row0)  # ImageToProbe once a frame gives the width
                 return
             self._us_slot, c = slot, us_config
-        elif patient is not None:
+        elif scene is not None:
             c = SimUltrasoundConfig(counter=False)
             self._us_config = c.model_dump_json()
         else:
@@ -151,20 +163,22 @@ class FollowerIgtl(_Served):
         if cf is None or number == self._us_seen:
             return
         s = self._us_spacing_mm
+        if self.T_tip_image is None:  # a scanner's picture: the face's centre at the top middle
+            x0, z0 = -(cf.width - 1) / 2 * s / 1000.0, -self._us_row0 * s / 1000.0
+            self.T_tip_image = image_to_probe((x0, z0), s)
         if srv.publish_image(cf.frame, (s, s), cf.t_capture):
             self._us_seen = number
 
-    def _render_us(self, t: float, true_tip: Pose | None, force_n: float) -> None:
+    def _render_us(self, t: float) -> None:
         """Ask the sim ultrasound process for the image at ``t`` (one at a time, at most
         ``image_rate_hz``): rendering costs ~0.1 s of CPU per frame, so it never runs in the
         daemon's process; it runs at a lower priority in its own."""
         if self._rendering or t - self._last_render < 1.0 / self.config.image_rate_hz:
             return
-        from humantele.video.scene import SceneSnapshot
-
         if self._pool is None:
             self._pool_start()
-        snap = SceneSnapshot(t, self._patient, true_tip, float(force_n), None)
+        s = self._scene()  # the sim clinic's world now, as its ultrasound probe sees it
+        snap = type(s)(t, s.patient, s.T_world_tip, s.force_n, None)
         self._rendering, self._last_render = True, t
         fut = asyncio.get_running_loop().run_in_executor(self._pool, _us_render, snap, t)
         fut.add_done_callback(self._rendered)
@@ -185,12 +199,9 @@ class FollowerIgtl(_Served):
         t: float,
         calibration: Any | None,
         virtual_patient: Pose | None,
-        true_tip: Pose | None = None,
-        force_n: float = 0.0,
     ) -> None:
         """Once per follower tick: the virtual probe (``T_patient_tip`` of the expert's pose),
-        the patient frame, ``ImageToProbe``; ``true_tip``/``force_n`` (the sim world) feed the
-        sim ultrasound."""
+        the patient frame, ``ImageToProbe``, and the ultrasound image."""
         srv = self.server
         if srv is None:
             return
@@ -199,7 +210,7 @@ class FollowerIgtl(_Served):
         if self._us_slot is not None:
             self._forward_us(srv)
         elif self.T_tip_image is not None:
-            self._render_us(t, true_tip, force_n)
+            self._render_us(t)
         if calibration is not None:
             srv.publish_transform(PATIENT, world_from_ras(calibration.T_world_patient), t)
         if virtual_patient is not None:
@@ -255,7 +266,7 @@ class ExpertIgtl(_Served):
         self._us_spacing_mm = 0.0
         if self.server is not None and config.image:
             from humantele.video.scan import ScanGeometry
-            from humantele.video.sim_ultrasound import SimUltrasoundConfig
+            from humantele.video.sim_config import SimUltrasoundConfig
 
             c = SimUltrasoundConfig(counter=False)
             g = ScanGeometry(c.probe, c.width, c.height, c.depth_m, c.fov_deg, c.radius_m,

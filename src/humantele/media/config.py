@@ -12,8 +12,7 @@ from typing import Any, Literal
 from pydantic import Field, model_validator
 
 from humantele.config import ConfigModel
-from humantele.video.sim_pov import SimPovConfig
-from humantele.video.sim_ultrasound import SimUltrasoundConfig
+from humantele.video.sim_config import SimPovConfig, SimUltrasoundConfig
 from humantele.video.sources import PovSourceConfig, UltrasoundSourceConfig
 
 TRACKS = ("us", "pov")
@@ -87,9 +86,35 @@ class FollowerVideoConfig(ConfigModel):
     )
     us: UltrasoundSourceConfig = SimUltrasoundConfig()
     pov: PovSourceConfig = SimPovConfig()
-    stamp_counter: bool = Field(
-        True, description="draw the frame counter (64x32 px, top left) into every frame sent"
+    stamp_counter: bool | None = Field(
+        None,
+        description="draw the frame counter (64x32 px, top left) into every frame sent; "
+        "unset: into the sim sources' only (a real picture is sent as it came; its latency "
+        "comes from the frame records and the RTP timestamps)",
     )
+
+    @model_validator(mode="after")
+    def _scanner_geometry(self) -> FollowerVideoConfig:
+        """A real scanner's picture says its scale: calipers, the depth scale and the
+        OpenIGTLink image need them (the sim's come from its probe model)."""
+        us = self.us
+        if self.enabled and getattr(us, "backend", "") != "sim":
+            missing = [n for n in ("pixel_spacing_mm", "depth_origin_row")
+                       if getattr(us, n, None) is None]  # fmt: skip
+            if missing:
+                raise ValueError(
+                    f"us: a real ultrasound source needs {' and '.join(missing)} (read them "
+                    "off the scanner's image at its depth setting: mm per pixel, and the row "
+                    "of the skin line)"
+                )
+        return self
+
+    def stamps(self, track: str) -> bool:
+        """Whether ``track``'s frames carry the drawn counter."""
+        if self.stamp_counter is not None:
+            return self.stamp_counter
+        return getattr(getattr(self, track), "backend", "") == "sim"
+
     degrade: DegradeConfig = DegradeConfig()
     us_bitrate: UsBitrateConfig = UsBitrateConfig()
     pov_bitrate: PovBitrateConfig = PovBitrateConfig()

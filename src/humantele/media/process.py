@@ -31,10 +31,11 @@ import contextlib
 import logging
 import multiprocessing as mp
 import os
+import signal
 import threading
 import time
 from multiprocessing import shared_memory
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -42,7 +43,9 @@ from humantele.geometry import Pose
 from humantele.haptics.shm import SeqlockArray
 from humantele.media.slot import LatestSlot
 from humantele.video.base import SourceCounters, VideoSourceUnavailable
-from humantele.video.scene import SceneSnapshot
+
+if TYPE_CHECKING:
+    from humantele.video.scene import SceneSnapshot
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +68,8 @@ def pack_scene(s: SceneSnapshot) -> np.ndarray:
 
 
 def unpack_scene(a: np.ndarray, patient: Any) -> SceneSnapshot | None:
+    from humantele.video.scene import SceneSnapshot  # the sim sources' input: sim only
+
     poses = []
     for i in range(3):
         o = 2 + 8 * i
@@ -85,13 +90,40 @@ def _frame_bytes(width: int, height: int) -> int:
 # --- the video process ------------------------------------------------------------------------
 
 
+class StopFlag:
+    """The video process's stop signal: one byte of shared memory, set by the follower and
+    polled. Not a ``multiprocessing.Event``: its ``set()`` waits for every sleeper to take
+    the wake-up, and waits for good when a sleeper was killed (SIGKILL, a signal to the
+    process group), which hung the follower at its stop."""
+
+    POLL_S = 0.02
+
+    def __init__(self, ctx: Any) -> None:
+        self._flag = ctx.Value("b", 0, lock=False)
+
+    def set(self) -> None:
+        self._flag.value = 1
+
+    def is_set(self) -> bool:
+        return bool(self._flag.value)
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """True once set; False when ``timeout`` (s) passed first."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while not self._flag.value:
+            left = self.POLL_S if deadline is None else deadline - time.monotonic()
+            if left <= 0:
+                return False
+            time.sleep(min(self.POLL_S, left))
+        return True
+
+
 def _watch_parent(parent_pid: int, stop: Any) -> None:
     """Set ``stop`` when the follower (``parent_pid``) is gone, then end the process if its
     threads have not ended by themselves: a video process never outlives its follower.
 
-    It polls with ``time.sleep``, never ``stop.wait``: a daemon thread that dies at exit while
-    inside the shared event's lock would leave that lock held, and the follower's
-    ``stop.set()`` would then wait forever."""
+    It polls with ``time.sleep``: it only sets the flag (:class:`StopFlag`), which never
+    waits on anyone."""
     while True:
         time.sleep(0.5)
         if os.getppid() != parent_pid:  # the follower died without stopping us
@@ -105,7 +137,11 @@ def _child(
     nice: int, parent_pid: int,
 ) -> None:  # fmt: skip
     """The video process: one capture thread per source until ``stop`` is set or the
-    follower ``parent_pid`` is gone (watched from the start: it may die while we open)."""
+    follower ``parent_pid`` is gone (watched from the start: it may die while we open). It
+    ignores SIGINT and SIGTERM, which reach the whole process group (Ctrl-C, systemd's stop):
+    the follower stops it."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
     threading.Thread(target=_watch_parent, args=(parent_pid, stop), daemon=True).start()
     import cv2
 
@@ -142,6 +178,9 @@ def _child(
             return
         send(("opened", name, None))
         caps.append(cap)
+    from humantele.follower.clinic import simulator_modules
+
+    send(("simulator", simulator_modules()))
     for cap in caps:
         cap._stop = stop  # the process's stop event ends the capture loops
         cap.start_thread()
@@ -216,7 +255,7 @@ class _Shared:
     def __init__(self, ctx: Any) -> None:
         self.ctx = ctx
         self.scene = SeqlockArray(SCENE_N)
-        self.stop = ctx.Event()
+        self.stop = StopFlag(ctx)
         self.recv_conn, self.send_conn = ctx.Pipe(duplex=False)
         self.process: Any = None
         self.captures: dict[str, ProcessCapture] = {}
@@ -317,6 +356,7 @@ class ProcessVideo:
         self.nice = nice
         self.specs = specs
         self.closed = False
+        self.simulator_modules: list[str] | None = None  # loaded in the video process (opened)
         self._cpu_s: float | None = None
         self.captures = {
             name: ProcessCapture(name, self.shared, spec, spec["fps"])
@@ -365,6 +405,8 @@ class ProcessVideo:
                 elif kind == "rec":
                     if sh.record is not None:
                         sh.record(msg[1], msg[2], msg[3])
+                elif kind == "simulator":
+                    self.simulator_modules = msg[1]
                 elif kind in ("opened", "open_failed"):
                     sh.opened[msg[1]] = msg[2]
                     if kind == "open_failed" or len(sh.opened) == len(self.captures):

@@ -138,6 +138,7 @@ class TrackStats:
         self.last_seq: int | None = None
         self.anchor: int | None = None  # sender's capture time minus received pts, 90 kHz
         self.anchors = 0  # times the anchor moved (a new stream, a sender's clock jump)
+        self.candidates: set[int] | None = None  # anchors the last unstamped frame allows
         self.size: tuple[int, int] | None = None
 
     def fps(self, now: float, window_s: float = 2.0) -> float:
@@ -279,6 +280,24 @@ class VideoReceiver:
             self.stats_by_track[info.track].no_info -= 1  # the record came after its frame
             self._set_capture(latest, info.t_capture)
 
+    def _anchor_from_records(self, name: str, pts: int) -> int | None:
+        """The anchor from the records alone (frames without a counter: a real source's,
+        which the follower leaves unaltered): each frame allows the anchors that put its pts
+        on a recorded capture time (within 2 ticks); capture times are irregular, so the
+        anchors two frames in a row allow meet in one. None until they do."""
+        st = self.stats_by_track[name]
+        allowed = {k - pts + d for k in self._seq_at[name] for d in (-2, -1, 0, 1, 2)}
+        prev, st.candidates = st.candidates, allowed
+        if prev is None:
+            return None
+        both = allowed & prev
+        # the same anchor within the tolerance appears up to 5 times: one cluster, its middle
+        if both and max(both) - min(both) <= 4:
+            st.candidates = None
+            return int(round((max(both) + min(both)) / 2))
+        st.candidates = both or allowed  # still ambiguous: the next frame narrows it
+        return None
+
     def _set_capture(self, f: ReceivedFrame, t_follower: float) -> None:
         f.t_capture = self.clock.to_local(t_follower)
         if f.t_capture is not None:
@@ -322,7 +341,9 @@ class VideoReceiver:
             if st.anchor is None or abs(anchor - st.anchor) > 2:
                 st.anchors += st.anchor is not None
                 st.anchor = anchor
-        elif st.anchor is not None and pts is not None:
+        elif st.anchor is None and pts is not None and value is None:
+            st.anchor = self._anchor_from_records(name, int(pts))  # a frame with no counter
+        if t_follower is None and st.anchor is not None and pts is not None:
             t_follower = (int(pts) + st.anchor) / VIDEO_RATE
             if seq is None:  # the counter did not read (a codec smear): the record says which
                 key, seq_at = int(pts) + st.anchor, self._seq_at[name]

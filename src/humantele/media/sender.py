@@ -20,11 +20,12 @@ import asyncio
 import contextlib
 import fractions
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import av
 import cv2
@@ -40,8 +41,10 @@ from humantele.media.policy import DegradationPolicy, Health
 from humantele.media.slot import LatestSlot
 from humantele.video.base import VideoSource, VideoSourceError, VideoSourceUnavailable
 from humantele.video.counter import draw_counter
-from humantele.video.scene import Scene
 from humantele.video.sources import make_video_source
+
+if TYPE_CHECKING:
+    from humantele.video.scene import Scene
 
 log = logging.getLogger(__name__)
 
@@ -290,7 +293,7 @@ class VideoSender:
                 if getattr(c, "backend", "") != "sim":  # a device may give another size
                     w, h = max(w, 1920), max(h, 1080)
                 specs[name] = {
-                    "config": c, "stamp_counter": config.stamp_counter, "fps": float(c.fps) or 30.0,
+                    "config": c, "stamp_counter": config.stamps(name), "fps": float(c.fps) or 30.0,
                     "record_hz": rates[name], "jpeg_quality": config.jpeg_quality,
                     "size": (w, h),
                 }  # fmt: skip
@@ -301,7 +304,7 @@ class VideoSender:
                 name: VideoCapture(
                     name,
                     make_video_source(sources[name], scene),
-                    stamp_counter=config.stamp_counter,
+                    stamp_counter=config.stamps(name),
                     record=record,
                     record_hz=rates[name],
                     jpeg_quality=config.jpeg_quality,
@@ -319,6 +322,7 @@ class VideoSender:
         self._last_check: float | None = None
         self._started = False
         self._closed = False
+        self._policy_t, self._policy_late = -math.inf, 0  # the last check: time, late ticks
 
     def publish_scene(self, snapshot: Any) -> None:
         """The sim world's latest snapshot, for the video process (threads call ``scene``)."""
@@ -413,6 +417,17 @@ class VideoSender:
                         worst = f if worst is None else max(worst, f)
         return worst
 
+    def tick(self, t: float, late_ticks: int) -> None:
+        """From the daemon's tick (``late_ticks``: its count so far): once a second, the
+        degradation policy (:meth:`check`) in a task."""
+        if t - self._policy_t < 1.0:
+            return
+        dt = 1.0 if self._policy_t == -math.inf else t - self._policy_t
+        late = (late_ticks - self._policy_late) / dt
+        self._policy_t, self._policy_late = t, late_ticks
+        task = asyncio.ensure_future(self.check(t, late))
+        task.add_done_callback(_log_check_error)
+
     async def check(self, t: float, late_ticks_per_s: float) -> int:
         """Once a second: the policy's inputs over the last window; applies the POV level."""
         us = self.captures["us"]
@@ -459,3 +474,8 @@ class VideoSender:
             if encoder is not None:
                 out[name]["encoder"] = encoder.figures()
         return out
+
+
+def _log_check_error(task: asyncio.Future) -> None:
+    if not task.cancelled() and task.exception() is not None:
+        log.error("video: the degradation check failed: %s", task.exception())

@@ -217,6 +217,7 @@ CHANNELS: dict[str, ChannelSpec] = {
                 **_POSE,
                 "tracked": ("boolean", "false when the tool was not found in this frame"),
                 "markers": ("integer", "markers matched in this frame"),
+                "device_time_s": ("number", "the tracker frame's time on the device's clock, s"),
             },
             ("position", "quaternion", "tracked"),
         ),

@@ -34,8 +34,10 @@ class TrackingFrame:
     the device reports it (hl2ss: the rig pose times the AHAT extrinsics; sim: the sim
     head's camera); None when the device gave none (such a frame cannot place the probe in
     the world). ``T_world_rig``: the headset's own pose (rig frame) in the same world, when
-    the device reports one. ``T_camera_probe_true``: ground truth (simulated frames only,
-    for tests and benchmarks; never read by the daemons).
+    the device reports one. ``device_time_s``: the frame's time on the device's own clock (s;
+    hl2ss: its timestamp), for matching a recording to the device's data.
+    ``T_camera_probe_true``: ground truth (simulated frames only, for tests and benchmarks;
+    never read by the daemons).
     """
 
     t: float
@@ -45,6 +47,7 @@ class TrackingFrame:
     seq: int = 0
     T_world_camera: Pose | None = None
     T_world_rig: Pose | None = None
+    device_time_s: float | None = None
     T_camera_probe_true: Pose | None = None
     visible_true: tuple[bool, ...] | None = None
 

@@ -1,107 +1,181 @@
-"""HoloLens 2 research-mode AHAT frames over the network, as the open hl2ss server sends them.
+"""HoloLens 2 research-mode AHAT frames and rig poses over the network, from the hl2ss app.
 
-hl2ss (github.com/jdibenes/hl2ss, the usual way to get research-mode streams off a HoloLens 2)
-runs a TCP server on the headset; the AHAT (short-throw depth + active brightness) stream is
-port 3804. Wire format, as in hl2ss's ``viewer/hl2ss.py`` (1.0.3x):
+hl2ss (github.com/jdibenes/hl2ss) runs a TCP server on the headset; the AHAT (short-throw
+depth + active brightness) stream is port 3804. The wire format and the matrix conventions
+are in :mod:`humantele.tracking.hl2ss_protocol` (checked against hl2ss's own sources).
 
-- the client sends its configuration: ``<B`` mode (0: frames; 1: frames + rig pose),
-  ``<B`` divisor, ``<B`` depth profile (0: SAME as AB), ``<BBI`` AB profile (0xFF: RAW),
-  level, bitrate, ``<B`` number of encoder options (then that many ``<QQ`` key/value);
-- the server then sends packets: ``<QI`` timestamp (100 ns ticks) and payload size, the
-  payload, and in mode 1 a 4x4 float32 pose (64 bytes);
-- a RAW/SAME AHAT payload: 8 header bytes (unused here), depth (512 x 512 uint16, mm), active
-  brightness (512 x 512 uint16), then 8 bytes of sensor ticks (uint64).
+This backend asks for depth SAME + AB RAW (no H.26x/Zdepth decoding: no codec dependency, no
+compression artefacts on the marker blobs), with a bitrate > 0 (the app refuses 0 even for
+RAW) and, by default, mode 1: every frame carries the rig's pose in the app's world.
 
-This backend asks for RAW (no H.264/zdepth decoding: no codec dependency, no compression
-artefacts on the marker blobs) and turns each packet into a :class:`TrackingFrame`. A packet
-of the wrong size is dropped and counted; a lost connection is counted and retried on the next
-``read`` (at most once per ``retry_s``). ``open`` failing is :class:`FrameSourceUnavailable`.
+Per frame (:class:`TrackingFrame`): ``T_world_rig`` = the rig pose (converted from hl2ss's
+row-vector matrix), ``T_world_camera = T_world_rig @ T_rig_camera`` with the AHAT extrinsics
+from hl2ss's calibration (downloaded at ``open`` over mode 2, or read from the file
+``humantele devices hl2ss-calibration`` saved). "world" is hl2ss's world (the headset's
+spatial coordinate system at app start, y up, m), not WebXR's ``local-floor``. The camera
+frame is OpenCV's (x right, y down, z forward), as the tracker's ``T_camera_probe``. With a
+calibration the raw (wide-angle) images are undistorted with its maps to the pinhole image
+of its K, which become the frames' intrinsics.
+
+A frame without a usable pose (mode 0; a pose of zeros: the headset was not located; not
+finite; not rigid) is still returned, with ``T_world_camera``/``T_world_rig`` None, and
+counted in ``no_pose`` by reason. A packet that is not a RAW AHAT frame is dropped and counted
+in ``dropped`` ("size": its size fields disagree; "encoding": not RAW); bytes out of step
+(an impossible payload size) drop the connection ("out_of_step"); a lost connection is counted
+and retried on the next ``read`` (at most once per ``retry_s``). ``open`` failing is
+:class:`FrameSourceUnavailable`.
 """
 
 from __future__ import annotations
 
+import contextlib
+import select
 import socket
-import struct
 import time
 from typing import Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from humantele.config import ConfigModel
+from humantele.geometry import Pose
 from humantele.tracking.camera import CameraIntrinsics
-from humantele.tracking.frames import FrameSourceUnavailable, TrackingFrame
+from humantele.tracking.frames import FrameSource, FrameSourceUnavailable, TrackingFrame
+from humantele.tracking.hl2ss_calibration import Hl2ssAhatCalibration, download_ahat_calibration
+from humantele.tracking.hl2ss_protocol import (  # noqa: F401  (re-exported for callers)
+    AHAT_HEIGHT,
+    AHAT_PORT,
+    AHAT_WIDTH,
+    DEFAULT_RAW_BITRATE,
+    HEADER,
+    MAX_PAYLOAD_SIZE,
+    MODE_FRAMES_POSE,
+    POSE_BYTES,
+    RAW_PAYLOAD_SIZE,
+    AhatConfiguration,
+    PacketError,
+    decode_ahat_payload,
+    encode_ahat_packet,
+    pose_from_hl2ss,
+)
 
-AHAT_PORT = 3804
-AHAT_WIDTH = AHAT_HEIGHT = 512
-AHAT_PIXELS = AHAT_WIDTH * AHAT_HEIGHT
-DEPTH_PROFILE_SAME = 0
-VIDEO_PROFILE_RAW = 0xFF
-HEADER = struct.Struct("<QI")
-PAYLOAD_BASE = 8  # bytes before the depth image
-PAYLOAD_TAIL = 8  # sensor ticks after the AB image
-RAW_PAYLOAD_SIZE = PAYLOAD_BASE + 4 * AHAT_PIXELS + PAYLOAD_TAIL
 
-
-def ahat_configuration(mode: int = 0) -> bytes:
-    """The configuration bytes a client sends on connecting: RAW depth and AB, no options."""
-    return struct.pack("<BBBBBIB", mode, 1, DEPTH_PROFILE_SAME, VIDEO_PROFILE_RAW, 0xFF, 0, 0)
-
-
-def encode_ahat_packet(
-    timestamp: int, depth_mm: np.ndarray, ab: np.ndarray, sensor_ticks: int = 0,
-    pose: np.ndarray | None = None,
-) -> bytes:  # fmt: skip
-    """One packet as the hl2ss server sends it (used by the tests' replay server)."""
-    payload = (
-        bytes(PAYLOAD_BASE)
-        + np.ascontiguousarray(depth_mm, dtype="<u2").tobytes()
-        + np.ascontiguousarray(ab, dtype="<u2").tobytes()
-        + struct.pack("<Q", sensor_ticks)
-    )
-    tail = b"" if pose is None else np.asarray(pose, dtype="<f4").tobytes()
-    return HEADER.pack(timestamp, len(payload)) + payload + tail
+def ahat_configuration(mode: int = MODE_FRAMES_POSE, divisor: int = 1,
+                       bitrate: int = DEFAULT_RAW_BITRATE) -> bytes:  # fmt: skip
+    """The configuration bytes this client sends: depth SAME, AB RAW, default level, a bitrate
+    > 0 and hl2ss_lnm's default option (GOP size 1 for RAW)."""
+    return AhatConfiguration(mode=mode, divisor=divisor, bitrate=bitrate).pack()
 
 
 class Hl2ssFrameConfig(ConfigModel):
-    """The ``hl2ss`` tracker backend: the headset's address and the AHAT camera's intrinsics
-    (from hl2ss's calibration download, or the AHAT-like defaults)."""
+    """The ``hl2ss`` tracker backend: the headset's address, the stream's settings and where
+    the AHAT calibration (intrinsics, undistortion, extrinsics) comes from."""
 
     backend: Literal["hl2ss"] = "hl2ss"
     host: str = "192.168.1.7"
     port: int = Field(AHAT_PORT, ge=1, le=65535)
-    intrinsics: CameraIntrinsics = Field(default_factory=CameraIntrinsics)
-    mode: Literal[0, 1] = Field(0, description="1: packets also carry the rig pose")
+    mode: Literal[0, 1] = Field(1, description="1: packets carry the rig pose (the follower "
+                                "needs it); 0: frames only")  # fmt: skip
+    divisor: int = Field(1, ge=1, le=255, description="send every n-th frame (45 Hz / n)")
+    bitrate: int = Field(DEFAULT_RAW_BITRATE, gt=0, le=0xFFFFFFFF,
+                         description="bit/s; the app refuses 0 even for RAW")  # fmt: skip
+    calibration_file: str | None = Field(
+        None,
+        description="JSON saved by `humantele devices hl2ss-calibration` (relative: "
+        "from the current directory); None: download it from the headset at open",
+    )
+    download_calibration: bool = Field(
+        True, description="without calibration_file: download it at open (about 4 MB)"
+    )
+    intrinsics: CameraIntrinsics = Field(
+        default_factory=CameraIntrinsics,
+        description="used only without a calibration (then frames are not undistorted)",
+    )
+    newest: bool = Field(
+        True,
+        description="a reader that fell behind skips to the newest frame (counted as "
+        "stale); false: every frame in order (replays read whole)",
+    )
     connect_timeout_s: float = Field(3.0, gt=0, le=60)
     read_timeout_s: float = Field(1.0, gt=0, le=60)
     retry_s: float = Field(1.0, ge=0, le=60)
 
+    @model_validator(mode="after")
+    def _pose_needs_extrinsics(self) -> Hl2ssFrameConfig:
+        if self.mode == 1 and self.calibration_file is None and not self.download_calibration:
+            raise ValueError(
+                "hl2ss mode 1 places the camera with the AHAT extrinsics: set "
+                "calibration_file or download_calibration = true (or mode = 0)"
+            )
+        return self
 
-class Hl2ssFrameSource:
-    """AHAT frames from an hl2ss server; ``dropped`` counts unusable packets and losses by
-    reason ("size", "timeout", "disconnected"). Not thread-safe: one reader thread."""
+
+class Hl2ssFrameSource(FrameSource):
+    """AHAT frames from an hl2ss app. ``dropped`` counts unusable packets and losses by reason;
+    ``no_pose`` counts frames returned without a pose, by reason. Not thread-safe: one reader.
+    ``last_pose`` is the last rig pose matrix as hl2ss sent it (row-vector, translation in
+    the last row); ``T_rig_camera`` the AHAT camera in the rig (None without calibration)."""
+
+    name = "hl2ss AHAT"
 
     def __init__(self, config: Hl2ssFrameConfig | None = None):
         self.config = c = config or Hl2ssFrameConfig()
         self.intrinsics = c.intrinsics
         if (c.intrinsics.width, c.intrinsics.height) != (AHAT_WIDTH, AHAT_HEIGHT):
             raise ValueError("hl2ss: AHAT frames are 512 x 512; set intrinsics to that size")
+        self.calibration: Hl2ssAhatCalibration | None = None
+        self.T_rig_camera: Pose | None = None
+        self._undistort = False
         self.dropped: dict[str, int] = {}
+        self.no_pose: dict[str, int] = {}
         self.received = 0
         self.last_timestamp: int | None = None
+        self.last_sensor_ticks: int | None = None
         self.last_pose: np.ndarray | None = None
         self._sock: socket.socket | None = None
         self._buf = bytearray()
         self._seq = 0
         self._next_retry = 0.0
-        self._connect()
+
+    # --- opening --------------------------------------------------------------------------
+    def open(self) -> None:
+        """Get the calibration (file or download), then connect the stream."""
+        c = self.config
+        if self.calibration is None and (c.calibration_file or c.download_calibration):
+            self._set_calibration(self._get_calibration())
+        if self._sock is None:
+            self._connect()
+
+    def _get_calibration(self) -> Hl2ssAhatCalibration:
+        c = self.config
+        if c.calibration_file:
+            try:
+                return Hl2ssAhatCalibration.load(c.calibration_file)
+            except ValueError as exc:
+                raise FrameSourceUnavailable(
+                    f"hl2ss: {exc}; save it again with `humantele devices hl2ss-calibration "
+                    f"--host {c.host} --out FILE`") from exc  # fmt: skip
+        try:
+            return download_ahat_calibration(c.host, c.port, max(c.connect_timeout_s, 10.0))
+        except (OSError, ValueError) as exc:
+            raise FrameSourceUnavailable(
+                f"hl2ss: cannot reach the HoloLens 2 AHAT stream at {c.host}:{c.port} for its "
+                f"calibration ({exc}); is the hl2ss app running on the headset, and research "
+                "mode enabled? (or set calibration_file)") from exc  # fmt: skip
+
+    def _set_calibration(self, cal: Hl2ssAhatCalibration) -> None:
+        self.calibration = cal
+        self.T_rig_camera = cal.T_rig_camera()
+        self.intrinsics = cal.intrinsics()
+        self._undistort = not cal.is_identity_map()
 
     def _connect(self) -> None:
         c = self.config
         try:
             sock = socket.create_connection((c.host, c.port), timeout=c.connect_timeout_s)
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             sock.settimeout(c.read_timeout_s)
-            sock.sendall(ahat_configuration(c.mode))
+            sock.sendall(ahat_configuration(c.mode, c.divisor, c.bitrate))
         except OSError as exc:
             raise FrameSourceUnavailable(
                 f"hl2ss: cannot reach the HoloLens 2 AHAT stream at {c.host}:{c.port} ({exc}); "
@@ -109,23 +183,22 @@ class Hl2ssFrameSource:
             ) from exc
         self._sock, self._buf = sock, bytearray()
 
-    def _count(self, reason: str) -> None:
-        self.dropped[reason] = self.dropped.get(reason, 0) + 1
+    # --- reading --------------------------------------------------------------------------
+    def _count(self, counter: dict[str, int], reason: str) -> None:
+        counter[reason] = counter.get(reason, 0) + 1
 
-    def _recv_exactly(self, n: int) -> bytes:
+    def _fill(self, n: int) -> None:
+        """Receive until the buffer holds ``n`` bytes (a timeout leaves what came in it)."""
         assert self._sock is not None
         while len(self._buf) < n:
             chunk = self._sock.recv(max(65536, n - len(self._buf)))
             if not chunk:
                 raise ConnectionError("closed by the headset")
             self._buf.extend(chunk)
-        out = bytes(self._buf[:n])
-        del self._buf[:n]
-        return out
 
     def read(self, t: float | None = None) -> TrackingFrame | None:
         """The next AHAT frame (stamped ``t``, default its arrival on ``time.monotonic``), or
-        None when none could be had now (counted)."""
+        None when none could be had now (counted in ``dropped``)."""
         if self._sock is None:
             if time.monotonic() < self._next_retry:
                 return None
@@ -133,42 +206,94 @@ class Hl2ssFrameSource:
                 self._connect()
             except FrameSourceUnavailable:
                 self._next_retry = time.monotonic() + self.config.retry_s
-                self._count("reconnect_failed")
+                self._count(self.dropped, "reconnect_failed")
                 return None
+        pose_bytes = POSE_BYTES if self.config.mode == MODE_FRAMES_POSE else 0
         try:
-            ts, size = HEADER.unpack(self._recv_exactly(HEADER.size))
-            if size > 8 * RAW_PAYLOAD_SIZE:  # garbage: the stream is out of step
-                raise ConnectionError(f"payload size {size} out of step")
-            payload = self._recv_exactly(size)
-            pose = self._recv_exactly(64) if self.config.mode == 1 else None
+            self._fill(HEADER.size)
+            ts, size = HEADER.unpack_from(self._buf, 0)
+            if not 16 <= size <= MAX_PAYLOAD_SIZE:  # not a header: the bytes are out of step
+                self._count(self.dropped, "out_of_step")
+                self._drop_connection()
+                return None
+            end = HEADER.size + size + pose_bytes
+            self._fill(end)  # a timeout here keeps the partial packet for the next read
         except TimeoutError:
-            self._count("timeout")
+            self._count(self.dropped, "timeout")
             return None
         except (ConnectionError, OSError):
-            self._count("disconnected")
+            self._count(self.dropped, "disconnected")
             self._drop_connection()
             return None
-        if size != RAW_PAYLOAD_SIZE:
-            self._count("size")  # e.g. an encoded (H.264/zdepth) stream: not what we asked for
+        if self.config.newest:
+            end = self._newest(end, pose_bytes)
+        packet = bytes(self._buf[:end])
+        size = len(packet) - HEADER.size - pose_bytes
+        ts = HEADER.unpack_from(packet, 0)[0]
+        del self._buf[:end]
+        try:
+            p = decode_ahat_payload(memoryview(packet)[HEADER.size : HEADER.size + size])
+        except PacketError as exc:
+            self._count(self.dropped, exc.reason)
             return None
-        depth = np.frombuffer(payload, "<u2", AHAT_PIXELS, PAYLOAD_BASE).reshape(512, 512)
-        ab = np.frombuffer(payload, "<u2", AHAT_PIXELS, PAYLOAD_BASE + 2 * AHAT_PIXELS)
-        self.last_timestamp = ts
-        self.last_pose = None if pose is None else np.frombuffer(pose, "<f4").reshape(4, 4)
+        self.last_timestamp, self.last_sensor_ticks = ts, p.sensor_ticks
+        T_world_rig = T_world_camera = None
+        if pose_bytes:
+            self.last_pose = np.frombuffer(packet, "<f4", 16, HEADER.size + size).reshape(4, 4)
+            T_world_rig, why = pose_from_hl2ss(self.last_pose)
+            if T_world_rig is None:
+                self._count(self.no_pose, why)
+            elif self.T_rig_camera is None:
+                self._count(self.no_pose, "no_extrinsics")
+            else:
+                T_world_camera = T_world_rig @ self.T_rig_camera
+        else:
+            self._count(self.no_pose, "mode_0")
+        depth, ab = p.depth_mm, p.ab
+        if self._undistort and self.calibration is not None:
+            depth, ab = self.calibration.undistort(depth, ab)
         self.received += 1
         self._seq += 1
         return TrackingFrame(
             t=time.monotonic() if t is None else t,
-            ir=ab.reshape(512, 512).astype(np.uint16),
-            depth_mm=depth.astype(np.uint16),
+            ir=ab,
+            depth_mm=depth,
             intrinsics=self.intrinsics,
             seq=self._seq,
+            T_world_camera=T_world_camera,
+            T_world_rig=T_world_rig,
+            device_time_s=ts * 1e-7,  # hl2ss: 100 ns ticks
         )
+
+    def _newest(self, end: int, pose_bytes: int) -> int:
+        """A reader slower than the headset would fall ever further behind (TCP keeps every
+        frame): take what has already arrived and skip to the newest complete packet, the
+        older ones counted as ``stale``. Returns the end of that packet; the buffer starts
+        at it."""
+        assert self._sock is not None
+        with contextlib.suppress(OSError):  # a lost connection: the next read says so
+            while len(self._buf) < end + 8 * (MAX_PAYLOAD_SIZE + HEADER.size + POSE_BYTES):
+                if not select.select([self._sock], [], [], 0)[0]:
+                    break  # nothing more has arrived
+                chunk = self._sock.recv(1 << 20)
+                if not chunk:
+                    break
+                self._buf.extend(chunk)
+        while len(self._buf) >= end + HEADER.size:
+            size = HEADER.unpack_from(self._buf, end)[1]
+            nxt = end + HEADER.size + size + pose_bytes
+            if not 16 <= size <= MAX_PAYLOAD_SIZE or len(self._buf) < nxt:
+                break  # out of step (the next read says so) or not all there yet
+            del self._buf[:end]
+            self._count(self.dropped, "stale")
+            end = nxt - end
+        return end
 
     def _drop_connection(self) -> None:
         if self._sock is not None:
             self._sock.close()
         self._sock = None
+        self._buf = bytearray()
         self._next_retry = time.monotonic() + self.config.retry_s
 
     def close(self) -> None:

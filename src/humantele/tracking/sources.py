@@ -14,7 +14,7 @@ from pydantic import Field
 from humantele.tracking.frames import FrameSource
 from humantele.tracking.hl2ss_source import Hl2ssFrameConfig, Hl2ssFrameSource
 from humantele.tracking.opencv_source import OpenCVFrameConfig, OpenCVFrameSource
-from humantele.tracking.sim import SimFrameConfig, SimFrameSource
+from humantele.tracking.sim_config import SimFrameConfig
 from humantele.tracking.tool import ToolDefinition
 
 FrameSourceConfig = Annotated[
@@ -31,6 +31,8 @@ def make_frame_source(
     """The frame source a configuration asks for, not yet opened. ``tool`` is the marker tree
     the sim backend draws (None: the default probe); the others ignore it."""
     if isinstance(config, SimFrameConfig):
+        from humantele.tracking.sim import SimFrameSource  # only when asked: the simulator
+
         return SimFrameSource(config, tool)
     if isinstance(config, OpenCVFrameConfig):
         return OpenCVFrameSource(config)

@@ -15,10 +15,24 @@ from humantele.video.base import (
     VideoSourceUnavailable,
 )
 from humantele.video.opencv_source import OpenCVVideoConfig, OpenCVVideoSource
-from humantele.video.scene import DemoScene, SceneSnapshot
-from humantele.video.sim_pov import SimPov, SimPovConfig
-from humantele.video.sim_ultrasound import SimUltrasound, SimUltrasoundConfig
+from humantele.video.sim_config import SimPovConfig, SimUltrasoundConfig
 from humantele.video.sources import PovSourceConfig, UltrasoundSourceConfig, make_video_source
+
+_SIMULATOR = {  # imported when first asked for: a follower on real devices never loads them
+    "DemoScene": "humantele.video.scene",
+    "SceneSnapshot": "humantele.video.scene",
+    "SimPov": "humantele.video.sim_pov",
+    "SimUltrasound": "humantele.video.sim_ultrasound",
+}
+
+
+def __getattr__(name: str) -> object:
+    if name in _SIMULATOR:
+        import importlib
+
+        return getattr(importlib.import_module(_SIMULATOR[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "DemoScene",

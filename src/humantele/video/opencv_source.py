@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Literal
 
 import cv2
@@ -48,7 +49,11 @@ class OpenCVVideoConfig(ConfigModel):
     pixel_spacing_mm: tuple[float, float] | None = Field(
         None, description="(row, col) mm per pixel of a US machine's image, for calipers"
     )
+    depth_origin_row: float | None = Field(
+        None, ge=0.0, le=8192.0, description="a US image's row (px) of depth 0 (the skin line)"
+    )
     stall_reads: int = Field(30, ge=1, le=100000, description="failed reads in a row = stopped")
+    loop: bool = Field(False, description="a video file: start again at its end (a replay)")
     open_timeout_s: float = Field(5.0, gt=0.0, le=120.0, description="network streams")
     read_timeout_s: float = Field(2.0, gt=0.0, le=120.0, description="network streams")
 
@@ -85,6 +90,8 @@ class OpenCVVideoSource(VideoSource):
         self._stopped = False
         self._size = (self.config.width, self.config.height)
         self._fps = self.config.fps
+        self._file = Path(self.config.device).is_file()  # played at its rate, not read at once
+        self._t_next = 0.0
 
     @property
     def size(self) -> tuple[int, int]:
@@ -137,6 +144,7 @@ class OpenCVVideoSource(VideoSource):
                 "(the US machine's video output is on) and that no other program holds it"
             )
         self._first = frame
+        self._t_next = time.monotonic()  # a file's first frame: now
         self._size = (frame.width, frame.height)
         device_fps = cap.get(cv2.CAP_PROP_FPS)
         self._fps = c.fps or (device_fps if 0.0 < device_fps < 1000.0 else 30.0)
@@ -152,7 +160,12 @@ class OpenCVVideoSource(VideoSource):
             return frame
         if self._stopped:
             raise VideoSourceError(self._stall_message())
+        if self._file:
+            self._pace()
         frame = self._grab()
+        if frame is None and self._file and self.config.loop:
+            self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)  # the file's end: from the start again
+            frame = self._grab()
         if frame is None:
             self.counters.dropped += 1
             self._fails += 1
@@ -163,6 +176,14 @@ class OpenCVVideoSource(VideoSource):
         self._fails = 0
         self.counters.frames += 1
         return frame
+
+    def _pace(self) -> None:
+        """A file gives its frames at once: wait for this frame's time at the file's rate."""
+        now = time.monotonic()
+        period = 1.0 / self._fps
+        self._t_next = max(self._t_next + period, now - period)  # late: no catch-up burst
+        if self._t_next > now:
+            time.sleep(self._t_next - now)
 
     def _stall_message(self) -> str:
         return (
@@ -191,7 +212,9 @@ class OpenCVVideoSource(VideoSource):
         elif img.shape[2] != 3:
             return None
         self._seq += 1
-        return VideoFrame(np.ascontiguousarray(img), self._seq, t, self.config.pixel_spacing_mm)
+        c = self.config
+        return VideoFrame(np.ascontiguousarray(img), self._seq, t, c.pixel_spacing_mm,
+                          depth_origin_row=c.depth_origin_row)  # fmt: skip
 
     def close(self) -> None:
         if self._cap is not None:

@@ -17,12 +17,12 @@ import math
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import Field
 
 from humantele.geometry import Pose
 from humantele.haptics.ellipsoid import Ellipsoid
 from humantele.video.scene import SceneSnapshot, pose_is_finite
-from humantele.video.simsource import Rendered, SimSourceConfig, SimVideoSource
+from humantele.video.sim_config import SimPovConfig  # noqa: F401 (their home before)
+from humantele.video.simsource import Rendered, SimVideoSource
 
 NEAR_M = 0.02
 BGR = tuple[int, int, int]
@@ -34,26 +34,6 @@ PROBE_BOXES = (
 # Box faces as corner indices (corner i has x, y, z from bit 0, 1, 2: 0 = min, 1 = max).
 _FACES = ((0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5))
 _BITS = np.array([[(i >> k) & 1 for k in range(3)] for i in range(8)], dtype=float)
-
-
-class SimPovConfig(SimSourceConfig):
-    """The simulated headset camera and what it draws. Colours are BGR."""
-
-    fps: float = Field(25.0, gt=0.0, le=120.0)
-    width: int = Field(960, ge=96, le=4096)
-    height: int = Field(540, ge=64, le=4096)
-    hfov_deg: float = Field(64.7, ge=10.0, le=150.0, description="HoloLens 2 PV camera")
-    shade_scale: float = Field(0.4, ge=0.1, le=1.0, description="resolution of the patient")
-    body_half_length_m: float = Field(0.45, gt=0.05, le=2.0)
-    bed_length_m: float = Field(2.0, gt=0.2, le=4.0)
-    bed_width_m: float = Field(0.9, gt=0.2, le=3.0)
-    skin: BGR = (150, 175, 215)
-    bed: BGR = (170, 150, 120)
-    floor: BGR = (95, 100, 105)
-    wall: BGR = (60, 55, 50)
-    real_probe: BGR = (225, 225, 230)
-    virtual_probe: BGR = (255, 200, 40)
-    virtual_alpha: float = Field(0.55, ge=0.0, le=1.0)
 
 
 def _clip_near(poly: NDArray[np.float64]) -> NDArray[np.float64]:

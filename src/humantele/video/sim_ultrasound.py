@@ -38,18 +38,17 @@ every cm outside the field of view on the right; the frame counter in the top-le
 from __future__ import annotations
 
 import math
-from typing import Literal
 
 import cv2
 import numpy as np
-from pydantic import Field, model_validator
 
 from humantele.geometry import Pose
 from humantele.haptics.ellipsoid import Ellipsoid
-from humantele.video.phantom import Phantom, PhantomConfig
+from humantele.video.phantom import Phantom
 from humantele.video.scan import ScanGeometry
 from humantele.video.scene import SceneSnapshot, pose_is_finite
-from humantele.video.simsource import Rendered, SimSourceConfig, SimVideoSource
+from humantele.video.sim_config import SimUltrasoundConfig  # noqa: F401 (their home before)
+from humantele.video.simsource import Rendered, SimVideoSource
 from humantele.video.speckle import SpeckleField
 
 STEP = 2  # the image is computed at every STEP-th column, then stretched
@@ -60,47 +59,6 @@ NOISE_BANK = 4  # precomputed electronic-noise images, one picked at random per 
 CONTACT_RAMP_M = 0.002
 MID_GREY = 95.0  # display level of soft tissue (echo 1, speckle mean)
 DB_PER_NEPER = 20.0 / math.log(10.0)
-
-
-class SimUltrasoundConfig(SimSourceConfig):
-    """The simulated ultrasound machine and probe (m, N; MHz and dB at this edge). Defaults:
-    an abdominal curvilinear probe (C5-2 like: 50 mm radius, 70 deg, 16 cm, 3.5 MHz)."""
-
-    fps: float = Field(20.0, gt=0.0, le=120.0)
-    width: int = Field(640, ge=96, le=2048)
-    height: int = Field(480, ge=64, le=2048)
-    probe: Literal["curvilinear", "linear"] = "curvilinear"
-    depth_m: float = Field(0.16, ge=0.02, le=0.3)
-    fov_deg: float = Field(70.0, ge=10.0, le=120.0, description="curvilinear sector angle")
-    radius_m: float = Field(0.05, ge=0.005, le=0.2, description="curvilinear face radius")
-    aperture_m: float = Field(0.04, ge=0.01, le=0.1, description="linear array length")
-    frequency_mhz: float = Field(3.5, ge=1.0, le=20.0)
-    beams: int = Field(128, ge=16, le=1024)
-    samples: int = Field(256, ge=32, le=2048)
-    tgc_db_cm_mhz: float = Field(0.6, ge=0.0, le=5.0, description="attenuation TGC undoes")
-    gain_db: float = Field(0.0, ge=-40.0, le=40.0)
-    dynamic_range_db: float = Field(55.0, ge=20.0, le=120.0)
-    noise: float = Field(0.02, ge=0.0, le=1.0, description="electronic noise, echo units")
-    speckle_m: float = Field(0.00035, ge=0.00005, le=0.005, description="texel of the speckle")
-    min_force_n: float = Field(1.0, ge=0.0, le=50.0)
-    full_force_n: float = Field(4.0, gt=0.0, le=100.0)
-    conform_m_per_n: float = Field(0.002, ge=0.0, le=0.05)
-    max_conform_m: float = Field(0.015, ge=0.0, le=0.05)
-    shadow_db: float = Field(20.0, gt=0.0, le=200.0)
-    phantom: PhantomConfig = Field(default_factory=PhantomConfig)
-    target: str = "kidney"
-    seed: int = 0
-
-    @model_validator(mode="after")
-    def _check(self) -> SimUltrasoundConfig:
-        if self.full_force_n <= self.min_force_n:
-            raise ValueError(
-                f"full_force_n ({self.full_force_n}) must be above min_force_n ({self.min_force_n})"
-            )
-        organs = [o.name for o in self.phantom.organs]
-        if self.target not in organs:
-            raise ValueError(f"target {self.target!r} is not an organ of the phantom: {organs}")
-        return self
 
 
 class SimUltrasound(SimVideoSource):

@@ -14,37 +14,19 @@ import numbers
 import time
 from abc import abstractmethod
 from collections.abc import Callable, Mapping
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import Field, model_validator
 
-from humantele.config import ConfigModel
 from humantele.video.base import VideoFrame, VideoSource, VideoSourceError
-from humantele.video.counter import draw_counter, patch_size
+from humantele.video.counter import draw_counter
 from humantele.video.scene import DemoScene, Scene, SceneSnapshot
+from humantele.video.sim_config import SimSourceConfig  # noqa: F401 (their home before)
 
 log = logging.getLogger(__name__)
 
 Rendered = tuple[NDArray[np.uint8], Mapping[str, Any]]
-
-
-class SimSourceConfig(ConfigModel):
-    """What every sim source's config has: the frame rate, the size (px), the counter."""
-
-    backend: Literal["sim"] = "sim"
-    fps: float = Field(20.0, gt=0.0, le=120.0)
-    width: int = Field(640, ge=96, le=4096)
-    height: int = Field(480, ge=64, le=4096)
-    counter: bool = Field(True, description="draw the frame counter in the top-left corner")
-
-    @model_validator(mode="after")
-    def _counter_fits(self) -> SimSourceConfig:
-        w, h = patch_size()
-        if self.counter and (self.width < w or self.height < h):
-            raise ValueError(f"the frame counter needs at least {w}x{h} px (or counter = false)")
-        return self
 
 
 class SimVideoSource(VideoSource):

@@ -8,15 +8,16 @@ another backend here). Each is picked by its ``backend`` field.
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 from pydantic import Field
 
 from humantele.video.base import VideoSource
 from humantele.video.opencv_source import OpenCVVideoConfig, OpenCVVideoSource
-from humantele.video.scene import Scene
-from humantele.video.sim_pov import SimPov, SimPovConfig
-from humantele.video.sim_ultrasound import SimUltrasound, SimUltrasoundConfig
+from humantele.video.sim_config import SimPovConfig, SimUltrasoundConfig
+
+if TYPE_CHECKING:
+    from humantele.video.scene import Scene
 
 UltrasoundSourceConfig = Annotated[
     SimUltrasoundConfig | OpenCVVideoConfig, Field(discriminator="backend")
@@ -28,9 +29,13 @@ AnyVideoConfig = SimUltrasoundConfig | SimPovConfig | OpenCVVideoConfig
 def make_video_source(config: AnyVideoConfig, scene: Scene | None = None) -> VideoSource:
     """The source a configuration asks for, not yet opened. ``scene`` feeds the sim backends
     (None: :class:`~humantele.video.scene.DemoScene`); the others ignore it."""
-    if isinstance(config, SimUltrasoundConfig):
+    if isinstance(config, SimUltrasoundConfig):  # the simulator only when asked for
+        from humantele.video.sim_ultrasound import SimUltrasound
+
         return SimUltrasound(config, scene)
     if isinstance(config, SimPovConfig):
+        from humantele.video.sim_pov import SimPov
+
         return SimPov(config, scene)
     if isinstance(config, OpenCVVideoConfig):
         return OpenCVVideoSource(config)

@@ -1,28 +1,63 @@
 """The real 3D Systems Touch X through the vendor's OpenHaptics HD API (libHD.so, via ctypes).
 
+Checked against OpenHaptics' own headers (``hdDefines.h``, ``hdDevice.h``, ``hdScheduler.h``),
+its examples (Calibration, PreventWarmMotors, ErrorHandling) and its Programmer's Guide and API
+reference (public copies: github.com/danepowell/openhaptics, github.com/hhmai/PhantomAPI).
+
 OpenHaptics wants device I/O inside its own servo thread: ``open`` schedules one asynchronous
 callback at the highest priority (``hdScheduleAsynchronous``) and asks the scheduler for 1 kHz
 (``hdSetSchedulerRate``). Each tick the callback opens an HD frame (``hdBeginFrame``), reads
-``HD_CURRENT_TRANSFORM`` (4x4, column-major, mm), ``HD_CURRENT_VELOCITY`` (mm/s) and
-``HD_CURRENT_BUTTONS``, checks the calibration, writes the latest commanded force to
-``HD_CURRENT_FORCE`` (N) and closes the frame (``hdEndFrame``). ``read`` returns the newest
-tick's state, ``command_force`` stores the force the next tick writes: neither waits on the
-device, so the servo loop of :mod:`humantele.haptics.loop` keeps its own clock.
+``HD_CURRENT_TRANSFORM`` (4x4, column-major, translation in mm at 12..14),
+``HD_CURRENT_VELOCITY`` (mm/s), ``HD_CURRENT_BUTTONS`` and ``HD_MOTOR_TEMPERATURE``, checks the
+calibration, writes the latest commanded force, limited as below, to ``HD_CURRENT_FORCE`` (N)
+and closes the frame (``hdEndFrame``). ``read`` returns the newest tick's state,
+``command_force`` stores the force the next tick writes, ``wait_tick`` blocks (the GIL free)
+until the next tick: the servo process follows the device's clock instead of spinning on its
+own, because every tick of this callback needs the GIL (see :mod:`humantele.haptics.servo_child`).
+The libHD calls the callback makes keep the GIL (``ctypes.PyDLL``, see :class:`HDLibrary`), so
+it takes the GIL once per tick, not once per call.
+
+Calling convention: ``hdExport.h`` declares the API ``__attribute__((stdcall))`` on Linux, which
+x86-64 ignores (System V ABI), and the callback with none: plain ``CDLL``/``CFUNCTYPE`` (OpenHaptics
+3.4 for Linux is amd64 only). Types: ``HHD``/``HDenum`` unsigned int, ``HDSchedulerHandle``
+unsigned long, priority ``HDushort``, ``hdGetError`` returns ``HDErrorInfo`` by value.
 
 Units: HD speaks mm and N in the device frame of ``base`` (x right, y up, z toward the user,
 origin at the workspace centre); this module converts mm to m at the edge and leaves forces in
-N and in that frame. Safety: every force written is finite and at most the smaller of
-``spec.max_force_n`` and the device's own ``HD_NOMINAL_MAX_FORCE``; it is zero while the device
-is not calibrated, after an HD error and on close.
+N and in that frame.
 
-Calibration (``hdCheckCalibration``): ``ok``; ``needs_update`` is fixed at once with the best
-style the device supports (``hdUpdateCalibration``: encoder reset, then auto);
-``needs_manual_input`` (a Touch X or Omni asking for its inkwell) leaves the force zero until the
-stylus has been put in the inkwell, and :attr:`TouchX.calibration` says so.
+Force limit (safety): every force written is finite and at most the peak, the smaller of
+``spec.max_force_n`` and the device's ``HD_NOMINAL_MAX_FORCE``. Sustained force is held to the
+continuous rating (``HD_NOMINAL_MAX_CONTINUOUS_FORCE``, 1.75 N on a Touch X) by OpenHaptics'
+PreventWarmMotors scheme: once hot, an adaptive clamp starts at the force then commanded and
+decays by 0.1 % a tick to the continuous rating; once cool it recovers by 0.1 % a tick. Hot is
+the device's own motor model (``HD_MOTOR_TEMPERATURE`` above 0.7, cool below 0.5) or a thermal
+budget on the squared force (motor heating goes as current squared: ``heat``, |F|^2 low-passed
+over ``thermal_time_constant_s``, above half the continuous rating squared, cool below a
+quarter), so a peak passes for a fraction of a second and a sustained press settles at the
+rating with no step. If the device still reports ``HD_WARM_MOTORS``,
+the force ramps down to zero over ``warm_ramp_s`` (logged: never a step mid-contact), stays
+off until the motors have cooled (temperature below 0.5, or ``warm_cooldown_s`` without a
+temperature reading) and ramps back up over ``ramp_s``.
 
-HD errors (``hdGetError``) become :class:`DeviceError` messages naming the error and what to do
-(:func:`describe_hd_error`). Tested against a fake libHD compiled in tests/devices (no device
-here). Constants are those of OpenHaptics' ``hdDefines.h`` and ``hdScheduler.h``.
+Calibration, as OpenHaptics' Calibration example: the supported styles
+(``HD_CALIBRATION_STYLE``) give one style, AUTO first, then INKWELL, then ENCODER_RESET.
+``needs_update`` is updated with that style from the servo tick (``hdUpdateCalibration``, after
+the frame, at most every 0.1 s): AUTO as the arm moves, INKWELL once the stylus is in the inkwell
+(``needs_manual_input`` says to put it there). ENCODER_RESET zeroes the encoders wherever the arm
+is, so the tick never does it: only :mod:`.touchx_reset` (``python -m
+humantele.haptics.devices.touchx_reset``), before the scheduler starts and after the user
+confirmed the arm is at its reset pose. Force is zero while not calibrated and, as the guide
+warns that the position may jump when calibration changes, ramps back over
+``ramp_s`` when it returns to ok. :attr:`TouchX.calibration` says what is needed.
+
+HD errors (``hdGetError``, drained each tick) become :class:`DeviceError` messages naming the
+error and what to do (:func:`describe_hd_error`) and zero the commanded force; a missing libHD, a
+missing library libHD needs (the Touch driver's ``libPhantomIOLib42.so``) and an unset
+``GTDD_HOME`` are each named as what is missing. The callback's own period and duration
+(``hdGetSchedulerTimeStamp`` at its end: the wait for the GIL counted) are kept in
+:attr:`TouchX.timing`. Constants, error texts and the loader: :mod:`.touchx_hd`. Tested against a
+fake libHD compiled in tests/devices (no device here).
 """
 
 from __future__ import annotations
@@ -35,160 +70,86 @@ import threading
 import time
 from typing import Literal
 
+from pydantic import Field
+
 from humantele.config import ConfigModel
 from humantele.haptics.devices.base import DeviceError, DeviceSpec, DeviceState, HapticDevice, Vec3
 from humantele.haptics.devices.base import safe_force as _safe_force
+from humantele.haptics.devices.touchx_hd import (  # noqa: F401 - re-exported
+    BUDGET_OFF,
+    BUDGET_ON,
+    CALIBRATION_NAMES,
+    CALIBRATION_UPDATE_EVERY_S,
+    HD_CALIBRATION_ENCODER_RESET,
+    HD_CALIBRATION_INKWELL,
+    HD_CALIBRATION_NEEDS_UPDATE,
+    HD_CALIBRATION_OK,
+    HD_CALIBRATION_STYLE,
+    HD_CALLBACK_CONTINUE,
+    HD_CALLBACK_DONE,
+    HD_CURRENT_BUTTONS,
+    HD_CURRENT_FORCE,
+    HD_CURRENT_TRANSFORM,
+    HD_CURRENT_VELOCITY,
+    HD_DEVICE_MODEL_TYPE,
+    HD_DEVICE_SERIAL_NUMBER,
+    HD_ERRORS,
+    HD_FORCE_OUTPUT,
+    HD_FORCE_RAMPING,
+    HD_INVALID_HANDLE,
+    HD_MAX_FORCE_CLAMPING,
+    HD_MAX_SCHEDULER_PRIORITY,
+    HD_MOTOR_TEMPERATURE,
+    HD_NOMINAL_MAX_CONTINUOUS_FORCE,
+    HD_NOMINAL_MAX_FORCE,
+    HD_OUTPUT_DOF,
+    HD_SUCCESS,
+    HD_WARM_MOTORS,
+    SERVO_RATE_HZ,
+    STYLE_NAMES,
+    TEMP_DOWN_RATE,
+    TEMP_RAMP_DOWN_OFF,
+    TEMP_RAMP_DOWN_ON,
+    TEMP_UP_RATE,
+    CallbackTiming,
+    HDLibrary,
+    HDSchedulerCallback,
+    choose_calibration_style,
+    describe_hd_error,
+    gtdd_home_problem,
+    load_hd_library,
+    missing_library,
+)
 
 log = logging.getLogger(__name__)
-
-HD_SUCCESS = 0x0000
-HD_CURRENT_BUTTONS = 0x2000
-HD_CURRENT_POSITION = 0x2050
-HD_CURRENT_VELOCITY = 0x2051
-HD_CURRENT_TRANSFORM = 0x2052
-HD_DEVICE_MODEL_TYPE = 0x2501
-HD_DEVICE_SERIAL_NUMBER = 0x2504
-HD_CALIBRATION_STYLE = 0x2555
-HD_UPDATE_RATE = 0x2600
-HD_NOMINAL_MAX_FORCE = 0x2603
-HD_CURRENT_FORCE = 0x2700
-HD_FORCE_OUTPUT = 0x4000
-HD_MAX_SCHEDULER_PRIORITY = 0xFFFF
-HD_CALIBRATION_OK = 0x5000
-HD_CALIBRATION_NEEDS_UPDATE = 0x5001
-HD_CALIBRATION_NEEDS_MANUAL_INPUT = 0x5002
-HD_CALIBRATION_ENCODER_RESET = 1 << 0
-HD_CALIBRATION_AUTO = 1 << 1
-HD_CALIBRATION_INKWELL = 1 << 2
-HD_CALLBACK_DONE = 0
-HD_CALLBACK_CONTINUE = 1
-HD_INVALID_HANDLE = 0xFFFFFFFF
-SERVO_RATE_HZ = 1000
-
-CALIBRATION_NAMES = {
-    HD_CALIBRATION_OK: "ok",
-    HD_CALIBRATION_NEEDS_UPDATE: "needs_update",
-    HD_CALIBRATION_NEEDS_MANUAL_INPUT: "needs_manual_input",
-}
-
-# hdDefines.h error codes: (name, what the user should do).
-HD_ERRORS: dict[int, tuple[str, str]] = {
-    0x0100: ("HD_INVALID_ENUM", "a driver/library version mismatch; reinstall OpenHaptics"),
-    0x0101: ("HD_INVALID_VALUE", "a driver/library version mismatch; reinstall OpenHaptics"),
-    0x0102: ("HD_INVALID_OPERATION", "a driver/library version mismatch; reinstall OpenHaptics"),
-    0x0103: ("HD_INVALID_INPUT_TYPE", "a driver/library version mismatch"),
-    0x0104: ("HD_BAD_HANDLE", "the device was disabled or never initialised"),
-    0x0200: ("HD_WARM_MOTORS", "the motors are hot; let the device cool for a few minutes"),
-    0x0201: ("HD_EXCEEDED_MAX_FORCE", "the force exceeded the device's limit; lower the gains"),
-    0x0202: ("HD_EXCEEDED_MAX_FORCE_IMPULSE", "the force changed too fast; lower the gains"),
-    0x0203: ("HD_EXCEEDED_MAX_VELOCITY", "the stylus moved too fast; hold it more gently"),
-    0x0204: ("HD_FORCE_ERROR", "the device refused the force; restart the device"),
-    0x0300: ("HD_DEVICE_FAULT", "the device reported a fault; power-cycle it"),
-    0x0301: (
-        "HD_DEVICE_ALREADY_INITIATED",
-        "another program holds the device (Touch Diagnostic?); close it",
-    ),
-    0x0302: ("HD_COMM_ERROR", "lost contact with the device; check its USB cable and power"),
-    0x0303: ("HD_COMM_CONFIG_ERROR", "the device is not configured; run Touch_Setup"),
-    0x0304: ("HD_TIMER_ERROR", "the servo thread missed its deadline; the machine is overloaded"),
-    0x0400: ("HD_ILLEGAL_BEGIN", "an HD frame was opened twice (a bug in humantele)"),
-    0x0401: ("HD_ILLEGAL_END", "an HD frame was closed twice (a bug in humantele)"),
-    0x0402: ("HD_FRAME_ERROR", "an HD frame error (a bug in humantele)"),
-    0x0500: ("HD_INVALID_PRIORITY", "the scheduler refused the callback priority"),
-    0x0501: ("HD_SCHEDULER_FULL", "the HD scheduler has too many callbacks; restart"),
-    0x0600: ("HD_INVALID_LICENSE", "OpenHaptics has no valid license for this machine"),
-}
-
-
-def describe_hd_error(code: int, internal: int = 0) -> str:
-    """A one-line description of an HD error code: name, hex code, internal code, advice."""
-    name, advice = HD_ERRORS.get(code, ("unknown HD error", "see the OpenHaptics manual"))
-    return f"{name} (0x{code:04x}, internal {internal}): {advice}"
 
 
 class TouchXConfig(ConfigModel):
     """The ``touchx`` backend. ``library``: libHD path or name; ``device_name``: the name set in
-    the Touch Setup tool (empty = HD_DEFAULT_DEVICE)."""
+    the Touch Setup tool (empty = HD_DEFAULT_DEVICE); ``thermal_time_constant_s``: the window of
+    the force budget (s); ``ramp_s``: force ramp-up after calibration or warm motors (s);
+    ``warm_ramp_s``: ramp-down on HD_WARM_MOTORS (s); ``warm_cooldown_s``: how long the force
+    stays off after HD_WARM_MOTORS when the device gives no motor temperature (s)."""
 
     backend: Literal["touchx"] = "touchx"
     library: str = "libHD.so"
     device_name: str = ""
     spec: DeviceSpec = DeviceSpec()
-
-
-class _HDErrorInfo(ctypes.Structure):
-    _fields_ = [("errorCode", ctypes.c_uint), ("internalErrorCode", ctypes.c_int),
-                ("hHD", ctypes.c_uint)]  # fmt: skip
-
-
-HDSchedulerCallback = ctypes.CFUNCTYPE(ctypes.c_uint, ctypes.c_void_p)
-
-
-def load_hd_library(name: str) -> ctypes.CDLL:
-    """Load libHD with its signatures; DeviceError saying how to get it when it is missing."""
-    candidates = [name]
-    found = ctypes.util.find_library("HD")
-    if found and found not in candidates:
-        candidates.append(found)
-    errors = []
-    for cand in candidates:
-        try:
-            lib = ctypes.CDLL(cand)
-            break
-        except OSError as exc:
-            errors.append(f"{cand}: {exc}")
-    else:
-        raise DeviceError(
-            "touchx: the OpenHaptics HD library (libHD.so) is not installed or not found "
-            f"({'; '.join(errors)}). Install the 3D Systems Touch device driver and OpenHaptics "
-            "for Linux, or set [servo.device] library to the path of libHD.so; to run without "
-            'the device use backend = "sim" (or "hid" for a SpaceMouse).'
-        )
-    c_uint, c_int, c_double = ctypes.c_uint, ctypes.c_int, ctypes.c_double
-    sigs = {
-        "hdInitDevice": (c_uint, [ctypes.c_char_p]),
-        "hdDisableDevice": (None, [c_uint]),
-        "hdMakeCurrentDevice": (None, [c_uint]),
-        "hdGetError": (_HDErrorInfo, []),
-        "hdBeginFrame": (None, [c_uint]),
-        "hdEndFrame": (None, [c_uint]),
-        "hdGetDoublev": (None, [c_uint, ctypes.POINTER(c_double)]),
-        "hdGetIntegerv": (None, [c_uint, ctypes.POINTER(c_int)]),
-        "hdGetString": (ctypes.c_char_p, [c_uint]),
-        "hdSetDoublev": (None, [c_uint, ctypes.POINTER(c_double)]),
-        "hdEnable": (None, [c_uint]),
-        "hdCheckCalibration": (c_uint, []),
-        "hdUpdateCalibration": (None, [c_uint]),
-        "hdSetSchedulerRate": (None, [ctypes.c_ulong]),
-        "hdStartScheduler": (None, []),
-        "hdStopScheduler": (None, []),
-        "hdScheduleAsynchronous": (
-            ctypes.c_ulong,
-            [HDSchedulerCallback, ctypes.c_void_p, ctypes.c_ushort],
-        ),  # fmt: skip
-        "hdUnschedule": (None, [ctypes.c_ulong]),
-    }
-    missing = []
-    for fn, (restype, argtypes) in sigs.items():
-        try:
-            f = getattr(lib, fn)
-        except AttributeError:
-            missing.append(fn)
-            continue
-        f.restype, f.argtypes = restype, argtypes
-    if missing:
-        raise DeviceError(
-            f"touchx: {name} lacks {', '.join(missing)}; is it the OpenHaptics HD library "
-            "(3.4 or later)?"
-        )
-    return lib
+    thermal_time_constant_s: float = Field(1.0, gt=0.0, le=600.0)
+    ramp_s: float = Field(1.0, ge=0.0, le=10.0)
+    warm_ramp_s: float = Field(1.0, gt=0.0, le=10.0)
+    warm_cooldown_s: float = Field(60.0, ge=0.0, le=3600.0)
 
 
 class TouchX(HapticDevice):
     """The Touch X via libHD's scheduler; see the module docstring.
 
     ``calibration``: "ok", "needs_update" or "needs_manual_input" (force zero until "ok");
-    ``ticks``: servo callbacks run; ``force_limit_n``: the limit actually applied (N);
+    ``calibration_styles``/``calibration_style``: supported and chosen (``STYLE_NAMES``);
+    ``ticks``: servo callbacks run; ``force_limit_n``: peak limit (N); ``continuous_force_n``:
+    the sustained limit (N); ``limit_n``: the limit of the last tick (N); ``warm_motors``: force
+    ramped off until the motors cool; ``temperature``: the hottest motor (0 room .. 1 overheat,
+    None if the device gives none); ``timing``: the callback's period and duration;
     ``model``/``serial``: what the device says it is.
     """
 
@@ -199,23 +160,42 @@ class TouchX(HapticDevice):
         self.config = config or TouchXConfig()
         self.spec = self.config.spec
         self.force_limit_n = self.spec.max_force_n
+        self.continuous_force_n = min(self.spec.continuous_force_n, self.force_limit_n)
+        self.limit_n = self.force_limit_n
         self.calibration = "unknown"
+        self.calibration_styles = 0
         self.calibration_style = 0
         self.ticks = 0
         self.errors = 0
+        self.warm_motors = False
+        self.temperature: float | None = None
+        self.timing = CallbackTiming()
         self.model = self.serial = ""
-        self._lib: ctypes.CDLL | None = None
+        self._lib: HDLibrary | None = None
         self._hhd: int | None = None
         self._handle: int | None = None
         self._cb = HDSchedulerCallback(self._servo_tick)  # kept alive while scheduled
         self._m = (ctypes.c_double * 16)()
         self._v = (ctypes.c_double * 3)()
+        self._temps = (ctypes.c_double * 6)()
+        self._n_motors = 0  # 0: no HD_MOTOR_TEMPERATURE
         self._buttons = ctypes.c_int(0)
+        self._in_frame = False
         self._out = (ctypes.c_double * 3)()
         self._force: Vec3 = (0.0, 0.0, 0.0)  # next force to write (already safe), N
         self._state: DeviceState | None = None
         self._error: str | None = None
+        self._messages: list[tuple[str, tuple[object, ...]]] = []  # from the HD servo thread
         self._lock = threading.Lock()
+        self._cv = threading.Condition(self._lock)
+        # force limiting (HD servo thread only)
+        self._dt = 1.0 / SERVO_RATE_HZ
+        self._heat = 0.0  # |F|^2 low-passed, N^2
+        self._clamp = self.force_limit_n  # the adaptive clamp (N), see _limited
+        self._hot = self._hot_said = False
+        self._scale = 1.0  # ramp factor: calibration and warm motors
+        self._warm_last = -math.inf
+        self._last_update = -math.inf
 
     # ------------------------------------------------------------------ open / close
     def open(self) -> None:
@@ -225,17 +205,22 @@ class TouchX(HapticDevice):
         err = lib.hdGetError()
         if hhd == HD_INVALID_HANDLE or err.errorCode != HD_SUCCESS:
             who = repr(self.config.device_name) if self.config.device_name else "the default"
+            gtdd = gtdd_home_problem()
             raise DeviceError(
                 f"touchx: cannot open {who} device: "
-                f"{describe_hd_error(err.errorCode, err.internalErrorCode)}; is the Touch X "
-                "connected and set up (Touch_Setup)?"
+                f"{describe_hd_error(err.errorCode, err.internalErrorCode)}; "
+                + (f"{gtdd}." if gtdd else "is the Touch X connected and set up (Touch_Setup)?")
             )
         self._lib, self._hhd = lib, hhd
         try:
             self._read_properties()
             lib.hdEnable(HD_FORCE_OUTPUT)
+            self._raise_if_error("enabling force output")
+            for cap in (HD_FORCE_RAMPING, HD_MAX_FORCE_CLAMPING):  # as OpenHaptics' examples
+                lib.hdEnable(cap)
+            self._drain_errors()  # optional safety features: not fatal if unsupported
             lib.hdSetSchedulerRate(SERVO_RATE_HZ)
-            self._raise_if_error("setting up the device")
+            self._raise_if_error("setting the scheduler rate")
             self._handle = lib.hdScheduleAsynchronous(self._cb, None, HD_MAX_SCHEDULER_PRIORITY)
             self._raise_if_error("scheduling the servo callback")
             lib.hdStartScheduler()
@@ -247,16 +232,31 @@ class TouchX(HapticDevice):
     def _read_properties(self) -> None:
         lib = self._lib
         assert lib is not None
-        peak = ctypes.c_double(0.0)
-        lib.hdGetDoublev(HD_NOMINAL_MAX_FORCE, ctypes.byref(peak))
-        if math.isfinite(peak.value) and peak.value > 0.0:
-            self.force_limit_n = min(self.spec.max_force_n, peak.value)
+        self._drain_errors()
+        val = ctypes.c_double(0.0)
+        lib.hdGetDoublev(HD_NOMINAL_MAX_FORCE, ctypes.byref(val))
+        if lib.hdGetError().errorCode == HD_SUCCESS and math.isfinite(val.value) and val.value > 0:
+            self.force_limit_n = min(self.spec.max_force_n, val.value)
+        val.value = 0.0
+        lib.hdGetDoublev(HD_NOMINAL_MAX_CONTINUOUS_FORCE, ctypes.byref(val))
+        cont = val.value if lib.hdGetError().errorCode == HD_SUCCESS else math.nan
+        if not (math.isfinite(cont) and cont > 0):
+            cont = self.spec.continuous_force_n
+            log.warning("touchx: no HD_NOMINAL_MAX_CONTINUOUS_FORCE; using the spec's %.2f N", cont)
+        self.continuous_force_n = min(self.spec.continuous_force_n, cont, self.force_limit_n)
+        self.limit_n = self._clamp = self.force_limit_n
+        dof = ctypes.c_int(0)
+        lib.hdGetIntegerv(HD_OUTPUT_DOF, ctypes.byref(dof))
+        n = dof.value if lib.hdGetError().errorCode == HD_SUCCESS and 0 < dof.value <= 6 else 3
+        lib.hdGetDoublev(HD_MOTOR_TEMPERATURE, self._temps)
+        self._n_motors = n if lib.hdGetError().errorCode == HD_SUCCESS else 0
         style = ctypes.c_int(0)
         lib.hdGetIntegerv(HD_CALIBRATION_STYLE, ctypes.byref(style))
-        self.calibration_style = style.value
+        self.calibration_styles = style.value if lib.hdGetError().errorCode == HD_SUCCESS else 0
+        self.calibration_style = choose_calibration_style(self.calibration_styles)
         self.model = (lib.hdGetString(HD_DEVICE_MODEL_TYPE) or b"").decode(errors="replace")
         self.serial = (lib.hdGetString(HD_DEVICE_SERIAL_NUMBER) or b"").decode(errors="replace")
-        lib.hdGetError()  # optional properties: an error here is not fatal
+        self._drain_errors()  # optional properties: an error here is not fatal
 
     def close(self) -> None:
         """Zero the force, stop the scheduler, release the device; safe to call twice."""
@@ -265,6 +265,7 @@ class TouchX(HapticDevice):
         with self._lock:
             self._force = (0.0, 0.0, 0.0)
         self._release()
+        self._flush_messages()
 
     def _release(self) -> None:
         lib, hhd = self._lib, self._hhd
@@ -279,6 +280,8 @@ class TouchX(HapticDevice):
             lib.hdDisableDevice(hhd)
         lib.hdGetError()
         self._lib = self._hhd = None
+        with self._cv:
+            self._cv.notify_all()
 
     # ------------------------------------------------------------------ servo loop side
     def read(self) -> DeviceState:
@@ -288,11 +291,22 @@ class TouchX(HapticDevice):
         with self._lock:
             error, self._error = self._error, None
             state = self._state
+        if self._messages:
+            self._flush_messages()
         if error is not None:
             raise DeviceError(f"touchx: {error}")
         if state is None:
             raise DeviceError("touchx: no servo tick yet (is the HD scheduler running?)")
         return state
+
+    def wait_tick(self, after: int, timeout: float) -> int:
+        """Block until a servo tick later than tick number ``after`` has run, at most
+        ``timeout`` s; returns the newest tick number. The wait holds no GIL, so the HD servo
+        thread's callback is never kept waiting by the caller."""
+        with self._cv:
+            if self.ticks <= after and self._lib is not None:
+                self._cv.wait(timeout)
+            return self.ticks
 
     def command_force(self, force: Vec3) -> None:
         """Set the force the next servo tick writes (N, device frame; clamped, zero if NaN)."""
@@ -302,12 +316,33 @@ class TouchX(HapticDevice):
         with self._lock:
             self._force = safe
 
+    def _say(self, msg: str, *args: object) -> None:
+        """Queue a warning from the HD servo thread (no I/O in the callback); ``read`` logs it."""
+        if len(self._messages) < 100:
+            self._messages.append((msg, args))
+
+    def _flush_messages(self) -> None:
+        while self._messages:
+            msg, args = self._messages.pop(0)
+            log.warning(msg, *args)
+
     def _raise_if_error(self, what: str) -> None:
         err = self._lib.hdGetError()  # type: ignore[union-attr]
         if err.errorCode != HD_SUCCESS:
+            self._drain_errors()
             raise DeviceError(
                 f"touchx: {describe_hd_error(err.errorCode, err.internalErrorCode)} while {what}"
             )
+
+    def _drain_errors(self, limit: int = 16) -> list[tuple[int, int]]:
+        """Pop HD's error stack (most recent first); the (code, internal) pairs."""
+        out = []
+        for _ in range(limit):
+            err = self._lib.hdGetError()  # type: ignore[union-attr]
+            if err.errorCode == HD_SUCCESS:
+                break
+            out.append((int(err.errorCode), int(err.internalErrorCode)))
+        return out
 
     # ------------------------------------------------------------------ HD servo thread
     def _servo_tick(self, _data: int | None) -> int:
@@ -317,49 +352,175 @@ class TouchX(HapticDevice):
         except Exception as exc:  # noqa: BLE001 - an exception must not kill the servo thread
             with self._lock:
                 self._error = f"servo callback failed: {exc!r}"
+                self._force = (0.0, 0.0, 0.0)
+            if self._in_frame and self._lib is not None:  # close it with zero force
+                self._in_frame = False
+                try:
+                    self._out[0] = self._out[1] = self._out[2] = 0.0
+                    self._lib.hdSetDoublev(HD_CURRENT_FORCE, self._out)
+                    self._lib.hdEndFrame(self._hhd)
+                except Exception:  # noqa: BLE001 - nothing more to do from here
+                    pass
             return HD_CALLBACK_CONTINUE
 
     def _tick(self) -> int:
         lib, hhd = self._lib, self._hhd
         if lib is None or hhd is None:
             return HD_CALLBACK_DONE
+        t = time.monotonic()
+        self.timing.enter(t)
+        now = self.ticks * self._dt  # servo time (s): ramps and waits count ticks
         lib.hdBeginFrame(hhd)
+        self._in_frame = True
         lib.hdGetDoublev(HD_CURRENT_TRANSFORM, self._m)
         lib.hdGetDoublev(HD_CURRENT_VELOCITY, self._v)
         lib.hdGetIntegerv(HD_CURRENT_BUTTONS, ctypes.byref(self._buttons))
+        if self._n_motors:
+            lib.hdGetDoublev(HD_MOTOR_TEMPERATURE, self._temps)
         cal = lib.hdCheckCalibration()
-        if cal == HD_CALIBRATION_NEEDS_UPDATE:
-            style = self.calibration_style
-            for s in (HD_CALIBRATION_ENCODER_RESET, HD_CALIBRATION_AUTO):
-                if style & s:
-                    lib.hdUpdateCalibration(s)
-                    break
-        calibration = CALIBRATION_NAMES.get(cal, f"unknown 0x{cal:04x}")
+        errors = self._drain_errors()  # raised since the last tick (the scheduler's own)
+        if errors:
+            self._handle_errors(errors, now)
         with self._lock:
-            force = self._force if cal == HD_CALIBRATION_OK and self._error is None else None
+            cmd = self._force if self._error is None else (0.0, 0.0, 0.0)
         out = self._out
-        out[0], out[1], out[2] = force or (0.0, 0.0, 0.0)
+        out[0], out[1], out[2] = self._limited(cmd, cal == HD_CALIBRATION_OK, now)
         lib.hdSetDoublev(HD_CURRENT_FORCE, out)
         lib.hdEndFrame(hhd)
-        err = lib.hdGetError()
-        state = self._make_state(time.monotonic())
-        with self._lock:
+        self._in_frame = False
+        if cal == HD_CALIBRATION_NEEDS_UPDATE:
+            self._update_calibration(now)
+        errors = self._drain_errors()  # raised by this tick's frame
+        if errors:
+            self._handle_errors(errors, now)
+        state = self._make_state(t)
+        calibration = CALIBRATION_NAMES.get(cal, f"unknown 0x{cal:04x}")
+        with self._cv:
             self.ticks += 1
             if calibration != self.calibration:
                 self._calibration_changed(calibration)
-            if err.errorCode != HD_SUCCESS:
-                self.errors += 1
-                self._error = describe_hd_error(err.errorCode, err.internalErrorCode)
-                self._force = (0.0, 0.0, 0.0)  # an HD error drops the commanded force
             self._state = state
+            self._cv.notify_all()
+        self.timing.done(lib.hdGetSchedulerTimeStamp())
         return HD_CALLBACK_CONTINUE
 
+    def _limited(self, cmd: Vec3, calibrated: bool, now: float) -> Vec3:
+        """The force to write this tick (N): ``cmd`` within the adaptive clamp and the ramp;
+        zero while not calibrated. HD servo thread only.
+
+        The clamp is OpenHaptics' PreventWarmMotors: when the motors get hot it starts at the
+        force then commanded and decays by 0.1 % a tick to the continuous rating; when they are
+        cool again it grows by 0.1 % a tick back to the peak. "Hot" is the device's own motor
+        temperature above 0.7 (below 0.5: cool), or the thermal budget: ``heat`` (|F|^2
+        low-passed over ``thermal_time_constant_s``) above half the continuous rating squared
+        (cool below a quarter). A sustained press so settles at the continuous rating, where
+        ``heat`` stays at its square, and a peak passes for a fraction of a second.
+        """
+        dt, peak, cont = self._dt, self.force_limit_n, self.continuous_force_n
+        temp = None
+        if self._n_motors:
+            t = max(self._temps[i] for i in range(self._n_motors))
+            temp = self.temperature = t if math.isfinite(t) else None
+        c2 = cont * cont
+        hot_temp = temp is not None and temp > TEMP_RAMP_DOWN_ON
+        if not self._hot and (hot_temp or self._heat > BUDGET_ON * c2):
+            self._hot = True
+            cx, cy, cz = cmd
+            self._clamp = min(self._clamp, max(cont, math.sqrt(cx * cx + cy * cy + cz * cz)))
+            if hot_temp and not self._hot_said:
+                self._hot_said = True
+                self._say("touchx: motors at %.0f %% of their limit: force limited toward the "
+                          "continuous %.2f N", 100 * temp, cont)  # fmt: skip
+        elif (
+            self._hot
+            and self._heat < BUDGET_OFF * c2
+            and (temp is None or temp < TEMP_RAMP_DOWN_OFF)
+        ):
+            self._hot = self._hot_said = False
+        if self._hot:
+            self._clamp = max(cont, self._clamp * TEMP_DOWN_RATE)
+        else:
+            self._clamp = min(peak, self._clamp * TEMP_UP_RATE)
+        if self.warm_motors and self._cooled(now):
+            self.warm_motors = False
+            self._say("touchx: motors cooled; force ramps back over %.1f s", self.config.ramp_s)
+        if not calibrated:
+            self._scale = 0.0
+        elif self.warm_motors:
+            self._scale = max(0.0, self._scale - dt / self.config.warm_ramp_s)
+        elif self._scale < 1.0:
+            ramp = self.config.ramp_s
+            self._scale = 1.0 if ramp <= 0.0 else min(1.0, self._scale + dt / ramp)
+        # 1 ppb under: the rounding of the clamp must not cross the device's own max force check
+        limit = min(self._clamp, peak) * (1.0 - 1e-9)
+        self.limit_n = limit
+        fx, fy, fz = _safe_force(cmd, limit)
+        s = self._scale
+        fx, fy, fz = fx * s, fy * s, fz * s
+        alpha = min(1.0, dt / self.config.thermal_time_constant_s)
+        self._heat += alpha * (fx * fx + fy * fy + fz * fz - self._heat)
+        return (fx, fy, fz)
+
+    def _handle_errors(self, errors: list[tuple[int, int]], now: float) -> None:
+        """HD_WARM_MOTORS ramps the force off (:meth:`_warm`); any other error is reported by
+        the next ``read`` and drops the commanded force."""
+        for code, internal in errors:
+            if code == HD_WARM_MOTORS:
+                self._warm(now)
+                continue
+            with self._lock:
+                self.errors += 1
+                self._error = describe_hd_error(code, internal)
+                self._force = (0.0, 0.0, 0.0)
+
+    def _warm(self, now: float) -> None:
+        if not self.warm_motors:
+            self._say(
+                "touchx: HD_WARM_MOTORS: the motors are too warm; force ramps down to zero over "
+                "%.1f s and stays off until they cool", self.config.warm_ramp_s,
+            )  # fmt: skip
+        self.warm_motors = True
+        self._warm_last = now
+
+    def _cooled(self, now: float) -> bool:
+        since = now - self._warm_last
+        if self._n_motors and self.temperature is not None:
+            return since > 1.0 and self.temperature < TEMP_RAMP_DOWN_OFF
+        return since > self.config.warm_cooldown_s
+
+    def _update_calibration(self, now: float) -> None:
+        """``hdUpdateCalibration`` with the chosen style, outside the frame (as OpenHaptics'
+        Calibration example), at most every 0.1 s; never ENCODER_RESET (:mod:`.touchx_reset`)."""
+        style = self.calibration_style
+        if style in (0, HD_CALIBRATION_ENCODER_RESET):
+            return
+        if now - self._last_update < CALIBRATION_UPDATE_EVERY_S:
+            return
+        self._last_update = now
+        self._lib.hdUpdateCalibration(style)  # type: ignore[union-attr]
+
     def _calibration_changed(self, calibration: str) -> None:
-        self.calibration = calibration
-        if calibration == "needs_manual_input":
-            log.warning("touchx: calibration needed: put the stylus in the inkwell (force off)")
-        elif calibration != "ok":
-            log.warning("touchx: calibration %s (force off until ok)", calibration)
+        prev, self.calibration = self.calibration, calibration
+        style = self.calibration_style
+        inkwell = bool(self.calibration_styles & HD_CALIBRATION_INKWELL)
+        if calibration == "ok":
+            if prev != "unknown":
+                self._say("touchx: calibrated; force ramps back over %.1f s (the position may "
+                            "have jumped)", self.config.ramp_s)  # fmt: skip
+        elif style == HD_CALIBRATION_ENCODER_RESET:
+            self._say(
+                "touchx: calibration %s: hold the arm at its reset pose and run `python -m "
+                "humantele.haptics.devices.touchx_reset` with the servo stopped "
+                "(force off until then)", calibration,
+            )  # fmt: skip
+        elif calibration == "needs_manual_input" and inkwell:
+            self._say("touchx: calibration needed: put the stylus in the inkwell (force off)")
+        elif calibration == "needs_manual_input":
+            self._say("touchx: calibration needs manual input (force off until ok); run "
+                        "Touch_Diagnostic to calibrate")  # fmt: skip
+        else:
+            self._say("touchx: calibration %s (%s; force off until ok)", calibration,
+                        STYLE_NAMES.get(style, "no supported style"))  # fmt: skip
 
     def _make_state(self, t: float) -> DeviceState:
         m, v = self._m, self._v  # column-major 4x4, translation in mm at 12..14; v in mm/s

@@ -1,0 +1,181 @@
+"""The clinic the follower works in, behind one interface: real devices, or the simulated
+clinic that provides all of them from one simulated world.
+
+The daemon sees devices only. It gets tracker frames (each with the camera's pose in the
+tracker's world, from the device), force readings, video frames and the headset's pose from
+device objects, and never reads the simulated world's truth. What it gives the clinic is what
+the headset page shows the person holding the probe (:class:`Guide`): the virtual probe and
+whether it is live, and the landmark to press while calibrating.
+
+- ``backend = "devices"``: the room is real. :class:`DeviceClinic` does nothing with the guide
+  (the novice sees the page); the devices are the configured backends (``[sensing.camera]``
+  ``hl2ss``/``opencv``, ``[sensing.force.sensor]`` ``hid``, ``[follower.video.*]``
+  ``opencv``). No simulator module is imported in any of the follower's processes.
+- ``backend = "sim"`` (the demo's): :mod:`humantele.follower.sim_clinic` holds the patient,
+  the novice, their head and the probe in one simulated world; its devices (tracker, force
+  board, ultrasound and POV video) observe that world. The sim is imported only then.
+
+Frames: the tracker's world (y up), SI units. This module holds the clinic's settings and the
+factories; it imports nothing of the simulator.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Annotated, Any, Literal, Protocol
+
+from pydantic import Field
+
+from humantele.config import ConfigModel
+from humantele.geometry import Pose
+
+if TYPE_CHECKING:
+    from humantele.follower.sensing import SensingConfig, SensingDevices
+    from humantele.tracking.tool import ToolDefinition
+
+
+class SimPatientConfig(ConfigModel):
+    """The simulated patient on the bed (world frame, m, N/m)."""
+
+    bed_height_m: float = Field(0.80, description="bed surface height (world y)")
+    center_xz_m: tuple[float, float] = Field(
+        (0.35, -0.15), description="abdomen centre, world x and z"
+    )
+    yaw_deg: float = Field(20.0, ge=-180, le=180, description="body axis about world y")
+    half_width_m: float = Field(0.16, gt=0.03, le=0.4, description="lateral semi-axis a")
+    half_height_m: float = Field(0.11, gt=0.02, le=0.3, description="vertical semi-axis b")
+    half_length_m: float = Field(0.35, gt=0.05, le=1.0, description="longitudinal semi-axis")
+    tissue_stiffness_n_per_m: float = Field(600.0, gt=0, le=1e5)
+    bed_stiffness_n_per_m: float = Field(5000.0, gt=0, le=1e6)
+
+
+class SimHumanConfig(ConfigModel):
+    """The simulated novice: lag 0.35 s, error 6.24 mm / 5.93 deg RMS (Black et al., C&G 2024,
+    Table 3; docs/references.md)."""
+
+    reaction_delay_s: float = Field(0.20, ge=0, le=2.0)
+    tracking_time_constant_s: float = Field(0.15, gt=0, le=2.0)
+    offset_mm: tuple[float, float, float] = Field((3.0, -2.0, 3.5), description="world frame")
+    offset_rotation_deg: tuple[float, float, float] = Field(
+        (3.0, -2.0, 3.0), description="rotation vector (deg) applied in the tip frame"
+    )
+    tremor_mm_rms: float = Field(0.8, ge=0, le=20, description="per axis")
+    tremor_deg_rms: float = Field(0.6, ge=0, le=20, description="per axis")
+    tremor_hz: float = Field(9.0, gt=1, le=30)
+    rate_hz: float = Field(100.0, gt=10, le=1000, description="nominal step rate of the model")
+    max_push_n: float = Field(30.0, gt=0, le=100, description="a person pushes no harder")
+    seed: int = 0
+
+
+class SimHeadConfig(ConfigModel):
+    """The follower's head (the headset camera): above the work, looking down, following the
+    probe loosely (people keep their hands in view)."""
+
+    height_m: float = Field(0.42, gt=0.1, le=1.0, description="camera above the probe tip")
+    follow_time_constant_s: float = Field(0.6, gt=0, le=10)
+
+
+SIMULATOR_MODULES = frozenset({  # the simulated world and its devices' renderers
+    "humantele.follower.sim_clinic", "humantele.follower.sim_world", "humantele.follower.sim_human",
+    "humantele.tracking.sim", "humantele.forcesense.sim", "humantele.video.scene",
+    "humantele.video.simsource", "humantele.video.sim_ultrasound", "humantele.video.sim_pov",
+    "humantele.video.phantom", "humantele.video.speckle",
+})  # fmt: skip
+
+
+def simulator_modules() -> list[str]:
+    """The simulator's modules loaded in this process (none in a real clinic's follower)."""
+    import sys
+
+    return sorted(SIMULATOR_MODULES.intersection(sys.modules))
+
+
+class SimClinicConfig(ConfigModel):
+    """The simulated clinic (``[follower.clinic]``, ``backend = "sim"``): a patient on a bed,
+    the novice holding the probe (a model of the study's people: docs/references.md), their
+    head wearing the headset; ``auto_calibrate``: the simulated technician presses the four
+    landmarks when asked."""
+
+    backend: Literal["sim"] = "sim"
+    auto_calibrate: bool = Field(True, description="the simulated technician presses landmarks")
+    patient: SimPatientConfig = Field(default_factory=SimPatientConfig)
+    novice: SimHumanConfig = Field(default_factory=SimHumanConfig)
+    head: SimHeadConfig = Field(default_factory=SimHeadConfig)
+
+
+class DeviceClinicConfig(ConfigModel):
+    """A real clinic (``backend = "devices"``): every device is a configured backend."""
+
+    backend: Literal["devices"] = "devices"
+
+
+ClinicConfig = Annotated[SimClinicConfig | DeviceClinicConfig, Field(discriminator="backend")]
+
+
+@dataclass(frozen=True)
+class Guide:
+    """What the headset page shows the person holding the probe at time ``t`` (s): the
+    virtual probe's tip (world; None before a pose and a calibration), whether it is live
+    (fresh, link up, no clutch: follow it) and, while calibrating, the landmark asked for
+    (None otherwise). ``measuring``: the follower's sensing measures (a press before it
+    does is not seen)."""
+
+    t: float
+    virtual: Pose | None
+    live: bool
+    landmark: str | None
+    measuring: bool = True
+
+
+class Clinic(Protocol):
+    """The room, as the daemon sees it."""
+
+    def step(self, guide: Guide) -> None:
+        """The person sees ``guide`` (each tick)."""
+
+    def world_at_frame(self, t: float) -> Any:
+        """What simulated devices observe at a tracker frame taken at ``t`` (passed to the
+        sensing as it is, never read by the daemon); None with real devices."""
+
+    def scene(self) -> Any:
+        """The latest scene for simulated video sources (None with real devices)."""
+
+
+class DeviceClinic:
+    """A real clinic: the novice sees the headset page; nothing to simulate."""
+
+    def step(self, guide: Guide) -> None:
+        pass
+
+    def world_at_frame(self, t: float) -> None:
+        return None
+
+    def scene(self) -> None:
+        return None
+
+
+def make_clinic(config: SimClinicConfig | DeviceClinicConfig, video: Any = None) -> Clinic:
+    """The clinic a configuration asks for; ``video``: the video sender whose simulated
+    sources render the sim clinic's scene (None: no video)."""
+    if isinstance(config, SimClinicConfig):
+        from humantele.follower.sim_clinic import SimClinic  # the simulator, only when asked
+
+        return SimClinic(config, video)
+    return DeviceClinic()
+
+
+def make_sensing_devices(
+    clinic: SimClinicConfig | DeviceClinicConfig,
+    sensing: SensingConfig,
+    tool: ToolDefinition,
+) -> SensingDevices:
+    """The tracker camera and force sensor (not yet opened) with the force calibration: the
+    sim clinic's devices, or the configured real backends (a ``sim`` backend in a real
+    clinic is refused: nothing would move it)."""
+    if isinstance(clinic, SimClinicConfig):
+        from humantele.follower.sim_clinic import sim_sensing_devices
+
+        return sim_sensing_devices(sensing, tool)
+    from humantele.follower.sensing import real_sensing_devices
+
+    return real_sensing_devices(sensing, tool)

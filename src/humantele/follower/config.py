@@ -1,0 +1,82 @@
+"""The follower daemon's configuration (``[follower]`` of configs/follower.toml): every field
+has a default that runs the demo on the simulated clinic."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, model_validator
+
+from humantele.config import ConfigModel
+from humantele.follower.calibration import CalibrationConfig
+from humantele.follower.clinic import ClinicConfig, SimClinicConfig
+from humantele.follower.feed import FeedConfig
+from humantele.follower.registration import RegistrationConfig
+from humantele.interop.igtl import IgtlConfig
+from humantele.media.config import FollowerVideoConfig
+from humantele.recording import RecorderConfig
+from humantele.runtime.session import SessionConfig
+from humantele.transport import LinkConfig
+
+DEFAULT_STATE_DIR = "~/.local/state/humantele/follower"
+SIM_SETTING = 'the simulated clinic is [follower.clinic] (backend = "sim"): '
+
+
+class FollowerConfig(ConfigModel):
+    """The follower daemon (``[follower]`` of configs/follower.toml)."""
+
+    moved_fields = {
+        "auto_calibrate": SIM_SETTING + "auto_calibrate",
+        "sim_patient": SIM_SETTING + "[follower.clinic.patient]",
+        "sim_human": SIM_SETTING + "[follower.clinic.novice]",
+        "sim_head": SIM_SETTING + "[follower.clinic.head]",
+    }
+
+    rate_hz: float = Field(100.0, gt=1, le=1000, description="tick: probe, sensing, state")
+    stale_after_s: float = Field(0.3, gt=0, le=10, description="virtual probe stale after")
+    alignment_settle_s: float = Field(
+        1.0, ge=0, le=30, description="alignment error counted this long after following starts"
+    )
+    state_dir: str = Field(DEFAULT_STATE_DIR, description="where the calibration is saved")
+    probe_source: Literal["pipeline", "truth"] = Field(
+        "pipeline", description="measure through the sensing pipeline ([sensing]), or the truth"
+    )
+    sensing_rate_hz: float = Field(45.0, gt=1, le=1000, description="tracker frames per second")
+    sensing_worker: Literal["process", "thread"] = Field(
+        "process",
+        description="where frames are measured while the daemon runs: a child process (its "
+        "GIL apart from the loop's) or a thread",
+    )
+    sensing_nice: int = Field(
+        10, ge=0, le=19, description="the sensing process's nice: the daemon's loop wakes first"
+    )
+    tool: str = Field(
+        "probe_default", description="the probe's tool definition: tracked, drawn, tip (one)"
+    )
+    link: LinkConfig = LinkConfig()
+    feed: FeedConfig = FeedConfig()
+    calibration: CalibrationConfig = CalibrationConfig()
+    clinic: ClinicConfig = Field(default_factory=SimClinicConfig)
+    video: FollowerVideoConfig = FollowerVideoConfig()
+    session: SessionConfig = SessionConfig()
+    recording: RecorderConfig = RecorderConfig()
+    igtl: IgtlConfig = IgtlConfig()
+    registration: RegistrationConfig = RegistrationConfig()
+
+    @model_validator(mode="after")
+    def _sim_needs_the_sim_clinic(self) -> FollowerConfig:
+        if isinstance(self.clinic, SimClinicConfig):
+            return self
+        if self.probe_source == "truth":
+            raise ValueError(
+                'probe_source = "truth" is the simulated clinic\'s ideal sensor: '
+                'use "pipeline" with [follower.clinic] backend = "devices"'
+            )
+        if self.video.enabled:
+            for name in ("us", "pov"):
+                if getattr(self.video, name).backend == "sim":
+                    raise ValueError(
+                        f'video.{name}: a "sim" source needs the simulated clinic; with '
+                        'backend = "devices" give it a real one (e.g. "opencv")'
+                    )
+        return self

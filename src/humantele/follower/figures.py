@@ -1,0 +1,77 @@
+"""The follower's running figures: the expert's pose stream as it arrives (rate, age) and
+the alignment error of the real probe to the virtual one while following."""
+
+from __future__ import annotations
+
+import bisect
+import math
+from collections import deque
+
+import numpy as np
+
+from humantele.geometry import Pose
+from humantele.runtime.stats import SortedWindow, percentile_ms
+
+ALIGN_KEPT = 3000  # alignment errors the RMS is over (the last ~65 s of 45 Hz frames)
+
+
+class PoseStreamFigures:
+    """Arrival times (s, monotonic) and one-way ages (s) of the expert's poses."""
+
+    def __init__(self) -> None:
+        self.received = 0
+        self.ages = SortedWindow(20000)  # percentiles without sorting on the loop
+        self.times: deque[float] = deque(maxlen=2000)
+        self._reported = 0
+
+    def add(self, t_rx: float, age_s: float | None) -> None:
+        self.received += 1
+        self.times.append(t_rx)
+        if age_s is not None and math.isfinite(age_s):
+            self.ages.append(max(0.0, age_s))
+
+    def rate_hz(self, now: float, window_s: float = 1.0) -> float:
+        """Poses received per second over the last ``window_s``."""
+        recent = len(self.times) - bisect.bisect_left(self.times, now - window_s)
+        return round(recent / window_s, 1)
+
+    def median_since_last(self) -> float | None:
+        """The median age (s) of the poses since the last call, None if none came."""
+        new = min(len(self.ages), self.received - self._reported)
+        self._reported = self.received
+        return float(np.median(self.ages.last(new))) if new > 0 else None
+
+    def stats(self, now: float) -> dict:
+        return {
+            "poses_received": self.received,
+            "pose_rate_hz": self.rate_hz(now),
+            "pose_age_p50_ms": percentile_ms(self.ages, 50),
+            "pose_age_p99_ms": percentile_ms(self.ages, 99),
+            "pose_age_last_ms": percentile_ms(self.ages.last(1), 50),
+        }
+
+
+class AlignmentFigures:
+    """Position (m) and angle (rad) errors of the real probe's tip to the virtual one's."""
+
+    def __init__(self) -> None:
+        self.pos: deque[float] = deque(maxlen=ALIGN_KEPT)
+        self.ang: deque[float] = deque(maxlen=ALIGN_KEPT)
+
+    def add(self, real: Pose, virtual: Pose) -> None:
+        dp, da = real.distance_to(virtual)
+        self.pos.append(dp)
+        self.ang.append(da)
+
+    def stats(self) -> dict:
+        return {
+            "alignment_mm_rms": _rms_scaled(self.pos, 1000.0),
+            "alignment_deg_rms": _rms_scaled(self.ang, 180.0 / math.pi),
+        }
+
+
+def _rms_scaled(values: deque[float], scale: float) -> float | None:
+    if not values:
+        return None
+    a = np.fromiter(values, dtype=float, count=len(values))
+    return round(float(np.sqrt(np.mean(a * a))) * scale, 3)

@@ -1,0 +1,149 @@
+"""Where the follower's tracker frames are measured while the daemon runs, off its loop.
+
+:class:`SensingWorker` is the daemon's one handle: ``submit(frame)`` at the tracker's rate,
+the measurement comes back on the loop through ``on_measured(frame, measurement)``. By
+default a child process measures (:mod:`humantele.follower.sensing_process`: its own GIL, so
+the pose path is never held up); ``sensing_worker = "thread"`` (or a child that failed for
+good) measures on a worker thread; before :meth:`start`, frames are measured in line. Frames
+are measured in order and never overlap: a frame due while the previous one is measured is
+skipped (``skipped``), and so are those due while the child starts (``starting``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Any
+
+from humantele.follower.sensing import Measurement, Sensing, SensingConfig, TrackerImage
+from humantele.follower.sensing_process import SensingProcess
+from humantele.runtime.stats import SortedWindow, percentile_ms
+
+log = logging.getLogger(__name__)
+
+OnMeasured = Callable[[TrackerImage, Measurement], None]
+
+
+class SensingWorker:
+    """The follower's sensing off its loop. ``config``: the follower's; ``on_failed(reason)``
+    once if the child cannot build its sensing (a bad config: the daemon stops)."""
+
+    def __init__(
+        self,
+        config: Any,
+        sensing_config: SensingConfig | None,
+        on_measured: OnMeasured,
+        on_failed: Callable[[str], None],
+    ) -> None:
+        self.config = config
+        self.on_measured = on_measured
+        self.on_failed = on_failed
+        # with a sensing process, the in-process copy is built only if ever used
+        self.sensing = Sensing(config, sensing_config, build=config.sensing_worker == "thread")
+        self.proc: SensingProcess | None = None
+        self.executor: ThreadPoolExecutor | None = None
+        self._pending: Future | None = None  # the thread's frame in flight
+        self._proc_frame: tuple[int, TrackerImage] | None = None  # (job, frame) in the child
+        self._jobs = 0
+        self.skipped = 0
+        self.errors = 0  # the worker thread's own failures (the sensing's are in sensing.errors)
+        self.starting = 0  # frames due before the sensing process was ready
+        self.failure: str | None = None
+        self.times = SortedWindow(2000)  # s per measurement (thread or child)
+
+    def start(self) -> None:
+        """Start the worker thread and, by default, the sensing process (it starts while the
+        link connects)."""
+        self.executor = ThreadPoolExecutor(1, thread_name_prefix="humantele-sensing")
+        if self.config.sensing_worker == "process" and self.sensing.unbuilt:
+            self.proc = SensingProcess(self.config, self.sensing.sensing_config,
+                                       self._measured_in_process, self._cannot_start,
+                                       nice=self.config.sensing_nice)  # fmt: skip
+            self.proc.start()
+
+    def measuring(self) -> bool:
+        """False while the sensing process starts (its frames are skipped)."""
+        proc = self.proc
+        return proc is None or not proc.running or proc.ready
+
+    def submit(self, frame: TrackerImage) -> None:
+        """Measure one tracker frame (the result comes through ``on_measured``)."""
+        proc = self.proc
+        if proc is not None and proc.running:
+            if not proc.ready:  # still starting (importing, calibrating the sim force board)
+                self.starting += 1
+            elif proc.busy:
+                self.skipped += 1
+            else:
+                self._jobs += 1
+                if proc.submit(self._jobs, (frame.t, frame.world)):
+                    self._proc_frame = (self._jobs, frame)
+                else:
+                    self.skipped += 1
+            return
+        if self.executor is None:
+            self.on_measured(frame, self.sensing.measure(frame.t, frame.world))
+            return
+        if self._pending is not None:
+            self.skipped += 1
+            return
+        fut = asyncio.get_running_loop().run_in_executor(self.executor, self._measure, frame)
+        self._pending = fut
+        fut.add_done_callback(lambda f: self._measured(frame, f))
+
+    def _measured_in_process(self, job: int, m: Measurement, seconds: float) -> None:
+        pending, self._proc_frame = self._proc_frame, None
+        self.times.append(seconds)
+        if pending is not None and pending[0] == job:  # else: a child since replaced
+            self.on_measured(pending[1], m)
+
+    def _cannot_start(self, reason: str) -> None:
+        self.failure = reason
+        self.on_failed(reason)
+
+    def _measure(self, frame: TrackerImage) -> Measurement:
+        """On the worker thread: measure, and time it."""
+        t0 = time.perf_counter()
+        m = self.sensing.measure(frame.t, frame.world)
+        self.times.append(time.perf_counter() - t0)
+        return m
+
+    def _measured(self, frame: TrackerImage, fut: Future) -> None:
+        self._pending = None
+        if fut.cancelled():
+            return
+        exc = fut.exception()
+        if exc is not None:  # Sensing.measure catches the pipeline's; this is the worker's
+            self.errors += 1
+            if self.errors in (1, 10, 100, 1000):
+                log.error("follower: sensing worker failed (%d so far): %r", self.errors, exc)
+            return
+        self.on_measured(frame, fut.result())
+
+    def stats(self) -> dict[str, Any]:
+        proc = self.proc
+        running = proc is not None and proc.running
+        return {
+            "sensing_errors": self.sensing.errors
+            + self.errors
+            + (0 if proc is None else proc.child_errors),
+            "sensing_skipped": self.skipped,
+            "sensing_starting": self.starting,
+            "sensing_worker": "process" if running else "thread",
+            "sensing_restarts": 0 if proc is None else proc.restarts,
+            "sensing_p50_ms": percentile_ms(self.times, 50),
+            "sensing_p99_ms": percentile_ms(self.times, 99),
+            "cpu_percent_sensing": None if proc is None else proc.cpu_percent(),
+        }
+
+    def close(self) -> None:
+        """Stop the thread (the frame being measured ends first) and the child."""
+        if self.executor is not None:
+            self.executor.shutdown(wait=True)
+            self.executor = None
+        if self.proc is not None:
+            self.proc.close()
+        self.sensing.close()

@@ -1,0 +1,31 @@
+"""`humantele bench haptics --callback`: the servo callback's timing rows on the fake libHD."""
+
+import argparse
+import json
+import shutil
+
+import pytest
+
+from humantele.bench import haptics as bench
+from humantele.bench import haptics_callback as hc
+
+
+@pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
+                    reason="no C compiler for the fake libHD")  # fmt: skip
+def test_callback_bench_rows(monkeypatch, capsys):
+    monkeypatch.setattr(hc, "ROWS", [("device / idle", "device", "idle", None),
+                                     ("sleep+spin / idle", "spin", "idle", None)])  # fmt: skip
+    args = argparse.Namespace(callback=True, callback_seconds=0.5, callback_realtime=0,
+                              json=True, no_write=True)  # fmt: skip
+    assert bench.run(args) == 0
+    out = capsys.readouterr().out
+    rows = json.loads(out.strip().splitlines()[-1])
+    assert [r["row"] for r in rows] == ["device / idle", "sleep+spin / idle"]
+    for r in rows:  # the callback ran at about 1 kHz and both its figures were measured
+        assert r["callbacks"] > 100 and r["device_ticks"] >= r["callbacks"]
+        assert 0 < r["period_p50_us"] and 0 < r["duration_p50_us"] <= r["duration_max_us"]
+        assert r["loop_rate_hz"] > 0 and r["load_1min"] >= 0
+    assert "| device / idle |" in out
+    bad = argparse.Namespace(callback=True, callback_seconds=0.1, callback_realtime=0,
+                             json=False, no_write=True)  # fmt: skip
+    assert bench.run(bad) == 2
