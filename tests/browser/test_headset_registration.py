@@ -49,7 +49,7 @@ def test_known_transform_recovered_within_2_mm_and_1_degree(run):
     done = run.data["done"]
     assert done["headline"] == "Headset registered" and "residual" in done["detail"]
     assert done["registration"]["residualMm"] < 2.0
-    assert run.data["stats"]["counts"]["touches"] == 4  # three dwelt, one pressed
+    assert run.data["stats_ar"]["counts"]["touches"] == 4  # three dwelt, one pressed
 
 
 def test_the_guide_is_drawn_through_the_registration(run):
@@ -73,6 +73,19 @@ def test_saved_registration_offered_again_and_watched(run):
     r = run.data["reused"]["registration"]
     assert r["state"] == "registered" and r["watch"] == "ok"
     assert "saved" in r["message"]
-    assert run.data["stats"]["counts"]["hello"] == 2 and run.data["stats"]["bad_messages"] == {}
+    assert run.data["stats_ar"]["counts"]["hello"] == 2  # the page, then the page reloaded
+    assert run.data["stats"]["bad_messages"] == {}
     assert run.data["feed"]["refused"].get("malformed", 0) == 0
     assert run.data["console_errors"] == []
+
+
+def test_immersive_vr_where_ar_is_not_offered_banner_in_the_scene_air_tap_registers(run):
+    """HoloLens 2's Edge offers immersive-vr only: the page enters it, draws the banner in
+    the scene (no DOM overlay) and registers with the select gesture (an air tap) alone."""
+    assert run.data["vr_mode"] == "immersive-vr"
+    assert run.data["vr_needed"]["text"].startswith("Register this headset first\nAir tap")
+    assert run.data["vr_done"]["text"].startswith("Headset registered\nRegistered: residual")
+    truth, got = pose(run.data["T_world_xr_true"]), pose(run.data["vr_T_world_xr"])
+    work = np.array(run.data["targets_xr"])
+    assert np.linalg.norm(got.apply(work) - truth.apply(work), axis=1).max() * 1000.0 < 2.0
+    assert math.degrees(got.distance_to(truth)[1]) < 1.0

@@ -91,6 +91,21 @@ async def hud_when(ctx, page, condition: str, timeout: float = 20.0) -> dict:
     return await ctx.until(page, js, timeout)
 
 
+# A browser that offers immersive-vr but not immersive-ar (HoloLens 2's Edge).
+NO_AR = """(() => {
+  const xr = navigator.xr, supported = xr.isSessionSupported.bind(xr);
+  xr.isSessionSupported = (mode) =>
+    mode === 'immersive-ar' ? Promise.resolve(false) : supported(mode);
+})();"""
+
+
+async def panel_when(ctx, page, headline: str, timeout: float = 20.0) -> dict:
+    """The banner drawn in the scene once it shows ``headline``."""
+    js = ("(() => { const p = headset.panel(); "
+          f"return p.visible && p.text.startsWith({headline!r}) ? p : null; }})()")  # fmt: skip
+    return await ctx.until(page, js, timeout)
+
+
 async def press(page, selector: str) -> None:
     """Press a button of the DOM overlay (in the headset: pointed at with a controller or a
     hand; under IWER the XR canvas covers the page, so the click is dispatched to it)."""
@@ -193,9 +208,45 @@ async def run(ctx) -> dict:
             "h.registration.state === 'registered' && h.registration.watch === 'ok'",
             30,
         )
+        data["stats_ar"] = reg.stats()  # the first headset's, before the second's
+        ctx.mark("reused")
+
+        # 7. Where immersive-ar is not offered (HoloLens 2's Edge offers immersive-vr only):
+        # the page enters immersive-vr, draws its banner in the scene (no DOM overlay), and
+        # a new headset registers with the select gesture alone (an air tap).
+        clinic.tasks[1].cancel()  # the first headset's viewer poses
+        await ctx.close_page(page)  # one XR page at a time (software WebGL)
+        vr = await ctx.page(url, iwer=True)
+        await vr.context.add_init_script(NO_AR)
+        await vr.reload()
+        await enter_ar(ctx, vr)
+        data["vr_mode"] = await vr.evaluate("headset.xr.mode")
+        data["vr_needed"] = await panel_when(ctx, vr, "Register this headset first")
+        await next_frames(ctx, vr)
+        await ctx.shot(vr, "registration_vr_needed")
+        await vr.evaluate("headset.session.dispatchEvent(new Event('select'))")  # air tap
+        await hud_when(ctx, vr, "h.registration.state === 'collecting'")
+        for k, t_xr in enumerate(await vr.evaluate("headset.registration.targets()")):
+            on = T_WORLD_XR.apply(t_xr)
+            clinic.tip = on + [0.08, 0.06, 0.0]
+            await asyncio.sleep(0.4)
+            clinic.tip = on + clinic.rng.normal(0.0, 0.0005, 3)
+            if k == 3:
+                await asyncio.sleep(0.3)
+                await vr.evaluate("headset.session.dispatchEvent(new Event('select'))")
+            else:
+                await hud_when(ctx, vr, f"h.registration.index > {k}")
+            if k == 1:
+                await next_frames(ctx, vr)
+                await ctx.shot(vr, "registration_vr_collecting")
+        data["vr_done"] = await panel_when(ctx, vr, "Headset registered")
+        vr_id = (await vr.evaluate("headset.hud()"))["registration"]["id"]
+        T = reg.active[vr_id]
+        data["vr_T_world_xr"] = {"position": T.position.tolist(),
+                                 "quaternion": T.quaternion.tolist()}  # fmt: skip
         data["stats"] = reg.stats()
         data["feed"] = feed.stats()
-        ctx.mark("reused")
+        ctx.mark("vr")
     finally:
         clinic.stop()
     return data

@@ -27,7 +27,7 @@ async def run(ctx) -> dict:
     data: dict = {}
     # 1. A follower whose technician has not pressed yet: the page asks for the xiphoid.
     still = ctx.out / "no_presses.toml"
-    still.write_text("[follower]\nauto_calibrate = false\n")
+    still.write_text('[follower.clinic]\nbackend = "sim"\nauto_calibrate = false\n')
     await s.start("follower", "--config", str(still), "--feed-port", str(PORT))
     await s.start("expert")  # starting meanwhile (it joins whichever follower is there)
     await s.wait("the headset page", lambda e, f: (f.get("feed") or {}).get("page_url"))

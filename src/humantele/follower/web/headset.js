@@ -22,11 +22,19 @@ import {
   guideState,
 } from './cue.js';
 import { makeRegistration } from './registration.js';
-import { makeArrow, makeBed, makeLabel, makeOutline, makeTransducer } from './scene.js';
+import {
+  makeArrow,
+  makeBed,
+  makeLabel,
+  makeOutline,
+  makePanel,
+  makeTransducer,
+} from './scene.js';
 
 const LOOK_ABOVE = new THREE.Vector3(0, 0.1, 0); // the view centres on the probe's handle
 const GLIDE_S = 0.3; // time constant of the view following the probe
 const ECHO_EVERY_MS = 50;
+const PANEL_COLOURS = { ...COLOURS, register: 0xb48cff, registered: 0x2fbf71, calibrating: 0x4aa3ff };
 const ARROW_COLOUR = 0xff4fd8; // magenta: unlike the probes, the outline and the room // at most 20 "drawn" echoes a second
 const LANDMARK_NAMES = { xiphoid: 'Xiphoid', left: 'Left side', right: 'Right side', bed: 'Bed' };
 const LANDMARKS = Object.keys(LANDMARK_NAMES);
@@ -301,6 +309,7 @@ function update(nowMs) {
     label.sprite.position.y += 0.2;
   }
   registrationView(view, nowMs);
+  placePanel(view);
   setHud(view);
   if (outline) outline.group.visible = outlineOn;
   for (const o of [...Object.values(objects), outline && outline.group]) {
@@ -329,10 +338,32 @@ REG_BUTTONS.register.addEventListener('click', () => registration.start());
 REG_BUTTONS.take.addEventListener('click', () => registration.take());
 REG_BUTTONS.cancel.addEventListener('click', () => registration.cancel());
 
+const panel = makePanel(0.36);
+scene.add(panel.group);
+
+function presentingNow() {
+  return renderer.xr.isPresenting && xrSession !== null;
+}
+
+// Without the DOM overlay (immersive-vr, some headsets) the banner is drawn in the scene,
+// 0.9 m ahead of the viewer in the top of its view (HoloLens 2: 29 degrees high), following
+// the head: the middle of the view, where the work and the targets are, stays clear.
+function placePanel(view) {
+  const v = registration.viewer;
+  panel.group.visible = presentingNow() && !xr.domOverlay && Boolean(v);
+  if (!panel.group.visible) return;
+  panel.set(view.headline, view.detail, view.refusal, PANEL_COLOURS[view.cue] || 0x8b9096);
+  const q = new THREE.Quaternion(...v.quaternion);
+  const ahead = new THREE.Vector3(0, 0.15, -0.9).applyQuaternion(q);
+  panel.group.position.set(...v.position).add(ahead);
+  panel.group.quaternion.copy(q);
+}
+
 function registrationView(view, nowMs) {
-  const presenting = renderer.xr.isPresenting && xrSession !== null;
+  const presenting = presentingNow();
   const xrFrame = presenting ? renderer.xr.getFrame() : null;
-  const reg = registration.frame(xrFrame, renderer.xr.getReferenceSpace(), nowMs, presenting);
+  const space = renderer.xr.getReferenceSpace();
+  const reg = registration.frame(xrFrame, space, nowMs, presenting, xr.domOverlay);
   if (reg && !view.calibrating) {
     Object.assign(view, reg);
     label.sprite.visible = false;
@@ -384,7 +415,7 @@ $('recentre').addEventListener('click', () => {
 
 let xrSession = null;
 async function enterAR() {
-  const session = await navigator.xr.requestSession('immersive-ar', {
+  const session = await navigator.xr.requestSession(xr.mode, {
     requiredFeatures: ['local-floor'],
     optionalFeatures: ['dom-overlay'],
     domOverlay: { root: $('hud') },
@@ -394,19 +425,27 @@ async function enterAR() {
   xrSession = session;
   // air tap, trigger, pinch: starts or takes a point while a registration is needed
   session.addEventListener('select', () => registration.select());
-  scene.background = null; // the room shows through
+  scene.background = null; // the room shows through (immersive-vr on a see-through display:
+  // black is transparent)
   grid.visible = false;
   document.body.classList.add('xr');
+  xr.domOverlay = Boolean(session.domOverlayState); // else the banner is drawn in the scene
   session.addEventListener('end', () => {
     xrSession = null;
+    panel.group.visible = false;
     scene.background = background;
     grid.visible = true;
     document.body.classList.remove('xr');
   });
 }
 
+// immersive-ar where offered; else immersive-vr, which HoloLens 2's Edge offers instead
+// (docs/hololens.md): on its see-through display the room still shows.
 async function offerAR() {
-  const supported = Boolean(navigator.xr) && (await navigator.xr.isSessionSupported('immersive-ar'));
+  for (const mode of ['immersive-ar', 'immersive-vr']) {
+    if (!xr.mode && navigator.xr && (await navigator.xr.isSessionSupported(mode))) xr.mode = mode;
+  }
+  const supported = Boolean(xr.mode);
   xr.supported = supported;
   const button = $('enter-ar');
   button.hidden = !supported;
@@ -422,7 +461,7 @@ async function offerAR() {
 
 // --- for tests: the camera, the drawn objects, a way to hold still ------------------------
 
-const xr = { supported: false, error: null };
+const xr = { supported: false, error: null, mode: null, domOverlay: false };
 window.headset = {
   state,
   xr,
@@ -486,6 +525,13 @@ window.headset = {
     };
   },
   registration,
+  get session() {
+    return xrSession;
+  },
+  // The banner drawn in the scene (a session without the DOM overlay): shown, and its text.
+  panel() {
+    return { visible: panel.group.visible && presentingNow(), text: panel.text };
+  },
 };
 
 connect();

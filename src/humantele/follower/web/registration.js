@@ -220,7 +220,9 @@ export function makeRegistration({ scene, worldRoot, send }) {
 
   // Each frame: the viewer pose (AR), the watch's samples, the targets' colours, and whether
   // the feed's objects may be drawn. Returns what the banner should say, or null (the guide).
-  function frame(xrFrame, refSpace, nowMs, presenting) {
+  // `overlay`: the page's buttons are shown in the headset (the DOM overlay); else the
+  // banner says to air tap (the XR select gesture) instead.
+  function frame(xrFrame, refSpace, nowMs, presenting, overlay = true) {
     if (!presenting) saidHello = false;
     else if (!saidHello) {
       saidHello = send({ type: 'registration', action: 'hello', headset: id });
@@ -263,10 +265,11 @@ export function makeRegistration({ scene, worldRoot, send }) {
     const collecting = st.state === 'collecting' || st.state === 'starting';
     // A guide known to be misplaced is not drawn (as one that is not live is greyed).
     worldRoot.visible = Boolean(st.T_xr_world) && !collecting && st.watch !== 'drifted';
-    return banner(collecting, nowMs);
+    return banner(collecting, nowMs, overlay);
   }
 
-  function banner(collecting, nowMs) {
+  function banner(collecting, nowMs, overlay) {
+    const press = overlay ? 'Press Register' : 'Air tap';
     if (collecting) {
       const n = st.count || st.targets.length;
       const i = Math.max(0, st.index);
@@ -274,8 +277,8 @@ export function makeRegistration({ scene, worldRoot, send }) {
         cue: 'register',
         headline: `Registration: target ${i + 1} of ${n}`,
         detail:
-          "Hold the probe's tip still on the blue ring for a second (or press Take point, " +
-          'or air tap).',
+          "Hold the probe's tip still on the blue ring for a second " +
+          (overlay ? '(or press Take point).' : '(or air tap).'),
         refusal: st.refused ? `Not taken: ${st.refused}` : '',
         buttons: ['take', 'cancel'],
       };
@@ -284,7 +287,7 @@ export function makeRegistration({ scene, worldRoot, send }) {
       return {
         cue: 'register',
         headline: 'Registration refused',
-        detail: 'Press Register and touch the targets again.',
+        detail: `${press} and touch the targets again.`,
         refusal: st.message,
         buttons: ['register'],
       };
@@ -294,8 +297,8 @@ export function makeRegistration({ scene, worldRoot, send }) {
         cue: 'register',
         headline: 'Register this headset first',
         detail:
-          'Press Register (or air tap), then touch the tracked probe\'s tip to each of the ' +
-          '4 targets that appear in front of you.',
+          `${press}, then touch the tracked probe's tip to each of the 4 targets that ` +
+          'appear in front of you.',
         refusal: '',
         buttons: ['register'],
       };
@@ -306,7 +309,7 @@ export function makeRegistration({ scene, worldRoot, send }) {
         headline: 'Re-register the headset',
         detail:
           `The headset's space has moved ${Math.round(st.driftMm)} mm from the tracker's: ` +
-          'the guide is hidden until you register again. Press Register.',
+          `the guide is hidden until you register again. ${press}.`,
         refusal: '',
         buttons: ['register'],
       };
