@@ -41,7 +41,10 @@ CHROMIUM_ARGS = [
     "--use-angle=swiftshader",
 ]
 # Meta's emulator as a Quest 3, installed before any page script runs.
-IWER_INSTALL = "new IWER.XRDevice(IWER.metaQuest3).installRuntime({forceInstall: true});"
+IWER_INSTALL = (  # the device kept as window.xrDevice: a scenario may move the headset
+    "globalThis.xrDevice = new IWER.XRDevice(IWER.metaQuest3);"
+    " xrDevice.installRuntime({forceInstall: true});"
+)
 
 
 class Ctx:

@@ -84,6 +84,8 @@ def test_webxr_session_entry_under_iwer(run):
     assert run.data["xr_supported"] is True  # immersive-ar offered: the Enter AR button
     assert run.data["xr_presenting"] is True and run.data["xr_error"] is None
     assert run.data["xr_hud"]["headline"]  # the HUD keeps running in AR (DOM overlay)
+    # not registered yet: the page asks for it before drawing the feed in the headset's space
+    assert run.data["still_live"]["headline"] == "Register this headset first"
 
 
 @pytest.mark.slow

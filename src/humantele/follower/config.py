@@ -11,6 +11,7 @@ from humantele.config import ConfigModel
 from humantele.follower.calibration import CalibrationConfig
 from humantele.follower.clinic import ClinicConfig, SimClinicConfig
 from humantele.follower.feed import FeedConfig
+from humantele.follower.registration import RegistrationConfig
 from humantele.interop.igtl import IgtlConfig
 from humantele.media.config import FollowerVideoConfig
 from humantele.recording import RecorderConfig
@@ -60,6 +61,7 @@ class FollowerConfig(ConfigModel):
     session: SessionConfig = SessionConfig()
     recording: RecorderConfig = RecorderConfig()
     igtl: IgtlConfig = IgtlConfig()
+    registration: RegistrationConfig = RegistrationConfig()
 
     @model_validator(mode="after")
     def _sim_needs_the_sim_clinic(self) -> FollowerConfig:

@@ -50,6 +50,7 @@ from humantele.follower.config import FollowerConfig
 from humantele.follower.feed import RendererFeed, model_fields
 from humantele.follower.figures import AlignmentFigures, PoseStreamFigures
 from humantele.follower.records import measurement_samples
+from humantele.follower.registration import HeadsetRegistration
 from humantele.follower.sensing import LOST, Measurement, SensingConfig, TrackerImage
 from humantele.follower.sensing_worker import SensingWorker
 from humantele.geometry import Pose
@@ -99,6 +100,7 @@ class FollowerDaemon(Daemon):
         self.last_measure_t = -math.inf
         self.measurements = 0
         self.feed = RendererFeed(config.feed, self.state_dir)
+        self.registration = HeadsetRegistration.attach(config, self.feed)
         # The clinic (its devices; the sim's world and the scene its video sources render),
         # then the us and pov tracks (humantele.media.sender).
         self.clinic = make_clinic(config.clinic)
@@ -339,6 +341,7 @@ class FollowerDaemon(Daemon):
         self.send_state(frame.t, m)
         self.record_measurement(frame.t, m)
         self.igtl.on_measurement(frame.t, self.calibration, m)
+        self.registration.on_measurement(frame.t, m.T_world_tip, m.T_world_rig)
 
     # --- recording ------------------------------------------------------------------------
 
@@ -389,6 +392,7 @@ class FollowerDaemon(Daemon):
             "feed_clients": len(self.feed.clients),
             "feed_url": self.feed.url if self.feed.port else None,
             "feed": self.feed.stats(),
+            "registration": self.registration.stats(),
             "ticks": self.ticks,
             "measurements": self.measurements,
             "tracking_lost": self.tracking_lost,

@@ -31,10 +31,12 @@ The feed sends one JSON object per text message, each with a ``type``. Frames: t
 Newer objects of a type replace older unsent ones (a slow page sees the latest pose, not a
 backlog); ``coalesced`` counts those. A new client first gets the latest object of each type.
 
-A page may send one kind of message, ``{"type": "drawn", "pose_id": N, "draw_to_send_ms": D}``:
+A page may send ``{"type": "drawn", "pose_id": N, "draw_to_send_ms": D}``:
 it drew pose N (first time) and sent this D ms after its draw call. The feed's added latency
 is then ``arrival - t_origin(N) - D``, where ``t_origin`` is when the follower received the
 pose: an upper bound on pose receipt to draw call that includes the echo's own transit.
+A page's ``registration`` and ``viewer_pose`` messages (:mod:`humantele.follower.registration`,
+validated here) go to ``page_handler``; the feed publishes ``registration`` objects for them.
 Anything else a page sends (malformed, unknown, a flood, an unknown or repeated id, a wrong
 ``Origin``, too many pages) is refused and counted in ``refused``; the daemon goes on.
 """
@@ -50,15 +52,17 @@ import math
 import re
 import time
 from collections import Counter, OrderedDict, deque
+from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from aiohttp import web
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 
 from humantele.cliargs import socket_error
 from humantele.config import ConfigModel
+from humantele.follower.registration import RegistrationMessage, ViewerPoseMessage
 from humantele.runtime.stats import percentile_ms
 from humantele.signaling.messages import is_loopback
 from humantele.web.guard import MessageBudget
@@ -110,6 +114,11 @@ class DrawnEcho(BaseModel):
     type: Literal["drawn"]
     pose_id: int = Field(ge=1)
     draw_to_send_ms: float = Field(ge=0.0, le=10_000.0, allow_inf_nan=False)
+
+
+PAGE_MESSAGES = TypeAdapter(
+    Annotated[DrawnEcho | RegistrationMessage | ViewerPoseMessage, Field(discriminator="type")]
+)
 
 
 def _clean(obj: Any) -> Any:
@@ -310,11 +319,23 @@ class RendererFeed:
 
         return await self.pages.serve(request, self._on_page_message, on_open)
 
+    # A page's ``registration`` and ``viewer_pose`` messages (validated) go to this handler
+    # (the daemon's :class:`~humantele.follower.registration.HeadsetRegistration`); none set:
+    # refused as ``unrouted``.
+    page_handler: Callable[[dict[str, Any]], None] | None = None
+
     def _on_page_message(self, client: _Client, text: str) -> None:
         arrival = time.monotonic()
-        echo = validated(DrawnEcho, text, self.refused)
-        if echo is None:
+        msg = validated(PAGE_MESSAGES, text, self.refused)
+        if msg is None:
             return
+        if not isinstance(msg, DrawnEcho):
+            if self.page_handler is None:
+                self.refused["unrouted"] += 1
+                return
+            self.page_handler(msg.model_dump(mode="json"))
+            return
+        echo = msg
         t_origin = self._origins.get(echo.pose_id)
         if t_origin is None:
             self.refused["unknown_pose"] += 1

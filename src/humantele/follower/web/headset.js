@@ -5,7 +5,9 @@
 // controls (tablet, laptop). Everything comes from the follower's feed, a WebSocket on this
 // page's origin; the page echoes, for a sample of frames, which pose it drew (the feed's
 // latency figure). Frames: the feed's world frame is three.js's (y up, metres, quaternions
-// x, y, z, w); in AR it is taken as the headset's local-floor space.
+// x, y, z, w); in AR the page draws in the headset's local-floor space, and the feed's
+// objects hang under a root placed at T_xr_world, the follower's registration of the two
+// (registration.js; nothing from the feed is drawn in AR before there is one).
 
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
@@ -19,11 +21,20 @@ import {
   grade,
   guideState,
 } from './cue.js';
-import { makeArrow, makeBed, makeLabel, makeOutline, makeTransducer } from './scene.js';
+import { makeRegistration } from './registration.js';
+import {
+  makeArrow,
+  makeBed,
+  makeLabel,
+  makeOutline,
+  makePanel,
+  makeTransducer,
+} from './scene.js';
 
 const LOOK_ABOVE = new THREE.Vector3(0, 0.1, 0); // the view centres on the probe's handle
 const GLIDE_S = 0.3; // time constant of the view following the probe
 const ECHO_EVERY_MS = 50;
+const PANEL_COLOURS = { ...COLOURS, register: 0xb48cff, registered: 0x2fbf71, calibrating: 0x4aa3ff };
 const ARROW_COLOUR = 0xff4fd8; // magenta: unlike the probes, the outline and the room // at most 20 "drawn" echoes a second
 const LANDMARK_NAMES = { xiphoid: 'Xiphoid', left: 'Left side', right: 'Right side', bed: 'Bed' };
 const LANDMARKS = Object.keys(LANDMARK_NAMES);
@@ -52,6 +63,7 @@ function connect(delayMs = 500) {
   socket.onopen = () => {
     state.socket = true;
     delayMs = 500;
+    registration.onOpen();
   };
   socket.onmessage = (ev) => {
     if (state.frozen) return;
@@ -91,6 +103,9 @@ function onMessage(msg) {
     case 'link':
       state.link = msg.state;
       break;
+    case 'registration':
+      registration.onFeed(msg);
+      break;
   }
 }
 
@@ -129,10 +144,21 @@ const arrow = makeArrow(ARROW_COLOUR);
 const label = makeLabel();
 virtual.group.visible = ghost.group.visible = arrow.group.visible = false;
 label.sprite.visible = false;
-scene.add(virtual.group, ghost.group, arrow.group, label.sprite);
+// The feed's objects, in the tracker's world: under worldRoot (identity on a tablet or
+// laptop; T_xr_world in AR once registered).
+const worldRoot = new THREE.Group();
+scene.add(worldRoot);
+worldRoot.add(virtual.group, ghost.group, arrow.group, label.sprite);
 const objects = { virtual: virtual.group, ghost: ghost.group, arrow: arrow.group, label: label.sprite };
 const outlineRoot = new THREE.Group();
-scene.add(outlineRoot);
+worldRoot.add(outlineRoot);
+const registration = makeRegistration({ scene, worldRoot, send: sendToFeed });
+
+function sendToFeed(obj) {
+  if (!socket || socket.readyState !== WebSocket.OPEN) return false;
+  socket.send(JSON.stringify(obj));
+  return true;
+}
 let outline = null;
 let bed = null;
 let outlineOn = true;
@@ -185,6 +211,9 @@ function setHud(view) {
   $('age').textContent = view.age;
   $('link').textContent = view.link;
   $('force').textContent = view.force;
+  for (const [name, el] of Object.entries(REG_BUTTONS)) el.hidden = !view.buttons.includes(name);
+  REG_BUTTONS.register.textContent = view.registered ? 'Register again' : 'Register';
+  REG_BUTTONS.register.className = view.registered ? 'quiet' : '';
   const steps = $('steps');
   steps.hidden = !view.calibrating;
   $('landmarks').toggleAttribute('hidden', !view.calibrating); // an SVG element: no .hidden
@@ -214,6 +243,7 @@ function update(nowMs) {
     force: p && Array.isArray(p.force) ? `${Math.hypot(...p.force).toFixed(1)} N` : '–',
     calibrating,
     stepIndex: -1,
+    buttons: [],
   };
 
   ghost.group.visible = Boolean(p);
@@ -278,6 +308,8 @@ function update(nowMs) {
     label.sprite.position.copy(virtual.group.position);
     label.sprite.position.y += 0.2;
   }
+  registrationView(view, nowMs);
+  placePanel(view);
   setHud(view);
   if (outline) outline.group.visible = outlineOn;
   for (const o of [...Object.values(objects), outline && outline.group]) {
@@ -297,6 +329,48 @@ function update(nowMs) {
     }
   }
   lastUpdateMs = nowMs;
+}
+
+// --- registration (registration.js): what the banner says in AR until registered -----
+
+const REG_BUTTONS = { register: $('register'), take: $('reg-take'), cancel: $('reg-cancel') };
+REG_BUTTONS.register.addEventListener('click', () => registration.start());
+REG_BUTTONS.take.addEventListener('click', () => registration.take());
+REG_BUTTONS.cancel.addEventListener('click', () => registration.cancel());
+
+const panel = makePanel(0.36);
+scene.add(panel.group);
+
+function presentingNow() {
+  return renderer.xr.isPresenting && xrSession !== null;
+}
+
+// Without the DOM overlay (immersive-vr, some headsets) the banner is drawn in the scene,
+// 0.9 m ahead of the viewer in the top of its view (HoloLens 2: 29 degrees high), following
+// the head: the middle of the view, where the work and the targets are, stays clear.
+function placePanel(view) {
+  const v = registration.viewer;
+  panel.group.visible = presentingNow() && !xr.domOverlay && Boolean(v);
+  if (!panel.group.visible) return;
+  panel.set(view.headline, view.detail, view.refusal, PANEL_COLOURS[view.cue] || 0x8b9096);
+  const q = new THREE.Quaternion(...v.quaternion);
+  const ahead = new THREE.Vector3(0, 0.15, -0.9).applyQuaternion(q);
+  panel.group.position.set(...v.position).add(ahead);
+  panel.group.quaternion.copy(q);
+}
+
+function registrationView(view, nowMs) {
+  const presenting = presentingNow();
+  const xrFrame = presenting ? renderer.xr.getFrame() : null;
+  const space = renderer.xr.getReferenceSpace();
+  const reg = registration.frame(xrFrame, space, nowMs, presenting, xr.domOverlay);
+  if (reg && !view.calibrating) {
+    Object.assign(view, reg);
+    label.sprite.visible = false;
+  } else if (presenting && !view.calibrating) {
+    view.buttons = ['register']; // registered: may register again
+    view.registered = true;
+  }
 }
 
 // --- drawing, and the echo for the latency figure -------------------------------------------
@@ -341,7 +415,7 @@ $('recentre').addEventListener('click', () => {
 
 let xrSession = null;
 async function enterAR() {
-  const session = await navigator.xr.requestSession('immersive-ar', {
+  const session = await navigator.xr.requestSession(xr.mode, {
     requiredFeatures: ['local-floor'],
     optionalFeatures: ['dom-overlay'],
     domOverlay: { root: $('hud') },
@@ -349,19 +423,29 @@ async function enterAR() {
   renderer.xr.setReferenceSpaceType('local-floor');
   await renderer.xr.setSession(session);
   xrSession = session;
-  scene.background = null; // the room shows through
+  // air tap, trigger, pinch: starts or takes a point while a registration is needed
+  session.addEventListener('select', () => registration.select());
+  scene.background = null; // the room shows through (immersive-vr on a see-through display:
+  // black is transparent)
   grid.visible = false;
   document.body.classList.add('xr');
+  xr.domOverlay = Boolean(session.domOverlayState); // else the banner is drawn in the scene
   session.addEventListener('end', () => {
     xrSession = null;
+    panel.group.visible = false;
     scene.background = background;
     grid.visible = true;
     document.body.classList.remove('xr');
   });
 }
 
+// immersive-ar where offered; else immersive-vr, which HoloLens 2's Edge offers instead
+// (docs/hololens.md): on its see-through display the room still shows.
 async function offerAR() {
-  const supported = Boolean(navigator.xr) && (await navigator.xr.isSessionSupported('immersive-ar'));
+  for (const mode of ['immersive-ar', 'immersive-vr']) {
+    if (!xr.mode && navigator.xr && (await navigator.xr.isSessionSupported(mode))) xr.mode = mode;
+  }
+  const supported = Boolean(xr.mode);
   xr.supported = supported;
   const button = $('enter-ar');
   button.hidden = !supported;
@@ -377,7 +461,7 @@ async function offerAR() {
 
 // --- for tests: the camera, the drawn objects, a way to hold still ------------------------
 
-const xr = { supported: false, error: null };
+const xr = { supported: false, error: null, mode: null, domOverlay: false };
 window.headset = {
   state,
   xr,
@@ -406,7 +490,7 @@ window.headset = {
   },
   visible(name) {
     const o = name === 'outline' ? outline && outline.group : objects[name];
-    return Boolean(o && o.visible);
+    return Boolean(o && o.visible && worldRoot.visible); // in AR: not before registration
   },
   // Stop taking feed messages (the picture holds still) or take them again.
   freeze(on) {
@@ -436,7 +520,17 @@ window.headset = {
       steps: [...$('steps').children].map((li) => li.className),
       guide: lastGuide,
       colour: virtual.materials[0].color.getHex(),
+      buttons: Object.keys(REG_BUTTONS).filter((k) => !REG_BUTTONS[k].hidden),
+      registration: { ...registration.state, targets: undefined },
     };
+  },
+  registration,
+  get session() {
+    return xrSession;
+  },
+  // The banner drawn in the scene (a session without the DOM overlay): shown, and its text.
+  panel() {
+    return { visible: panel.group.visible && presentingNow(), text: panel.text };
   },
 };
 

@@ -208,3 +208,71 @@ export function makeLabel(width = 0.1) {
     },
   };
 }
+
+// The banner as a panel in the scene, for a session without the DOM overlay: the headline,
+// the detail (wrapped) and a refusal, on a dark card with the cue's colour at its left;
+// width in metres. set() redraws only when the text changes.
+export function makePanel(width = 0.5) {
+  const canvas = document.createElement('canvas');
+  canvas.width = 1024;
+  canvas.height = 400;
+  const texture = new THREE.CanvasTexture(canvas);
+  texture.colorSpace = THREE.SRGBColorSpace;
+  const mesh = new THREE.Mesh(
+    new THREE.PlaneGeometry(width, (width * canvas.height) / canvas.width),
+    new THREE.MeshBasicMaterial({ map: texture, transparent: true, depthTest: false }),
+  );
+  mesh.renderOrder = 40;
+  const group = new THREE.Group();
+  group.add(mesh);
+  group.visible = false;
+  const panel = { group, text: '' };
+  panel.set = (headline, detail, refusal, colour) => {
+    const text = [headline, detail, refusal].join('\n');
+    const key = text + colour;
+    if (key === panel.key) return;
+    panel.key = key;
+    panel.text = text;
+    const g = canvas.getContext('2d');
+    g.clearRect(0, 0, canvas.width, canvas.height);
+    g.fillStyle = 'rgba(20, 24, 30, 0.92)';
+    g.beginPath();
+    g.roundRect(0, 0, canvas.width, canvas.height, 28);
+    g.fill();
+    g.fillStyle = `#${colour.toString(16).padStart(6, '0')}`;
+    g.fillRect(0, 0, 22, canvas.height);
+    g.fillStyle = '#ffffff';
+    g.font = 'bold 52px "Liberation Sans", Arial, sans-serif';
+    g.textBaseline = 'top';
+    g.fillText(headline, 50, 30, canvas.width - 80);
+    g.font = '36px "Liberation Sans", Arial, sans-serif';
+    let y = 105;
+    for (const line of wrap(g, detail, canvas.width - 90)) {
+      g.fillText(line, 50, y);
+      y += 46;
+    }
+    if (refusal) {
+      g.fillStyle = '#ff8f92';
+      for (const line of wrap(g, refusal, canvas.width - 90)) {
+        g.fillText(line, 50, y + 10);
+        y += 46;
+      }
+    }
+    texture.needsUpdate = true;
+  };
+  return panel;
+}
+
+function wrap(g, text, maxWidth) {
+  const lines = [];
+  let line = '';
+  for (const word of (text || '').split(' ')) {
+    const next = line ? `${line} ${word}` : word;
+    if (g.measureText(next).width > maxWidth && line) {
+      lines.push(line);
+      line = word;
+    } else line = next;
+  }
+  if (line) lines.push(line);
+  return lines.slice(0, 6);
+}
