@@ -36,16 +36,9 @@ from pathlib import Path
 import numpy as np
 
 from humantele.cliargs import EXIT_FAILED
-from humantele.follower.calibration import (
-    Calibration,
-    CalibrationEvent,
-)
+from humantele.follower.calibration import Calibration, CalibrationEvent
 from humantele.follower.calibration_session import CalibrationSession
-from humantele.follower.clinic import (
-    Guide,
-    make_clinic,
-    simulator_modules,
-)
+from humantele.follower.clinic import Guide, make_clinic, simulator_modules
 from humantele.follower.config import FollowerConfig
 from humantele.follower.feed import RendererFeed, model_fields
 from humantele.follower.figures import AlignmentFigures, PoseStreamFigures
@@ -56,9 +49,7 @@ from humantele.follower.sensing_worker import SensingWorker
 from humantele.geometry import Pose
 from humantele.interop.sessions import FollowerIgtl
 from humantele.media.sender import VideoSender
-from humantele.runtime.daemon import (
-    Daemon,
-)
+from humantele.runtime.daemon import Daemon
 from humantele.runtime.session import recorder_stats
 from humantele.runtime.stats import SortedWindow, percentile_ms
 from humantele.transport import PeerLink
