@@ -151,7 +151,7 @@ async def test_live_sim_frames_reach_the_page_readable_and_in_order(tmp_path):
     server = await serve(frames, Session(), tmp_path, clock=time.monotonic, on_demand=frames)
     try:
         assert not frames._threads  # no page, no rendering
-        async with aiohttp.ClientSession() as http, http.ws_connect(f"{server.url}ws") as ws:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
             seen: dict[str, list[int]] = {"us": [], "pov": []}
             while min(len(v) for v in seen.values()) < 4:
                 h, jpeg = await next_message(ws, lambda k, d: k == "frame")
@@ -189,7 +189,7 @@ async def test_glass_to_glass_from_the_counter_the_page_read(tmp_path):
     server = await serve(frames, Session(), tmp_path, clock=clock)
     sent = []
     try:
-        async with aiohttp.ClientSession() as http, http.ws_connect(f"{server.url}ws") as ws:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
             for _ in range(3):  # captured at t, 0.05 s apart; the page draws them at t + 0.2
                 f = frames.next("us")
                 await next_message(ws, lambda k, d, s=f.seq: k == "frame" and d[0]["seq"] == s)
@@ -235,7 +235,7 @@ async def test_state_marks_old_video_and_a_lost_link_as_stale(tmp_path):
         assert server.state()["link"]["stale"]
         session.link = {"state": "connected", "pose_age_ms": 2500.0}
         assert server.state()["link"]["stale"]
-        async with aiohttp.ClientSession() as http, http.ws_connect(f"{server.url}ws") as ws:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
             st = await next_message(ws, lambda k, d: k == "json" and d["type"] == "state")
             assert st["alignment"] == {"mm": 3.0, "deg": None}  # NaN sent as null
     finally:
@@ -251,7 +251,7 @@ async def test_freeze_cine_calipers_annotation_and_capture_are_measured_saved_re
     session = Session(recorder=rec)
     server = await serve(frames, session, tmp_path, clock=clock)
     try:
-        async with aiohttp.ClientSession() as http, http.ws_connect(f"{server.url}ws") as ws:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
             for _ in range(5):  # five ultrasound frames, 50 ms apart, each drawn by the page
                 f = frames.next("us")
                 await next_message(ws, lambda k, d, s=f.seq: k == "frame" and d[0]["seq"] == s)
@@ -317,19 +317,19 @@ async def test_bad_pages_are_refused_and_counted_and_the_server_goes_on(tmp_path
     clock = FakeClock()
     frames = ManualFrames(clock)
     server = await serve(frames, Session(), tmp_path, clock=clock, page_rate_hz=50.0)
-    url = f"{server.url}ws"
+    url = server.ws_url
     async with aiohttp.ClientSession() as http:
         with pytest.raises(aiohttp.WSServerHandshakeError) as other:
             async with http.ws_connect(url, headers={"Origin": "http://evil.example"}):
                 pass
         assert other.value.status == 403
     async with aiohttp.ClientSession() as http:
-        resp = await http.get(server.url, headers={"Host": f"rebind.example:{server.port}"})
+        resp = await http.get(server.address, headers={"Host": f"rebind.example:{server.port}"})
         assert resp.status == 403  # DNS rebinding: a loopback server answering another name
-        resp = await http.get(server.url)
+        resp = await http.get(server.address)
         assert resp.status == 200 and "console" in await resp.text()
         assert "frame-ancestors 'none'" in resp.headers["Content-Security-Policy"]
-        async with http.ws_connect(url, origin=server.url.rstrip("/")) as ws:
+        async with http.ws_connect(url, origin=server.address.rstrip("/")) as ws:
             with pytest.raises(aiohttp.WSServerHandshakeError) as second:
                 async with http.ws_connect(url):
                     pass
@@ -374,7 +374,7 @@ async def test_a_slow_page_gets_the_newest_frame_not_a_queue(tmp_path):
     rendered = [frames.next("us") for _ in range(6)]
     frames.frames.clear()
     try:
-        async with aiohttp.ClientSession() as http, http.ws_connect(f"{server.url}ws") as ws:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
             got = []
             for f in rendered:
                 frames.frames["us"] = f

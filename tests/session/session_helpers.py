@@ -21,6 +21,10 @@ from humantele.follower.sim_human import SimPatient
 from humantele.recording import read_recording
 from humantele.signaling.server import SignalConfig, SignalingServer
 
+# The daemons' page credentials in these tests (the daemons take them from the environment).
+PAIRING_CODE = "24681357"
+CONSOLE_KEY = "test-console-key-" + secrets.token_urlsafe(8)
+
 
 def read_json(path: Path) -> dict:
     try:
@@ -46,7 +50,10 @@ class Session:
     def __init__(self, tmp: Path, server: SignalingServer, token: str) -> None:
         self.tmp = tmp
         self.server = server
-        self.env = dict(os.environ, HUMANTELE_TOKEN=token, HUMANTELE_PARENT_PID=str(os.getpid()))
+        self.env = dict(
+            os.environ, HUMANTELE_TOKEN=token, HUMANTELE_PARENT_PID=str(os.getpid()),
+            HUMANTELE_PAIRING_CODE=PAIRING_CODE, HUMANTELE_CONSOLE_KEY=CONSOLE_KEY,
+        )  # fmt: skip
         self.procs: dict[str, asyncio.subprocess.Process] = {}
         self.state_dir = tmp / "follower-state"
         self.runs = 0

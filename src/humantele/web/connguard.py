@@ -127,9 +127,7 @@ def open_descriptors() -> int:
         return 0
 
 
-def page_connection_cap(
-    configured: int, held_back: int, logger: logging.Logger, name: str
-) -> int:
+def page_connection_cap(configured: int, held_back: int, logger: logging.Logger, name: str) -> int:
     """A page server's ``max_connections``: ``configured``, lowered so that it, the
     ``held_back`` credentialed pages and :data:`FD_RESERVE` take at most half of the
     descriptors this process has left (the daemon's other work needs the rest)."""

@@ -88,7 +88,7 @@ async def run(ctx) -> dict:
     feed.publish("link", {"state": "connected"})
     feed.publish("calibration", calibration(calibrated=True))
     pub = Publisher(feed)
-    url = f"https://127.0.0.1:{feed.port}/"
+    url = f"https://127.0.0.1:{feed.port}/#code={feed.code}"
     page = await ctx.page(url)
     data["first_hud"] = await hud_when(ctx, page, "h.cue === 'red'")
 
@@ -149,7 +149,7 @@ async def run(ctx) -> dict:
 
     # 6. Bad input from pages; a tab closed mid-stream. The feed goes on.
     before = dict(feed.refused)
-    wss = f"wss://127.0.0.1:{feed.port}/feed"
+    wss = f"wss://127.0.0.1:{feed.port}/feed?code={feed.code}"
     data["bad_input_close_code"] = await page.evaluate(BAD_INPUT_JS, wss)
     other = await ctx.other_site()
     data["cross_origin"] = await other.evaluate(CROSS_ORIGIN_JS, wss)
