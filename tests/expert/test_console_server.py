@@ -476,3 +476,47 @@ def test_force_along_the_beam_is_the_pressing_force():
     down = Pose([0.1, 0.2, 0.0], quat_from_axis_angle((1.0, 0.0, 0.0), math.pi / 2))
     assert pressing_n(down.inverse().rotate([3.0, 8.0, 0.0])) == pytest.approx(8.0)
     assert pressing_n(down.inverse().rotate([0.0, -2.0, 1.0])) == pytest.approx(-2.0)
+
+
+async def test_captures_are_capped_in_rate_and_in_disk_use(tmp_path):
+    """A page asking for captures as fast as it can: 10 at once, then ``captures_per_minute``;
+    the others refused with the reason, counted and in the page's state. A captures folder at
+    its budget refuses every capture."""
+    clock = FakeClock()
+    frames = ManualFrames(clock)
+    server = await serve(frames, Session(), tmp_path, clock=clock, captures_per_minute=6.0)
+    try:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
+            f = frames.next("us")
+            await next_message(ws, lambda k, d: k == "frame" and d[0]["seq"] == f.seq)
+            results = []
+            for _ in range(25):
+                await ws.send_json({"type": "capture", "seq": f.seq})
+                results.append(
+                    await next_message(ws, lambda k, d: k == "json" and d["type"] == "result")
+                )
+            state = await next_message(ws, lambda k, d: k == "json" and d["type"] == "state")
+    finally:
+        await server.stop()
+    ok = [r for r in results if r["ok"]]
+    assert 10 <= len(ok) <= 11  # the burst (and at most one more refilled meanwhile)
+    refusal = next(r for r in results if not r["ok"])
+    assert "captures a minute" in refusal["detail"] and "refused this run" in refusal["detail"]
+    assert server.refused["capture_rate"] == 25 - len(ok)
+    assert len(list((tmp_path / "captures").glob("*.jpg"))) == len(ok)
+    assert state["captures"]["refused"] >= 1
+    assert server.stats()["captures_refused"] == 25 - len(ok)
+
+    # The folder already holds more than the budget (another run's captures): refused.
+    (tmp_path / "captures" / "capture-old.jpg").write_bytes(b"\0" * 200_000)
+    server = await serve(frames, Session(), tmp_path, clock=clock, captures_max_mb=0.2)
+    try:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
+            f = frames.next("us")
+            await next_message(ws, lambda k, d: k == "frame" and d[0]["seq"] == f.seq)
+            await ws.send_json({"type": "capture", "seq": f.seq})
+            r = await next_message(ws, lambda k, d: k == "json" and d["type"] == "result")
+    finally:
+        await server.stop()
+    assert not r["ok"] and "captures_max_mb" in r["detail"]
+    assert server.refused["capture_disk"] == 1
