@@ -5,6 +5,7 @@ import contextlib
 import json
 import math
 import os
+import resource
 import secrets
 import signal
 import subprocess
@@ -58,6 +59,7 @@ class Session:
         self.state_dir = tmp / "follower-state"
         self.runs = 0
         self.stopped: set[str] = set()
+        self.fd_limit: int | None = None  # RLIMIT_NOFILE of the daemons started from now on
 
     def stats_path(self, role: str) -> Path:
         return self.tmp / f"{role}.json"
@@ -90,9 +92,16 @@ class Session:
         if role == "follower":
             args += ["--state-dir", str(self.state_dir), "--feed-port", "0"]
         log = open(self.tmp / f"{role}-{self.runs}.log", "wb")  # noqa: SIM115
+        limit = self.fd_limit
+
+        def lower_limit() -> None:
+            if limit is not None:
+                resource.setrlimit(resource.RLIMIT_NOFILE, (limit, limit))
+
         proc = await asyncio.create_subprocess_exec(
-            *args, *extra, stdin=asyncio.subprocess.DEVNULL, stdout=log, stderr=log, env=self.env
-        )
+            *args, *extra, stdin=asyncio.subprocess.DEVNULL, stdout=log, stderr=log, env=self.env,
+            preexec_fn=lower_limit if limit is not None else None,
+        )  # fmt: skip
         log.close()
         self.procs[role] = proc
         self.stopped.discard(role)
