@@ -63,8 +63,10 @@ function pairingCode() {
   return localStorage.getItem(PAIRING_STORE);
 }
 
-function askPairing(note) {
+function askPairing(note, refused = false) {
   $('pairing-note').textContent = note;
+  $('pairing').dataset.refused = String(refused);
+  if (refused) $('pairing-code').value = '';
   $('pairing').hidden = false;
   document.body.dataset.pairing = 'needed';
   $('pairing-code').focus();
@@ -87,11 +89,11 @@ $('pairing').addEventListener('submit', (ev) => {
 function pairingRefused(ev) {
   if (ev.code === CLOSE_UNAUTHORIZED) {
     localStorage.removeItem(PAIRING_STORE);
-    askPairing('The follower did not accept that code. Type the pairing code it printed at its start.');
+    askPairing('The follower did not accept that code. Type the pairing code it printed at its start.', true);
     return true;
   }
   if (ev.code === CLOSE_THROTTLED) {
-    askPairing('Too many wrong codes: wait a minute, then type the code again.');
+    askPairing('Too many wrong codes: wait a minute, then type the code again.', true);
     return true;
   }
   return false;
@@ -100,7 +102,10 @@ function pairingRefused(ev) {
 function connect(delayMs = 500) {
   const code = pairingCode();
   if (!code) {
-    askPairing('Type the pairing code the follower printed beside this page\'s address.');
+    askPairing(
+      'Type the pairing code the follower printed beside this page\'s address ' +
+        '(in its terminal or log, after “pairing code”). This browser keeps it.',
+    );
     return;
   }
   const scheme = location.protocol === 'https:' ? 'wss:' : 'ws:';
