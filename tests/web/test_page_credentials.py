@@ -142,7 +142,11 @@ async def test_headset_feed_takes_only_the_pairing_code(tmp_path, monkeypatch):
     # Kept in the state dir, owner-only: the headset paired once stays paired after a restart.
     path = tmp_path / PAIRING_FILE
     assert stat.S_IMODE(os.stat(path).st_mode) == 0o600
-    assert RendererFeed(FeedConfig(port=0), tmp_path).code == code
+    assert pairing_code(tmp_path) == code
+    blocked = tmp_path / "a-file"
+    blocked.write_text("")
+    other = pairing_code(blocked / "state")  # cannot be kept: this run's code all the same
+    assert len(other) == 8 and other.isdigit()
     monkeypatch.setenv(PAIRING_CODE_ENV, "1234-5678")
     assert RendererFeed(FeedConfig(port=0), tmp_path).code == "12345678"
     monkeypatch.setenv(PAIRING_CODE_ENV, "1234")

@@ -74,7 +74,13 @@ from humantele.web.connguard import (
     page_connection_cap,
     page_middleware,
 )
-from humantele.web.credential import Credential, normalize_code, pairing_code, show_code
+from humantele.web.credential import (
+    Credential,
+    code_from_env,
+    normalize_code,
+    pairing_code,
+    show_code,
+)
 from humantele.web.guard import MessageBudget
 from humantele.web.pagesocket import Access, PageClient, PageLimits, PageSockets, validated
 from humantele.web.tls import Certificate, ensure_certificate, local_hosts
@@ -176,19 +182,16 @@ class RendererFeed:
         self.cert_dir = None if cert_dir is None else Path(cert_dir).expanduser() / TLS_SUBDIR
         self.certificate: Certificate | None = None
         self.state_dir = None if cert_dir is None else Path(cert_dir).expanduser()
-        self.code = pairing_code(self.state_dir)
+        # The pairing code: from $HUMANTELE_PAIRING_CODE now (a malformed one: ValueError),
+        # else read or made in the state dir by start() (an unwritable one: OSError there).
+        self.code = pairing_code(None) if code_from_env() or self.state_dir is None else ""
         self.port: int | None = None
         self.latest: dict[str, str] = {}
         self.refused: Counter[str] = Counter()
-        access = Access(
-            Credential(self.code, normalize=normalize_code), "code",
-            "pairing code missing or wrong: type the code the follower printed at its start",
-        )  # fmt: skip
         self.pages = PageSockets(
             PageLimits(self.config.max_clients, self.config.page_rate_hz, MAX_PAGE_MESSAGE),
             self.refused,
             _Client,
-            access,
         )
         self.connections: Counter[str] = Counter()  # the connection guard's counts
         self._listener: asyncio.Server | None = None
@@ -268,6 +271,14 @@ class RendererFeed:
     # --- server ---------------------------------------------------------------------------
 
     async def start(self) -> None:
+        """Serve; OSError if the state dir cannot hold the certificate or the pairing code,
+        or the address cannot be bound."""
+        if not self.code:
+            self.code = await asyncio.to_thread(pairing_code, self.state_dir)
+        self.pages.access = Access(
+            Credential(self.code, normalize=normalize_code), "code",
+            "pairing code missing or wrong: type the code the follower printed at its start",
+        )  # fmt: skip
         ssl_context = None
         if self.config.tls:
             if self.cert_dir is None:

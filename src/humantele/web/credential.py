@@ -69,15 +69,25 @@ def key_from_env() -> str | None:
     return key
 
 
+def code_from_env() -> str | None:
+    """``$HUMANTELE_PAIRING_CODE`` (spaces and dashes dropped), None if unset; ValueError if
+    it is not ``CODE_DIGITS`` digits."""
+    env = os.environ.get(PAIRING_CODE_ENV)
+    if env is None:
+        return None
+    code = normalize_code(env)
+    if not valid_code(code):
+        raise ValueError(f"${PAIRING_CODE_ENV}: {CODE_DIGITS} digits, not {len(code)} characters")
+    return code
+
+
 def pairing_code(state_dir: Path | None) -> str:
     """The follower's pairing code: ``$HUMANTELE_PAIRING_CODE`` if set, else the one kept in
     ``state_dir`` (created there, owner-only, on first use: a headset paired once stays
-    paired across restarts), else a new one for this run. ValueError for a malformed one."""
-    env = os.environ.get(PAIRING_CODE_ENV)
-    if env is not None:
-        code = normalize_code(env)
-        if not valid_code(code):
-            raise ValueError(f"${PAIRING_CODE_ENV}: {CODE_DIGITS} digits")
+    paired across restarts), else a new one for this run (also when the state dir cannot
+    hold it: logged). ValueError for a malformed ``$HUMANTELE_PAIRING_CODE``."""
+    code = code_from_env()
+    if code is not None:
         return code
     if state_dir is None:
         return new_code()
@@ -89,10 +99,16 @@ def pairing_code(state_dir: Path | None) -> str:
     except (OSError, UnicodeDecodeError):
         pass
     code = new_code()
-    state_dir.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w", encoding="ascii") as f:
-        f.write(code + "\n")
+    try:
+        state_dir.mkdir(parents=True, exist_ok=True)
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        with os.fdopen(fd, "w", encoding="ascii") as f:
+            f.write(code + "\n")
+    except OSError as exc:  # best effort: this run's code still pairs
+        log.warning(
+            "pairing code not kept in %s (%s): a new one at the next start", path,
+            exc.strerror or exc,
+        )  # fmt: skip
     return code
 
 
