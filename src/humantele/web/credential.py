@@ -21,6 +21,7 @@ from collections.abc import Callable
 from enum import Enum
 from pathlib import Path
 
+from humantele.config import ConfigError
 from humantele.web.guard import MessageBudget
 
 CONSOLE_KEY_ENV = "HUMANTELE_CONSOLE_KEY"
@@ -60,24 +61,24 @@ def valid_code(code: str) -> bool:
 
 def key_from_env() -> str | None:
     """The console key the caller chose (``$HUMANTELE_CONSOLE_KEY``: the demo, supervisors),
-    or None; ValueError if it is too short to be a secret."""
+    or None; ConfigError if it is too short to be a secret."""
     key = os.environ.get(CONSOLE_KEY_ENV)
     if key is None:
         return None
     if len(key) < 16 or not key.isascii() or not key.isprintable() or " " in key:
-        raise ValueError(f"${CONSOLE_KEY_ENV}: at least 16 printable ASCII characters")
+        raise ConfigError(f"${CONSOLE_KEY_ENV}: at least 16 printable ASCII characters")
     return key
 
 
 def code_from_env() -> str | None:
     """``$HUMANTELE_PAIRING_CODE`` (spaces and dashes dropped), None if unset; ValueError if
-    it is not ``CODE_DIGITS`` digits."""
+    it is not ``CODE_DIGITS`` digits (ConfigError)."""
     env = os.environ.get(PAIRING_CODE_ENV)
     if env is None:
         return None
     code = normalize_code(env)
     if not valid_code(code):
-        raise ValueError(f"${PAIRING_CODE_ENV}: {CODE_DIGITS} digits, not {len(code)} characters")
+        raise ConfigError(f"${PAIRING_CODE_ENV}: {CODE_DIGITS} digits, not {len(code)} characters")
     return code
 
 
