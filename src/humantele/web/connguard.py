@@ -41,6 +41,12 @@ from humantele.signaling.messages import printable
 ACCEPT_BACKLOG = 32
 """Listen backlog; asyncio also accepts up to this many connections at once, before the guard
 hears of any of them."""
+PAGE_LISTEN_BACKLOG = 1024
+"""The pages' queue of connections the kernel has completed and the daemon not yet accepted
+(capped by net.core.somaxconn): in a flood of connects the page's own is queued, not dropped
+to come back after the client's SYN retry (1, 3, 7 s...). asyncio still accepts at most
+``ACCEPT_BACKLOG`` at a time, so the descriptors taken before the guard hears of them stay
+bounded."""
 FD_RESERVE = 2 * ACCEPT_BACKLOG + 16
 """Descriptors kept free beyond ``max_connections``: one accept burst, the connections being
 closed to make room, and the process's own (listening socket, logs...)."""
@@ -318,13 +324,21 @@ class GuardedServer(web.Server):
         backlog: int = ACCEPT_BACKLOG,
     ) -> asyncio.Server:
         """Listen on ``host:port``; with ``ssl_context``, TLS after admission (see the
-        module docstring). The listening server (close it to stop)."""
+        module docstring). With ``pages``, the kernel's queue is :data:`PAGE_LISTEN_BACKLOG`
+        long while asyncio accepts ``backlog`` at a time. The listening server (close it to
+        stop)."""
         loop = asyncio.get_running_loop()
         if ssl_context is None:
-            return await loop.create_server(self, host, port, backlog=backlog)
-        return await loop.create_server(
-            lambda: _TlsGate(self, ssl_context), host, port, backlog=backlog
-        )
+            server = await loop.create_server(self, host, port, backlog=backlog)
+        else:
+            server = await loop.create_server(
+                lambda: _TlsGate(self, ssl_context), host, port, backlog=backlog
+            )
+        if self.pages:
+            for ts in server.sockets:  # listen() again: only the kernel's queue grows
+                with ts.dup() as sock:  # a new descriptor of the same socket
+                    sock.listen(PAGE_LISTEN_BACKLOG)
+        return server
 
     def tls_admit(self, handler: RequestHandler, transport: asyncio.Transport) -> bool:
         """Admit a TCP connection whose TLS handshake is to come (:class:`_TlsGate`)."""
