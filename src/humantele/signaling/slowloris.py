@@ -5,6 +5,8 @@ legitimate expert and follower take to join a room meanwhile.
     python -m humantele.signaling.slowloris --sockets 300 --sources 30 [--fd-limit 256]
     python -m humantele.signaling.slowloris --url ws://host:port/ws   # a running server
                                                                        # (token: $HUMANTELE_TOKEN)
+    python -m humantele.signaling.slowloris --hold 127.0.0.1:8766 --mode tls --sockets 600 \
+        --sources 200 --seconds 20        # only hold sockets against a page (http, tls, tcp)
 
 :func:`hold_sockets` holds them against any HTTP server, also over TLS (the daemons' pages:
 tests/web/test_pages_slowloris.py).
@@ -213,13 +215,56 @@ def start_server(fd_limit: int | None, token: str, log: IO[str]) -> tuple[subpro
     return proc, line.rsplit(" ", 1)[1].strip()
 
 
+async def hold_waves(
+    host: str, port: int, n: int, *, sources: int, mode: str, seconds: float,
+    settle_s: float = 60.0,
+) -> dict[str, int]:
+    """A wave of ``n`` half-open sockets every second for ``seconds`` (those the server closed
+    are replaced, as an attacker would); then up to ``settle_s`` for the server to close the
+    rest. The counts: opened, failed (refused, reset in the TLS handshake), still open."""
+    end = time.monotonic() + seconds
+    waves: list[HeldSockets] = []
+    while time.monotonic() < end:
+        waves.append(await hold_sockets(host, port, n, sources=sources, mode=mode))
+        await asyncio.sleep(1.0)
+    settle = time.monotonic() + settle_s
+    while any(w.open for w in waves) and time.monotonic() < settle:
+        await asyncio.sleep(0.2)
+    result = {
+        "waves": len(waves),
+        "opened": sum(w.opened for w in waves),
+        "failed": sum(w.failed for w in waves),
+        "still_open": sum(w.open for w in waves),
+    }
+    for w in waves:
+        await w.close()
+    return result
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m humantele.signaling.slowloris")
     parser.add_argument("--url", help="attack a running server (token from $HUMANTELE_TOKEN)")
+    parser.add_argument(
+        "--hold", metavar="HOST:PORT",
+        help="only hold waves of half-open sockets against any HTTP(S) server (a page) for "
+        "--seconds; prints what the server closed",
+    )  # fmt: skip
+    parser.add_argument("--mode", default="http", choices=("http", "tls", "tcp"))
+    parser.add_argument("--seconds", type=float, default=20.0)
     parser.add_argument("--sockets", type=int, default=300)
     parser.add_argument("--sources", type=int, default=1, help="loopback source addresses")
     parser.add_argument("--fd-limit", type=int, help="descriptor limit of the child server")
     args = parser.parse_args(argv)
+    if args.hold:
+        host, _, port = args.hold.rpartition(":")
+        soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+        resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))  # the attacker's own sockets
+        result = asyncio.run(
+            hold_waves(host, int(port), args.sockets, sources=args.sources, mode=args.mode,
+                       seconds=args.seconds)
+        )  # fmt: skip
+        print(json.dumps(result))
+        return 0
     if args.url:
         token = os.environ.get(TOKEN_ENV, "")
         result = asyncio.run(measure(args.url, token, sockets=args.sockets, sources=args.sources))
