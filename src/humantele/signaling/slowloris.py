@@ -216,7 +216,13 @@ def start_server(fd_limit: int | None, token: str, log: IO[str]) -> tuple[subpro
 
 
 async def hold_waves(
-    host: str, port: int, n: int, *, sources: int, mode: str, seconds: float,
+    host: str,
+    port: int,
+    n: int,
+    *,
+    sources: int,
+    mode: str,
+    seconds: float,
     settle_s: float = 60.0,
 ) -> dict[str, int]:
     """A wave of ``n`` half-open sockets every second for ``seconds`` (those the server closed
