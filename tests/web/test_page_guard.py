@@ -118,7 +118,8 @@ async def test_console_page_gets_in_past_half_open_sockets_from_its_own_address(
 
 
 async def test_console_keep_alive_connection_gets_the_deadline_again(tmp_path):
-    """A request answered, then a second one that never ends: closed after the deadline."""
+    """A request answered, then a second one that never ends: closed (by aiohttp's keep-alive
+    timer, the header timeout from the response's end); the guard's slot freed."""
     server = await console(tmp_path, header_timeout_s=0.5)
     try:
         reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
@@ -127,7 +128,7 @@ async def test_console_keep_alive_connection_gets_the_deadline_again(tmp_path):
         assert head.startswith(b"HTTP/1.1 200")
         writer.write(PARTIAL_REQUEST)
         await asyncio.wait_for(reader.read(), 30)  # to EOF: the server closed it
-        assert server.connections["closed:handshake_timeout"] == 1
+        await until("the slot freed", lambda: server.pages.guard.open_connections == 0)
         writer.close()
     finally:
         await server.stop()
@@ -207,3 +208,32 @@ def test_connection_cap_fits_the_descriptor_limit(limit, monkeypatch):
     assert cap == (limit - 100 - connguard.FD_RESERVE - 8) // 2
     monkeypatch.setattr(connguard, "fd_soft_limit", lambda: None)
     assert connguard.page_connection_cap(128, 8, logging.getLogger("t"), "console") == 128
+
+
+async def test_a_slow_reader_is_closed_after_the_response_timeout(tmp_path, monkeypatch):
+    """A client that asks for three.js (1.2 MB) and reads nothing holds neither a place nor a
+    descriptor for good (closed by the response deadline, or by aiohttp's keep-alive timer
+    when the kernel took the whole file)."""
+    import socket
+
+    from humantele.web import connguard
+
+    monkeypatch.setattr(connguard, "RESPONSE_TIMEOUT_S", 1.0)
+    feed = RendererFeed(
+        FeedConfig(port=0, host="127.0.0.1", tls=False, header_timeout_s=0.5), tmp_path
+    )
+    await feed.start()
+    loop = asyncio.get_running_loop()
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # a small window: it fills
+    sock.setblocking(False)
+    try:
+        await loop.sock_connect(sock, ("127.0.0.1", feed.port))
+        await loop.sock_sendall(
+            sock, b"GET /web/vendor/three/three.core.js HTTP/1.1\r\nHost: x\r\n\r\n"
+        )
+        await until("its place freed", lambda: feed.pages.guard.open_connections == 0)
+        await until("its descriptor closed", lambda: not feed.pages.guard.connections)
+    finally:
+        sock.close()
+        await feed.stop()

@@ -16,7 +16,8 @@ from that address still in its handshake instead of being refused (on loopback e
 shares one address, the sonographer's browser too); a connection whose WebSocket is
 established with the page's credential (:meth:`GuardedServer.established`) leaves the caps
 (it is held back for the credentialed pages, whose number the page server caps itself); and
-the header deadline applies again after each plain HTTP request (keep-alive).
+after each plain HTTP request the deadline runs again for the response to be read
+(:data:`RESPONSE_TIMEOUT_S`), aiohttp's keep-alive timer timing the next request's headers.
 """
 
 from __future__ import annotations
@@ -47,6 +48,9 @@ PAGE_LISTEN_BACKLOG = 1024
 to come back after the client's SYN retry (1, 3, 7 s...). asyncio still accepts at most
 ``ACCEPT_BACKLOG`` at a time, so the descriptors taken before the guard hears of them stay
 bounded."""
+RESPONSE_TIMEOUT_S = 60.0
+"""A page's client has this long to read a response (three.js, 1.3 MB, on a slow headset
+link) before its connection is closed (a slow reader holding a place)."""
 FD_RESERVE = 2 * ACCEPT_BACKLOG + 16
 """Descriptors kept free beyond ``max_connections``: one accept burst, the connections being
 closed to make room, and the process's own (listening socket, logs...)."""
@@ -240,9 +244,9 @@ class GuardedServer(web.Server):
                 return h
         return None
 
-    def _arm(self, handler: RequestHandler) -> None:
+    def _arm(self, handler: RequestHandler, timeout_s: float | None = None) -> None:
         self._deadlines[handler] = asyncio.get_running_loop().call_later(
-            self.handshake_timeout_s, self._expire, handler
+            max(self.handshake_timeout_s, timeout_s or 0.0), self._expire, handler
         )
 
     def connection_lost(self, handler: RequestHandler, exc: BaseException | None = None) -> None:
@@ -268,10 +272,13 @@ class GuardedServer(web.Server):
             deadline.cancel()
 
     def request_done(self, handler: RequestHandler) -> None:
-        """A plain HTTP request on ``handler`` has its answer: the deadline runs again for the
-        next request's headers (pages; a closed connection is not re-armed)."""
+        """A plain HTTP request on ``handler`` has its answer, about to be sent: the deadline
+        runs again, :data:`RESPONSE_TIMEOUT_S` for the client to read it (a slow reader is
+        closed then; a closed connection is not re-armed). The next request's headers are
+        timed by aiohttp's keep-alive timer (``keepalive_timeout``: the header timeout) from
+        the end of the response."""
         if handler in self._admitted and handler not in self._deadlines:
-            self._arm(handler)
+            self._arm(handler, RESPONSE_TIMEOUT_S)
 
     def established(self, handler: RequestHandler) -> None:
         """``handler`` is a credentialed page's WebSocket: no deadline, and it no longer counts
@@ -309,12 +316,12 @@ class GuardedServer(web.Server):
             logging.INFO, what, "%s: closed a connection from %s in its handshake: %s",
             self.name, printable(where), why,
         )  # fmt: skip
-        raw = self._tls_pending.get(handler)
+        raw = self._tls_pending.get(handler) or self._connections.get(handler)
         self.release(handler)  # its place is free now (closing it takes a loop turn)
-        if raw is not None:  # still in its TLS handshake: aiohttp has not seen it
-            raw.abort()
-        else:
+        if handler not in self._tls_pending:
             handler.force_close()
+        if raw is not None:  # abort: a close would wait for a slow reader to take the rest
+            raw.abort()
 
     async def listen(
         self,
