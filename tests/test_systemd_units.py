@@ -61,3 +61,22 @@ def test_units_verify():
     )  # fmt: skip
     problems = [ln for ln in r.stderr.splitlines() if "is not executable" not in ln and ln]
     assert problems == [], r.stderr
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_units_raise_the_descriptor_limit_for_the_connection_caps(name):
+    """The pages' and the signaling server's caps are sized from RLIMIT_NOFILE: systemd's
+    default soft limit (1024) is what let a flood exhaust the expert (issue 20)."""
+    from humantele.expert.console import ConsoleConfig
+    from humantele.follower.feed import FeedConfig
+    from humantele.signaling.server import SignalConfig
+    from humantele.web.connguard import FD_RESERVE
+
+    limit = int(_unit(name)["Service"]["LimitNOFILE"])
+    assert limit >= 8192
+    wanted = {
+        "humantele-signal": SignalConfig().max_connections,
+        "humantele-expert": ConsoleConfig().max_connections + ConsoleConfig().max_clients,
+        "humantele-follower": FeedConfig().max_connections + FeedConfig().max_clients,
+    }[name]
+    assert 2 * (wanted + FD_RESERVE) < limit  # the caps as configured, with room to spare

@@ -23,13 +23,17 @@ PICTURES = {
         "console_page_stale.png": "console_stale.png",
     },
     "demo_pages": {"console_sim.png": "console_sim.png"},
+    "headset_feed": {"headset_pairing.png": "headset_pairing.png"},
     "headset_session": {
         "session_following.png": "headset_following.png",
         "session_calibrating_3.png": "headset_calibrating.png",
         "session_stale.png": "headset_stale.png",
     },
 }
-GROUPS = {"console": ("console_page", "demo_pages"), "headset": ("headset_session",)}
+GROUPS = {
+    "console": ("console_page", "demo_pages"),
+    "headset": ("headset_session", "headset_feed"),
+}
 
 
 def main(argv: list[str]) -> int:

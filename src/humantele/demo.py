@@ -50,6 +50,13 @@ from humantele.runtime.process import PARENT_PID_ENV, ignore_stop_signals, on_st
 from humantele.runtime.stats import read_stats
 from humantele.runtime.supervise import SupervisedDaemon
 from humantele.signaling.messages import TOKEN_ENV
+from humantele.web.credential import (
+    CONSOLE_KEY_ENV,
+    PAIRING_CODE_ENV,
+    new_code,
+    new_key,
+    show_code,
+)
 
 log = logging.getLogger(__name__)
 
@@ -216,13 +223,21 @@ def us_scale(follower_config: str | None) -> tuple[tuple[float, float], float] |
     return g.pixel_spacing_mm, g.depth_origin_row
 
 
-def _page_urls(e: dict[str, Any], f: dict[str, Any]) -> dict[str, str]:
-    """The pages the daemons serve, once they do: the sonographer's console, the headset's."""
+def _page_urls(
+    e: dict[str, Any], f: dict[str, Any], env: dict[str, str] | None = None
+) -> dict[str, str]:
+    """The pages the daemons serve, once they do: the sonographer's console (with the key the
+    demo gave the expert), the headset's (with the pairing code it gave the follower)."""
+    env = env or {}
     urls = {}
     if (e.get("console") or {}).get("url"):
-        urls["console (sonographer)"] = e["console"]["url"]
+        key = env.get(CONSOLE_KEY_ENV)
+        urls["console (sonographer)"] = e["console"]["url"] + (f"#key={key}" if key else "")
     if (f.get("feed") or {}).get("page_url"):
-        urls["headset page (follower)"] = f["feed"]["page_url"]
+        code = env.get(PAIRING_CODE_ENV)
+        urls["headset page (follower)"] = f["feed"]["page_url"] + (
+            f"  (pairing code {show_code(code)})" if code else ""
+        )
     igtl = f.get("igtl") or {}
     if igtl.get("port"):
         host = igtl.get("host") or "127.0.0.1"
@@ -353,6 +368,8 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
     env = dict(os.environ)
     env[TOKEN_ENV] = token
     env[PARENT_PID_ENV] = str(os.getpid())
+    env.setdefault(CONSOLE_KEY_ENV, new_key())  # the demo prints the pages' addresses with them
+    env.setdefault(PAIRING_CODE_ENV, new_code())
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     on_stop_signals(loop, stop.set)
@@ -409,7 +426,7 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
             if failed:
                 break
             e, f = read_stats(stats["expert"]) or {}, read_stats(stats["follower"]) or {}
-            for name, url in _page_urls(e, f).items():
+            for name, url in _page_urls(e, f, env).items():
                 if name not in pages:
                     pages[name] = url
                     print(f"{name}: {url}", file=status_to, flush=True)

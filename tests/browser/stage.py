@@ -30,7 +30,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "session"))
 
 from netns import chromium_path  # noqa: E402
-from session_helpers import Session, read_json  # noqa: E402
+from session_helpers import CONSOLE_KEY, PAIRING_CODE, Session, read_json  # noqa: E402
 
 IWER = HERE / "vendor" / "iwer" / "iwer.min.js"
 CHROMIUM_ARGS = [
@@ -229,14 +229,22 @@ async def _serve_blank(host: str = "127.0.0.1"):
 
 def page_url(follower_stats: dict) -> str | None:
     """The headset page of a follower from its stats, on loopback (the namespace has no other
-    address the page could be reached at)."""
+    address the page could be reached at), with the pairing code the harness gave the
+    follower (``#code=``: the page keeps it, as if typed)."""
     feed = follower_stats.get("feed") or {}
     url = feed.get("page_url")
     if not url:
         return None
     scheme, rest = url.split("://", 1)
     port = rest.split("/", 1)[0].rsplit(":", 1)[1]
-    return f"{scheme}://127.0.0.1:{port}/"
+    return f"{scheme}://127.0.0.1:{port}/#code={PAIRING_CODE}"
+
+
+def console_url(expert_stats: dict) -> str | None:
+    """The console of an expert from its stats, with the key the harness gave the expert (the
+    stats never carry it)."""
+    url = (expert_stats.get("console") or {}).get("url")
+    return f"{url}#key={CONSOLE_KEY}" if url else None
 
 
 class DemoRun:
@@ -250,6 +258,7 @@ class DemoRun:
         self.tmp.mkdir(parents=True, exist_ok=True)
         env = dict(os.environ, TMPDIR=str(self.tmp))
         env.pop("HUMANTELE_TOKEN", None)
+        env.update(HUMANTELE_CONSOLE_KEY=CONSOLE_KEY, HUMANTELE_PAIRING_CODE=PAIRING_CODE)
         log = open(self.tmp / "demo.log", "wb")  # noqa: SIM115 - the child has it
         self.proc = await asyncio.create_subprocess_exec(
             sys.executable, "-m", "humantele", "demo", "--keep", "--log-level", "INFO", *args,

@@ -56,5 +56,11 @@ def test_console_page(browser_scenario):
         assert labels[cm] == pytest.approx((row + 0.5) * px, abs=0.5), cm
     # The console page itself logged no error (the refused second console and the other
     # site's page log their refusals, which is the point).
+    # Without the key, or with another run's, the page says so and drives nothing; the key
+    # leaves the address bar once the page has it.
+    assert "no key" in d["no_key"] and "#key=" in d["no_key"]
+    assert "missing or wrong" in d["wrong_key"] and "#key" not in d["wrong_key_address"]
+    assert "#key" not in d["keyed_address"]
+    assert d["stats"]["refused"]["unauthorized"] >= 1
     page_errors = [e for e in d["console_errors"] if e.startswith(d["stats"]["url"])]
     assert all("409" in e for e in page_errors), page_errors

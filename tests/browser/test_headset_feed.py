@@ -139,3 +139,12 @@ def test_drawn_echoes_give_the_feed_latency(run):
     assert 0 < f["draw_latency_p50_ms"] <= f["draw_latency_p95_ms"] < 2000
     (run.out_dir / "feed_latency.json").write_text(json.dumps({k: f[k] for k in (
         "echoes", "draw_latency_p50_ms", "draw_latency_p95_ms")}))  # fmt: skip
+
+
+def test_pairing_asked_once_wrong_code_refused(run):
+    d = run.data
+    assert "pairing code" in d["pairing_asked"] and d["pairing_hides_hud"] == "needed"
+    assert "did not accept" in d["pairing_wrong"]
+    assert d["paired_form_hidden"] is True and d["paired_after_reload"] is True
+    assert "#code" not in d["code_address"]  # taken out of the address bar once kept
+    assert d["feed"]["refused"].get("unauthorized") == 1

@@ -151,7 +151,7 @@ async def test_live_sim_frames_reach_the_page_readable_and_in_order(tmp_path):
     server = await serve(frames, Session(), tmp_path, clock=time.monotonic, on_demand=frames)
     try:
         assert not frames._threads  # no page, no rendering
-        async with aiohttp.ClientSession() as http, http.ws_connect(f"{server.url}ws") as ws:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
             seen: dict[str, list[int]] = {"us": [], "pov": []}
             while min(len(v) for v in seen.values()) < 4:
                 h, jpeg = await next_message(ws, lambda k, d: k == "frame")
@@ -189,7 +189,7 @@ async def test_glass_to_glass_from_the_counter_the_page_read(tmp_path):
     server = await serve(frames, Session(), tmp_path, clock=clock)
     sent = []
     try:
-        async with aiohttp.ClientSession() as http, http.ws_connect(f"{server.url}ws") as ws:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
             for _ in range(3):  # captured at t, 0.05 s apart; the page draws them at t + 0.2
                 f = frames.next("us")
                 await next_message(ws, lambda k, d, s=f.seq: k == "frame" and d[0]["seq"] == s)
@@ -235,7 +235,7 @@ async def test_state_marks_old_video_and_a_lost_link_as_stale(tmp_path):
         assert server.state()["link"]["stale"]
         session.link = {"state": "connected", "pose_age_ms": 2500.0}
         assert server.state()["link"]["stale"]
-        async with aiohttp.ClientSession() as http, http.ws_connect(f"{server.url}ws") as ws:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
             st = await next_message(ws, lambda k, d: k == "json" and d["type"] == "state")
             assert st["alignment"] == {"mm": 3.0, "deg": None}  # NaN sent as null
     finally:
@@ -251,7 +251,7 @@ async def test_freeze_cine_calipers_annotation_and_capture_are_measured_saved_re
     session = Session(recorder=rec)
     server = await serve(frames, session, tmp_path, clock=clock)
     try:
-        async with aiohttp.ClientSession() as http, http.ws_connect(f"{server.url}ws") as ws:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
             for _ in range(5):  # five ultrasound frames, 50 ms apart, each drawn by the page
                 f = frames.next("us")
                 await next_message(ws, lambda k, d, s=f.seq: k == "frame" and d[0]["seq"] == s)
@@ -317,19 +317,19 @@ async def test_bad_pages_are_refused_and_counted_and_the_server_goes_on(tmp_path
     clock = FakeClock()
     frames = ManualFrames(clock)
     server = await serve(frames, Session(), tmp_path, clock=clock, page_rate_hz=50.0)
-    url = f"{server.url}ws"
+    url = server.ws_url
     async with aiohttp.ClientSession() as http:
         with pytest.raises(aiohttp.WSServerHandshakeError) as other:
             async with http.ws_connect(url, headers={"Origin": "http://evil.example"}):
                 pass
         assert other.value.status == 403
     async with aiohttp.ClientSession() as http:
-        resp = await http.get(server.url, headers={"Host": f"rebind.example:{server.port}"})
+        resp = await http.get(server.address, headers={"Host": f"rebind.example:{server.port}"})
         assert resp.status == 403  # DNS rebinding: a loopback server answering another name
-        resp = await http.get(server.url)
+        resp = await http.get(server.address)
         assert resp.status == 200 and "console" in await resp.text()
         assert "frame-ancestors 'none'" in resp.headers["Content-Security-Policy"]
-        async with http.ws_connect(url, origin=server.url.rstrip("/")) as ws:
+        async with http.ws_connect(url, origin=server.address.rstrip("/")) as ws:
             with pytest.raises(aiohttp.WSServerHandshakeError) as second:
                 async with http.ws_connect(url):
                     pass
@@ -374,7 +374,7 @@ async def test_a_slow_page_gets_the_newest_frame_not_a_queue(tmp_path):
     rendered = [frames.next("us") for _ in range(6)]
     frames.frames.clear()
     try:
-        async with aiohttp.ClientSession() as http, http.ws_connect(f"{server.url}ws") as ws:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
             got = []
             for f in rendered:
                 frames.frames["us"] = f
@@ -476,3 +476,47 @@ def test_force_along_the_beam_is_the_pressing_force():
     down = Pose([0.1, 0.2, 0.0], quat_from_axis_angle((1.0, 0.0, 0.0), math.pi / 2))
     assert pressing_n(down.inverse().rotate([3.0, 8.0, 0.0])) == pytest.approx(8.0)
     assert pressing_n(down.inverse().rotate([0.0, -2.0, 1.0])) == pytest.approx(-2.0)
+
+
+async def test_captures_are_capped_in_rate_and_in_disk_use(tmp_path):
+    """A page asking for captures as fast as it can: 10 at once, then ``captures_per_minute``;
+    the others refused with the reason, counted and in the page's state. A captures folder at
+    its budget refuses every capture."""
+    clock = FakeClock()
+    frames = ManualFrames(clock)
+    server = await serve(frames, Session(), tmp_path, clock=clock, captures_per_minute=6.0)
+    try:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
+            f = frames.next("us")
+            await next_message(ws, lambda k, d: k == "frame" and d[0]["seq"] == f.seq)
+            results = []
+            for _ in range(25):
+                await ws.send_json({"type": "capture", "seq": f.seq})
+                results.append(
+                    await next_message(ws, lambda k, d: k == "json" and d["type"] == "result")
+                )
+            state = await next_message(ws, lambda k, d: k == "json" and d["type"] == "state")
+    finally:
+        await server.stop()
+    ok = [r for r in results if r["ok"]]
+    assert 10 <= len(ok) <= 11  # the burst (and at most one more refilled meanwhile)
+    refusal = next(r for r in results if not r["ok"])
+    assert "captures a minute" in refusal["detail"] and "refused this run" in refusal["detail"]
+    assert server.refused["capture_rate"] == 25 - len(ok)
+    assert len(list((tmp_path / "captures").glob("*.jpg"))) == len(ok)
+    assert state["captures"]["refused"] >= 1
+    assert server.stats()["captures_refused"] == 25 - len(ok)
+
+    # The folder already holds more than the budget (another run's captures): refused.
+    (tmp_path / "captures" / "capture-old.jpg").write_bytes(b"\0" * 200_000)
+    server = await serve(frames, Session(), tmp_path, clock=clock, captures_max_mb=0.2)
+    try:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
+            f = frames.next("us")
+            await next_message(ws, lambda k, d: k == "frame" and d[0]["seq"] == f.seq)
+            await ws.send_json({"type": "capture", "seq": f.seq})
+            r = await next_message(ws, lambda k, d: k == "json" and d["type"] == "result")
+    finally:
+        await server.stop()
+    assert not r["ok"] and "captures_max_mb" in r["detail"]
+    assert server.refused["capture_disk"] == 1

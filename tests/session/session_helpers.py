@@ -5,6 +5,7 @@ import contextlib
 import json
 import math
 import os
+import resource
 import secrets
 import signal
 import subprocess
@@ -20,6 +21,10 @@ from humantele.follower.calibration import CALIBRATION_FILE, build_calibration
 from humantele.follower.sim_human import SimPatient
 from humantele.recording import read_recording
 from humantele.signaling.server import SignalConfig, SignalingServer
+
+# The daemons' page credentials in these tests (the daemons take them from the environment).
+PAIRING_CODE = "24681357"
+CONSOLE_KEY = "test-console-key-" + secrets.token_urlsafe(8)
 
 
 def read_json(path: Path) -> dict:
@@ -46,11 +51,15 @@ class Session:
     def __init__(self, tmp: Path, server: SignalingServer, token: str) -> None:
         self.tmp = tmp
         self.server = server
-        self.env = dict(os.environ, HUMANTELE_TOKEN=token, HUMANTELE_PARENT_PID=str(os.getpid()))
+        self.env = dict(
+            os.environ, HUMANTELE_TOKEN=token, HUMANTELE_PARENT_PID=str(os.getpid()),
+            HUMANTELE_PAIRING_CODE=PAIRING_CODE, HUMANTELE_CONSOLE_KEY=CONSOLE_KEY,
+        )  # fmt: skip
         self.procs: dict[str, asyncio.subprocess.Process] = {}
         self.state_dir = tmp / "follower-state"
         self.runs = 0
         self.stopped: set[str] = set()
+        self.fd_limit: int | None = None  # RLIMIT_NOFILE of the daemons started from now on
 
     def stats_path(self, role: str) -> Path:
         return self.tmp / f"{role}.json"
@@ -83,9 +92,16 @@ class Session:
         if role == "follower":
             args += ["--state-dir", str(self.state_dir), "--feed-port", "0"]
         log = open(self.tmp / f"{role}-{self.runs}.log", "wb")  # noqa: SIM115
+        limit = self.fd_limit
+
+        def lower_limit() -> None:
+            if limit is not None:
+                resource.setrlimit(resource.RLIMIT_NOFILE, (limit, limit))
+
         proc = await asyncio.create_subprocess_exec(
-            *args, *extra, stdin=asyncio.subprocess.DEVNULL, stdout=log, stderr=log, env=self.env
-        )
+            *args, *extra, stdin=asyncio.subprocess.DEVNULL, stdout=log, stderr=log, env=self.env,
+            preexec_fn=lower_limit if limit is not None else None,
+        )  # fmt: skip
         log.close()
         self.procs[role] = proc
         self.stopped.discard(role)

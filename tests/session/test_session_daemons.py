@@ -6,7 +6,7 @@ import json
 
 import aiohttp
 import pytest
-from session_helpers import pid_alive
+from session_helpers import PAIRING_CODE, pid_alive
 
 from humantele.follower.calibration import Calibration
 
@@ -22,7 +22,8 @@ def flowing(e, f, poses=30, states=10):
 
 async def latest_virtual_probe(feed_url, timeout=5.0):
     """The latest virtual_probe object the follower's renderer feed gives (wss: self-signed)."""
-    async with aiohttp.ClientSession() as s, s.ws_connect(feed_url, ssl=False) as ws:
+    url = f"{feed_url}?code={PAIRING_CODE}"
+    async with aiohttp.ClientSession() as s, s.ws_connect(url, ssl=False) as ws:
         found = None
         end = asyncio.get_running_loop().time() + timeout
         while found is None or found.get("_n", 0) < 3:

@@ -381,7 +381,7 @@ class FollowerDaemon(Daemon):
             "dropped": dict(self.link.counters.dropped),
             "dropped_total": sum(self.link.counters.dropped.values()),
             "feed_clients": len(self.feed.clients),
-            "feed_url": self.feed.url if self.feed.port else None,
+            "feed_url": self.feed.address if self.feed.port else None,
             "feed": self.feed.stats(),
             "registration": self.registration.stats(),
             "ticks": self.ticks,

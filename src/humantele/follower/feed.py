@@ -39,6 +39,13 @@ A page's ``registration`` and ``viewer_pose`` messages (:mod:`humantele.follower
 validated here) go to ``page_handler``; the feed publishes ``registration`` objects for them.
 Anything else a page sends (malformed, unknown, a flood, an unknown or repeated id, a wrong
 ``Origin``, too many pages) is refused and counted in ``refused``; the daemon goes on.
+
+Who may read the feed: a page with the follower's pairing code (:mod:`humantele.web.credential`:
+eight digits, kept in the state dir, printed in :meth:`RendererFeed.banner`), which the page asks
+for once and keeps; it goes on the feed's URL (``?code=``). A wrong one is refused (4401) and
+counted, wrong guesses are throttled. Connections are guarded (:mod:`humantele.web.connguard`):
+the TLS handshake and the request's headers within ``header_timeout_s`` of accept, caps in total
+and per address, the paired pages held outside them.
 """
 
 from __future__ import annotations
@@ -48,6 +55,7 @@ import base64
 import hashlib
 import ipaddress
 import json
+import logging
 import math
 import re
 import time
@@ -65,11 +73,25 @@ from humantele.config import ConfigModel
 from humantele.follower.registration import RegistrationMessage, ViewerPoseMessage
 from humantele.runtime.stats import percentile_ms
 from humantele.signaling.messages import is_loopback
+from humantele.web.connguard import (
+    AcceptErrorLog,
+    GuardedAppRunner,
+    page_connection_cap,
+    page_middleware,
+)
+from humantele.web.credential import (
+    Credential,
+    code_from_env,
+    normalize_code,
+    pairing_code,
+    show_code,
+)
 from humantele.web.guard import MessageBudget
-from humantele.web.pagesocket import PageClient, PageLimits, PageSockets, validated
+from humantele.web.pagesocket import Access, PageClient, PageLimits, PageSockets, validated
 from humantele.web.static import add_page_files
 from humantele.web.tls import Certificate, HostName, ensure_certificate, local_hosts
 
+log = logging.getLogger(__name__)
 WEB_DIR = Path(str(resources.files("humantele.follower") / "web"))
 TLS_SUBDIR = "tls"
 MAX_PAGE_MESSAGE = 512  # bytes: a "drawn" echo is ~60
@@ -95,6 +117,13 @@ class FeedConfig(ConfigModel):
     page_rate_hz: float = Field(
         30.0, gt=0, le=1000, description="messages a page may send per second (more: dropped)"
     )
+    header_timeout_s: float = Field(
+        10.0, gt=0, le=120, description="accept to a request's complete headers, TLS included"
+    )
+    max_connections: int = Field(
+        128, ge=8, le=4096, description="open at once, besides the paired pages"
+    )
+    max_connections_per_address: int = Field(32, ge=2, le=4096)
 
     @model_validator(mode="after")
     def _plain_only_on_loopback(self) -> FeedConfig:
@@ -165,6 +194,10 @@ class RendererFeed:
         self.config = config or FeedConfig()
         self.cert_dir = None if cert_dir is None else Path(cert_dir).expanduser() / TLS_SUBDIR
         self.certificate: Certificate | None = None
+        self.state_dir = None if cert_dir is None else Path(cert_dir).expanduser()
+        # The pairing code: from $HUMANTELE_PAIRING_CODE now (a malformed one: ValueError),
+        # else read or made in the state dir by start() (an unwritable one: OSError there).
+        self.code = pairing_code(None) if code_from_env() or self.state_dir is None else ""
         self.port: int | None = None
         self.latest: dict[str, str] = {}
         self.refused: Counter[str] = Counter()
@@ -173,6 +206,9 @@ class RendererFeed:
             self.refused,
             _Client,
         )
+        self.connections: Counter[str] = Counter()  # the connection guard's counts
+        self._listener: asyncio.Server | None = None
+        self._accept_errors: AcceptErrorLog | None = None
         self.echoes = 0
         self.latencies: deque[float] = deque(maxlen=LATENCIES_KEPT)  # s, receipt to draw
         self.pose_id = 0
@@ -208,10 +244,15 @@ class RendererFeed:
         return "127.0.0.1" if h in ("", "0.0.0.0") else "::1" if h == "::" else h
 
     @property
-    def url(self) -> str:
-        """The feed's WebSocket URL for a tool on this machine."""
+    def address(self) -> str:
+        """The feed's WebSocket URL for a tool on this machine, without the pairing code."""
         ws = "wss" if self.config.tls else "ws"
         return f"{ws}://{_url_host(self._local_host())}:{self.port}{self.config.path}"
+
+    @property
+    def url(self) -> str:
+        """The feed's WebSocket URL for a tool on this machine, with the pairing code."""
+        return f"{self.address}?code={self.code}"
 
     @property
     def page_url(self) -> str:
@@ -249,11 +290,19 @@ class RendererFeed:
         text = f"headset page {self.page_url}"
         if self.certificate is not None:
             text += f" (certificate SHA-256 {self.certificate.fingerprint_sha256})"
-        return text
+        return f"{text}, pairing code {show_code(self.code)}"
 
     # --- server ---------------------------------------------------------------------------
 
     async def start(self) -> None:
+        """Serve; OSError if the state dir cannot hold the certificate or the pairing code,
+        or the address cannot be bound."""
+        if not self.code:
+            self.code = await asyncio.to_thread(pairing_code, self.state_dir)
+        self.pages.access = Access(
+            Credential(self.code, normalize=normalize_code), "code",
+            "pairing code missing or wrong: type the code the follower printed at its start",
+        )  # fmt: skip
         ssl_context = None
         if self.config.tls:
             if self.cert_dir is None:
@@ -262,23 +311,53 @@ class RendererFeed:
             self.certificate = await asyncio.to_thread(ensure_certificate, self.cert_dir, hosts)
             ssl_context = self.certificate.ssl_context()
         self._index, self._csp = _index_page(self.config.path)
-        app = web.Application()
-        app.router.add_get("/", self._page)
-        app.router.add_get(self.config.path, self._handle)
-        add_page_files(app, WEB_DIR)  # only its own files; any other name: 404
-        self._runner = web.AppRunner(app, handle_signals=False, access_log=None)
-        await self._runner.setup()
-        site = web.TCPSite(
-            self._runner, self.config.host, self.config.port, ssl_context=ssl_context
+        cfg = self.config
+        runner: GuardedAppRunner | None = None
+        app = web.Application(
+            middlewares=[page_middleware(lambda: runner.guard if runner else None)]
         )
-        await site.start()
-        self.port = site._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
+        app.router.add_get("/", self._page)
+        app.router.add_get(cfg.path, self._handle)
+        add_page_files(app, WEB_DIR)  # only its own files; any other name: 404
+        guard = {
+            "max_connections": page_connection_cap(
+                cfg.max_connections, cfg.max_clients, log, "headset page"
+            ),
+            "max_per_address": cfg.max_connections_per_address,
+            "handshake_timeout_s": cfg.header_timeout_s,
+            "counters": self.connections,
+            "logger": log,
+            "name": "headset page",
+            "pages": True,
+        }
+        runner = GuardedAppRunner(
+            app, guard, handle_signals=False, access_log=None,
+            keepalive_timeout=cfg.header_timeout_s, max_headers=64,
+        )  # fmt: skip
+        self._runner = runner
+        await runner.setup()
+        assert runner.guard is not None
+        self.pages.guard = runner.guard
+        self._listener = await runner.guard.listen(cfg.host, cfg.port, ssl_context)
+        self.port = self._listener.sockets[0].getsockname()[1]
+        self._accept_errors = AcceptErrorLog(
+            asyncio.get_running_loop(), log, self.connections, "headset page",
+            self._listener.sockets,
+        )  # fmt: skip
 
     async def stop(self) -> None:
         await self.pages.close_all()
+        if self._listener is not None:
+            self._listener.close()
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None
+        if self._listener is not None:
+            await self._listener.wait_closed()
+            self._listener = None
+        if self._accept_errors is not None:
+            self._accept_errors.remove()
+            self._accept_errors = None
 
     async def _page(self, request: web.Request) -> web.Response:
         return web.Response(
@@ -357,7 +436,7 @@ class RendererFeed:
         """Counters and the latency figures (ms) for the daemon's stats."""
         return {
             "clients": len(self.clients),
-            "url": self.url if self.port else None,
+            "url": self.address if self.port else None,  # the code stays out of files
             "page_url": self.page_url if self.port else None,
             "certificate_sha256": self.fingerprint,
             "sent": self.pages.sent,
@@ -368,6 +447,7 @@ class RendererFeed:
             "refused": dict(self.refused),
             "refused_total": sum(self.refused.values()),
             "disconnects": self.disconnects,
+            "connections": dict(self.connections),
         }
 
 

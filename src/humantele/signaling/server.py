@@ -6,7 +6,7 @@ oversized or out-of-order message each close that socket with a reason; every ot
 working. Every connection has a deadline at each stage: the WebSocket handshake (TLS included)
 within ``handshake_timeout_s`` of accept, the join within ``join_timeout_s`` of the upgrade,
 then WebSocket pings every ``heartbeat_s`` find dead or silent peers. Open connections are capped
-in total and per client address (:mod:`humantele.signaling.guard`).
+in total and per client address (:mod:`humantele.web.connguard`).
 
 With ``tls_cert`` (and ``tls_key``) it serves ``wss://``; a non-loopback host without TLS is
 refused unless ``insecure`` (for a server behind a TLS proxy, see docs/signaling.md). Logs quote

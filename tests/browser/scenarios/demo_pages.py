@@ -12,7 +12,7 @@ from __future__ import annotations
 import asyncio
 
 from console_views import PIXELS_JS, pixels, use_frozen_tools
-from stage import page_url
+from stage import console_url, page_url
 
 from humantele.recording import role_path
 from humantele.recording.reader import read_recording
@@ -71,7 +71,7 @@ async def run(ctx) -> dict:
     record = ctx.out / "rec"
     demo = await ctx.demo("--duration", "900", "--record", str(record))
     await demo.wait("the console", lambda e, f: expert_console(demo).get("url"), timeout=90)
-    url = expert_console(demo)["url"]
+    url = console_url(demo.stats("expert"))
     page = await ctx.page(url, width=1440, height=900)
     data: dict = {"url": url}
 

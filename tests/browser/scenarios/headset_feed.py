@@ -88,7 +88,7 @@ async def run(ctx) -> dict:
     feed.publish("link", {"state": "connected"})
     feed.publish("calibration", calibration(calibrated=True))
     pub = Publisher(feed)
-    url = f"https://127.0.0.1:{feed.port}/"
+    url = f"https://127.0.0.1:{feed.port}/#code={feed.code}"
     page = await ctx.page(url)
     data["first_hud"] = await hud_when(ctx, page, "h.cue === 'red'")
 
@@ -149,7 +149,7 @@ async def run(ctx) -> dict:
 
     # 6. Bad input from pages; a tab closed mid-stream. The feed goes on.
     before = dict(feed.refused)
-    wss = f"wss://127.0.0.1:{feed.port}/feed"
+    wss = f"wss://127.0.0.1:{feed.port}/feed?code={feed.code}"
     data["bad_input_close_code"] = await page.evaluate(BAD_INPUT_JS, wss)
     other = await ctx.other_site()
     data["cross_origin"] = await other.evaluate(CROSS_ORIGIN_JS, wss)
@@ -164,6 +164,30 @@ async def run(ctx) -> dict:
     m0 = await page.evaluate("headset.state.messages")
     await ctx.until(page, f"headset.state.messages > {m0}")
     data["messages_after"] = await page.evaluate("headset.state.messages") - m0
+    # 7. Pairing: a headset without the code is asked for it, a wrong one is refused and asked
+    # again, the right one (typed with its space) pairs and is kept for the next visit.
+    plain = f"https://127.0.0.1:{feed.port}/"
+    fresh = await ctx.page(plain)
+    form = "!document.getElementById('pairing').hidden"
+    note = "document.getElementById('pairing-note').textContent"
+    data["pairing_asked"] = await ctx.until(fresh, f"({form}) && {note}", 15)
+    data["pairing_hides_hud"] = await fresh.evaluate("document.body.dataset.pairing")
+    await ctx.shot(fresh, "headset_pairing")
+    wrong = "00000000" if feed.code != "00000000" else "11111111"
+    await fresh.fill("#pairing-code", wrong)
+    await fresh.click("#pairing button")
+    refused_note = f"({form}) && /not accept/.test({note}) && {note}"
+    data["pairing_wrong"] = await ctx.until(fresh, refused_note, 15)
+    await ctx.shot(fresh, "headset_pairing_wrong")
+    await fresh.fill("#pairing-code", f"{feed.code[:4]} {feed.code[4:]}")
+    await fresh.click("#pairing button")
+    await ctx.until(fresh, "headset.state.socket && headset.state.messages > 2", 15)
+    data["paired_form_hidden"] = await fresh.evaluate("document.getElementById('pairing').hidden")
+    await fresh.reload()
+    await ctx.until(fresh, "headset.state.socket && headset.state.messages > 2", 15)
+    data["paired_after_reload"] = await fresh.evaluate("document.getElementById('pairing').hidden")
+    await ctx.close_page(fresh)
+    data["code_address"] = await page.evaluate("location.href")
     data["feed"] = feed.stats()
     data["latencies_ms"] = [round(v * 1000.0, 3) for v in feed.latencies]
     pub.task.cancel()

@@ -7,7 +7,7 @@ from __future__ import annotations
 import asyncio
 
 from headset_views import BAD_INPUT_JS, CROSS_ORIGIN_JS, capture, next_frames
-from stage import page_url
+from stage import PAIRING_CODE, page_url
 
 PORT = 8443  # a fixed port is free in our own namespace: the page keeps its URL on restart
 LIVE = "['green', 'amber', 'red'].includes(h.cue) && h.guide.live"
@@ -81,7 +81,7 @@ async def run(ctx) -> dict:
     ctx.mark("rejoined")
 
     # 4. Bad input from pages: counted (below), the follower goes on.
-    wss = url.replace("https://", "wss://") + "feed"
+    wss = url.split("#")[0].replace("https://", "wss://") + f"feed?code={PAIRING_CODE}"
     data["bad_input_close_code"] = await page.evaluate(BAD_INPUT_JS, wss)
     other = await ctx.other_site()
     data["cross_origin"] = await other.evaluate(CROSS_ORIGIN_JS, wss)

@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 from session_helpers import descendants  # tests/session (stage.py puts it on the path)
-from stage import page_url
+from stage import console_url, page_url
 
 from humantele.runtime.stats import process_cpu_seconds
 
@@ -77,7 +77,7 @@ def _sum(pids) -> float:
 
 
 async def console_phase(ctx, demo, seconds: float) -> dict:
-    url = (demo.stats("expert").get("console") or {})["url"]
+    url = console_url(demo.stats("expert"))
     page = await ctx.page(url, width=1440, height=900)
     await ctx.until(page, "window.consoleApp && consoleApp.frames.us > 10", 90)
     f0 = await page.evaluate("({...consoleApp.frames})")

@@ -19,6 +19,14 @@ the session (scans, clutch), so another machine reaches it through an SSH tunnel
 whose ``Host`` is not a loopback name are refused (DNS rebinding), as are WebSockets from
 another origin, a second console while one is open (``max_clients``), and page messages that
 are malformed, unknown or too many; all are counted in ``refused`` and the daemon goes on.
+
+Who may use it: the page's WebSocket must carry the run's key (:mod:`humantele.web.credential`;
+``key``, else ``$HUMANTELE_CONSOLE_KEY``, else a new one each run), which the address the
+expert prints has in its fragment (``http://127.0.0.1:8767/#key=...``); without it a local
+process cannot drive the session nor take the one console's place. Connections are guarded
+(:mod:`humantele.web.connguard`): a header deadline, caps in total and per address, the
+credentialed page held outside them. Captures are capped in rate and in disk use
+(``captures_per_minute``, ``captures_max_mb``); refusals are counted and shown on the page.
 """
 
 from __future__ import annotations
@@ -60,8 +68,15 @@ from humantele.runtime.stats import percentile_ms
 from humantele.signaling.messages import is_loopback
 from humantele.video.base import VideoFrame
 from humantele.video.counter import unwrap
+from humantele.web.connguard import (
+    AcceptErrorLog,
+    GuardedAppRunner,
+    page_connection_cap,
+    page_middleware,
+)
+from humantele.web.credential import Credential, key_from_env, new_key
 from humantele.web.guard import MessageBudget
-from humantele.web.pagesocket import PageClient, PageLimits, PageSockets, validated
+from humantele.web.pagesocket import Access, PageClient, PageLimits, PageSockets, validated
 from humantele.web.static import add_page_files
 
 log = logging.getLogger(__name__)
@@ -69,6 +84,7 @@ log = logging.getLogger(__name__)
 WEB_DIR = Path(str(resources.files("humantele.expert.console") / "web"))
 LATENCIES_KEPT = 20000
 IN_FLIGHT = 2  # frames of a track sent to a page and not yet drawn; more wait (latest wins)
+CAPTURE_BURST = 10  # captures at once before captures_per_minute applies
 IN_FLIGHT_TIMEOUT_S = 0.5  # a page that echoes nothing for this long gets the next frame
 SEQS_KEPT = 256  # frames per track whose times are kept for the page's echoes
 
@@ -107,6 +123,19 @@ class ConsoleConfig(ConfigModel):
     )
     max_clients: int = Field(1, ge=1, le=8, description="consoles at once; more are refused")
     page_rate_hz: float = Field(80.0, gt=0, le=1000, description="page messages a second")
+    header_timeout_s: float = Field(
+        10.0, gt=0, le=120, description="accept to a request's complete headers (then closed)"
+    )
+    max_connections: int = Field(
+        64, ge=8, le=4096, description="open at once, besides the console's own page"
+    )
+    max_connections_per_address: int = Field(64, ge=2, le=4096)
+    captures_per_minute: float = Field(
+        30.0, gt=0, le=600, description="captures a minute on average (bursts of 10); more: refused"
+    )
+    captures_max_mb: float = Field(
+        1000.0, gt=0, le=1e6, description="disk budget of captures_dir (MB); beyond: refused"
+    )
 
     @field_validator("us_pixel_spacing_mm")
     @classmethod
@@ -186,8 +215,10 @@ class ConsoleServer:
         clock=time.monotonic,
         video: str | None = None,
         on_demand: Any = None,
+        key: str | None = None,
     ) -> None:
         self.config = config
+        self.key = key or key_from_env() or new_key()
         self.video = "none" if frames is None else (video or config.video)
         # Sources that run only while a page is open (sim video: no CPU without a viewer):
         # ``start()`` when the first page connects, ``stop()`` when the last one leaves.
@@ -203,7 +234,17 @@ class ConsoleServer:
             config.max_clients, config.page_rate_hz, MAX_PAGE_MESSAGE,
             "second_console", 409, "the console is open in another window\n",
         )  # fmt: skip
-        self.pages = PageSockets(limits, self.refused, _Client)
+        access = Access(
+            Credential(self.key, throttle=False), "key",  # 128 bits: nothing to throttle
+            "this console's key is missing or wrong: open the address the expert printed "
+            "(it ends in #key=...; each run has its own)",
+        )  # fmt: skip
+        self.pages = PageSockets(limits, self.refused, _Client, access)
+        self.connections: Counter[str] = Counter()  # the connection guard's counts
+        self.capture_budget = MessageBudget(config.captures_per_minute / 60.0, CAPTURE_BURST)
+        self.captures_bytes: int | None = None  # in captures_dir, counted at the first capture
+        self._listener: asyncio.Server | None = None
+        self._accept_errors: AcceptErrorLog | None = None
         self.events: Counter[str] = Counter()
         self.captures: list[str] = []
         self._runner: web.AppRunner | None = None
@@ -222,10 +263,22 @@ class ConsoleServer:
         return self.pages.coalesced
 
     @property
-    def url(self) -> str:
+    def address(self) -> str:
+        """The page's address without its key (for stats and logs)."""
         host = self.config.host
         host = f"[{host}]" if ":" in host else host
         return f"http://{host}:{self.port}/"
+
+    @property
+    def url(self) -> str:
+        """The page's address with its key (the fragment stays in the browser): what the
+        sonographer opens."""
+        return f"{self.address}#key={self.key}"
+
+    @property
+    def ws_url(self) -> str:
+        """The WebSocket's URL with the key, for a tool on this machine."""
+        return f"{self.address.replace('http', 'ws', 1)}ws?key={self.key}"
 
     def banner(self) -> str:
         return f"console {self.url}"
@@ -233,19 +286,43 @@ class ConsoleServer:
     # --- server ---------------------------------------------------------------------------
 
     async def start(self) -> None:
-        problem = directory_problem(self.config.captures_dir)  # said now, not at the 1st capture
+        cfg = self.config
+        problem = directory_problem(cfg.captures_dir)  # said now, not at the first capture
         if problem:
             log.error("console: [expert.console] captures_dir %r %s: captures will be refused",
-                      self.config.captures_dir, problem)  # fmt: skip
-        app = web.Application(middlewares=[self._host_guard])
+                      cfg.captures_dir, problem)  # fmt: skip
+        runner: GuardedAppRunner | None = None
+        app = web.Application(
+            middlewares=[page_middleware(lambda: runner.guard if runner else None),
+                         self._host_guard]
+        )  # fmt: skip
         app.router.add_get("/", self._page)
         app.router.add_get("/ws", self._handle)
         add_page_files(app, WEB_DIR)  # only its own files; any other name: 404
-        self._runner = web.AppRunner(app, handle_signals=False, access_log=None)
-        await self._runner.setup()
-        site = web.TCPSite(self._runner, self.config.host, self.config.port)
-        await site.start()
-        self.port = site._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
+        guard = {
+            "max_connections": page_connection_cap(
+                cfg.max_connections, cfg.max_clients, log, "console"
+            ),
+            "max_per_address": cfg.max_connections_per_address,
+            "handshake_timeout_s": cfg.header_timeout_s,
+            "counters": self.connections,
+            "logger": log,
+            "name": "console",
+            "pages": True,
+        }
+        runner = GuardedAppRunner(
+            app, guard, handle_signals=False, access_log=None,
+            keepalive_timeout=cfg.header_timeout_s, max_headers=64,
+        )  # fmt: skip
+        self._runner = runner
+        await runner.setup()
+        assert runner.guard is not None
+        self.pages.guard = runner.guard
+        self._listener = await runner.guard.listen(cfg.host, cfg.port)
+        self.port = self._listener.sockets[0].getsockname()[1]
+        self._accept_errors = AcceptErrorLog(
+            asyncio.get_running_loop(), log, self.connections, "console", self._listener.sockets
+        )
         if self.frames is not None:
             for track in TRACKS:
                 self._tasks.append(asyncio.create_task(self._pump_video(track)))
@@ -258,9 +335,17 @@ class ConsoleServer:
         await asyncio.gather(*self._tasks, return_exceptions=True)
         self._tasks.clear()
         await self.pages.close_all()
+        if self._listener is not None:
+            self._listener.close()
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None
+        if self._listener is not None:
+            await self._listener.wait_closed()
+            self._listener = None
+        if self._accept_errors is not None:
+            self._accept_errors.remove()
+            self._accept_errors = None
 
     @web.middleware
     async def _host_guard(self, request: web.Request, handler):
@@ -399,6 +484,10 @@ class ConsoleServer:
             type="state",
             video=video,
             cine={"frozen": self.cine.frozen, "frames": len(self.cine)},
+            captures={
+                "saved": len(self.captures),
+                "refused": self.refused["capture_rate"] + self.refused["capture_disk"],
+            },
             stale_after_ms=stale_ms,
         )
         return snap
@@ -546,7 +635,32 @@ class ConsoleServer:
         else:
             self._capture(client, f, base)
 
+    def _capture_refusal(self, directory: Path, size: int) -> str | None:
+        """Why a capture of ``size`` bytes is refused now (counted), or None."""
+        if self.captures_bytes is None:
+            self.captures_bytes = _dir_bytes(directory)
+        budget = self.config.captures_max_mb * 1e6
+        if self.captures_bytes + size > budget:
+            self.refused["capture_disk"] += 1
+            return (
+                f"not saved: the captures folder holds {self.captures_bytes / 1e6:.0f} MB of its "
+                f"{self.config.captures_max_mb:g} MB budget (captures_max_mb); move some away"
+            )
+        if not self.capture_budget.take():
+            self.refused["capture_rate"] += 1
+            return (
+                f"not saved: more than {self.config.captures_per_minute:g} captures a minute "
+                "(captures_per_minute); wait a moment"
+            )
+        return None
+
     def _capture(self, client: _Client, f: CineFrame, base: dict[str, Any]) -> None:
+        directory = Path(self.config.captures_dir).expanduser()
+        refusal = self._capture_refusal(directory, len(f.jpeg) + 1024)
+        if refusal is not None:
+            n = self.refused["capture_rate"] + self.refused["capture_disk"]
+            self._result(client, "capture", False, f"{refusal} ({n} refused this run)")
+            return
         pose = self.session.pose_at(f.t_capture)
         info: dict[str, Any] = {
             "seq": f.seq,
@@ -561,9 +675,7 @@ class ConsoleServer:
         if rec is not None:
             info["session_id"] = rec.metadata.get("session_id")
         try:
-            path = save_capture(
-                Path(self.config.captures_dir).expanduser(), f.seq, f.jpeg, _clean(info)
-            )
+            path = save_capture(directory, f.seq, f.jpeg, _clean(info))
         except OSError as exc:
             self.refused["capture_failed"] += 1
             log.error("console: capture not saved: %s", exc)
@@ -571,6 +683,7 @@ class ConsoleServer:
             return
         self.events["capture"] += 1
         self.captures.append(str(path))
+        self.captures_bytes = (self.captures_bytes or 0) + _file_bytes(path)
         payload = {**base, "file": path.name}
         if pose is not None:
             payload.update({k: v for k, v in pose.items() if k in _POSE_FIELDS})
@@ -592,7 +705,7 @@ class ConsoleServer:
 
     def stats(self) -> dict[str, Any]:
         out: dict[str, Any] = {
-            "url": self.url if self.port else None,
+            "url": self.address if self.port else None,  # the key stays out of files
             "clients": len(self.clients),
             "sent": self.pages.sent,
             "coalesced": self.pages.coalesced,
@@ -602,6 +715,8 @@ class ConsoleServer:
             "events": dict(self.events),
             "cine_frames": len(self.cine),
             "captures": len(self.captures),
+            "captures_refused": self.refused["capture_rate"] + self.refused["capture_disk"],
+            "connections": dict(self.connections),
         }
         for track, st in self.tracks.items():
             out[track] = {
@@ -622,6 +737,25 @@ class ConsoleServer:
 
 
 _POSE_FIELDS = ("position", "quaternion", "virtual_position", "virtual_quaternion")
+
+
+def _file_bytes(jpeg: Path) -> int:
+    """Bytes of a capture on disk: its JPEG and its JSON side file."""
+    total = 0
+    for p in (jpeg, jpeg.with_suffix(".json")):
+        try:
+            total += p.stat().st_size
+        except OSError:
+            pass
+    return total
+
+
+def _dir_bytes(directory: Path) -> int:
+    """Bytes of the capture files already in ``directory`` (0 if there is none)."""
+    try:
+        return sum(p.stat().st_size for p in directory.iterdir() if p.name.startswith("capture-"))
+    except OSError:
+        return 0
 
 
 def _hostname(host: str) -> str:

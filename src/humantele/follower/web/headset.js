@@ -57,9 +57,70 @@ const state = {
 };
 let socket = null;
 
+// --- pairing: the feed takes only pages with the follower's pairing code ---------------------
+// Asked once and kept in this browser (localStorage); an address ending in #code=... pairs too.
+// A refused code (close 4401) is forgotten and asked again; too many wrong ones (4429): wait.
+const PAIRING_STORE = 'humantele-pairing-code';
+const CLOSE_UNAUTHORIZED = 4401;
+const CLOSE_THROTTLED = 4429;
+const digitsOnly = (text) => text.replace(/[\s-]/g, '');
+
+function pairingCode() {
+  const m = /(?:^#|&)code=([^&]+)/.exec(location.hash);
+  if (m) {
+    localStorage.setItem(PAIRING_STORE, digitsOnly(decodeURIComponent(m[1])));
+    history.replaceState(null, '', location.pathname + location.search);
+  }
+  return localStorage.getItem(PAIRING_STORE);
+}
+
+function askPairing(note, refused = false) {
+  $('pairing-note').textContent = note;
+  $('pairing').dataset.refused = String(refused);
+  if (refused) $('pairing-code').value = '';
+  $('pairing').hidden = false;
+  document.body.dataset.pairing = 'needed';
+  $('pairing-code').focus();
+}
+
+$('pairing').addEventListener('submit', (ev) => {
+  ev.preventDefault();
+  const code = digitsOnly($('pairing-code').value);
+  if (!/^[0-9]{8}$/.test(code)) {
+    $('pairing-note').textContent = 'The pairing code is 8 digits, for example 1234 5678.';
+    return;
+  }
+  localStorage.setItem(PAIRING_STORE, code);
+  $('pairing').hidden = true;
+  delete document.body.dataset.pairing;
+  connect();
+});
+
+// Whether the feed refused this page's code (then the page asks for it, not reconnecting).
+function pairingRefused(ev) {
+  if (ev.code === CLOSE_UNAUTHORIZED) {
+    localStorage.removeItem(PAIRING_STORE);
+    askPairing('The follower did not accept that code. Type the pairing code it printed at its start.', true);
+    return true;
+  }
+  if (ev.code === CLOSE_THROTTLED) {
+    askPairing('Too many wrong codes: wait a minute, then type the code again.', true);
+    return true;
+  }
+  return false;
+}
+
 function connect(delayMs = 500) {
+  const code = pairingCode();
+  if (!code) {
+    askPairing(
+      'Type the pairing code the follower printed beside this page\'s address ' +
+        '(in its terminal or log, after “pairing code”). This browser keeps it.',
+    );
+    return;
+  }
   const scheme = location.protocol === 'https:' ? 'wss:' : 'ws:';
-  socket = new WebSocket(`${scheme}//${location.host}${feedPath}`);
+  socket = new WebSocket(`${scheme}//${location.host}${feedPath}?code=${encodeURIComponent(code)}`);
   socket.onopen = () => {
     state.socket = true;
     delayMs = 500;
@@ -77,8 +138,9 @@ function connect(delayMs = 500) {
     state.messages++;
     onMessage(msg);
   };
-  socket.onclose = () => {
+  socket.onclose = (ev) => {
     state.socket = false;
+    if (pairingRefused(ev)) return;
     setTimeout(() => connect(Math.min(5000, delayMs * 2)), delayMs);
   };
 }

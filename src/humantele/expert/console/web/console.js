@@ -42,15 +42,37 @@ app.depthScale = depthScale;
 
 // --- the connection -------------------------------------------------------------------------
 
+// The run's key: the address the expert prints carries it in its fragment (#key=..., which the
+// browser never sends in a request); the page keeps it for this tab, takes it out of the
+// address bar, and passes it on the WebSocket. Refused (4401): said on the page, no retry.
+const KEY_STORE = "humantele-console-key";
+const CLOSE_UNAUTHORIZED = 4401, CLOSE_THROTTLED = 4429;
+
+function consoleKey() {
+  const m = /(?:^#|&)key=([^&]+)/.exec(location.hash);
+  if (m) {
+    sessionStorage.setItem(KEY_STORE, decodeURIComponent(m[1]));
+    history.replaceState(null, "", location.pathname + location.search);
+  }
+  return sessionStorage.getItem(KEY_STORE);
+}
+
 function connect() {
-  const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`);
+  const key = consoleKey();
+  if (!key) {
+    app.closedReason = "this page has no key: open the address the expert printed (it ends in #key=…)";
+    return;
+  }
+  const scheme = location.protocol === "https:" ? "wss" : "ws";
+  const ws = new WebSocket(`${scheme}://${location.host}/ws?key=${encodeURIComponent(key)}`);
   ws.binaryType = "arraybuffer";
   app.ws = ws;
   ws.onmessage = (ev) => (typeof ev.data === "string" ? onText(JSON.parse(ev.data)) : onFrame(ev.data));
   ws.onclose = (ev) => {
     app.ws = null;
     app.closedReason = ev.reason || null;
-    setTimeout(connect, 1000);
+    if (ev.code === CLOSE_UNAUTHORIZED) { sessionStorage.removeItem(KEY_STORE); return; }
+    setTimeout(connect, ev.code === CLOSE_THROTTLED ? 30000 : 1000);
   };
   ws.onerror = () => {};
 }
@@ -299,7 +321,8 @@ function showResult(m) {
   const names = { caliper: "Caliper", annotation: "Annotation", capture: "Captured", cine: "Cine" };
   const el = $("tool-result");
   el.dataset.ok = String(m.ok);
-  el.textContent = `${names[m.of] || m.of}: ${m.detail}`;
+  const name = m.of === "capture" && !m.ok ? "Capture" : names[m.of] || m.of;
+  el.textContent = `${name}: ${m.detail}`;
 }
 
 document.addEventListener("keydown", (ev) => {
@@ -381,6 +404,8 @@ function renderState() {
   if ($("fbar-fill").style.width !== width) $("fbar-fill").style.width = width;
   setText($("fbar-value"), link.stale || f.measured_n == null ? "–" : fmt(f.measured_n, 1, " N"));
   plot.draw(performance.now());
+  const cap = s.captures;
+  if (cap) $("capture").title = `Save this frame with the probe pose (S): ${cap.saved} saved, ${cap.refused} refused this run`;
 }
 
 
