@@ -122,6 +122,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "default; 0 picks one; docs/slicer.md)",
     )
     parser.add_argument(
+        "--replay",
+        metavar="FILE",
+        help="the follower on a recorded clinic (`humantele devices record`'s file) through its "
+        "real device backends, looped, instead of the simulated clinic",
+    )
+    parser.add_argument(
         "--record",
         metavar="FILE",
         help="record the session: FILE.expert.mcap and FILE.follower.mcap (one per daemon); "
@@ -203,6 +209,37 @@ def _recording_status(e: dict[str, Any], f: dict[str, Any]) -> str:
         failed = any(r.get("error") for r in recs)
         text += (", " if text else " | ") + ("recording FAILED" if failed else "recording")
     return text
+
+
+def replay_follower_config(recording: str, run_dir: Path) -> str:
+    """A follower configuration (written in ``run_dir``) whose clinic is ``recording``
+    replayed through the real backends: tracker, force board and, if recorded, video.
+    ConfigError (exit code 2) for a file that is not a device recording."""
+    from humantele.config import ConfigError
+    from humantele.devices.replay_file import DeviceRecordingError, open_recording
+
+    path = Path(recording).resolve()
+    try:
+        info = open_recording(path).info
+    except (OSError, DeviceRecordingError) as exc:
+        raise ConfigError(f"--replay: {exc}") from None
+    devices = set(info.get("devices", "").split(","))
+    if "ahat" not in devices or "force" not in devices:
+        raise ConfigError(f"--replay: {path} has no tracker frames and force reports to replay")
+    file = json.dumps(str(path))
+    text = (
+        '[follower.clinic]\nbackend = "devices"\n'
+        f'[sensing.camera]\nbackend = "replay"\nfile = {file}\nloop = true\n'
+        f'[sensing.force.sensor]\nbackend = "replay"\nfile = {file}\nloop = true\n'
+    )
+    video = {"us", "pov"} <= devices
+    text += f"[follower.video]\nenabled = {str(video).lower()}\n"
+    if video:
+        for track in ("us", "pov"):
+            text += f'[follower.video.{track}]\nbackend = "replay"\nfile = {file}\nloop = true\n'
+    out = run_dir / "follower-replay.toml"
+    out.write_text(text, encoding="utf-8")
+    return str(out)
 
 
 def us_scale(follower_config: str | None) -> tuple[tuple[float, float], float] | None:
@@ -383,6 +420,8 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
         ],
         "expert": ["expert", "--console-port", "0"],
     }  # fmt: skip
+    if getattr(args, "replay", None):
+        child_configs["follower"] = replay_follower_config(args.replay, run_dir)
     for role, path in child_configs.items():
         if path:
             cmds[role] += ["--config", path]

@@ -70,6 +70,7 @@ class DevicePlan:
 
     devices: list[tuple[str, Any, str]] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)
+    force_calibration: str = ""  # the board's calibration file (JSON), kept in the recording
 
 
 def _raw_hl2ss_source(config: Any) -> Any:
@@ -114,6 +115,8 @@ def plan_devices(config_path: str | Path) -> DevicePlan:
         plan.skipped.append(
             f"tracker camera ({sensing.camera.backend}): only hl2ss AHAT frames are recorded"
         )
+    if sensing.force.calibration_file:  # the replay needs it as much as the board does
+        plan.force_calibration = Path(sensing.force.calibration_file).read_text(encoding="utf-8")
     sensor = make_force_sensor(sensing.force.sensor)
     if isinstance(sensor, HidForceSensor):
         plan.devices.append(("force", sensor, "hid"))
@@ -280,7 +283,10 @@ def record(
     if out.exists():
         raise FileExistsError(f"{out} exists; give a new file")
     names = ",".join(n for n, _, _ in plan.devices)
-    writer = DeviceRecordingWriter(out, {"follower_config": str(config_path), "devices": names})
+    info = {"follower_config": str(config_path), "devices": names}
+    if plan.force_calibration:
+        info["force_calibration"] = plan.force_calibration
+    writer = DeviceRecordingWriter(out, info)
     rec = DeviceRecorder(plan, writer, jpeg_quality)
     stop = stop or threading.Event()
     try:

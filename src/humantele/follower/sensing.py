@@ -98,11 +98,27 @@ def real_sensing_devices(config: SensingConfig, tool: ToolDefinition) -> Sensing
             "[sensing.force.sensor] to real backends"
         )
     path = calibration_path(config.force)
-    if path is None:
+    if path is not None:
+        calibration = ForceCalibration.load(path)
+    elif config.force.sensor.backend == "replay":  # the one the recording kept
+        calibration = _recorded_force_calibration(config.force.sensor.file)
+    else:
         raise ValueError("the force sensor needs [sensing.force] calibration_file")
-    calibration = ForceCalibration.load(path)
     return SensingDevices(make_frame_source(config.camera, tool),
                           make_force_sensor(config.force.sensor), calibration)  # fmt: skip
+
+
+def _recorded_force_calibration(recording: str) -> ForceCalibration:
+    """The board's calibration a device recording kept (``humantele devices record``)."""
+    from humantele.devices.replay_file import open_recording
+
+    text = open_recording(recording).info.get("force_calibration")
+    if not text:
+        raise ValueError(
+            f"{recording} keeps no force calibration (recorded without [sensing.force] "
+            "calibration_file): set [sensing.force] calibration_file"
+        )
+    return ForceCalibration.loads(text)
 
 
 @dataclass(frozen=True)

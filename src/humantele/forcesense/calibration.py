@@ -84,7 +84,12 @@ class ForceCalibration:
 
     @classmethod
     def load(cls, path: str | Path) -> ForceCalibration:
-        d = json.loads(Path(path).read_text(encoding="utf-8"))
+        return cls.loads(Path(path).read_text(encoding="utf-8"))
+
+    @classmethod
+    def loads(cls, text: str) -> ForceCalibration:
+        """From the JSON :meth:`save` writes (a file's, or one kept in a device recording)."""
+        d = json.loads(text)
         return cls(
             np.array(d["coef"]),
             np.array(d["center"]),

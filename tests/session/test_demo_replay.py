@@ -1,0 +1,62 @@
+"""`humantele demo --replay FILE`: a clinic recorded once with `humantele devices record` (here
+from the replayed clinic of replayed_clinic.py: the technician's four landmark presses, then
+resting on the abdomen) runs the demo with the follower on the real backends reading the file,
+looped (each round ~10 s; a press missed while the sensing starts comes round again): it
+calibrates from the recorded presses, follows the expert's poses, loads no
+simulator; a file that is not a device recording is one clear line."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+from replayed_clinic import calibration_presses, follower_config, make_recording, replay_env
+
+from humantele.devices import record as record_cmd
+from humantele.follower.sim_world import SimWorld
+from humantele.tracking.hl2ss_replay import Hl2ssReplayServer, load_records
+
+pytestmark = [pytest.mark.e2e, pytest.mark.slow]
+
+
+def record_clinic(tmp_path, monkeypatch):
+    """The recorded clinic as `humantele devices record` writes it (the board's calibration
+    kept in it)."""
+    world = SimWorld()
+    targets, end = calibration_presses(world, hover_s=1.0)
+    rec = make_recording(tmp_path, end + 2.0, targets, world)
+    records, cal = load_records(rec.dir / "ahat.npz")
+    for name, value in replay_env(rec.dir).items():
+        monkeypatch.setenv(name, value)
+    monkeypatch.syspath_prepend(replay_env(rec.dir)["PYTHONPATH"].split(":")[0])
+    monkeypatch.delitem(sys.modules, "hid", raising=False)
+    with Hl2ssReplayServer([records], cal, rate_hz=45.0) as server:
+        cfg = tmp_path / "follower.toml"
+        cfg.write_text(follower_config(rec.dir, server.port, tmp_path / "unused"))
+        counts, _notes = record_cmd.record(
+            cfg, tmp_path / "clinic.mcap", duration=120,
+            until=lambda c: c.get("ahat", 0) >= len(records) - 2 and c.get("pov", 0) > 20,
+        )  # fmt: skip
+    assert counts["ahat"] >= len(records) - 2 and counts["force"] > 100
+    return tmp_path / "clinic.mcap"
+
+
+def test_demo_replays_a_recorded_clinic_through_the_real_backends(tmp_path, monkeypatch):
+    mcap = record_clinic(tmp_path, monkeypatch)
+    run = subprocess.run(
+        [sys.executable, "-m", "humantele", "demo", "--replay", str(mcap), "--duration", "60",
+         "--json"],
+        capture_output=True, text=True, timeout=400, cwd=tmp_path,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr[-3000:]
+    summary = json.loads(run.stdout.strip().splitlines()[-1])
+    assert summary["calibrated"] is True, run.stderr[-3000:]
+    assert summary["poses_received"] > 100
+    # a session recording, or any other file, is not a device recording: one line, exit 2
+    bad = tmp_path / "notes.mcap"
+    bad.write_bytes(b"not an mcap")
+    run = subprocess.run([sys.executable, "-m", "humantele", "demo", "--replay", str(bad)],
+                         capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert run.returncode == 2 and "--replay" in run.stderr and "Traceback" not in run.stderr
