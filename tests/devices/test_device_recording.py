@@ -60,6 +60,8 @@ T_RIG_CAMERA = Pose([0.003, -0.08, -0.01], quat_from_axis_angle([0.0, 1.0, 0.2],
 FORCE_PROBE_N = np.array([0.5, -0.3, 6.0])  # the press the board reports (probe frame)
 VIDEO_FRAMES = 12
 
+PAIRING = "13572468"  # the headset page's pairing code the follower is given
+
 
 def _clinic(out: Path) -> dict:
     """The simulated data the devices deliver: AHAT records with rig poses (the headset
@@ -245,7 +247,7 @@ def test_a_device_that_stops_ends_its_track_and_the_others_go_on(tmp_path):
     rec.open()
     rec.start()
     deadline = time.monotonic() + 30
-    while rec.counts["force"] < 20 and time.monotonic() < deadline:
+    while (rec.counts["force"] < 20 or not rec.notes) and time.monotonic() < deadline:
         time.sleep(0.01)
     rec.finish()
     writer.close()
@@ -549,6 +551,7 @@ loop = true
         [sys.executable, "-m", "humantele", "follower", "--config", str(cfg),
          "--duration", "60", "--stats-file", str(stats)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        env=dict(os.environ, HUMANTELE_PAIRING_CODE=PAIRING),  # the feed wants it
     )  # fmt: skip
     probes, figures, killed = [], {}, False
     try:
@@ -563,7 +566,7 @@ loop = true
                 break
             await asyncio.sleep(0.1)
         assert url, f"no feed: {follower.communicate(timeout=10)}"
-        async with aiohttp.ClientSession() as s, s.ws_connect(url) as ws:
+        async with aiohttp.ClientSession() as s, s.ws_connect(f"{url}?code={PAIRING}") as ws:
             deadline = asyncio.get_running_loop().time() + 60
             while len(probes) < 20 and asyncio.get_running_loop().time() < deadline:
                 try:

@@ -27,11 +27,13 @@ from humantele.follower.sim_world import SimWorld
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
+PAIRING = "13572468"  # the headset page's pairing code the follower is given
+
 
 async def test_follower_on_replayed_devices_places_the_probe_and_loads_no_simulator(tmp_path):
     world = SimWorld()
     rec = make_recording(tmp_path, 3.0, hold_then_wobble(world, 3.0), world)
-    env = dict(os.environ, **replay_env(rec.dir))
+    env = dict(os.environ, **replay_env(rec.dir), HUMANTELE_PAIRING_CODE=PAIRING)
     server, port = start_hl2ss_server(rec.dir / "ahat.npz")
     follower = None
     try:
@@ -58,7 +60,7 @@ async def test_follower_on_replayed_devices_places_the_probe_and_loads_no_simula
                 break
             await asyncio.sleep(0.1)
         assert url, f"no feed: {follower.communicate(timeout=10)}"
-        async with aiohttp.ClientSession() as s, s.ws_connect(url) as ws:
+        async with aiohttp.ClientSession() as s, s.ws_connect(f"{url}?code={PAIRING}") as ws:
             deadline = asyncio.get_running_loop().time() + 60
             while len(probes) < 30 and asyncio.get_running_loop().time() < deadline:
                 with _suppress():

@@ -60,7 +60,7 @@ async def test_console_serves_its_files_and_404_for_any_other_name(tmp_path, cap
     server = ConsoleServer(config, None, _Session())
     await server.start()
     try:
-        base = server.url.rstrip("/")
+        base = server.address.rstrip("/")  # (url carries the page's key after a #)
         await _check(base, ["console.js", "style.css", "index.html"], CONSOLE_WEB, caplog)
     finally:
         await server.stop()

@@ -133,7 +133,7 @@ async def run(ctx) -> dict:
     feed.page_handler = reg.on_page_message
     feed.publish("link", {"state": "connected"})
     feed.publish("calibration", {"calibrated": True, "calibrating": False, "step": None})
-    url = f"https://127.0.0.1:{feed.port}/"
+    url = f"https://127.0.0.1:{feed.port}/#code={feed.code}"  # paired, as if typed
     page = await ctx.page(url, iwer=True)
     clinic = SimClinic(feed, reg, page)
     try:
