@@ -173,7 +173,7 @@ async def test_accept_errors_are_counted_and_logged_once(tmp_path, caplog):
     server = await console(tmp_path)
     try:
         loop = asyncio.get_running_loop()
-        sock = server._listener.sockets[0]
+        sock = server.site.listener.sockets[0]
         for _ in range(500):
             loop.call_exception_handler(
                 {
@@ -184,7 +184,7 @@ async def test_accept_errors_are_counted_and_logged_once(tmp_path, caplog):
             )
         other = socket.socket()  # another server's listener: not the console's business
         handled = []
-        server._accept_errors._previous = lambda lp, ctx: handled.append(ctx)
+        server.site.accept_errors._previous = lambda lp, ctx: handled.append(ctx)
         loop.call_exception_handler(
             {"message": "socket.accept() out of system resource",
              "exception": OSError(errno.EMFILE, "Too many open files"), "socket": other}

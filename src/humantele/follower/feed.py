@@ -73,12 +73,7 @@ from humantele.config import ConfigModel
 from humantele.follower.registration import RegistrationMessage, ViewerPoseMessage
 from humantele.runtime.stats import percentile_ms
 from humantele.signaling.messages import is_loopback
-from humantele.web.connguard import (
-    AcceptErrorLog,
-    GuardedAppRunner,
-    page_connection_cap,
-    page_middleware,
-)
+from humantele.web.connguard import GuardedPages
 from humantele.web.credential import (
     Credential,
     code_from_env,
@@ -207,14 +202,12 @@ class RendererFeed:
             _Client,
         )
         self.connections: Counter[str] = Counter()  # the connection guard's counts
-        self._listener: asyncio.Server | None = None
-        self._accept_errors: AcceptErrorLog | None = None
+        self.site = GuardedPages("headset page", log, self.connections)
         self.echoes = 0
         self.latencies: deque[float] = deque(maxlen=LATENCIES_KEPT)  # s, receipt to draw
         self.pose_id = 0
         self._pose_key: str | None = None
         self._origins: OrderedDict[int, float] = OrderedDict()
-        self._runner: web.AppRunner | None = None
         self._index: bytes = b""
         self._csp = ""
 
@@ -312,52 +305,18 @@ class RendererFeed:
             ssl_context = self.certificate.ssl_context()
         self._index, self._csp = _index_page(self.config.path)
         cfg = self.config
-        runner: GuardedAppRunner | None = None
-        app = web.Application(
-            middlewares=[page_middleware(lambda: runner.guard if runner else None)]
-        )
-        app.router.add_get("/", self._page)
-        app.router.add_get(cfg.path, self._handle)
-        add_page_files(app, WEB_DIR)  # only its own files; any other name: 404
-        guard = {
-            "max_connections": page_connection_cap(
-                cfg.max_connections, cfg.max_clients, log, "headset page"
-            ),
-            "max_per_address": cfg.max_connections_per_address,
-            "handshake_timeout_s": cfg.header_timeout_s,
-            "counters": self.connections,
-            "logger": log,
-            "name": "headset page",
-            "pages": True,
-        }
-        runner = GuardedAppRunner(
-            app, guard, handle_signals=False, access_log=None,
-            keepalive_timeout=cfg.header_timeout_s, max_headers=64,
-        )  # fmt: skip
-        self._runner = runner
-        await runner.setup()
-        assert runner.guard is not None
-        self.pages.guard = runner.guard
-        self._listener = await runner.guard.listen(cfg.host, cfg.port, ssl_context)
-        self.port = self._listener.sockets[0].getsockname()[1]
-        self._accept_errors = AcceptErrorLog(
-            asyncio.get_running_loop(), log, self.connections, "headset page",
-            self._listener.sockets,
-        )  # fmt: skip
+
+        def routes(app: web.Application) -> None:
+            app.router.add_get("/", self._page)
+            app.router.add_get(cfg.path, self._handle)
+            add_page_files(app, WEB_DIR)  # only its own files; any other name: 404
+
+        self.port = await self.site.start(routes, cfg, ssl_context=ssl_context)
+        self.pages.guard = self.site.guard
 
     async def stop(self) -> None:
         await self.pages.close_all()
-        if self._listener is not None:
-            self._listener.close()
-        if self._runner is not None:
-            await self._runner.cleanup()
-            self._runner = None
-        if self._listener is not None:
-            await self._listener.wait_closed()
-            self._listener = None
-        if self._accept_errors is not None:
-            self._accept_errors.remove()
-            self._accept_errors = None
+        await self.site.stop()
 
     async def _page(self, request: web.Request) -> web.Response:
         return web.Response(

@@ -507,3 +507,68 @@ class AcceptErrorLog:
     def remove(self) -> None:
         if self._loop.get_exception_handler() is self:
             self._loop.set_exception_handler(self._previous)
+
+
+class GuardedPages:
+    """A page server (the console's, the headset page's) behind a :class:`GuardedServer`:
+    ``start(routes, ...)`` builds the aiohttp app (``routes(app)`` adds its routes), sizes
+    the caps from the config (``max_connections``, ``max_clients`` held back,
+    ``max_connections_per_address``, ``header_timeout_s``) and listens; ``stop()`` undoes it.
+    ``guard``, ``listener`` (its sockets) and ``accept_errors`` are there once started."""
+
+    def __init__(self, name: str, logger: logging.Logger, counters: Counter[str]) -> None:
+        self.name, self.logger, self.counters = name, logger, counters
+        self.runner: GuardedAppRunner | None = None
+        self.listener: asyncio.Server | None = None
+        self.accept_errors: AcceptErrorLog | None = None
+
+    @property
+    def guard(self) -> GuardedServer | None:
+        return None if self.runner is None else self.runner.guard
+
+    async def start(
+        self,
+        routes: Callable[[web.Application], None],
+        cfg: Any,
+        middlewares: tuple[Any, ...] = (),
+        ssl_context: Any = None,
+    ) -> int:
+        """Serve; returns the port."""
+        app = web.Application(middlewares=[page_middleware(lambda: self.guard), *middlewares])
+        routes(app)
+        guard = {
+            "max_connections": page_connection_cap(
+                cfg.max_connections, cfg.max_clients, self.logger, self.name
+            ),
+            "max_per_address": cfg.max_connections_per_address,
+            "handshake_timeout_s": cfg.header_timeout_s,
+            "counters": self.counters,
+            "logger": self.logger,
+            "name": self.name,
+            "pages": True,
+        }
+        self.runner = GuardedAppRunner(
+            app, guard, handle_signals=False, access_log=None,
+            keepalive_timeout=cfg.header_timeout_s, max_headers=64,
+        )  # fmt: skip
+        await self.runner.setup()
+        assert self.guard is not None
+        self.listener = await self.guard.listen(cfg.host, cfg.port, ssl_context)
+        self.accept_errors = AcceptErrorLog(
+            asyncio.get_running_loop(), self.logger, self.counters, self.name,
+            self.listener.sockets,
+        )  # fmt: skip
+        return self.listener.sockets[0].getsockname()[1]
+
+    async def stop(self) -> None:
+        if self.listener is not None:
+            self.listener.close()
+        if self.runner is not None:
+            await self.runner.cleanup()
+            self.runner = None
+        if self.listener is not None:
+            await self.listener.wait_closed()
+            self.listener = None
+        if self.accept_errors is not None:
+            self.accept_errors.remove()
+            self.accept_errors = None

@@ -68,12 +68,7 @@ from humantele.runtime.stats import percentile_ms
 from humantele.signaling.messages import is_loopback
 from humantele.video.base import VideoFrame
 from humantele.video.counter import unwrap
-from humantele.web.connguard import (
-    AcceptErrorLog,
-    GuardedAppRunner,
-    page_connection_cap,
-    page_middleware,
-)
+from humantele.web.connguard import GuardedPages
 from humantele.web.credential import Credential, key_from_env, new_key
 from humantele.web.guard import MessageBudget
 from humantele.web.pagesocket import Access, PageClient, PageLimits, PageSockets, validated
@@ -243,11 +238,9 @@ class ConsoleServer:
         self.connections: Counter[str] = Counter()  # the connection guard's counts
         self.capture_budget = MessageBudget(config.captures_per_minute / 60.0, CAPTURE_BURST)
         self.captures_bytes: int | None = None  # in captures_dir, counted at the first capture
-        self._listener: asyncio.Server | None = None
-        self._accept_errors: AcceptErrorLog | None = None
+        self.site = GuardedPages("console", log, self.connections)
         self.events: Counter[str] = Counter()
         self.captures: list[str] = []
-        self._runner: web.AppRunner | None = None
         self._tasks: list[asyncio.Task] = []
         self.in_flight_timeout_s = IN_FLIGHT_TIMEOUT_S
         self._index = (WEB_DIR / "index.html").read_bytes()
@@ -291,38 +284,14 @@ class ConsoleServer:
         if problem:
             log.error("console: [expert.console] captures_dir %r %s: captures will be refused",
                       cfg.captures_dir, problem)  # fmt: skip
-        runner: GuardedAppRunner | None = None
-        app = web.Application(
-            middlewares=[page_middleware(lambda: runner.guard if runner else None),
-                         self._host_guard]
-        )  # fmt: skip
-        app.router.add_get("/", self._page)
-        app.router.add_get("/ws", self._handle)
-        add_page_files(app, WEB_DIR)  # only its own files; any other name: 404
-        guard = {
-            "max_connections": page_connection_cap(
-                cfg.max_connections, cfg.max_clients, log, "console"
-            ),
-            "max_per_address": cfg.max_connections_per_address,
-            "handshake_timeout_s": cfg.header_timeout_s,
-            "counters": self.connections,
-            "logger": log,
-            "name": "console",
-            "pages": True,
-        }
-        runner = GuardedAppRunner(
-            app, guard, handle_signals=False, access_log=None,
-            keepalive_timeout=cfg.header_timeout_s, max_headers=64,
-        )  # fmt: skip
-        self._runner = runner
-        await runner.setup()
-        assert runner.guard is not None
-        self.pages.guard = runner.guard
-        self._listener = await runner.guard.listen(cfg.host, cfg.port)
-        self.port = self._listener.sockets[0].getsockname()[1]
-        self._accept_errors = AcceptErrorLog(
-            asyncio.get_running_loop(), log, self.connections, "console", self._listener.sockets
-        )
+
+        def routes(app: web.Application) -> None:
+            app.router.add_get("/", self._page)
+            app.router.add_get("/ws", self._handle)
+            add_page_files(app, WEB_DIR)  # only its own files; any other name: 404
+
+        self.port = await self.site.start(routes, cfg, (self._host_guard,))
+        self.pages.guard = self.site.guard
         if self.frames is not None:
             for track in TRACKS:
                 self._tasks.append(asyncio.create_task(self._pump_video(track)))
@@ -335,17 +304,7 @@ class ConsoleServer:
         await asyncio.gather(*self._tasks, return_exceptions=True)
         self._tasks.clear()
         await self.pages.close_all()
-        if self._listener is not None:
-            self._listener.close()
-        if self._runner is not None:
-            await self._runner.cleanup()
-            self._runner = None
-        if self._listener is not None:
-            await self._listener.wait_closed()
-            self._listener = None
-        if self._accept_errors is not None:
-            self._accept_errors.remove()
-            self._accept_errors = None
+        await self.site.stop()
 
     @web.middleware
     async def _host_guard(self, request: web.Request, handler):
