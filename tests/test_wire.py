@@ -23,6 +23,7 @@ from humantele.wire import (
     Scan,
     StateMessage,
     TrackingStatus,
+    UsScale,
     WireError,
     encode_control,
     parse_control,
@@ -175,6 +176,7 @@ def test_control_round_trip():
         Ping(seq=3, t0=1.5),
         Pong(seq=3, t0=1.5, t1=2.0, t2=2.1),
         Bye(reason="done"),
+        UsScale(pixel_spacing_mm=(0.2, 0.25), depth_origin_row=96.0),
     ]
     for m in msgs:
         assert parse_control(encode_control(m)) == m
@@ -210,6 +212,9 @@ def test_ellipsoid_payload_matches_haptics_to_dict():
         ('{"type": "scan", "action": "start", "scan_id": "Jane Doe"}', "schema"),
         ('{"type": "hello", "role": "expert", "software": "' + "x" * 20000 + '"}', "too_long"),
         ("[]", "schema"),
+        ('{"type": "us_scale", "pixel_spacing_mm": [0, 0.2], "depth_origin_row": 9}', "schema"),
+        ('{"type": "us_scale", "pixel_spacing_mm": [0.2, 0.2], "depth_origin_row": -1}', "schema"),
+        ('{"type": "us_scale", "pixel_spacing_mm": [0.2], "depth_origin_row": 9}', "schema"),
     ],
 )
 def test_bad_control(text, reason):

@@ -293,6 +293,20 @@ class CalibrationProgress(_Control):
     detail: Text = ""
 
 
+PixelSize = Annotated[float, Field(allow_inf_nan=False, gt=0.0, lt=100.0)]
+
+
+class UsScale(_Control):
+    """The follower's ultrasound picture's scale, as its source is configured (a real
+    scanner's: ``[follower.video.us]``): (row, col) mm per pixel of the frames it sends and the
+    image row (px) of depth 0. Sent after each Hello; the expert's console uses it for its
+    calipers and depth scale unless its own configuration sets them."""
+
+    type: Literal["us_scale"] = "us_scale"
+    pixel_spacing_mm: tuple[PixelSize, PixelSize]
+    depth_origin_row: Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=8192.0)]
+
+
 class Scan(_Control):
     """Scan start/stop (the recording follows it). No patient identity here, ever."""
 
@@ -335,7 +349,7 @@ class Bye(_Control):
 
 
 ControlMessage = Annotated[
-    Hello | EllipsoidModel | CalibrationProgress | Scan | Ping | Pong | Heartbeat | Bye,
+    Hello | EllipsoidModel | CalibrationProgress | Scan | Ping | Pong | Heartbeat | Bye | UsScale,
     Field(discriminator="type"),
 ]
 _CONTROL = TypeAdapter(ControlMessage)

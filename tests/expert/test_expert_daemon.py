@@ -67,3 +67,24 @@ def test_no_pose_without_link_or_new_sample():
     d.link.connected = False
     publish(d, t=1.0)
     assert d.link.poses == []
+
+
+def test_the_follower_s_scanner_scale_reaches_the_console_s_frames_unless_configured():
+    """Calipers and the depth scale on a real scanner's picture: the follower's scale, kept
+    for a console started later; ``[expert.console]`` values win."""
+    from types import SimpleNamespace
+
+    from humantele.wire import UsScale
+
+    msg = UsScale(pixel_spacing_mm=(0.2, 0.25), depth_origin_row=96.0)
+    d = make()
+    d.on_control(msg)  # before the console: kept
+    frames = SimpleNamespace(us_spacing_mm=None, us_depth_origin_row=None)
+    d.apply_us_scale(frames)  # what start_console does with the console's frames
+    assert (frames.us_spacing_mm, frames.us_depth_origin_row) == ((0.2, 0.25), 96.0)
+    d.console = SimpleNamespace(frames=SimpleNamespace(us_spacing_mm=None, us_depth_origin_row=0))
+    d.on_control(UsScale(pixel_spacing_mm=(0.3, 0.3), depth_origin_row=10.0))
+    assert d.console.frames.us_spacing_mm == (0.3, 0.3)  # a console already open takes it
+    configured = ExpertDaemon(ExpertConfig(console={"us_pixel_spacing_mm": [0.1, 0.1]}))
+    configured.on_control(msg)
+    assert configured.us_scale is None  # the configuration wins

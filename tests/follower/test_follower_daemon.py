@@ -111,3 +111,17 @@ def test_a_failing_sensing_step_is_lost_not_a_crash(tmp_path):
     run_ticks(d, 0.0, 1.0)
     assert d.sensing.errors > 0 and d.measurement.T_world_tip is None
     assert d.calibration is None and d.link.states == []
+
+
+def test_a_real_scanner_s_scale_goes_to_the_expert_after_each_hello(tmp_path):
+    """The expert's calipers and depth scale take the follower's configured scanner scale."""
+    from humantele.wire import UsScale
+
+    card = {"backend": "opencv", "pixel_spacing_mm": [0.2, 0.25], "depth_origin_row": 96.0}
+    d = make(tmp_path, video={"enabled": True, "us": card})
+    d.on_control(Hello(role="expert"))
+    (scale,) = [m for m in d.link.controls if isinstance(m, UsScale)]
+    assert scale.pixel_spacing_mm == (0.2, 0.25) and scale.depth_origin_row == 96.0
+    sim = make(tmp_path / "sim", video={"enabled": True})  # the sim's: the demo tells the expert
+    sim.on_control(Hello(role="expert"))
+    assert not [m for m in sim.link.controls if isinstance(m, UsScale)]

@@ -90,6 +90,7 @@ from humantele.wire import (
     PoseMessage,
     Scan,
     StateMessage,
+    UsScale,
 )
 
 log = logging.getLogger(__name__)
@@ -215,6 +216,7 @@ class ExpertDaemon(Daemon):
         self.console_clutch = False
         self.console = None
         self._console_video = None
+        self.us_scale: tuple[tuple[float, float], float] | None = None  # the follower's
 
     # --- incoming messages, one handler per kind ------------------------------------------
 
@@ -240,11 +242,30 @@ class ExpertDaemon(Daemon):
                 self.refuse_model(str(exc))
                 return
             self.install_model(model)
+        elif isinstance(msg, UsScale):
+            self.on_us_scale(msg)
         elif isinstance(msg, CalibrationProgress):
             text = msg.event if not msg.detail else f"{msg.event}: {msg.detail}"
             self.calibration_events.append(text)
             self.on_calibration(msg)
             log.info("follower calibration: %s", text)
+
+    def on_us_scale(self, msg: UsScale) -> None:
+        """The follower's scanner scale: the console's calipers and depth scale take it,
+        unless ``[expert.console]`` sets them (the configuration wins, and says so)."""
+        frames = getattr(self.console, "frames", None)
+        cfg = self.config.console
+        if cfg.us_pixel_spacing_mm is not None or cfg.us_depth_origin_row is not None:
+            log.info("expert: the follower's US scale %s ignored: [expert.console] sets it",
+                     msg.pixel_spacing_mm)  # fmt: skip
+            return
+        self.us_scale = (msg.pixel_spacing_mm, msg.depth_origin_row)
+        self.apply_us_scale(frames)
+
+    def apply_us_scale(self, frames: object) -> None:
+        """The follower's scale on the console's received frames (not the sim stand-in)."""
+        if self.us_scale is not None and hasattr(frames, "us_spacing_mm"):
+            frames.us_spacing_mm, frames.us_depth_origin_row = self.us_scale
 
     def on_calibration(self, msg: CalibrationProgress) -> None:
         """Calibration progress as the follower reports it: which landmark comes next."""
@@ -561,6 +582,7 @@ class ExpertDaemon(Daemon):
         if not self.config.console.enabled or self.console is not None:
             return
         self.console, self._console_video = make_console(self)
+        self.apply_us_scale(self.console.frames)  # one that came before the console
         try:
             await self.console.start()
         except OSError as exc:

@@ -63,6 +63,7 @@ from humantele.wire import (
     PoseMessage,
     Scan,
     StateMessage,
+    UsScale,
 )
 
 log = logging.getLogger(__name__)
@@ -149,6 +150,7 @@ class FollowerDaemon(Daemon):
     def on_control(self, msg: ControlMessage) -> None:
         if isinstance(msg, Hello):
             self.send_model()  # the expert (re)joined: give it the model we have
+            self.send_us_scale()
         elif isinstance(msg, CalibrationProgress) and msg.event == "start":
             self.start_calibration()
         elif isinstance(msg, Scan):
@@ -181,6 +183,14 @@ class FollowerDaemon(Daemon):
             return False
         params = EllipsoidParams(**self.calibration.model_patient().to_dict())
         return self.send_control(EllipsoidModel(model=params))
+
+    def send_us_scale(self) -> bool:
+        """A real scanner's configured scale, for the expert's calipers and depth scale."""
+        us = self.config.video.us
+        spacing, row0 = getattr(us, "pixel_spacing_mm", None), getattr(us, "depth_origin_row", None)
+        if not self.config.video.enabled or spacing is None or row0 is None:
+            return False
+        return self.send_control(UsScale(pixel_spacing_mm=tuple(spacing), depth_origin_row=row0))
 
     def send_state(self, t: float, m: Measurement) -> None:
         """The measured probe (patient frame) and force (probe tip frame) to the expert."""
