@@ -210,6 +210,22 @@ def pose_from_hl2ss(matrix: ArrayLike) -> tuple[Pose | None, str]:
     return Pose(T[:3, 3], matrix_to_quat(R)), ""
 
 
+def frame_poses(
+    matrix: ArrayLike | None, T_rig_camera: Pose | None, no_pose: dict[str, int]
+) -> tuple[Pose | None, Pose | None]:
+    """(``T_world_rig``, ``T_world_camera``) of a frame from its hl2ss rig matrix (None: mode
+    0) and the AHAT extrinsics; a frame without them counts why in ``no_pose``."""
+    why = "mode_0"
+    T_world_rig = None
+    if matrix is not None:
+        T_world_rig, why = pose_from_hl2ss(matrix)
+        if T_world_rig is not None and T_rig_camera is not None:
+            return T_world_rig, T_world_rig @ T_rig_camera
+        why = why or "no_extrinsics"
+    no_pose[why] = no_pose.get(why, 0) + 1
+    return T_world_rig, None
+
+
 def hl2ss_matrix_from_pose(T_a_b: Pose) -> NDArray[np.float32]:
     """The 4x4 float32 matrix hl2ss would send for ``T_a_b`` (the transpose of ours)."""
     return T_a_b.as_matrix().T.astype(np.float32)

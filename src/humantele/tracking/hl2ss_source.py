@@ -56,6 +56,7 @@ from humantele.tracking.hl2ss_protocol import (  # noqa: F401  (re-exported for 
     PacketError,
     decode_ahat_payload,
     encode_ahat_packet,
+    frame_poses,
     pose_from_hl2ss,
 )
 
@@ -237,18 +238,10 @@ class Hl2ssFrameSource(FrameSource):
             self._count(self.dropped, exc.reason)
             return None
         self.last_timestamp, self.last_sensor_ticks = ts, p.sensor_ticks
-        T_world_rig = T_world_camera = None
         if pose_bytes:
             self.last_pose = np.frombuffer(packet, "<f4", 16, HEADER.size + size).reshape(4, 4)
-            T_world_rig, why = pose_from_hl2ss(self.last_pose)
-            if T_world_rig is None:
-                self._count(self.no_pose, why)
-            elif self.T_rig_camera is None:
-                self._count(self.no_pose, "no_extrinsics")
-            else:
-                T_world_camera = T_world_rig @ self.T_rig_camera
-        else:
-            self._count(self.no_pose, "mode_0")
+        matrix = self.last_pose if pose_bytes else None
+        T_world_rig, T_world_camera = frame_poses(matrix, self.T_rig_camera, self.no_pose)
         depth, ab = p.depth_mm, p.ab
         if self._undistort and self.calibration is not None:
             depth, ab = self.calibration.undistort(depth, ab)

@@ -41,7 +41,7 @@ from humantele.geometry import Pose
 from humantele.tracking.camera import CameraIntrinsics
 from humantele.tracking.frames import FrameSource, FrameSourceUnavailable, TrackingFrame
 from humantele.tracking.hl2ss_calibration import Hl2ssAhatCalibration
-from humantele.tracking.hl2ss_protocol import AHAT_HEIGHT, AHAT_WIDTH, pose_from_hl2ss
+from humantele.tracking.hl2ss_protocol import AHAT_HEIGHT, AHAT_WIDTH, frame_poses
 
 TICKS_PER_S = 1e7  # hl2ss timestamps: 100 ns
 
@@ -171,18 +171,9 @@ class ReplayFrameSource(FrameSource):
             self.dropped["bad_frame"] = self.dropped.get("bad_frame", 0) + 1
             return None
         self.last_timestamp, self.last_sensor_ticks = ts, int(s.fields.get("sensor_ticks", 0))
-        T_world_rig = T_world_camera = None
         pose = s.blobs.get("pose")
-        if pose is None:
-            self.no_pose["mode_0"] = self.no_pose.get("mode_0", 0) + 1
-        else:
-            T_world_rig, why = pose_from_hl2ss(np.asarray(pose, np.float32).reshape(4, 4))
-            if T_world_rig is None:
-                self.no_pose[why] = self.no_pose.get(why, 0) + 1
-            elif self.T_rig_camera is None:
-                self.no_pose["no_extrinsics"] = self.no_pose.get("no_extrinsics", 0) + 1
-            else:
-                T_world_camera = T_world_rig @ self.T_rig_camera
+        matrix = None if pose is None else np.asarray(pose, np.float32).reshape(4, 4)
+        T_world_rig, T_world_camera = frame_poses(matrix, self.T_rig_camera, self.no_pose)
         if self._undistort and self.calibration is not None:
             depth, ab = self.calibration.undistort(depth, ab)
         self.received += 1
