@@ -367,10 +367,15 @@ def run(args: argparse.Namespace) -> int:
     except RecordingReadError as exc:
         print(f"humantele analyze: {exc}", file=sys.stderr)
         return 2
-    if args.json:
+    print_report(report, args.json)
+    if not args.json and report.get("plots"):
+        print(f"{len(report['plots'])} figure(s) in {args.plots}")
+    return 0
+
+
+def print_report(report: dict, as_json: bool) -> None:
+    """The report on stdout: JSON, or the tables as text."""
+    if as_json:
         print(json.dumps(report, indent=2))
     else:
         sys.stdout.write(format_report(report))
-        if report.get("plots"):
-            print(f"{len(report['plots'])} figure(s) in {args.plots}")
-    return 0

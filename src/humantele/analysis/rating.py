@@ -258,11 +258,10 @@ def add_arguments(parser: Any) -> None:
 
 def run(args: Any) -> int:
     """``analyze --rating-sheet`` or ``analyze --ratings`` (see the module docstring)."""
-    import json
     import random
     import sys
 
-    from humantele.analysis.cli import METRICS, analyze, format_report
+    from humantele.analysis.cli import METRICS, analyze, print_report
     from humantele.recording.reader import RecordingReadError
 
     if args.rating_sheet is not None and args.ratings is not None:
@@ -292,8 +291,5 @@ def run(args: Any) -> int:
     except RecordingReadError as exc:
         print(f"humantele analyze: {exc}", file=sys.stderr)
         return 2
-    if args.json:
-        print(json.dumps(report, indent=2))
-    else:
-        sys.stdout.write(format_report(report))
+    print_report(report, args.json)
     return 0
