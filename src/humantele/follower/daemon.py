@@ -84,14 +84,14 @@ class FollowerDaemon(Daemon):
     ) -> None:
         super().__init__(config, stats_file)
         self.state_dir = Path(config.state_dir).expanduser()
+        self.feed = RendererFeed(config.feed, self.state_dir)
         self.cal = CalibrationSession(config.calibration, self.state_dir, self.send_control,
-                                      self.feed_publish, self.record, self.on_fitted)  # fmt: skip
+                                      self.feed.publish, self.record, self.on_fitted)  # fmt: skip
         self.worker = SensingWorker(config, sensing_config, self._measured, self._sensing_failed)
         self.sensing = self.worker.sensing
         self.measurement = LOST
         self.last_measure_t = -math.inf
         self.measurements = 0
-        self.feed = RendererFeed(config.feed, self.state_dir)
         self.registration = HeadsetRegistration.attach(config, self.feed)
         # The clinic (its devices; the sim's world and the scene its video sources render),
         # then the us and pov tracks (humantele.media.sender).
@@ -268,9 +268,6 @@ class FollowerDaemon(Daemon):
         self.send_model()
         self.record_model(t)
         self.publish_model()
-
-    def feed_publish(self, kind: str, fields: dict) -> None:
-        self.feed.publish(kind, fields)
 
     # --- the tick -------------------------------------------------------------------------
 
