@@ -16,10 +16,16 @@ In the xdist controller (whose children are the workers) each worker does it for
 """
 
 import pytest
+from hypothesis import settings
 
 from procgroups import pytest_configure, pytest_unconfigure  # noqa: F401 - the hooks
 
 PROCESS_FIXTURES = {"session", "demo_run", "browser_scenario"}
+
+# Property tests check behaviour, not speed: no per-example deadline (hypothesis's 200 ms
+# default failed a wire round trip once on a busy machine).
+settings.register_profile("suite", deadline=None)
+settings.load_profile("suite")
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
