@@ -38,7 +38,8 @@ import numpy as np
 from humantele.cliargs import EXIT_FAILED
 from humantele.follower.calibration import Calibration, CalibrationEvent
 from humantele.follower.calibration_session import CalibrationSession
-from humantele.follower.clinic import Guide, make_clinic, simulator_modules
+from humantele.follower.clinic import Guide, simulator_modules
+from humantele.follower.clinics import make_clinic
 from humantele.follower.config import FollowerConfig
 from humantele.follower.feed import RendererFeed, model_fields
 from humantele.follower.figures import AlignmentFigures, PoseStreamFigures
