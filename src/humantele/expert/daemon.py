@@ -36,7 +36,6 @@ import asyncio
 import contextlib
 import logging
 import math
-import os
 import sys
 import time
 from collections.abc import Callable
@@ -46,7 +45,7 @@ import numpy as np
 
 from humantele.cliargs import EXIT_FAILED
 from humantele.expert.config import ExpertConfig, servo_config_for
-from humantele.expert.console.expert_view import PoseHistory
+from humantele.expert.console.expert_view import PoseHistory, calibration_display
 from humantele.expert.console.hook import DaemonConsole
 from humantele.expert.figures import ExpertFigures
 from humantele.expert.mapping import Registration, StylusMapping, default_registration
@@ -59,11 +58,9 @@ from humantele.haptics.servo_layout import ServoError, ServoSample
 from humantele.interop.sessions import ExpertIgtl
 from humantele.media.receiver import VideoReceiver
 from humantele.runtime.daemon import Daemon
-from humantele.runtime.session import recorder_stats
 from humantele.runtime.stats import process_cpu_percent
 from humantele.transport import PeerLink
 from humantele.wire import (
-    LANDMARKS,
     CalibrationProgress,
     ControlMessage,
     EllipsoidModel,
@@ -192,20 +189,8 @@ class ExpertDaemon(Daemon):
 
     def on_calibration(self, msg: CalibrationProgress) -> None:
         """Calibration progress as the follower reports it: which landmark comes next."""
-        nxt = None
-        if msg.event == "start":
-            self.calibration_state, nxt = "calibrating", 0
-        elif msg.event == "point" and msg.index is not None:
-            self.calibration_state, nxt = "calibrating", msg.index + 1
-        elif msg.event == "error":
-            self.calibration_state = "calibrating"
-            nxt = msg.index if msg.index is not None else None
-        elif msg.event == "done":
-            self.calibration_state = "calibrated"
-        elif msg.event == "cancel":
-            self.calibration_state = "calibrated" if self.model is not None else "not calibrated"
-        self.calibration_landmark = (
-            LANDMARKS[nxt] if nxt is not None and nxt < len(LANDMARKS) else None
+        self.calibration_state, self.calibration_landmark = calibration_display(
+            self.calibration_state, msg, self.model is not None
         )
 
     def on_link_state(self, state: str) -> None:
@@ -311,12 +296,6 @@ class ExpertDaemon(Daemon):
             self.clock_log.update(self.rec, self.link.clock)
             self.figures.record(self.rec, t, self.servo)
 
-    def record_any(self, topic: str, t: float, payload: dict) -> None:
-        """Record one sample if recording (the recorder only queues)."""
-        rec = self.rec
-        if rec is not None:
-            rec.write(topic, t, payload)
-
     def check_servo(self, t: float) -> None:
         """A dead servo process is restarted (the daemon itself keeps running); while it is
         down, ``servo_down`` says why (the status and the JSON show it as a fault)."""
@@ -388,12 +367,8 @@ class ExpertDaemon(Daemon):
         # A servo that is down drives no force: 0, and the state says why (never None).
         force = 0.0 if latest is None else round(float(np.linalg.norm(latest.force)), 3)
         return {
-            "role": "expert",
-            "pid": os.getpid(),
+            **self.common_stats(self.link),
             "servo_pid": self.servo.pid,
-            "uptime_s": round(time.monotonic() - self.t_start, 3),
-            "link_state": self.link.state,
-            "connections": self.link.counters.connections,
             **self.figures.stats(),
             "models_installed": self.models_installed,
             "has_model": self.model is not None,
@@ -411,15 +386,10 @@ class ExpertDaemon(Daemon):
             "servo_period_p99_us": servo.get("period_p99_us"),
             "servo_realtime": servo.get("realtime"),
             "servo_restarts": self.servo_restarts,
-            "dropped": dict(self.link.counters.dropped),
-            "dropped_total": sum(self.link.counters.dropped.values()),
-            "cpu_percent": self.cpu.overall(),
-            "loop_priority": self.loop_priority,
             "cpu_percent_servo": self.servo_cpu_percent(),
             "scan": self.scan,
             "scans_started": self.scans_started,
             "step_errors": self.step_errors,
-            "recording": recorder_stats(self.rec),
             "console": None if self.console is None else self.console.stats(),
             "igtl": self.igtl.stats(),
             "video": self.video.stats() if self.config.video.enabled else None,

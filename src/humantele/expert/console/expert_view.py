@@ -1,6 +1,7 @@
 """What the console reads of the expert daemon: :class:`ExpertView`, a protocol the daemon
 implements (:class:`humantele.expert.daemon.ExpertDaemon`), so the console never imports the
-daemon; and :class:`PoseHistory`, the timed poses a captured frame gets its pose from.
+daemon; :class:`PoseHistory`, the timed poses a captured frame gets its pose from; and
+:func:`calibration_display`, the calibration state shown from the follower's progress.
 
 Everything here is read on the daemon's event loop, except :class:`SessionScene
 <humantele.expert.console.hook.SessionScene>`'s reads from the sim sources' threads, which
@@ -13,12 +14,13 @@ from collections import deque
 from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 from humantele.geometry import Pose
+from humantele.wire import LANDMARKS
 
 if TYPE_CHECKING:
     from humantele.haptics.ellipsoid import Ellipsoid
     from humantele.haptics.servo_layout import ServoSample, ServoStats
     from humantele.recording import Recorder
-    from humantele.wire import StateMessage
+    from humantele.wire import CalibrationProgress, StateMessage
 
 POSES_KEPT_S = 12.0  # pose history for captures (the cine buffer holds 10 s)
 
@@ -40,6 +42,27 @@ class PoseHistory:
         if best is None or abs(best[0] - t) > within_s:
             return None
         return best[1]
+
+
+def calibration_display(
+    state: str, msg: CalibrationProgress, has_model: bool
+) -> tuple[str, str | None]:
+    """The calibration state the console shows (``not calibrated``, ``calibrating``,
+    ``calibrated``) and the landmark to touch next, after the follower's progress ``msg``
+    (``state``: the one before; ``has_model``: a patient model is rendered)."""
+    nxt = None
+    if msg.event == "start":
+        state, nxt = "calibrating", 0
+    elif msg.event == "point" and msg.index is not None:
+        state, nxt = "calibrating", msg.index + 1
+    elif msg.event == "error":
+        state = "calibrating"
+        nxt = msg.index if msg.index is not None else None
+    elif msg.event == "done":
+        state = "calibrated"
+    elif msg.event == "cancel":
+        state = "calibrated" if has_model else "not calibrated"
+    return state, (LANDMARKS[nxt] if nxt is not None and nxt < len(LANDMARKS) else None)
 
 
 class ServoView(Protocol):
