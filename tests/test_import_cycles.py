@@ -18,9 +18,12 @@ added for each import of a submodule, so a circle through an ``__init__`` is fou
 from __future__ import annotations
 
 import ast
+import subprocess
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+
+import pytest
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 PACKAGE = "humantele"
@@ -227,6 +230,29 @@ def test_the_finder_finds_circles_of_each_kind(tmp_path: Path) -> None:
     for rel in ("b.py", "d.py", "sub/__init__.py"):
         (pkg / rel).write_text("")
     assert import_cycles(import_edges(tmp_path, "pkg")) == []
+
+
+# What a module must not load, as the cuts left it: the video process's module (and its
+# capture types) no aiortc, aiohttp or the sender; the console's hook not the daemon; the sim
+# clinic (which the sensing child loads) not the sensing pipeline.
+NOT_LOADED = {
+    "humantele.media.process": ("aiortc", "aiohttp", "humantele.media.sender"),
+    "humantele.media.capture": ("aiortc", "aiohttp"),
+    "humantele.expert.console.hook": ("humantele.expert.daemon",),
+    "humantele.follower.sim_clinic": ("humantele.follower.sensing",),
+}
+
+
+@pytest.mark.parametrize("module", sorted(NOT_LOADED))
+def test_a_module_loads_only_what_it_needs(module: str) -> None:
+    code = (
+        f"import sys, {module}; "
+        f"print(','.join(m for m in {NOT_LOADED[module]!r} if m in sys.modules))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
+    )
+    assert out.stdout.strip() == "", f"{module} loads {out.stdout.strip()}"
 
 
 if __name__ == "__main__":
