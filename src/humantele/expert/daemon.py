@@ -38,7 +38,6 @@ import logging
 import math
 import sys
 import time
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -128,7 +127,6 @@ class ExpertDaemon(Daemon):
             config.scans, lambda msg: self.link.send_control(msg), lambda: self.rec
         )
         self.model_t: float | None = None  # when the first patient model arrived
-        self.step_errors = 0
         # What the console shows (humantele.expert.console): calibration progress, the poses
         # of the last seconds (a captured frame gets its pose), the console's clutch.
         self.calibration_state = "not calibrated"
@@ -399,15 +397,6 @@ class ExpertDaemon(Daemon):
         """The stylus as sent and the follower's probe as received, to OpenIGTLink clients."""
         us = self.video.latest("us") if self.config.video.enabled else None
         self.igtl.tick(t, self.last_pose, self.last_state, self.last_state_t, us)
-
-    def guarded(self, step: Callable[[float], object], t: float) -> None:
-        """Run a step that must never end the daemon (scans, recording); failures counted."""
-        try:
-            step(t)
-        except Exception:
-            self.step_errors += 1
-            if self.step_errors in (1, 10, 100, 1000):
-                log.exception("expert: %s failed (%d so far)", step.__name__, self.step_errors)
 
     async def run(self, duration_s: float | None = None) -> int:
         if not self.start_run():

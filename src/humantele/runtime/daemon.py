@@ -55,6 +55,7 @@ class Daemon:
         self.clock_log = ClockSyncLog(f"/{self.role}/clock_sync")
         self._last_report = -math.inf
         self.loop_priority = "off"  # the event loop thread's scheduling (start_run sets it)
+        self.step_errors = 0  # steps run by guarded() that failed
 
     def stats(self) -> dict:
         raise NotImplementedError
@@ -74,6 +75,16 @@ class Daemon:
             "loop_priority": self.loop_priority,
             "recording": recorder_stats(self.rec),
         }
+
+    def guarded(self, step: Callable[[float], object], t: float) -> None:
+        """Run a step that must never end the daemon (scans, recording); failures counted."""
+        try:
+            step(t)
+        except Exception:
+            self.step_errors += 1
+            if self.step_errors in (1, 10, 100, 1000):
+                log.exception("%s: %s failed (%d so far)", self.role, step.__name__,
+                              self.step_errors)  # fmt: skip
 
     def record_any(self, topic: str, t: float, payload: dict) -> None:
         """Record one sample (``t``: this daemon's clock, s) if recording; from any thread
