@@ -1,4 +1,4 @@
-"""``humantele expert``: the expert daemon (the sonographer's side).
+"""The expert daemon (the sonographer's side); ``humantele expert`` runs it.
 
 It runs the 1 kHz servo process (:class:`humantele.haptics.servo.ServoProcess`, its own OS
 process), and at the link's pose rate:
