@@ -224,9 +224,7 @@ class TurnIssuer:
         """A credential for ``peer_id`` valid until now + ``ttl_s``."""
         expires = int(self.clock() + self.ttl_s)
         username = rest_username(expires, peer_id)
-        return IssuedIceServer(
-            urls=self.urls, username=username, credential=self._sign(username)
-        )
+        return IssuedIceServer(urls=self.urls, username=username, credential=self._sign(username))
 
 
 def accept_issued(
