@@ -338,3 +338,63 @@ def test_issued_entry_round_trips_through_the_wire_model():
     entry = issuer.issue("follower-1")
     again = IssuedIceServer.model_validate_json(entry.model_dump_json())
     assert again == entry
+
+
+# --- the link takes them --------------------------------------------------------------------
+
+
+async def test_a_link_takes_the_issued_credentials_and_their_renewals_and_drops_bad_ones():
+    from humantele.transport import LinkConfig, PeerLink
+
+    t = [2_000_000_000.0]
+    issuer = TurnIssuer(TurnConfig(urls=[URL], ttl_s=600), SECRET, clock=lambda: t[0])
+    issuer.refresh_after_s = 0.2
+    server = SignalingServer(SignalConfig(port=0), TOKEN, turn_issuer=issuer)
+    await server.start()
+    link = PeerLink("follower", LinkConfig(signaling_url=server.url, token=TOKEN, room="r"))
+    link._wall_clock = lambda: t[0]
+    task = asyncio.create_task(link.run())
+    try:
+        await _until(lambda: link._issued)
+        first = link._issued[0]
+        assert first.expires == 2_000_000_600
+        (ice,) = link._ice_servers()  # what the next RTCPeerConnection gets
+        assert (ice.urls, ice.username, ice.credential) == (
+            [URL],
+            first.username,
+            rest_credential(SECRET, first.username),
+        )
+        t[0] += 300
+        await _until(lambda: link._issued[0].expires == 2_000_000_900)
+        # a renewal whose entries are all bad: dropped with an error, the last good ones kept
+        good = link._issued
+        link._take_issued([{"urls": ["http://x"], "username": "u", "credential": "c"}])
+        assert link._issued == good and link.counters.dropped["signaling:bad_ice_server"] == 1
+        # the issued ones expire and no fresh one comes: the next connection goes without
+        t[0] += 10_000
+        issuer.refresh_after_s = 3600
+        assert link._ice_servers() == []
+        assert link.counters.dropped["signaling:expired_ice_server"] >= 1
+    finally:
+        await link.close()
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        await server.stop()
+
+
+async def _until(cond, timeout: float = 10.0) -> None:
+    async with asyncio.timeout(timeout):
+        while not cond():
+            await asyncio.sleep(0.02)
+
+
+def test_a_joined_message_with_garbage_ice_servers_still_parses():
+    from humantele.signaling.messages import SERVER_MESSAGE, Joined, parse
+
+    msg = parse(SERVER_MESSAGE, json.dumps({
+        "type": "joined", "room": "r", "role": "expert", "peer_present": False,
+        "ice_servers": [{"urls": 3}, "x", None],
+    }))  # fmt: skip
+    assert isinstance(msg, Joined)
+    good, problems = accept_issued(msg.ice_servers, now=0)
+    assert good == [] and len(problems) == 3
