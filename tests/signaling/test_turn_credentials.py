@@ -398,3 +398,18 @@ def test_a_joined_message_with_garbage_ice_servers_still_parses():
     assert isinstance(msg, Joined)
     good, problems = accept_issued(msg.ice_servers, now=0)
     assert good == [] and len(problems) == 3
+
+
+def test_no_shipped_config_carries_a_turn_password():
+    import tomllib
+    from pathlib import Path
+
+    configs = Path(__file__).resolve().parents[2] / "configs"
+    files = sorted(configs.glob("*.toml"))
+    assert files
+    for path in files:
+        data = tomllib.loads(path.read_text())
+        for role in ("expert", "follower"):
+            for server in data.get(role, {}).get("link", {}).get("ice_servers", []):
+                assert "credential" not in server and "username" not in server, path.name
+        assert "secret" not in data.get("turn", {}), path.name  # only secret_file, or the env

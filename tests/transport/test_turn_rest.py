@@ -80,6 +80,30 @@ async def test_coturn_allocates_for_a_fresh_credential_and_refuses_an_expired_on
     assert SECRET not in log
 
 
+async def test_an_allocation_outlives_its_credential_but_a_new_one_is_refused(turn):
+    # what docs/signaling.md promises: a relay made before the expiry is refreshed after it
+    # (coturn keeps the session's key), a new allocation with the same credential is refused
+    from aioice import stun
+
+    entry = _issuer(turn, shift_s=-598).issue("expert-short")  # expires in 2 s
+    transport, _ = await create_turn_endpoint(
+        asyncio.DatagramProtocol, (turn.host, turn.port), entry.username, entry.credential
+    )
+    try:
+        await until(lambda: time.time() > entry.expires + 1, timeout=30, poll=0.1)
+        refresh = stun.Message(message_method=stun.Method.REFRESH, message_class=stun.Class.REQUEST)
+        refresh.attributes["LIFETIME"] = 600
+        protocol = transport._TurnTransport__inner_protocol  # aioice keeps it private
+        response, _ = await protocol.request_with_retry(refresh)
+        assert response.attributes["LIFETIME"] == 600
+    finally:
+        transport.close()
+    with pytest.raises(TransactionFailed, match="401"):
+        await _allocate(turn, entry.username, entry.credential)
+    log = turn.log_tail(200_000)
+    assert f"user <{entry.username}>: incoming packet REFRESH processed, success" in log
+
+
 def _links(signaling: SignalingServer) -> tuple[PeerLink, PeerLink]:
     """Two relay-only links with no ICE server of their own: TURN comes from signaling."""
     cfg = {"signaling_url": signaling.url, "token": TOKEN, "room": "rest", "relay_only": True}
