@@ -104,6 +104,24 @@ async def test_an_allocation_outlives_its_credential_but_a_new_one_is_refused(tu
     assert f"user <{entry.username}>: incoming packet REFRESH processed, success" in log
 
 
+async def test_several_coturn_servers_behind_one_secret_and_its_rotation(turn):
+    # a second coturn with the same secret: every issued credential works on both
+    async with TurnServer(auth_secret=SECRET) as other:
+        issuer = TurnIssuer(TurnConfig(urls=[turn.url, other.url], ttl_s=600), SECRET)
+        entry = issuer.issue("follower-both")
+        for server in (turn, other):
+            await _allocate(server, entry.username, entry.credential)
+    # rotation: a coturn with the old and the new secret takes credentials made with either
+    new = "0123456789abcdef0123456789abcdef"
+    async with TurnServer(auth_secret=[SECRET, new]) as rotating:
+        for secret in (SECRET, new):
+            e = _issuer(rotating, secret=secret).issue("expert-rotating")
+            await _allocate(rotating, e.username, e.credential)
+        stranger = _issuer(rotating, secret="not-one-of-them-0123456789abcdef").issue("x")
+        with pytest.raises(TransactionFailed, match="401"):
+            await _allocate(rotating, stranger.username, stranger.credential)
+
+
 def _links(signaling: SignalingServer) -> tuple[PeerLink, PeerLink]:
     """Two relay-only links with no ICE server of their own: TURN comes from signaling."""
     cfg = {"signaling_url": signaling.url, "token": TOKEN, "room": "rest", "relay_only": True}
