@@ -6,6 +6,7 @@ import asyncio
 import base64
 import binascii
 import json
+import logging
 import os
 import shutil
 import subprocess
@@ -254,7 +255,8 @@ async def _messages(ws, n_max: int = 3, timeout: float = 5.0) -> list:
     return out
 
 
-async def test_only_an_admitted_peer_gets_credentials():
+async def test_only_an_admitted_peer_gets_credentials(caplog):
+    caplog.set_level(logging.DEBUG)
     issuer = TurnIssuer(TurnConfig(urls=[URL], ttl_s=600), SECRET)
     server = SignalingServer(SignalConfig(port=0), TOKEN, turn_issuer=issuer)
     await server.start()
@@ -287,6 +289,9 @@ async def test_only_an_admitted_peer_gets_credentials():
                     assert "ice_servers" not in json.dumps(got)
         assert server.counters["turn:issued"] == 1
         assert not any(SECRET in k for k in server.counters)
+        # the server's log names the peer id, never the credential or the secret
+        assert entry.username.split(":")[1] in caplog.text
+        assert SECRET not in caplog.text and entry.credential not in caplog.text
     finally:
         await server.stop()
 
@@ -343,7 +348,10 @@ def test_issued_entry_round_trips_through_the_wire_model():
 # --- the link takes them --------------------------------------------------------------------
 
 
-async def test_a_link_takes_the_issued_credentials_and_their_renewals_and_drops_bad_ones():
+async def test_a_link_takes_the_issued_credentials_and_their_renewals_and_drops_bad_ones(
+    caplog,
+):
+    caplog.set_level(logging.DEBUG)
     from humantele.transport import LinkConfig, PeerLink
 
     t = [2_000_000_000.0]
@@ -375,6 +383,8 @@ async def test_a_link_takes_the_issued_credentials_and_their_renewals_and_drops_
         issuer.refresh_after_s = 3600
         assert link._ice_servers() == []
         assert link.counters.dropped["signaling:expired_ice_server"] >= 1
+        assert "TURN server from the signaling server dropped: entry 0: urls.0" in caplog.text
+        assert first.credential not in caplog.text and SECRET not in caplog.text
     finally:
         await link.close()
         task.cancel()
