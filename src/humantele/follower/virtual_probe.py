@@ -82,13 +82,13 @@ class VirtualProbe:
         if self.stale(t):
             self.publish(t)
         if m.T_world_tip is not None:
-            self.feed.publish(
-                "probe",
-                {
-                    "position": m.T_world_tip.position,
-                    "quaternion": m.T_world_tip.quaternion,
-                    "force": m.force_world,
-                    "contact": m.contact,
-                    "tracking": m.status.name.lower(),
-                },
-            )
+            probe = {
+                "position": m.T_world_tip.position,
+                "quaternion": m.T_world_tip.quaternion,
+                "force": m.force_world,
+                "contact": m.contact,
+                "tracking": m.status.name.lower(),
+            }
+            if m.device_time_s is not None:
+                probe["device_time_s"] = m.device_time_s
+            self.feed.publish("probe", probe)
