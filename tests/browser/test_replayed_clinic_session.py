@@ -52,6 +52,20 @@ def test_calibrated_from_the_replayed_presses_with_no_simulator_loaded(run, cali
     assert run.data["follower_exit"] == 0 and run.data["expert_exit"] == 0
 
 
+def test_force_board_and_video_files_reach_the_expert(run):
+    """The force board's presses through the real HID reader (contact is from the board: the
+    calibration above needed it), and US and POV from the files through the OpenCV source,
+    encoded in the video process, received and decoded by the expert."""
+    f, e = run.data["follower"], run.data["expert"]
+    assert f["calibration_refusals"] is not None and f["calibrated"]
+    for track in ("us", "pov"):
+        sent = f["video"][track]
+        assert sent["errors"] == 0 and sent["captured"] > 20 and sent["sent"] > 20, sent
+        got = e["video"][track]
+        assert got["frames"] > 20 and got["unreadable"] == 0, got
+    assert sorted(e["video"]["us"]["size"]) == [480, 640]  # the file's (POV may degrade)
+
+
 def test_tracked_poses_match_the_recordings_truth_frame_by_frame(run, calibration):
     truth = {float(t): pose(p) for t, p in json.loads(run.path("truth.json").read_text()).items()}
     poses = [p for p in read_recording(run.path("f.mcap")).samples("/follower/probe_pose")

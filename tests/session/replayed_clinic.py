@@ -137,13 +137,15 @@ def fake_libhd(tmp_path: Path) -> str:
     return str(out)
 
 
-def expert_on_fake_touchx(tmp_path: Path, env: dict[str, str]) -> Path:
-    """An expert config on the fake libHD (a configured Touch driver directory in ``env``)."""
+def expert_on_fake_touchx(tmp_path: Path, env: dict[str, str], video: bool = True) -> Path:
+    """An expert config on the fake libHD (a configured Touch driver directory in ``env``),
+    receiving the follower's video (``video``)."""
     (tmp_path / "3DSystems" / "config").mkdir(parents=True, exist_ok=True)
     env["GTDD_HOME"] = str(tmp_path / "3DSystems")
     cfg = tmp_path / "expert.toml"
     cfg.write_text(f'[servo.device]\nbackend = "touchx"\nlibrary = "{fake_libhd(tmp_path)}"\n'
-                   "[expert.link]\nrealtime_priority = 0\n")  # fmt: skip
+                   "[expert.link]\nrealtime_priority = 0\n"
+                   f"[expert.video]\nenabled = {str(video).lower()}\n")  # fmt: skip
     return cfg
 
 
