@@ -349,7 +349,9 @@ def test_a_reader_that_fell_behind_skips_to_the_newest_frame():
         newest = src.read()
         src.close()
     assert first is not None and newest is not None
-    assert np.array_equal(first.ir, frames[0].ir)
+    # (the server sends the frames at once: on a busy machine several may be there already
+    # at the first read, which then takes the newest of them too)
+    k0 = next(i for i, f in enumerate(frames) if np.array_equal(first.ir, f.ir))
     k = next(i for i, f in enumerate(frames) if np.array_equal(newest.ir, f.ir))
-    assert k > 1  # not the second frame: the ones that had arrived were skipped
-    assert src.dropped.get("stale", 0) == k - 1
+    assert k > k0 and k > 1  # not the next frame: the ones that had arrived were skipped
+    assert src.dropped.get("stale", 0) == k - 1  # every frame before the newest but the first
