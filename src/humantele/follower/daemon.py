@@ -474,6 +474,7 @@ class FollowerDaemon(Daemon):
                 await asyncio.to_thread(self.video.close)
                 with contextlib.suppress(BaseException):
                     await asyncio.wait_for(video_task, 5.0)
+                await self.video.settle()  # a restart of the video process in flight
             await self.igtl.stop()
             self.worker.close()
             self.finish_run()

@@ -12,6 +12,7 @@ from typing import Any, Literal
 from pydantic import Field, model_validator
 
 from humantele.config import ConfigModel
+from humantele.runtime.child import POV_EXTRA_NICE, PRIORITY
 from humantele.video.sim_config import SimPovConfig, SimUltrasoundConfig
 from humantele.video.sources import PovSourceConfig, UltrasoundSourceConfig
 
@@ -122,7 +123,11 @@ class FollowerVideoConfig(ConfigModel):
     process: bool = Field(
         True, description="render/capture in a separate, lower-priority process (not threads)"
     )
-    process_nice: int = Field(5, ge=0, le=19, description="the video process's nice increment")
+    process_nice: int = Field(
+        PRIORITY["video_us"].nice, ge=1, le=19,
+        description="the video process's nice increment (its POV thread "
+        f"{POV_EXTRA_NICE} more); above [follower] sensing_nice: the video gives way first",
+    )  # fmt: skip
     record_us_hz: float = Field(
         3.0, ge=0.0, le=120.0, description="US frames recorded as JPEG per second (0: none)"
     )

@@ -39,6 +39,7 @@ from humantele.media.encoders import ENCODERS, make_encoder
 from humantele.media.frameinfo import FrameInfo
 from humantele.media.policy import DegradationPolicy, Health
 from humantele.media.slot import LatestSlot
+from humantele.runtime.child import Restarter
 from humantele.video.base import VideoSource, VideoSourceError, VideoSourceUnavailable
 from humantele.video.counter import draw_counter
 from humantele.video.sources import make_video_source
@@ -283,6 +284,7 @@ class VideoSender:
         sources = {"us": config.us, "pov": config.pov}
         rates = {"us": config.record_us_hz, "pov": config.record_pov_hz}
         self.process: Any = None
+        self.restarter: Restarter | None = None  # of the video process, once it runs
         if config.process:  # the sources in a video process (humantele.media.process)
             from humantele.media.process import ProcessVideo
 
@@ -299,6 +301,7 @@ class VideoSender:
                 }  # fmt: skip
             self.process = ProcessVideo(specs, patient, record, config.process_nice)
             self.captures: dict[str, Any] = self.process.captures
+            self.restarter = Restarter("video", self._restart_process, first_s=1.0, max_s=30.0)
         else:
             self.captures = {
                 name: VideoCapture(
@@ -352,8 +355,19 @@ class VideoSender:
             cap.start(loop)
         self._started = True
 
+    async def _restart_process(self) -> None:
+        """A new video process for the dead one, off the loop (it takes seconds to open)."""
+        await asyncio.to_thread(self.process.restart)
+
+    async def settle(self) -> None:
+        """After :meth:`close`: a restart in flight has ended (it saw the close)."""
+        if self.restarter is not None:
+            await self.restarter.close()
+
     def close(self) -> None:
         self._closed = True
+        if self.restarter is not None:
+            self.restarter.closed = True  # no new restart; one in flight sees the close
         if self.process is not None:
             self.process.close()
         else:
@@ -418,8 +432,11 @@ class VideoSender:
         return worst
 
     def tick(self, t: float, late_ticks: int) -> None:
-        """From the daemon's tick (``late_ticks``: its count so far): once a second, the
-        degradation policy (:meth:`check`) in a task."""
+        """From the daemon's tick (``t``: its monotonic clock, s; ``late_ticks``: its count so
+        far): a dead video process restarted (:class:`~humantele.runtime.child.Restarter`);
+        once a second, the degradation policy (:meth:`check`) in a task."""
+        if self.restarter is not None and self._started:
+            self.restarter.check(t, self.process.alive, self.process.exitcode)
         if t - self._policy_t < 1.0:
             return
         dt = 1.0 if self._policy_t == -math.inf else t - self._policy_t
@@ -448,11 +465,19 @@ class VideoSender:
         pov.max_fps = None if factor >= 1.0 else self.pov_fps * factor
         return level
 
+    def process_stats(self) -> dict[str, Any]:
+        """The video process: alive, its state (``running``, ``down: ...``, ``restarting``),
+        restarts, CPU seconds."""
+        p, r = self.process, self.restarter
+        assert p is not None and r is not None
+        alive = p.alive
+        return {"alive": alive, "state": r.state(time.monotonic(), alive) if self._started or r.closed
+                else "starting", "restarts": r.restarts, "pid": p.pid,
+                "cpu_s": p.cpu_seconds()}  # fmt: skip
+
     def stats(self) -> dict[str, Any]:
         out: dict[str, Any] = {
-            "process": None
-            if self.process is None
-            else {"alive": self.process.alive, "cpu_s": self.process.cpu_seconds()},
+            "process": None if self.process is None else self.process_stats(),
             "pov_level": self.policy.level,
             "pov_level_changes": self.policy.changes,
             "pov_level_reason": self.policy.reason,
