@@ -471,8 +471,8 @@ class VideoSender:
         p, r = self.process, self.restarter
         assert p is not None and r is not None
         alive = p.alive
-        return {"alive": alive, "state": r.state(time.monotonic(), alive) if self._started or r.closed
-                else "starting", "restarts": r.restarts, "pid": p.pid,
+        state = r.state(time.monotonic(), alive) if self._started or r.closed else "starting"
+        return {"alive": alive, "state": state, "restarts": r.restarts, "pid": p.pid,
                 "cpu_s": p.cpu_seconds()}  # fmt: skip
 
     def stats(self) -> dict[str, Any]:
