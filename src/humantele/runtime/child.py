@@ -259,7 +259,7 @@ class Restarter:
         try:
             await self.start_new()
         except Exception as exc:  # noqa: BLE001 - kept as the reason, tried again later
-            self.down = f"{self.name} did not restart: {exc}"
+            self.down = str(exc) or f"{self.name} did not restart ({type(exc).__name__})"
             self.due_at = None
             log.error("%s", self.down)
             return
