@@ -462,7 +462,8 @@ class FollowerDaemon(Daemon):
                     self.tick(t)
                     self.record_reports(t)
                     if self.video is not None:
-                        self.video.tick(t, self.late_ticks)
+                        self.video.tick(t, self.late_ticks, self.measurements,
+                                        self.config.sensing_rate_hz)  # fmt: skip
                 except Exception:  # never let one bad tick end the daemon
                     self.tick_errors += 1
                     if self.tick_errors in (1, 10, 100, 1000):

@@ -315,6 +315,7 @@ class VideoSender:
                 for name in TRACKS
             }
         self.pov_fps = float(self.captures["pov"].source.fps)
+        self.us_fps = float(self.captures["us"].source.fps)
         self.infos_sent = 0
         self.infos_dropped = 0
         self.attached = 0
@@ -326,6 +327,7 @@ class VideoSender:
         self._started = False
         self._closed = False
         self._policy_t, self._policy_late = -math.inf, 0  # the last check: time, late ticks
+        self._policy_frames = 0  # tracker frames measured by the last check
 
     def publish_scene(self, snapshot: Any) -> None:
         """The sim world's latest snapshot, for the video process (threads call ``scene``)."""
@@ -431,38 +433,51 @@ class VideoSender:
                         worst = f if worst is None else max(worst, f)
         return worst
 
-    def tick(self, t: float, late_ticks: int) -> None:
+    def tick(
+        self, t: float, late_ticks: int, tracker_frames: int = 0, tracker_hz: float = 0.0
+    ) -> None:
         """From the daemon's tick (``t``: its monotonic clock, s; ``late_ticks``: its count so
         far): a dead video process restarted (:class:`~humantele.runtime.child.Restarter`);
-        once a second, the degradation policy (:meth:`check`) in a task."""
+        once a second, the degradation policy (:meth:`check`) in a task, with the tracker's
+        frames measured (``tracker_frames``, a count so far) against its rate (Hz)."""
         if self.restarter is not None and self._started:
             self.restarter.check(t, self.process.alive, self.process.exitcode)
         if t - self._policy_t < 1.0:
             return
         dt = 1.0 if self._policy_t == -math.inf else t - self._policy_t
         late = (late_ticks - self._policy_late) / dt
+        frames = tracker_frames - self._policy_frames
+        first = self._policy_t == -math.inf
+        ratio = frames / (tracker_hz * dt) if frames > 0 and tracker_hz > 0 and not first else None
         self._policy_t, self._policy_late = t, late_ticks
-        task = asyncio.ensure_future(self.check(t, late))
+        self._policy_frames = tracker_frames
+        task = asyncio.ensure_future(self.check(t, late, ratio))
         task.add_done_callback(_log_check_error)
 
-    async def check(self, t: float, late_ticks_per_s: float) -> int:
-        """Once a second: the policy's inputs over the last window; applies the POV level."""
+    async def check(
+        self, t: float, late_ticks_per_s: float, tracker_ratio: float | None = None
+    ) -> int:
+        """Once a second: the policy's inputs over the last window; applies the POV level and
+        the US rate. US delivery is of the frames published (a US rate the policy lowered is
+        not the encoder falling behind)."""
         us = self.captures["us"]
-        captured = us.captured - self._last_counts["captured"]
+        published = us.published - self._last_counts["captured"]
         sent = us.sent - self._last_counts["sent"]
-        self._last_counts = {"captured": us.captured, "sent": us.sent}
-        delivery = min(1.0, sent / captured) if captured >= 5 and self._senders else None
-        health = Health(delivery, await self.loss(), late_ticks_per_s)
-        before = self.policy.level
+        self._last_counts = {"captured": us.published, "sent": us.sent}
+        delivery = min(1.0, sent / published) if published >= 5 and self._senders else None
+        health = Health(delivery, await self.loss(), late_ticks_per_s, tracker_ratio)
+        before = (self.policy.level, self.policy.us_level)
         level = self.policy.update(t, health)
-        if level != before:
-            log.warning(
-                "video: POV level %d -> %d (%s)", before, level, self.policy.reason or "recovered"
-            )
+        if (level, self.policy.us_level) != before:
+            why = self.policy.reason or "recovered"
+            log.warning("video: POV level %d -> %d, US level %d -> %d (%s)", before[0], level,
+                        before[1], self.policy.us_level, why)  # fmt: skip
         pov = self.captures["pov"]
         pov.scale = self.policy.pov_scale
         factor = self.policy.pov_rate_factor
         pov.max_fps = None if factor >= 1.0 else self.pov_fps * factor
+        us_factor = self.policy.us_rate_factor
+        us.max_fps = None if us_factor >= 1.0 else self.us_fps * us_factor
         return level
 
     def process_stats(self) -> dict[str, Any]:
@@ -479,6 +494,7 @@ class VideoSender:
         out: dict[str, Any] = {
             "process": None if self.process is None else self.process_stats(),
             "pov_level": self.policy.level,
+            "us_level": self.policy.us_level,
             "pov_level_changes": self.policy.changes,
             "pov_level_reason": self.policy.reason,
             "infos_sent": self.infos_sent,
