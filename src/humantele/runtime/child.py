@@ -126,8 +126,19 @@ def watch_parent(
     return t
 
 
-def _child_main(target: Callable[..., Any], args: tuple, parent_pid: int, watch: bool) -> None:
-    """Every child's entry: group signals ignored, the parent watched, then ``target``."""
+def set_process_name(name: str) -> None:
+    """The process's name as ``ps``, ``top`` and /proc/PID/comm show it (15 bytes; Linux)."""
+    with contextlib.suppress(OSError, AttributeError, ImportError):
+        import ctypes
+
+        ctypes.CDLL(None).prctl(15, name.encode()[:15], 0, 0, 0)  # PR_SET_NAME
+
+
+def _child_main(
+    target: Callable[..., Any], args: tuple, parent_pid: int, watch: bool, name: str
+) -> None:
+    """Every child's entry: named, group signals ignored, the parent watched, ``target``."""
+    set_process_name(name)
     ignore_group_signals()
     if watch:
         watch_parent(parent_pid)
@@ -137,11 +148,13 @@ def _child_main(target: Callable[..., Any], args: tuple, parent_pid: int, watch:
 def spawn(
     target: Callable[..., Any], args: tuple = (), *, name: str, watch: bool = True
 ) -> mp.process.BaseProcess:
-    """Start ``target(*args)`` in a spawn child named ``name`` (see the module docstring);
-    ``watch=False`` for a child that checks its parent itself (the servo, in its loop)."""
+    """Start ``target(*args)`` in a spawn child named ``name`` (also its process name, as
+    ``ps`` shows it: ``humantele-servo``, ``humantele-video``, ``humantele-sensi(ng)``; see
+    the module docstring); ``watch=False`` for a child that checks its parent itself (the
+    servo, in its loop)."""
     ctx = mp.get_context("spawn")
     proc = ctx.Process(
-        target=_child_main, args=(target, args, os.getpid(), watch), name=name, daemon=True
+        target=_child_main, args=(target, args, os.getpid(), watch, name), name=name, daemon=True
     )
     proc.start()
     return proc
