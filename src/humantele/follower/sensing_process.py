@@ -186,8 +186,9 @@ class SensingProcess:
                 self.on_error(msg[1])
 
     def _died(self) -> None:
-        code = self._proc.exitcode if self._proc is not None else None
-        self._drop_child()
+        proc = self._proc
+        self._drop_child()  # reaped: its exit code is known
+        code = proc.exitcode if proc is not None else None
         if self.restarts >= self.max_restarts:
             self.failed = True
             log.error(
