@@ -85,3 +85,24 @@ async def test_a_stop_while_the_new_video_process_starts_neither_hangs_nor_leaks
     assert not spawned.is_alive()
     assert not sender.process.alive and sender.stats()["process"]["state"] == "stopped"
     assert _leaked(names) == []
+
+
+async def test_a_video_process_killed_while_it_first_opens_is_restarted_not_a_config_error():
+    """Killed before its sources opened (the follower starting): not the sources' fault, so
+    not the follower's exit code 2; the follower starts the video and the restart brings it."""
+    sender = VideoSender(small_video_config(process=True), None, None, DEFAULT_PATIENT)
+    opening = asyncio.ensure_future(asyncio.to_thread(sender.open))
+    try:
+        end = time.monotonic() + 120
+        while sender.process.pid is None:
+            assert time.monotonic() < end
+            await asyncio.sleep(0.01)
+        os.kill(sender.process.pid, signal.SIGKILL)
+        await asyncio.wait_for(opening, 120)  # returns: no VideoSourceUnavailable
+        sender.start(asyncio.get_running_loop())
+        await _ticking_until(sender, lambda: sender.restarter.restarts == 1)
+        n = sender.captures["us"].slot.number
+        await _ticking_until(sender, lambda: sender.captures["us"].slot.number >= n + 3)
+    finally:
+        sender.close()
+        await sender.settle()

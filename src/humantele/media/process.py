@@ -104,6 +104,11 @@ def _frame_bytes(width: int, height: int) -> int:
 # --- the video process ------------------------------------------------------------------------
 
 
+class VideoProcessDied(VideoSourceUnavailable):
+    """The video process ended (killed, crashed) before its sources opened: a restart may
+    help, unlike a source that refused to open."""
+
+
 class StopFlag:
     """The video process's stop signal: one byte of shared memory, set by the follower and
     polled. Not a ``multiprocessing.Event``: its ``set()`` waits for every sleeper to take
@@ -383,6 +388,8 @@ class ProcessVideo:
             self._launch()
         try:
             self._wait_opened()
+        except VideoProcessDied:
+            raise  # not the sources' fault: the follower restarts it (VideoSender)
         except VideoSourceUnavailable:
             self.close()
             raise
@@ -437,7 +444,7 @@ class ProcessVideo:
             raise VideoSourceUnavailable(failed[0])
         if len(sh.opened) < len(self.captures):
             code = None if sh.process is None else sh.process.exitcode
-            raise VideoSourceUnavailable(f"video process exited (code {code}) while opening")
+            raise VideoProcessDied(f"video process exited with code {code} while opening")
 
     def _reap(self) -> None:
         """Stop and reap the current process and its reader (with the lock held)."""

@@ -337,7 +337,12 @@ class VideoSender:
     def open(self) -> None:
         """Open both sources (blocks); VideoSourceUnavailable names the one that failed."""
         if self.process is not None:
-            self.process.open()
+            from humantele.media.process import VideoProcessDied
+
+            try:
+                self.process.open()
+            except VideoProcessDied as exc:  # started anyway: the restarter brings it back
+                log.error("video: %s", exc)
             return
         opened = []
         try:
