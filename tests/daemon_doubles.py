@@ -53,6 +53,7 @@ class ServoDouble:
         self.pid = None
         self.late_ticks = 0
         self.down = ""  # the SupervisedServo's supervision: never down here
+        self.cannot_run = ""
         self.restarts = 0
         self.stopped = False
 

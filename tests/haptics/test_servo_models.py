@@ -299,7 +299,7 @@ async def test_a_servo_that_cannot_run_is_a_fault_in_the_status_not_force_none()
     assert s["force_n"] == 0.0 and s["servo_fault"] == s["servo_state"]
     line = _status_line(s, {"link_state": "connected"}, 1.0)
     assert "servo DOWN (servo did not start" in line and "force 0.00 N" in line
-    assert d.servo.restarts == 0
+    assert d.servo.restarts == 0 and "libHD" in d.servo.cannot_run  # exit code 1 at the end
     assert math.isfinite(s["force_n"])
 
 

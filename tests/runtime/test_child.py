@@ -123,3 +123,32 @@ def test_measurement_gaps_are_counted_after_the_first_measurement():
     s = g.stats()
     assert s["measurement_gaps"] == 2 and abs(s["measurement_gap_max_s"] - 11.8) < 0.1
     assert abs(s["measurement_gap_s"] - (11.8 + 3.0)) < 0.1 and s["measurement_age_s"] == 3.0
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_a_ctrl_c_while_the_child_imports_its_target_does_not_kill_it(tmp_path, monkeypatch):
+    """The child imports its target's modules only once it ignores the group's signals (a
+    restarted sensing process died of a Ctrl-C in its imports, with a traceback)."""
+    flags = tmp_path / "flags"
+    flags.mkdir()
+    monkeypatch.setenv("HUMANTELE_TEST_FLAGS", str(flags))
+    (flags / "go").write_text("1")  # the test's own import passes straight through
+    import slow_import_child
+
+    run = slow_import_child.run
+    (flags / "go").unlink()
+    (flags / "importing").unlink()
+    proc = spawn(run, (), name="humantele-test")
+    try:
+        end = time.monotonic() + 120
+        while not (flags / "importing").exists():
+            assert time.monotonic() < end and proc.is_alive(), proc.exitcode
+            time.sleep(0.02)
+        os.kill(proc.pid, signal.SIGINT)  # mid-import
+        time.sleep(0.2)
+        (flags / "go").write_text("1")
+        proc.join(60)
+        assert proc.exitcode == 0 and (flags / "ran").exists()
+    finally:
+        stop_process(proc, timeout_s=0.5)

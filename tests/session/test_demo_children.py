@@ -7,6 +7,7 @@ multiprocessing resource tracker reports leaked shared memory and semaphores in 
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -43,15 +44,15 @@ def _children(parent: int) -> dict[int, tuple[str, str]]:
     return out
 
 
-def _follower(demo: int) -> int | None:
-    return next((p for p, (_, cmd) in _children(demo).items() if " follower " in cmd), None)
+def _daemon(demo: int, role: str) -> int | None:
+    return next((p for p, (_, cmd) in _children(demo).items() if f" {role} " in cmd), None)
 
 
 def _victim(demo: int, comm: str) -> int | None:
-    f = _follower(demo)
-    if f is None:
+    d = _daemon(demo, "expert" if comm == "humantele-servo" else "follower")
+    if d is None:
         return None
-    return next((p for p, (c, _) in _children(f).items() if c == comm), None)
+    return next((p for p, (c, _) in _children(d).items() if c == comm), None)
 
 
 @pytest.mark.parametrize(
@@ -60,10 +61,13 @@ def _victim(demo: int, comm: str) -> int | None:
         ("humantele-video", "back"),  # restarted, frames again, then Ctrl-C
         ("humantele-video", "restarting"),  # Ctrl-C while the new one starts
         ("humantele-sensi", "back"),  # the sensing process: restarted, its gap counted
+        ("humantele-sensi", "restarting"),
+        ("humantele-servo", "back"),  # the expert's servo
+        ("humantele-servo", "restarting"),
     ],
 )
 def test_a_killed_follower_child_is_restarted_and_ctrl_c_exits_0(comm, stop_when):
-    track = "video" if comm == "humantele-video" else "sensing"
+    track = {"humantele-video": "video", "humantele-sensi": "sensing"}.get(comm, "servo")
     proc = subprocess.Popen(
         [sys.executable, "-m", "humantele", "demo", "--config", "configs/demo.toml",
          "--duration", "900", "--json", "--keep"],
@@ -90,6 +94,7 @@ def test_a_killed_follower_child_is_restarted_and_ctrl_c_exits_0(comm, stop_when
                     os.kill(killed, signal.SIGKILL)
                 continue
             down = f"{track} DOWN" in line or f"{track} restarting" in line
+            down = down or (track == "servo" and "servo - Hz" in line)  # no rate: not running
             saw_down = saw_down or down
             if stop_when == "restarting" and down:
                 break
@@ -119,18 +124,21 @@ def test_a_killed_follower_child_is_restarted_and_ctrl_c_exits_0(comm, stop_when
     child = summary["children"][track]
     if stop_when == "back":
         assert new is not None and child["restarts"] == 1, summary["children"]
-    if track == "sensing":
+    if track == "sensing" and stop_when == "back":
         assert summary["children"]["sensing"]["measurement_gaps"] >= 1
         assert summary["children"]["sensing"]["measurement_gap_s"] > 0.5
     run_dir = Path(re.search(r"run directory: (\S+)", err).group(1))
-    log = (run_dir / "follower.log").read_text()
-    if track == "video":
-        assert "video process exited with code -9; restarting it in 1 s" in log, log[-3000:]
-    else:
-        assert "the sensing process exited (code -9); restarting it" in log, log[-3000:]
+    log = (run_dir / ("expert.log" if track == "servo" else "follower.log")).read_text()
+    said = {
+        "video": "video process exited with code -9; restarting it in 1 s",
+        "sensing": "the sensing process exited (code -9); restarting it",
+        "servo": "servo process exited with code -9; restarting it in 2 s",
+    }[track]
+    assert said in log, log[-3000:]
     assert "leaked" not in log and "Traceback" not in log, log[-3000:]
     for _ in range(100):
         if not any(pid_alive(p) for p in seen):
             break
         time.sleep(0.1)
     assert not [p for p in seen if pid_alive(p)]
+    shutil.rmtree(run_dir, ignore_errors=True)

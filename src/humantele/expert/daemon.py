@@ -566,8 +566,10 @@ class ExpertDaemon(Daemon):
             await self.igtl.stop()
             self.finish_run()
         code = self.run_result(link_task)
-        if code == 0 and self.servo.down:  # the haptics were off at the end: not a clean run
-            print(f"humantele expert: servo not running: {self.servo.down}", file=sys.stderr)
+        # The haptics could not run at the end (not: killed and restarting): not a clean run.
+        if code == 0 and self.servo.cannot_run:
+            print(f"humantele expert: servo not running: {self.servo.cannot_run}",
+                  file=sys.stderr)  # fmt: skip
             return EXIT_FAILED
         return code
 

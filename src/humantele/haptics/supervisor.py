@@ -92,6 +92,13 @@ class SupervisedServo:
         self.restarter.down = reason
 
     @property
+    def cannot_run(self) -> str:
+        """Why the servo cannot run (its last start failed: a driver, a device), or "" (it
+        runs, or died and its restart is pending or under way)."""
+        r = self.restarter
+        return r.down if r.failed_start or r.gave_up else ""
+
+    @property
     def restarts(self) -> int:
         return self.restarter.restarts
 

@@ -30,16 +30,23 @@ import contextlib
 import logging
 import multiprocessing as mp
 import os
-import signal
 import threading
-import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
 
-log = logging.getLogger(__name__)
+from humantele.runtime.child_entry import (
+    Pickled,
+    child_main,
+    ignore_group_signals,
+    set_process_name,
+    watch_parent,
+)
 
-PARENT_POLL_S = 0.5  # how often a child checks that its daemon is still there
+__all__ = ["Priority", "Restarter", "ignore_group_signals", "set_process_name", "spawn",
+           "stop_process", "watch_parent"]  # fmt: skip
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -96,53 +103,21 @@ def set_thread_nice(extra: int) -> None:
         os.setpriority(os.PRIO_PROCESS, tid, min(19, now + extra))
 
 
-def ignore_group_signals() -> None:
-    """SIGINT and SIGTERM ignored: they reach the whole process group; the daemon stops us."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, signal.SIG_IGN)
+class _Deferred:
+    """``(target, args)`` pickled as the child is spawned (its pipes go with it, as
+    multiprocessing passes them) and unpickled in the child only once it ignores the group's
+    signals: unpickling imports the target's modules (seconds on a loaded machine: aiortc,
+    cv2, pydantic), and a Ctrl-C then killed a restarted child with a KeyboardInterrupt
+    traceback before it could ignore it. What remains open is the interpreter's own start
+    and the import of :mod:`~humantele.runtime.child_entry` (nothing new)."""
 
+    def __init__(self, target: Callable[..., Any], args: tuple) -> None:
+        self.call = (target, args)
 
-def watch_parent(
-    parent_pid: int,
-    on_gone: Callable[[], None] | None = None,
-    grace_s: float = 3.0,
-    poll_s: float = PARENT_POLL_S,
-) -> threading.Thread:
-    """A daemon thread that, once ``parent_pid`` is no longer our parent (it died without
-    stopping us), calls ``on_gone()`` (a stop flag: it must never wait on anyone) and ends
-    the process ``grace_s`` later if it has not ended by itself."""
+    def __reduce__(self) -> tuple:
+        from multiprocessing.reduction import ForkingPickler
 
-    def watch() -> None:
-        while os.getppid() == parent_pid:
-            time.sleep(poll_s)
-        if on_gone is not None:
-            with contextlib.suppress(Exception):
-                on_gone()
-        time.sleep(grace_s)
-        os._exit(0)
-
-    t = threading.Thread(target=watch, name="humantele-parent-watch", daemon=True)
-    t.start()
-    return t
-
-
-def set_process_name(name: str) -> None:
-    """The process's name as ``ps``, ``top`` and /proc/PID/comm show it (15 bytes; Linux)."""
-    with contextlib.suppress(OSError, AttributeError, ImportError):
-        import ctypes
-
-        ctypes.CDLL(None).prctl(15, name.encode()[:15], 0, 0, 0)  # PR_SET_NAME
-
-
-def _child_main(
-    target: Callable[..., Any], args: tuple, parent_pid: int, watch: bool, name: str
-) -> None:
-    """Every child's entry: named, group signals ignored, the parent watched, ``target``."""
-    set_process_name(name)
-    ignore_group_signals()
-    if watch:
-        watch_parent(parent_pid)
-    target(*args)
+        return (Pickled, (bytes(ForkingPickler.dumps(self.call)),))
 
 
 def spawn(
@@ -154,7 +129,10 @@ def spawn(
     servo, in its loop)."""
     ctx = mp.get_context("spawn")
     proc = ctx.Process(
-        target=_child_main, args=(target, args, os.getpid(), watch, name), name=name, daemon=True
+        target=child_main,
+        args=(_Deferred(target, args), os.getpid(), watch, name),
+        name=name,
+        daemon=True,
     )
     proc.start()
     return proc
@@ -230,6 +208,7 @@ class Restarter:
         self.up_since: float | None = None
         self.closed = False
         self.gave_up = False
+        self.failed_start = False  # the last replacement could not start (not just: died)
         self.task: asyncio.Future | None = None
 
     @property
@@ -272,6 +251,7 @@ class Restarter:
         try:
             await self.start_new()
         except Exception as exc:  # noqa: BLE001 - kept as the reason, tried again later
+            self.failed_start = True
             self.down = str(exc) or f"{self.name} did not restart ({type(exc).__name__})"
             self.due_at = None
             log.error("%s", self.down)
@@ -279,6 +259,7 @@ class Restarter:
         if self.closed:
             return
         self.restarts += 1
+        self.failed_start = False
         self.down, self.due_at, self.up_since = "", None, None
         log.warning("%s process restarted (%d)", self.name, self.restarts)
 
