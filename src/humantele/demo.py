@@ -379,6 +379,7 @@ def video_summary(e: dict[str, Any] | None, f: dict[str, Any] | None) -> dict[st
         out[name] = {k: t.get(k) for k in (*keys, "size")}
     if f:
         out["pov_level"] = f.get("pov_level")
+        out["us_level"] = f.get("us_level")
         out["pov_level_changes"] = f.get("pov_level_changes")
         out["process"] = f.get("process")
         out["follower"] = {n: f.get(n) for n in ("us", "pov")}
