@@ -92,6 +92,7 @@ class SensingWorker:
         self.failure: str | None = None
         self.times = SortedWindow(2000)  # s per measurement (thread or child)
         self.gaps = MeasurementGaps()
+        self.closed = False
 
     def start(self) -> None:
         """Start the worker thread and, by default, the sensing process (it starts while the
@@ -184,8 +185,11 @@ class SensingWorker:
         }
 
     def state(self) -> str:
-        """``thread``, ``starting``, ``restarting (N)``, ``running`` or ``failed: <why>``."""
+        """``thread``, ``starting``, ``restarting (N)``, ``running``, ``failed: <why>`` or
+        ``stopped`` (closed)."""
         proc = self.proc
+        if self.closed:
+            return "stopped"
         if proc is None:
             return "thread"
         if proc.failed:
@@ -196,6 +200,7 @@ class SensingWorker:
 
     def close(self) -> None:
         """Stop the thread (the frame being measured ends first) and the child."""
+        self.closed = True
         if self.executor is not None:
             self.executor.shutdown(wait=True)
             self.executor = None
