@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from humantele.config import ConfigError, defaults_dir, load_config, named_config_path
-from humantele.expert.daemon import ExpertConfig
+from humantele.expert.config import ExpertConfig
 from humantele.follower.daemon import FollowerConfig
 from humantele.follower.sensing import SensingConfig
 from humantele.forcesense.sensors import ForceSensorConfig, load_force_config

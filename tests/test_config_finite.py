@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 import humantele
 from humantele.config import ConfigError, ConfigModel, load_config, validate_config
-from humantele.expert.daemon import ExpertConfig
+from humantele.expert.config import ExpertConfig
 from humantele.haptics.servo_config import RegistrationConfig, ServoConfig
 
 BAD = [math.nan, math.inf, -math.inf]

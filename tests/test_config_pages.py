@@ -43,7 +43,7 @@ def test_certificate_host_names_are_checked_at_load(tmp_path, host, why):
 
 
 def _expert(tmp_path, text: str):
-    from humantele.expert.daemon import ExpertConfig
+    from humantele.expert.config import ExpertConfig
 
     f = tmp_path / "e.toml"
     f.write_text(text)

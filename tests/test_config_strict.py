@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 
 from humantele.config import ConfigError, load_config, validate_config
-from humantele.expert.daemon import ExpertConfig
+from humantele.expert.config import ExpertConfig
 from humantele.follower.daemon import FollowerConfig
 from humantele.haptics.servo_config import ServoConfig
 

@@ -13,7 +13,7 @@ from humantele.config import ConfigError
 # name -> (module, one-line help). Modules are imported only when their command runs.
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("humantele.demo", "run a whole session on simulated devices over loopback WebRTC"),
-    "expert": ("humantele.expert.daemon", "run the expert daemon (haptic device, servo loop)"),
+    "expert": ("humantele.expert.cli", "run the expert daemon (haptic device, servo loop)"),
     "follower": ("humantele.follower.cli", "run the follower daemon (tracking, force, video)"),
     "signal": ("humantele.signaling.server", "run the signaling server"),
     "analyze": ("humantele.analysis.cli", "the study's analysis of recorded sessions"),

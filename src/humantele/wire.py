@@ -281,10 +281,17 @@ class EllipsoidModel(_Control):
     model: EllipsoidParams
 
 
+LANDMARKS: tuple[str, ...] = ("xiphoid", "left", "right", "bed")
+"""The patient calibration's landmarks, in the order they are touched (the one list: the
+follower's calibration and the expert's console use it); :class:`CalibrationProgress`'s
+``index`` is an index into it."""
+
+
 class CalibrationProgress(_Control):
-    """Calibration progress: ``start``, a landmark ``point`` (index 0-3, position m in the
-    patient/world frame the calibration uses), ``done``, ``cancel`` or ``error``. (The fitted
-    calibration itself is :class:`humantele.follower.calibration.Calibration`.)"""
+    """Calibration progress: ``start``, a landmark ``point`` (index 0-3 in :data:`LANDMARKS`,
+    position m in the patient/world frame the calibration uses), ``done``, ``cancel`` or
+    ``error``. (The fitted calibration itself is
+    :class:`humantele.follower.calibration.Calibration`.)"""
 
     type: Literal["calibration"] = "calibration"
     event: Literal["start", "point", "done", "cancel", "error"]

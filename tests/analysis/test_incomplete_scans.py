@@ -8,7 +8,7 @@ import json
 
 import pytest
 
-from humantele.analysis.cli import analyze, format_report
+from humantele.analysis.report import analyze, format_report
 from humantele.cli import main
 from humantele.recording.synthetic import SyntheticSession, write_synthetic
 

@@ -86,9 +86,15 @@ class Ctx:
     # --- the browser ----------------------------------------------------------------------
 
     async def page(
-        self, url: str, iwer: bool = False, width: int = 1280, height: int = 800
+        self,
+        url: str,
+        iwer: bool = False,
+        width: int = 1280,
+        height: int = 800,
+        init_script: str = "",
     ) -> Page:
-        """A new page (its own context) at ``url``; with ``iwer``, the WebXR emulator."""
+        """A new page (its own context) at ``url``; with ``iwer``, the WebXR emulator;
+        ``init_script``: JavaScript run before the page's own (e.g. its storage)."""
         assert self.browser is not None
         context = await self.browser.new_context(
             ignore_https_errors=True, viewport={"width": width, "height": height}
@@ -96,6 +102,8 @@ class Ctx:
         self._contexts.append(context)
         if iwer:
             await context.add_init_script(IWER.read_text() + "\n" + IWER_INSTALL)
+        if init_script:
+            await context.add_init_script(init_script)
         page = await context.new_page()
         page.on(
             "console",

@@ -33,7 +33,8 @@ from humantele.devices.replay_file import (
     VIDEO,
     DeviceRecording,
 )
-from humantele.follower.sensing import ProbeSensing, SensingConfig, real_sensing_devices
+from humantele.follower.sensing import ProbeSensing, SensingConfig
+from humantele.follower.sensing_devices import real_sensing_devices
 from humantele.forcesense.base import ForceSensorUnavailable
 from humantele.forcesense.calibration import calibrate_sim
 from humantele.forcesense.hid import encode_report

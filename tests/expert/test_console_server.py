@@ -16,7 +16,8 @@ import pytest
 
 from humantele.expert.console import ConsoleConfig, ConsoleServer, SourceFrames
 from humantele.expert.console.cine import CineBuffer, CineFrame
-from humantele.expert.console.hook import PoseHistory, alignment, pressing_n
+from humantele.expert.console.expert_view import PoseHistory
+from humantele.expert.console.hook import alignment, pressing_n
 from humantele.expert.console.messages import HEADER_SIZE, parse_header
 from humantele.geometry import Pose, quat_from_axis_angle
 from humantele.recording import Recorder

@@ -5,7 +5,8 @@ import math
 import numpy as np
 
 from daemon_doubles import Clock, LinkDouble, ServoDouble
-from humantele.expert.daemon import ExpertConfig, ExpertDaemon
+from humantele.expert.config import ExpertConfig
+from humantele.expert.daemon import ExpertDaemon
 from humantele.geometry import Pose
 from humantele.haptics.ellipsoid import Ellipsoid
 from humantele.wire import EllipsoidModel, EllipsoidParams

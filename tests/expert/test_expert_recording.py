@@ -12,14 +12,11 @@ import pytest
 
 from daemon_doubles import Clock, LinkDouble, ServoDouble
 from humantele.config import ConfigError
-from humantele.expert.daemon import (
-    ExpertConfig,
-    ExpertDaemon,
-    ScanScriptConfig,
-    configs_from_args,
-    servo_config_for,
-)
+from humantele.expert.cli import configs_from_args
+from humantele.expert.config import ExpertConfig, servo_config_for
+from humantele.expert.daemon import ExpertDaemon
 from humantele.expert.mapping import MappingConfig
+from humantele.expert.scans import ScanScriptConfig
 from humantele.haptics.ellipsoid import Ellipsoid
 from humantele.haptics.servo_config import ServoConfig
 from humantele.recording import Recorder, RecorderConfig, read_recording

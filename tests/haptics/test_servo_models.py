@@ -20,7 +20,8 @@ from hypothesis import strategies as st
 from servo_helpers import pressing_config, wait_for
 
 from humantele.demo import _status_line
-from humantele.expert.daemon import ExpertConfig, ExpertDaemon
+from humantele.expert.config import ExpertConfig
+from humantele.expert.daemon import ExpertDaemon
 from humantele.haptics.demo_patient import demo_model
 from humantele.haptics.devices.sim import ManualClock, SimTouchX
 from humantele.haptics.ellipsoid import Ellipsoid, body_problem

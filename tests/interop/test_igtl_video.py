@@ -12,7 +12,7 @@ from igtl_client import by_name, read_messages
 
 from humantele.interop.igtl import IgtlConfig
 from humantele.interop.sessions import ExpertIgtl, FollowerIgtl
-from humantele.media.sender import CapturedFrame, i420_frame
+from humantele.media.capture import CapturedFrame, i420_frame
 from humantele.media.slot import LatestSlot
 from humantele.video.scan import ScanGeometry
 from humantele.video.sim_ultrasound import SimUltrasoundConfig

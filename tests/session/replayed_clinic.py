@@ -37,10 +37,12 @@ REPLAY_HID = Path(__file__).parent.parent / "devices" / "replay_hid"
 
 @dataclass
 class Recording:
-    """The files, and the true tip pose (world) of each frame by its device time (s)."""
+    """The files, and the true tip pose and the headset's rig pose (world) of each frame by
+    its device time (s)."""
 
     dir: Path
     truth: dict[float, Pose]
+    rigs: dict[float, Pose]
 
 
 def device_time(k: int) -> float:
@@ -87,7 +89,7 @@ def make_recording(out: Path, seconds: float, targets: Callable[[float], Pose],
     camera = SimFrameSource(SimFrameConfig(seed=5), tool)
     board = SimForceSensor(SimForceConfig())
     T_tip_probe = tip_transform(tool).inverse()
-    records, truth, reports = [], {}, []
+    records, truth, rigs, reports = [], {}, {}, []
     for k in range(int(seconds * RATE_HZ)):
         t = k / RATE_HZ
         world.step(t, targets(t))
@@ -97,6 +99,7 @@ def make_recording(out: Path, seconds: float, targets: Callable[[float], Pose],
         rig = now.T_world_camera @ T_RIG_CAMERA.inverse()
         records.append(AhatRecord(T0_TICKS + k * TICKS, frame.depth_mm, frame.ir, k, rig))
         truth[round(device_time(k), 6)] = now.T_world_tip
+        rigs[round(device_time(k), 6)] = rig
         board.set_force(probe.rotation_matrix.T @ now.force_world)
         while len(reports) / HID_RATE_HZ < (k + 1) / RATE_HZ:  # 100 Hz of reports exactly
             r = board.read(len(reports) / HID_RATE_HZ)
@@ -114,11 +117,39 @@ def make_recording(out: Path, seconds: float, targets: Callable[[float], Pose],
             cv2.circle(img, (w // 2 + k, h // 2), 30, (200, 200, 200), -1)
             video.write(img)
         video.release()
-    return Recording(out, truth)
+    return Recording(out, truth, rigs)
 
 
-def follower_config(rec: Path, port: int, state: Path, video: bool = True) -> str:
-    """The follower on real backends reading the recording (hl2ss server on ``port``)."""
+def fake_libhd(tmp_path: Path) -> str:
+    """The fake OpenHaptics libHD (tests/devices/fake_libhd.c) built into ``tmp_path``."""
+    import shutil
+    import subprocess
+
+    import pytest
+
+    cc = shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        pytest.skip("no C compiler (cc/gcc) to build the fake OpenHaptics libHD")
+    out = tmp_path / "libHD.so"
+    src = Path(__file__).parent.parent / "devices" / "fake_libhd.c"
+    subprocess.run([cc, "-shared", "-fPIC", "-O1", "-o", str(out), str(src), "-lpthread", "-lm"],
+                   check=True)  # fmt: skip
+    return str(out)
+
+
+def expert_on_fake_touchx(tmp_path: Path, env: dict[str, str]) -> Path:
+    """An expert config on the fake libHD (a configured Touch driver directory in ``env``)."""
+    (tmp_path / "3DSystems" / "config").mkdir(parents=True, exist_ok=True)
+    env["GTDD_HOME"] = str(tmp_path / "3DSystems")
+    cfg = tmp_path / "expert.toml"
+    cfg.write_text(f'[servo.device]\nbackend = "touchx"\nlibrary = "{fake_libhd(tmp_path)}"\n'
+                   "[expert.link]\nrealtime_priority = 0\n")  # fmt: skip
+    return cfg
+
+
+def follower_config(rec: Path, port: int, state: Path, video: bool = True, extra: str = "") -> str:
+    """The follower on real backends reading the recording (hl2ss server on ``port``);
+    ``extra``: more TOML appended."""
     return f"""
 [follower]
 state_dir = "{state}"
@@ -152,7 +183,7 @@ download_calibration = false
 calibration_file = "{rec / "board_calibration.json"}"
 [sensing.force.sensor]
 backend = "hid"
-"""
+{extra}"""
 
 
 def replay_env(rec: Path, loop: bool = False) -> dict[str, str]:

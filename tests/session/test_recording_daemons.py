@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from humantele.analysis.cli import analyze
+from humantele.analysis.report import analyze
 from humantele.recording import read_recording, role_path
 
 

@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from humantele.analysis.cli import analyze
+from humantele.analysis.report import analyze
 from humantele.demo import _status_line, summarize
 from humantele.follower.sim_human import SimHumanConfig
 from humantele.recording import read_recording

@@ -261,7 +261,7 @@ def run(args: Any) -> int:
     import random
     import sys
 
-    from humantele.analysis.cli import METRICS, analyze, print_report
+    from humantele.analysis.report import METRICS, analyze, print_report
     from humantele.recording.reader import RecordingReadError
 
     if args.rating_sheet is not None and args.ratings is not None:

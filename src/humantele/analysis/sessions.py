@@ -6,7 +6,7 @@ scan without a stop ends at the last expert sample (a crash) and is marked incom
 session without scan events is analysed whole, as scan 0, with a warning; when a file of the
 expert's side is cut (not closed, or unreadable past some point) that scan 0 is incomplete
 too: its start and end are unknown (the lost part may hold the scan events). Incomplete scans
-are reported but left out of the tables and summaries (:mod:`humantele.analysis.cli`).
+are reported but left out of the tables and summaries (:mod:`humantele.analysis.report`).
 """
 
 from __future__ import annotations

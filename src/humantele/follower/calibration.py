@@ -39,8 +39,7 @@ from humantele.haptics.ellipsoid import (
     Ellipsoid,
     LandmarkError,
 )
-
-LANDMARKS: tuple[str, ...] = ("xiphoid", "left", "right", "bed")
+from humantele.wire import LANDMARKS  # the landmarks' names and order: one list, on the wire
 
 PROMPTS: dict[str, str] = {
     "xiphoid": "press the probe on the xiphoid, just below the sternum",

@@ -50,6 +50,14 @@ class CalibrationSession:
         self.last_event: CalibrationEvent | None = None
         self.send, self.publish_fn, self.record = send, publish, record
         self.on_fitted = on_fitted
+        self._model_recorded: Calibration | None = None
+
+    def record_model(self, t: float | None = None) -> None:
+        """The fitted model (world frame, as ``Ellipsoid.to_dict``), once per calibration."""
+        if self.calibration is None or self._model_recorded is self.calibration:
+            return
+        self._model_recorded = self.calibration
+        self.record("/follower/ellipsoid", t, self.calibration.ellipsoid.to_dict())
 
     @property
     def landmark(self) -> str | None:

@@ -15,23 +15,20 @@ whether it is live, and the landmark to press while calibrating.
   the novice, their head and the probe in one simulated world; its devices (tracker, force
   board, ultrasound and POV video) observe that world. The sim is imported only then.
 
-Frames: the tracker's world (y up), SI units. This module holds the clinic's settings and the
-factories; it imports nothing of the simulator.
+Frames: the tracker's world (y up), SI units. This module holds the clinic's settings and
+interface and imports nothing of the simulator (nor of the sensing); the factories are
+:mod:`humantele.follower.clinics`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Annotated, Any, Literal, Protocol
+from typing import Annotated, Any, Literal, Protocol
 
 from pydantic import Field
 
 from humantele.config import ConfigModel
 from humantele.geometry import Pose
-
-if TYPE_CHECKING:
-    from humantele.follower.sensing import SensingConfig, SensingDevices
-    from humantele.tracking.tool import ToolDefinition
 
 
 class SimPatientConfig(ConfigModel):
@@ -152,30 +149,3 @@ class DeviceClinic:
 
     def scene(self) -> None:
         return None
-
-
-def make_clinic(config: SimClinicConfig | DeviceClinicConfig, video: Any = None) -> Clinic:
-    """The clinic a configuration asks for; ``video``: the video sender whose simulated
-    sources render the sim clinic's scene (None: no video)."""
-    if isinstance(config, SimClinicConfig):
-        from humantele.follower.sim_clinic import SimClinic  # the simulator, only when asked
-
-        return SimClinic(config, video)
-    return DeviceClinic()
-
-
-def make_sensing_devices(
-    clinic: SimClinicConfig | DeviceClinicConfig,
-    sensing: SensingConfig,
-    tool: ToolDefinition,
-) -> SensingDevices:
-    """The tracker camera and force sensor (not yet opened) with the force calibration: the
-    sim clinic's devices, or the configured real backends (a ``sim`` backend in a real
-    clinic is refused: nothing would move it)."""
-    if isinstance(clinic, SimClinicConfig):
-        from humantele.follower.sim_clinic import sim_sensing_devices
-
-        return sim_sensing_devices(sensing, tool)
-    from humantele.follower.sensing import real_sensing_devices
-
-    return real_sensing_devices(sensing, tool)

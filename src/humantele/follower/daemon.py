@@ -9,11 +9,11 @@ Every tick (``rate_hz``, asyncio) it:
    measured off the loop (:mod:`humantele.follower.sensing_worker`; the devices are the
    clinic's, :mod:`humantele.follower.sensing`);
 3. with each measurement: feeds the calibration while calibrating, streams the probe pose
-   and force to the expert (``state``, patient frame) and records them
-   (:mod:`humantele.follower.records`);
-4. publishes the measured probe and the virtual probe to renderers
-   (:mod:`humantele.follower.feed`, world frame): a fresh virtual probe as its pose arrives,
-   a stale one (no fresh pose, link down) at each tick;
+   and force to the expert (``state``, patient frame; :mod:`humantele.follower.to_expert`)
+   and records them (:mod:`humantele.follower.records`);
+4. publishes the measured probe and the virtual probe to renderers (world frame,
+   :mod:`humantele.follower.virtual_probe`): a fresh virtual probe as its pose arrives, a
+   stale one (no fresh pose, link down) at each tick;
 5. once a second lets the video's degradation policy lower the POV (never the US).
 
 Frames: the tracker's world (y up) here; the patient frame of the calibration on the wire
@@ -28,7 +28,6 @@ import asyncio
 import contextlib
 import logging
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -36,39 +35,27 @@ from pathlib import Path
 import numpy as np
 
 from humantele.cliargs import EXIT_FAILED
-from humantele.follower.calibration import Calibration, CalibrationEvent
+from humantele.follower.calibration import Calibration
 from humantele.follower.calibration_session import CalibrationSession
-from humantele.follower.clinic import Guide, make_clinic, simulator_modules
+from humantele.follower.clinic import Guide, simulator_modules
+from humantele.follower.clinics import make_clinic
 from humantele.follower.config import FollowerConfig
 from humantele.follower.feed import RendererFeed, model_fields
-from humantele.follower.figures import AlignmentFigures, PoseStreamFigures
+from humantele.follower.figures import AlignmentFigures, TickFigures
 from humantele.follower.records import measurement_samples
 from humantele.follower.registration import HeadsetRegistration
 from humantele.follower.sensing import LOST, Measurement, SensingConfig, TrackerImage
 from humantele.follower.sensing_worker import SensingWorker
-from humantele.geometry import Pose
+from humantele.follower.to_expert import ExpertStream
+from humantele.follower.virtual_probe import VirtualProbe
 from humantele.interop.sessions import FollowerIgtl
 from humantele.media.sender import VideoSender
 from humantele.runtime.daemon import Daemon
-from humantele.runtime.session import recorder_stats
-from humantele.runtime.stats import SortedWindow, percentile_ms
 from humantele.transport import PeerLink
 from humantele.video.base import VideoSourceUnavailable
-from humantele.wire import (
-    CalibrationProgress,
-    ControlMessage,
-    EllipsoidModel,
-    EllipsoidParams,
-    Hello,
-    PoseMessage,
-    Scan,
-    StateMessage,
-    UsScale,
-)
+from humantele.wire import CalibrationProgress, ControlMessage, Hello, PoseMessage, Scan
 
 log = logging.getLogger(__name__)
-
-REPORT_PERIOD_S = 1.0  # latency figures are recorded this often
 
 
 class FollowerDaemon(Daemon):
@@ -112,6 +99,10 @@ class FollowerDaemon(Daemon):
         us = (self.video.captures["us"].slot, config.video.us) if self.video else None
         sim_us = None if config.video.enabled else getattr(self.clinic, "scene", None)
         self.igtl = FollowerIgtl(config.igtl, sim_us, us)
+        self.virtual = VirtualProbe(
+            config.stale_after_s, self.feed, lambda: self.link, lambda: self.calibration
+        )
+        self.to_expert = ExpertStream(lambda: self.link, lambda: self.calibration, config.video)
         self.link = PeerLink(
             "follower",
             config.link,
@@ -122,35 +113,38 @@ class FollowerDaemon(Daemon):
         )
         self.following_since: float | None = None
         self.last_force_n = 0.0
-        self.last_pose: PoseMessage | None = None
-        self.last_pose_rx = -math.inf
-        self.poses = PoseStreamFigures()
+        self.poses = self.virtual.figures  # the expert's pose stream
         self.alignment = AlignmentFigures()
-        self.state_seq = 0
-        self.ticks = 0
+        self.ticks = TickFigures(config.rate_hz)  # the main loop's ticks, how late
         self.tick_errors = 0
         self.tracking_lost = 0
-        self.late_ticks = 0
-        self.last_event: CalibrationEvent | None = None
-        self.tick_late = SortedWindow(20000)  # s each tick came after its period
-        # Scans (from the expert) and what has been recorded.
+        # Scans (from the expert).
         self.scan: int | None = None
         self.scans_seen = 0
-        self._model_recorded: Calibration | None = None
 
     # --- incoming messages, one handler per kind ------------------------------------------
 
     def on_pose(self, msg: PoseMessage) -> None:
         """A virtual probe pose from the expert (``T_patient_probe``)."""
-        self.last_pose = msg
-        self.last_pose_rx = time.monotonic()
-        self.poses.add(self.last_pose_rx, self.link.age_of(msg.t_sent))
-        self.publish_virtual(self.last_pose_rx)
+        self.virtual.on_pose(msg)
+
+    @property
+    def last_pose(self) -> PoseMessage | None:
+        return self.virtual.last
+
+    @property
+    def last_pose_rx(self) -> float:
+        """When the last pose came (s, monotonic)."""
+        return self.virtual.rx
+
+    @last_pose_rx.setter
+    def last_pose_rx(self, t: float) -> None:
+        self.virtual.rx = t
 
     def on_control(self, msg: ControlMessage) -> None:
         if isinstance(msg, Hello):
-            self.send_model()  # the expert (re)joined: give it the model we have
-            self.send_us_scale()
+            self.to_expert.model()  # the expert (re)joined: give it the model we have
+            self.to_expert.us_scale()
         elif isinstance(msg, CalibrationProgress) and msg.event == "start":
             self.start_calibration()
         elif isinstance(msg, Scan):
@@ -176,76 +170,7 @@ class FollowerDaemon(Daemon):
 
     def send_control(self, msg: ControlMessage) -> bool:
         """Control messages only while connected (the expert learns the rest on Hello)."""
-        return self.link.connected and self.link.send_control(msg)
-
-    def send_model(self) -> bool:
-        if self.calibration is None:
-            return False
-        params = EllipsoidParams(**self.calibration.model_patient().to_dict())
-        return self.send_control(EllipsoidModel(model=params))
-
-    def send_us_scale(self) -> bool:
-        """A real scanner's configured scale, for the expert's calipers and depth scale."""
-        us = self.config.video.us
-        spacing, row0 = getattr(us, "pixel_spacing_mm", None), getattr(us, "depth_origin_row", None)
-        if not self.config.video.enabled or spacing is None or row0 is None:
-            return False
-        return self.send_control(UsScale(pixel_spacing_mm=tuple(spacing), depth_origin_row=row0))
-
-    def send_state(self, t: float, m: Measurement) -> None:
-        """The measured probe (patient frame) and force (probe tip frame) to the expert."""
-        if self.calibration is None or m.T_world_tip is None or not self.link.connected:
-            return
-        T_patient_tip = self.calibration.T_world_patient.inverse() @ m.T_world_tip
-        force_tip = m.T_world_tip.inverse().rotate(m.force_world)
-        self.state_seq += 1
-        self.link.send_state(
-            StateMessage(
-                self.state_seq,
-                t,
-                tuple(T_patient_tip.position),
-                tuple(T_patient_tip.quaternion),
-                m.status,
-                tuple(float(v) for v in force_tip),
-                m.contact,
-            )
-        )
-
-    def publish_virtual(self, t: float) -> None:
-        """The virtual probe (world frame) to renderers, once calibrated: as each pose arrives
-        (from :meth:`on_pose`, so the page sees it at once), and at each tick while it is
-        stale (``t``: the time it is judged at, s)."""
-        virtual = self.virtual_world()
-        if virtual is None or self.last_pose is None:
-            return
-        age = self.link.age_of(self.last_pose.t_sent)
-        self.feed.publish(
-            "virtual_probe",
-            {
-                "position": virtual.position,
-                "quaternion": virtual.quaternion,
-                "age_ms": None if age is None else age * 1000.0,
-                "stale": self.virtual_stale(t),
-                "clutch": bool(self.last_pose.clutch),
-            },
-            t_origin=self.last_pose_rx,
-        )
-
-    def publish_feed(self, t: float, m: Measurement) -> None:
-        """At each tick: the virtual probe if it went stale, and the measured probe."""
-        if self.virtual_stale(t):
-            self.publish_virtual(t)
-        if m.T_world_tip is not None:
-            self.feed.publish(
-                "probe",
-                {
-                    "position": m.T_world_tip.position,
-                    "quaternion": m.T_world_tip.quaternion,
-                    "force": m.force_world,
-                    "contact": m.contact,
-                    "tracking": m.status.name.lower(),
-                },
-            )
+        return self.to_expert.control(msg)
 
     def publish_model(self) -> None:
         """The fitted ellipsoid (world frame) for the page's outline, if calibrated."""
@@ -265,24 +190,18 @@ class FollowerDaemon(Daemon):
 
     def on_fitted(self, t: float | None) -> None:
         """A new calibration: its model to the expert, the recording and the page."""
-        self.send_model()
-        self.record_model(t)
+        self.to_expert.model()
+        self.cal.record_model(t)
         self.publish_model()
 
     # --- the tick -------------------------------------------------------------------------
 
     def virtual_stale(self, t: float) -> bool:
-        return not self.link.connected or t - self.last_pose_rx > self.config.stale_after_s
-
-    def virtual_world(self) -> Pose | None:
-        """The virtual probe's tip pose in the world, or None without a pose or calibration."""
-        if self.last_pose is None or self.calibration is None:
-            return None
-        return self.calibration.T_world_patient @ self.last_pose.pose
+        return self.virtual.stale(t)
 
     def tick(self, t: float) -> None:
         """The clinic sees the guide; at the tracker's rate, a frame is measured."""
-        virtual = self.virtual_world()
+        virtual = self.virtual.world()
         live = virtual is not None and not self.virtual_stale(t) and not self.last_pose.clutch
         target = virtual if live else None  # the guide the novice follows (clutch: hold still)
         landmark = self.cal.landmark
@@ -299,15 +218,9 @@ class FollowerDaemon(Daemon):
             self.last_measure_t = t if late else self.last_measure_t + frame_period
             world = self.clinic.world_at_frame(t)  # for the sim's devices; opaque here
             self.worker.submit(TrackerImage(t, world, virtual, target))
-        self.publish_feed(t, self.measurement)
+        self.virtual.publish_tick(t, self.measurement)
         v_patient = None if self.last_pose is None else self.last_pose.pose
         self.igtl.tick(t, self.calibration, v_patient)
-
-    def record_any(self, topic: str, t: float, payload: dict) -> None:
-        """Record from any thread (the recorder only queues)."""
-        rec = self.rec
-        if rec is not None:
-            rec.write(topic, t, payload)
 
     # --- measurements (sensing worker thread -> loop) -------------------------------------
 
@@ -336,7 +249,7 @@ class FollowerDaemon(Daemon):
             settled = frame.t - self.following_since >= self.config.alignment_settle_s
             if settled and m.T_world_tip is not None:
                 self.alignment.add(m.T_world_tip, frame.virtual)
-        self.send_state(frame.t, m)
+        self.to_expert.state(frame.t, m)
         self.record_measurement(frame.t, m)
         self.igtl.on_measurement(frame.t, self.calibration, m)
         self.registration.on_measurement(frame.t, m.T_world_tip, m.T_world_rig)
@@ -352,58 +265,34 @@ class FollowerDaemon(Daemon):
         for topic, payload in measurement_samples(m, self.calibration):
             self.record(topic, t, payload)
 
-    def record_model(self, t: float | None = None) -> None:
-        """The fitted model (world frame, as ``Ellipsoid.to_dict``), once per calibration."""
-        if self.calibration is None or self._model_recorded is self.calibration:
-            return
-        self._model_recorded = self.calibration
-        self.record("/follower/ellipsoid", t, self.calibration.ellipsoid.to_dict())
-
     def record_reports(self, t: float) -> None:
         """The clock-sync estimate when it changes; the pose stream's one-way latency (median
         since the last report) about once a second."""
         if self.rec is None:
             return
         self.clock_log.update(self.rec, self.link.clock)
-        if t - self._last_report < REPORT_PERIOD_S:
-            return
-        self._last_report = t
-        value = self.poses.median_since_last()
-        if value is not None:
-            self.rec.write("/follower/latency", t, {"name": "pose_one_way", "value_s": value})
+        self.poses.report(self.rec, t)
 
     def stats(self) -> dict:
         now = time.monotonic()
         return {
-            "role": "follower",
-            "pid": os.getpid(),
-            "uptime_s": round(now - self.t_start, 3),
-            "link_state": self.link.state,
-            "connections": self.link.counters.connections,
+            **self.common_stats(self.link),
             **self.poses.stats(now),
             "states_sent": self.link.counters.sent.get("state", 0),
             **self.cal.stats(),
             "force_n": round(self.last_force_n, 3),
             **self.alignment.stats(),
-            "dropped": dict(self.link.counters.dropped),
-            "dropped_total": sum(self.link.counters.dropped.values()),
             "feed_clients": len(self.feed.clients),
             "feed_url": self.feed.address if self.feed.port else None,
             "feed": self.feed.stats(),
             "registration": self.registration.stats(),
-            "ticks": self.ticks,
             "measurements": self.measurements,
             "tracking_lost": self.tracking_lost,
             **self.worker.stats(),
             "scan": self.scan,
             "scans_seen": self.scans_seen,
-            "recording": recorder_stats(self.rec),
             "tick_errors": self.tick_errors,
-            "late_ticks": self.late_ticks,
-            "tick_late_p99_ms": percentile_ms(self.tick_late, 99),
-            "tick_late_max_ms": percentile_ms(self.tick_late, 100),
-            "cpu_percent": self.cpu.overall(),
-            "loop_priority": self.loop_priority,
+            **self.ticks.stats(),
             "igtl": self.igtl.stats(),
             "video": None if self.video is None else self.video.stats(),
             "simulator_modules": self.simulator_loaded(),
@@ -417,13 +306,10 @@ class FollowerDaemon(Daemon):
                 "sensing": getattr(self.worker.proc, "simulator_modules", None),
                 "video": getattr(video, "simulator_modules", None)}  # fmt: skip
 
-    def _count_late_tick(self) -> None:
-        self.late_ticks += 1
-
     async def run(self, duration_s: float | None = None) -> int:
         if not self.start_run():
             return 2
-        self.record_model()  # a saved calibration's model
+        self.cal.record_model()  # a saved calibration's model
         # The video sources open beside the session (the video process takes a few seconds
         # to start); one that cannot open stops the daemon with a clear message, exit code 2.
         video_task = None if self.video is None else asyncio.create_task(self.start_video())
@@ -443,7 +329,6 @@ class FollowerDaemon(Daemon):
         if self.igtl.banner():
             print(f"humantele follower: {self.igtl.banner()}", flush=True)
         link_task = asyncio.create_task(self.link.run())
-        prev_t, period = None, 1.0 / self.config.rate_hz
         if self.calibration is None:
             self.start_calibration()
         else:
@@ -452,17 +337,14 @@ class FollowerDaemon(Daemon):
         self.publish_model()
         try:
             async for t in self.loop_ticks(
-                self.config.rate_hz, duration_s, link_task, on_late=self._count_late_tick
+                self.config.rate_hz, duration_s, link_task, on_late=self.ticks.count_late
             ):
-                self.ticks += 1
-                if prev_t is not None:  # how late this tick came after the previous one
-                    self.tick_late.append(max(0.0, t - prev_t - period))
-                prev_t = t
+                self.ticks.tick(t)
                 try:
                     self.tick(t)
                     self.record_reports(t)
                     if self.video is not None:
-                        self.video.tick(t, self.late_ticks, self.measurements,
+                        self.video.tick(t, self.ticks.late_ticks, self.measurements,
                                         self.config.sensing_rate_hz)  # fmt: skip
                 except Exception:  # never let one bad tick end the daemon
                     self.tick_errors += 1

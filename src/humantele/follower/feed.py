@@ -15,7 +15,9 @@ The feed sends one JSON object per text message, each with a ``type``. Frames: t
     ``stale`` (no fresh pose for a while or the link is down), ``clutch``, and ``pose_id``
     (new for each new pose; the page echoes it, see below).
 ``probe``
-    the tracked real probe tip, world frame, with the measured force (N) and ``contact``.
+    the tracked real probe tip, world frame, with the measured force (N) and ``contact``;
+    ``device_time_s``: the tracker frame's time on the device's clock, when it has one (which
+    recorded frame a replay is at).
 ``model``
     the fitted patient ellipsoid: ``center`` (m), ``semi_axes`` (m, along the patient frame's
     x, y, z: body, up, lateral), ``quaternion`` (``T_world_patient``), ``bed_y`` (m); sent

@@ -1,17 +1,20 @@
-"""The follower's running figures: the expert's pose stream as it arrives (rate, age) and
-the alignment error of the real probe to the virtual one while following."""
+"""The follower's running figures: the expert's pose stream as it arrives (rate, age; its
+latency recorded about once a second), the alignment error of the real probe to the virtual
+one while following, and how late the daemon's ticks come."""
 
 from __future__ import annotations
 
 import bisect
 import math
 from collections import deque
+from typing import Any
 
 import numpy as np
 
 from humantele.geometry import Pose
 from humantele.runtime.stats import SortedWindow, percentile_ms
 
+REPORT_PERIOD_S = 1.0  # the pose stream's latency is recorded this often
 ALIGN_KEPT = 3000  # alignment errors the RMS is over (the last ~65 s of 45 Hz frames)
 
 
@@ -23,6 +26,7 @@ class PoseStreamFigures:
         self.ages = SortedWindow(20000)  # percentiles without sorting on the loop
         self.times: deque[float] = deque(maxlen=2000)
         self._reported = 0
+        self._last_report = -math.inf
 
     def add(self, t_rx: float, age_s: float | None) -> None:
         self.received += 1
@@ -40,6 +44,16 @@ class PoseStreamFigures:
         new = min(len(self.ages), self.received - self._reported)
         self._reported = self.received
         return float(np.median(self.ages.last(new))) if new > 0 else None
+
+    def report(self, rec: Any, t: float) -> None:
+        """About once a second (``t``: the daemon's clock, s): the pose stream's one-way
+        latency, the median since the last report, to the recording ``rec``."""
+        if t - self._last_report < REPORT_PERIOD_S:
+            return
+        self._last_report = t
+        value = self.median_since_last()
+        if value is not None:
+            rec.write("/follower/latency", t, {"name": "pose_one_way", "value_s": value})
 
     def stats(self, now: float) -> dict:
         return {
@@ -75,3 +89,32 @@ def _rms_scaled(values: deque[float], scale: float) -> float | None:
         return None
     a = np.fromiter(values, dtype=float, count=len(values))
     return round(float(np.sqrt(np.mean(a * a))) * scale, 3)
+
+
+class TickFigures:
+    """The main loop's ticks: how many, how late each came after the previous one (s, beyond
+    the period), and how many the pacing counted late."""
+
+    def __init__(self, rate_hz: float) -> None:
+        self.period = 1.0 / rate_hz
+        self.ticks = 0
+        self.late_ticks = 0
+        self.late = SortedWindow(20000)  # s each tick came after its period
+        self._prev: float | None = None
+
+    def tick(self, t: float) -> None:
+        self.ticks += 1
+        if self._prev is not None:  # how late this tick came after the previous one
+            self.late.append(max(0.0, t - self._prev - self.period))
+        self._prev = t
+
+    def count_late(self) -> None:
+        self.late_ticks += 1
+
+    def stats(self) -> dict:
+        return {
+            "ticks": self.ticks,
+            "late_ticks": self.late_ticks,
+            "tick_late_p99_ms": percentile_ms(self.late, 99),
+            "tick_late_max_ms": percentile_ms(self.late, 100),
+        }

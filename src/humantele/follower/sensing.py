@@ -4,8 +4,10 @@
 camera's frames, placed in the tracker's world by the camera pose each frame carries (hl2ss:
 the headset's rig pose times the AHAT extrinsics; a fixed camera: its configured pose), and
 the calibrated magnetic force sensor with its contact detector. The devices come from the
-clinic (:func:`humantele.follower.clinic.make_sensing_devices`): real backends, or the sim
-clinic's, which observe its simulated world; this module never looks behind them.
+clinic (:func:`humantele.follower.clinics.make_sensing_devices`): real backends, or the sim
+clinic's, which observe its simulated world; this module never looks behind them. Its
+configuration, the devices and the pipeline's measurement are in
+:mod:`humantele.follower.sensing_devices` (which the sim clinic imports without this module).
 
 :class:`Sensing` is the follower's view of it (tip frame, :class:`Measurement`), run in the
 sensing child (:mod:`humantele.follower.sensing_process`) or a thread.
@@ -23,26 +25,24 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import Field
 
-from humantele.config import ConfigModel
-from humantele.forcesense.base import ForceSensor
-from humantele.forcesense.calibration import ForceCalibration
-from humantele.forcesense.contact import ContactDetector, ContactEvent
-from humantele.forcesense.sensors import ForceSensorConfig, calibration_path, make_force_sensor
-from humantele.forcesense.sim_config import SimForceConfig
+from humantele.follower.clinic import DeviceClinicConfig, SimClinicConfig
+from humantele.follower.clinics import make_sensing_devices
+from humantele.follower.sensing_devices import (
+    ProbeMeasurement,
+    SensingConfig,
+    SensingDevices,
+    tip_transform,
+)
+from humantele.forcesense.contact import ContactDetector
 from humantele.geometry import Pose, matrix_to_quat
-from humantele.tracking.filter import FilterConfig
-from humantele.tracking.frames import FrameSource
-from humantele.tracking.pipeline import PipelineConfig, Tracker
+from humantele.tracking.pipeline import Tracker
 from humantele.tracking.sim_config import SimFrameConfig
-from humantele.tracking.sources import FrameSourceConfig, make_frame_source
 from humantele.tracking.status import TrackingStatus
 from humantele.tracking.tool import DEFAULT_TOOL, ToolDefinition, load_tool
 
@@ -50,96 +50,6 @@ log = logging.getLogger(__name__)
 
 # Camera looking straight down (world -y), image x along world x, image y along world z.
 _R_WORLD_CAMERA_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]).T
-
-
-class SensingConfig(ConfigModel):
-    """Tracker (camera backend, pipeline, filter), force sensor, and where the camera is. The
-    tool (the probe's marker tree) is not here: it is the follower's one ``tool`` setting.
-
-    ``camera_anchor = "device"``: each frame carries the camera's pose in the tracker's world
-    from the device (the headset's rig pose with hl2ss; the simulated head in the sim
-    clinic); a frame without one cannot place the probe and is counted. ``"fixed"``: a
-    camera that does not move, at ``camera_position_m`` looking down (an OpenCV camera on a
-    stand); its frames' own pose, if any, is ignored.
-    """
-
-    moved_fields = {
-        "tool": "the probe's tool is set once, in [follower] tool",
-        "camera_height_m": "the simulated headset is [follower.clinic.head] height_m",
-    }
-
-    camera: FrameSourceConfig = Field(default_factory=SimFrameConfig)
-    pipeline: PipelineConfig = Field(default_factory=PipelineConfig)
-    filter: FilterConfig = Field(default_factory=FilterConfig)
-    force: ForceSensorConfig = Field(default_factory=ForceSensorConfig)
-    camera_anchor: Literal["device", "fixed"] = "device"
-    camera_position_m: list[float] = Field(default_factory=lambda: [0.0, 0.55, 0.0])
-
-
-@dataclass
-class SensingDevices:
-    """The tracker camera and the force sensor (not yet opened), the sensor's calibration,
-    and ``observe(world)``: how the sim clinic's devices are shown its world at a frame
-    (None for real devices, which observe the room)."""
-
-    source: FrameSource
-    sensor: ForceSensor
-    calibration: ForceCalibration
-    observe: Callable[[Any], None] | None = None
-
-
-def real_sensing_devices(config: SensingConfig, tool: ToolDefinition) -> SensingDevices:
-    """The configured real backends; a ``sim`` backend here is refused (in a real clinic
-    nothing would move it), and so is a force sensor without its calibration file."""
-    if isinstance(config.camera, SimFrameConfig) or isinstance(config.force.sensor, SimForceConfig):
-        raise ValueError(
-            "a sim tracker camera or force sensor needs the simulated clinic "
-            '([follower.clinic] backend = "sim"); set [sensing.camera] and '
-            "[sensing.force.sensor] to real backends"
-        )
-    path = calibration_path(config.force)
-    if path is not None:
-        calibration = ForceCalibration.load(path)
-    elif config.force.sensor.backend == "replay":  # the one the recording kept
-        calibration = _recorded_force_calibration(config.force.sensor.file)
-    else:
-        raise ValueError("the force sensor needs [sensing.force] calibration_file")
-    return SensingDevices(make_frame_source(config.camera, tool),
-                          make_force_sensor(config.force.sensor), calibration)  # fmt: skip
-
-
-def _recorded_force_calibration(recording: str) -> ForceCalibration:
-    """The board's calibration a device recording kept (``humantele devices record``)."""
-    from humantele.devices.replay_file import open_recording
-
-    text = open_recording(recording).info.get("force_calibration")
-    if not text:
-        raise ValueError(
-            f"{recording} keeps no force calibration (recorded without [sensing.force] "
-            "calibration_file): set [sensing.force] calibration_file"
-        )
-    return ForceCalibration.loads(text)
-
-
-@dataclass(frozen=True)
-class ProbeMeasurement:
-    """One measurement. ``T_world_probe``/``tip_world`` only when tracked; ``force_world``
-    (3,) N is the calibrated sensor force turned into the world frame with the last tracked
-    orientation (identity before the first); ``force_probe`` the same in the probe frame;
-    ``contact`` the detector state and ``contact_event`` "press"/"release" on this call;
-    ``T_world_rig``: the headset's pose the frame came with (None: none)."""
-
-    t: float
-    status: TrackingStatus
-    T_world_probe: Pose | None
-    tip_world: NDArray[np.float64] | None
-    force_world: NDArray[np.float64]
-    force_probe: NDArray[np.float64]
-    contact: bool
-    residual_m: float
-    contact_event: ContactEvent | None = None
-    T_world_rig: Pose | None = None
-    device_time_s: float | None = None
 
 
 class ProbeSensing:
@@ -157,12 +67,6 @@ class ProbeSensing:
         self.config = c = config or SensingConfig()
         self.tool = tool if isinstance(tool, ToolDefinition) else load_tool(tool)
         if devices is None:
-            from humantele.follower.clinic import (
-                DeviceClinicConfig,
-                SimClinicConfig,
-                make_sensing_devices,
-            )
-
             sim = isinstance(c.camera, SimFrameConfig)
             clinic = SimClinicConfig() if sim else DeviceClinicConfig()
             devices = make_sensing_devices(clinic, c, self.tool)
@@ -271,17 +175,6 @@ class TrackerImage:
     target: Pose | None
 
 
-def tip_transform(tool: ToolDefinition | str) -> Pose:
-    """``T_probe_tip``: the tip frame on the tracked probe body (from the tool definition)."""
-    tool = tool if isinstance(tool, ToolDefinition) else load_tool(tool)
-    tip, z = np.asarray(tool.tip, dtype=float), np.asarray(tool.face_direction, dtype=float)
-    z = z / np.linalg.norm(z)
-    x = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = x - z * float(x @ z)
-    x /= np.linalg.norm(x)
-    return Pose(tip, matrix_to_quat(np.column_stack([x, np.cross(z, x), z])))
-
-
 class Sensing:
     """The follower's probe sensing: ``measure(t, world)`` gives a :class:`Measurement`; a
     pipeline error gives a LOST measurement (counted), never a crash. ``config``: the
@@ -310,8 +203,6 @@ class Sensing:
         self.unbuilt = False
         if self.pipeline is not None:  # given by the caller
             return
-        from humantele.follower.clinic import make_sensing_devices
-
         c = self.config
         if c.probe_source == "truth":
             from humantele.follower.sim_clinic import IdealSensing

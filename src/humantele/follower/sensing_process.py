@@ -8,7 +8,7 @@ shared (2 cores, the servo spinning, other processes), the sensing thread is oft
 loop's wake-up latency with sensing beside it in a thread and in a process.
 
 :class:`SensingProcess` is the daemon's handle: a ``spawn`` child that builds the daemon's own
-:class:`~humantele.follower.daemon.Sensing` and answers one request at a time over a pipe:
+:class:`~humantele.follower.sensing.Sensing` and answers one request at a time over a pipe:
 ``(job, (t, world))`` in (``world``: what the sim clinic's devices observe; None with
 real devices), ``(job, Measurement, seconds)`` out. The daemon's loop reads the
 answers with ``add_reader`` (never blocks on the child). One frame at most is in flight: the

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from humantele.follower.clinic import Guide, SimClinicConfig
-from humantele.follower.sensing import (
+from humantele.follower.sensing_devices import (
     ProbeMeasurement,
     SensingConfig,
     SensingDevices,

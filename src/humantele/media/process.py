@@ -27,7 +27,7 @@ Plumbing (``multiprocessing`` spawn):
 - records (every frame's timestamps, the JPEGs) and errors travel on the same pipe, so the
   follower's recorder writes them.
 
-:class:`ProcessCapture` has the interface of :class:`humantele.media.sender.VideoCapture`.
+:class:`ProcessCapture` has the interface of :class:`humantele.media.capture.VideoCapture`.
 """
 
 from __future__ import annotations
@@ -46,6 +46,7 @@ import numpy as np
 
 from humantele.geometry import Pose
 from humantele.haptics.shm import SeqlockArray
+from humantele.media.capture import CapturedFrame, VideoCapture, i420_frame
 from humantele.media.slot import LatestSlot
 from humantele.runtime.child import (
     POV_EXTRA_NICE,
@@ -173,7 +174,7 @@ def _child(
 
     caps = []
     for name, spec in specs.items():
-        cap = _RingCapture(
+        cap = RingCapture(
             name, make_video_source(spec["config"], scene), spec, controls[name], send
         )
         try:
@@ -195,66 +196,58 @@ def _child(
             cap._thread.join(timeout=2.0)
 
 
-def _ring_capture_class() -> type:
-    from humantele.media.sender import VideoCapture
+class RingCapture(VideoCapture):
+    """A capture that publishes into a shared-memory ring and tells the follower (the video
+    process's side)."""
 
-    class RingCapture(VideoCapture):
-        """A capture that publishes into a shared-memory ring and tells the follower."""
+    def __init__(self, name: str, source: Any, spec: dict, control: Any, send: Any) -> None:
+        super().__init__(
+            name, source, stamp_counter=spec["stamp_counter"],
+            record=lambda topic, t, p: send(("rec", topic, t, p)),
+            record_hz=spec["record_hz"], jpeg_quality=spec["jpeg_quality"],
+        )  # fmt: skip
+        self.shm = shared_memory.SharedMemory(name=spec["shm"])
+        self.slot_bytes = spec["slot_bytes"]
+        self.header = np.ndarray((RING,), dtype=np.int64, buffer=self.shm.buf, offset=0)
+        self.control = control
+        self.send = send
+        self.k = 0
+        self._last_error = ""
 
-        def __init__(self, name: str, source: Any, spec: dict, control: Any, send: Any) -> None:
-            super().__init__(
-                name, source, stamp_counter=spec["stamp_counter"],
-                record=lambda topic, t, p: send(("rec", topic, t, p)),
-                record_hz=spec["record_hz"], jpeg_quality=spec["jpeg_quality"],
-            )  # fmt: skip
-            self.shm = shared_memory.SharedMemory(name=spec["shm"])
-            self.slot_bytes = spec["slot_bytes"]
-            self.header = np.ndarray((RING,), dtype=np.int64, buffer=self.shm.buf, offset=0)
-            self.control = control
-            self.send = send
-            self.k = 0
-            self._last_error = ""
+    def start_thread(self) -> None:
+        self._thread = threading.Thread(target=self._run_at_priority, name=f"video-{self.name}")
+        self._thread.start()
 
-        def start_thread(self) -> None:
-            self._thread = threading.Thread(target=self._run_at_priority, name=f"video-{self.name}")
-            self._thread.start()
+    def _run_at_priority(self) -> None:
+        """The POV's thread runs below the US's (it gives way first)."""
+        if self.name == "pov":
+            set_thread_nice(POV_EXTRA_NICE)
+        self._run()
 
-        def _run_at_priority(self) -> None:
-            """The POV's thread runs below the US's (it gives way first)."""
-            if self.name == "pov":
-                set_thread_nice(POV_EXTRA_NICE)
-            self._run()
+    def _take(self, f: Any) -> None:
+        self.scale = float(self.control[0])
+        m = float(self.control[1])
+        self.max_fps = None if m <= 0 else m
+        super()._take(f)
+        if self.error and self.error != self._last_error:
+            self.send(("error", self.name, self.error))
+        self._last_error = self.error
 
-        def _take(self, f: Any) -> None:
-            self.scale = float(self.control[0])
-            m = float(self.control[1])
-            self.max_fps = None if m <= 0 else m
-            super()._take(f)
-            if self.error and self.error != self._last_error:
-                self.send(("error", self.name, self.error))
-            self._last_error = self.error
-
-        def emit(self, seq: int, t: float, yuv: np.ndarray, width: int, height: int) -> None:
-            if yuv.nbytes > self.slot_bytes:
-                self.error = f"frame {width}x{height} larger than its shared buffer"
-                self.errors += 1
-                return
-            k = self.k
-            off = 8 * RING + k * self.slot_bytes
-            self.header[k] += 1  # odd: writing
-            self.shm.buf[off : off + yuv.nbytes] = yuv.reshape(-1).data
-            self.header[k] += 1  # even: consistent
-            prep = self.prepare_times[-1] if self.prepare_times else 0.0
-            invalid = self.source.counters.invalid
-            self.send(("frame", self.name, k, int(self.header[k]), seq, t, width, height, prep,
-                       invalid, self.captured))  # fmt: skip
-            self.k = (k + 1) % RING
-
-    return RingCapture
-
-
-def _RingCapture(*args: Any) -> Any:  # noqa: N802 - builds the class on first use (child only)
-    return _ring_capture_class()(*args)
+    def emit(self, seq: int, t: float, yuv: np.ndarray, width: int, height: int) -> None:
+        if yuv.nbytes > self.slot_bytes:
+            self.error = f"frame {width}x{height} larger than its shared buffer"
+            self.errors += 1
+            return
+        k = self.k
+        off = 8 * RING + k * self.slot_bytes
+        self.header[k] += 1  # odd: writing
+        self.shm.buf[off : off + yuv.nbytes] = yuv.reshape(-1).data
+        self.header[k] += 1  # even: consistent
+        prep = self.prepare_times[-1] if self.prepare_times else 0.0
+        invalid = self.source.counters.invalid
+        self.send(("frame", self.name, k, int(self.header[k]), seq, t, width, height, prep,
+                   invalid, self.captured))  # fmt: skip
+        self.k = (k + 1) % RING
 
 
 # --- the follower's side ----------------------------------------------------------------------
@@ -332,8 +325,6 @@ class ProcessCapture:
         self.prepare_times.append(prep)
         if len(self.prepare_times) > 500:
             del self.prepare_times[:250]
-        from humantele.media.sender import CapturedFrame, i420_frame
-
         self.published += 1
         self.slot.put(CapturedFrame(i420_frame(yuv.reshape(h * 3 // 2, w), t), seq, t, w, h))
 

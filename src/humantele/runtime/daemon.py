@@ -8,6 +8,7 @@ import asyncio
 import contextlib
 import logging
 import math
+import os
 import sys
 import time
 from collections.abc import AsyncIterator, Callable
@@ -26,6 +27,7 @@ from humantele.runtime.session import (
     add_session_arguments,
     close_daemon_recording,
     open_daemon_recording,
+    recorder_stats,
     session_overrides,
 )
 from humantele.runtime.stats import CpuMeter, StatsFile
@@ -54,9 +56,43 @@ class Daemon:
         self._last_report = -math.inf
         self.loop_priority = "off"  # the event loop thread's scheduling (start_run sets it)
         self.link_ended_early: asyncio.Task | None = None  # the link's task, if it ended the run
+        self.step_errors = 0  # steps run by guarded() that failed
 
     def stats(self) -> dict:
         raise NotImplementedError
+
+    def common_stats(self, link: Any) -> dict[str, Any]:
+        """The stats both daemons give: role, pid, uptime (s), the link's state and counters,
+        CPU (% of one core), the event loop's scheduling and the recording."""
+        return {
+            "role": self.role,
+            "pid": os.getpid(),
+            "uptime_s": round(time.monotonic() - self.t_start, 3),
+            "link_state": link.state,
+            "connections": link.counters.connections,
+            "dropped": dict(link.counters.dropped),
+            "dropped_total": sum(link.counters.dropped.values()),
+            "cpu_percent": self.cpu.overall(),
+            "loop_priority": self.loop_priority,
+            "recording": recorder_stats(self.rec),
+        }
+
+    def guarded(self, step: Callable[[float], object], t: float) -> None:
+        """Run a step that must never end the daemon (scans, recording); failures counted."""
+        try:
+            step(t)
+        except Exception:
+            self.step_errors += 1
+            if self.step_errors in (1, 10, 100, 1000):
+                log.exception("%s: %s failed (%d so far)", self.role, step.__name__,
+                              self.step_errors)  # fmt: skip
+
+    def record_any(self, topic: str, t: float, payload: dict) -> None:
+        """Record one sample (``t``: this daemon's clock, s) if recording; from any thread
+        (the recorder only queues)."""
+        rec = self.rec
+        if rec is not None:
+            rec.write(topic, t, payload)
 
     def write_stats(self) -> None:
         """Hand the current stats to the stats file's writer thread (every 0.5 s)."""

@@ -9,7 +9,10 @@ client -> server
     ``{"type": "offer", "sdp": str, "id": int}`` (expert only),
     ``{"type": "answer", "sdp": str, "id": int}`` (follower only; ``id`` echoes the offer's).
 server -> client
-    ``{"type": "joined", "room", "role", "peer_present": bool}`` after a good join;
+    ``{"type": "joined", "room", "role", "peer_present": bool}`` after a good join, with
+    ``"ice_servers": [{"urls": [...], "username": "<expiry>:<peer id>", "credential": str}]``
+    when the server issues time-limited TURN credentials (:mod:`humantele.signaling.turn`);
+    ``{"type": "ice_servers", "ice_servers": [...]}``: fresh ones, every ``ttl_s / 2``;
     ``{"type": "peer_joined", "role"}`` / ``{"type": "peer_left", "role"}`` about the other peer;
     relayed ``offer`` / ``answer``;
     ``{"type": "error", "reason": str}`` then the socket closes with one of the codes below.

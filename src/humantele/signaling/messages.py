@@ -13,7 +13,15 @@ import logging
 import os
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, SecretStr, TypeAdapter, ValidationError
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    JsonValue,
+    SecretStr,
+    TypeAdapter,
+    ValidationError,
+)
 
 log = logging.getLogger(__name__)
 
@@ -72,10 +80,23 @@ class Answer(_Msg):
 
 
 class Joined(_Msg):
+    """The admission. ``ice_servers``: time-limited TURN credentials for this peer (entries
+    of :class:`humantele.signaling.turn.IssuedIceServer`, checked one by one by the peer, so a
+    bad entry is dropped without refusing the admission); absent when the server issues none."""
+
     type: Literal["joined"] = "joined"
     room: str
     role: Role
     peer_present: bool
+    ice_servers: list[JsonValue] | None = None
+
+
+class IceServers(_Msg):
+    """Fresh TURN credentials for a joined peer (sent before the last ones expire); they
+    replace the previous ones for the next peer connection."""
+
+    type: Literal["ice_servers"] = "ice_servers"
+    ice_servers: list[JsonValue]
 
 
 class PeerJoined(_Msg):
@@ -95,7 +116,8 @@ class Error(_Msg):
 
 ClientMessage = Annotated[Join | Offer | Answer, Field(discriminator="type")]
 ServerMessage = Annotated[
-    Joined | PeerJoined | PeerLeft | Offer | Answer | Error, Field(discriminator="type")
+    Joined | IceServers | PeerJoined | PeerLeft | Offer | Answer | Error,
+    Field(discriminator="type"),
 ]
 CLIENT_MESSAGE = TypeAdapter(ClientMessage)
 SERVER_MESSAGE = TypeAdapter(ServerMessage)

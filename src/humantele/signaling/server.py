@@ -21,6 +21,7 @@ import logging
 import signal
 import ssl
 import sys
+import time
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Self
@@ -51,6 +52,7 @@ from humantele.signaling.messages import (
     SIGNALING_PROTOCOL,
     Answer,
     Error,
+    IceServers,
     Join,
     Joined,
     Offer,
@@ -64,6 +66,7 @@ from humantele.signaling.messages import (
     safe_reason,
     token_matches,
 )
+from humantele.signaling.turn import TurnConfig, TurnIssuer
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +88,7 @@ class SignalConfig(ConfigModel):
     max_rooms: int = Field(1000, ge=1)
     max_connections: int = Field(512, ge=2)  # open at once (lowered to fit `ulimit -n`)
     max_connections_per_address: int = Field(16, ge=2)  # from one client address
+    turn: TurnConfig = Field(default_factory=TurnConfig)  # time-limited TURN credentials
 
     @model_validator(mode="after")
     def _tls_pair(self) -> Self:
@@ -130,10 +134,22 @@ class _Room:
 class SignalingServer:
     """Rooms of two peers. ``await start()`` binds (``port`` then holds the bound port, useful
     with port 0); ``await stop()`` closes every socket. ``counters`` counts joins, refusals by
-    reason and relayed messages."""
+    reason and relayed messages.
 
-    def __init__(self, config: SignalConfig | None = None, token: str | None = None) -> None:
+    With ``[turn]`` (or ``turn_issuer``) each admitted peer gets time-limited TURN credentials
+    in its ``joined`` message, and fresh ones every ``ttl_s / 2`` while it stays
+    (:mod:`humantele.signaling.turn`); a socket that is not admitted gets none."""
+
+    def __init__(
+        self,
+        config: SignalConfig | None = None,
+        token: str | None = None,
+        *,
+        turn_issuer: TurnIssuer | None = None,
+    ) -> None:
         self.config = config or SignalConfig()
+        # ConfigError (never showing the secret) if [turn] is on and its secret is unusable
+        self._turn = turn_issuer or TurnIssuer.from_config(self.config.turn)
         self._token = token if token is not None else resolve_token(self.config.token)
         host = self.config.host
         if self._token == DEV_TOKEN and not is_loopback(host):
@@ -244,6 +260,7 @@ class SignalingServer:
         self._sockets.add(ws)
         where = request.remote or "?"
         joined: tuple[str, str] | None = None
+        refresher: asyncio.Task | None = None
         try:
             try:
                 first = await asyncio.wait_for(ws.receive(), cfg.join_timeout_s)
@@ -256,11 +273,15 @@ class SignalingServer:
                 raise _Refuse(CLOSE_OUT_OF_ORDER, f"first message must be join, not {msg.type}")
             joined = self._join(msg, ws, where)
             other = self._other(*joined)
+            peer_id = None if self._turn is None else self._turn.new_peer_id(msg.role)
             await ws.send_str(
                 Joined(
-                    room=msg.room, role=msg.role, peer_present=other is not None
-                ).model_dump_json()
-            )
+                    room=msg.room, role=msg.role, peer_present=other is not None,
+                    ice_servers=None if peer_id is None else self._issue(msg.room, peer_id),
+                ).model_dump_json(exclude_none=True)
+            )  # fmt: skip
+            if peer_id is not None:
+                refresher = asyncio.create_task(self._refresh_turn(ws, msg.room, peer_id))
             if other is not None:
                 await self._send_quietly(other, PeerJoined(role=msg.role).model_dump_json())
             while True:
@@ -279,10 +300,29 @@ class SignalingServer:
                 close_reason = clip_utf8(refusal.reason, MAX_CLOSE_REASON_BYTES)
                 await ws.close(code=refusal.code, message=close_reason.encode())
         finally:
+            if refresher is not None:
+                refresher.cancel()
             self._sockets.discard(ws)
             if joined is not None:
                 await self._leave(ws, *joined)
         return ws
+
+    def _issue(self, room: str, peer_id: str) -> list:
+        """The ``ice_servers`` list of one admitted peer (a fresh credential); logged without
+        the credential."""
+        entry = self._turn.issue(peer_id)  # type: ignore[union-attr]
+        self.counters["turn:issued"] += 1
+        until = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(entry.expires))
+        log.info("room %s: TURN credential for %s until %s UTC", room, peer_id, until)
+        return [entry.model_dump(mode="json")]
+
+    async def _refresh_turn(self, ws: web.WebSocketResponse, room: str, peer_id: str) -> None:
+        """Send a joined peer a fresh credential every ``ttl_s / 2`` (before the last one
+        expires), for the peer connections it makes later."""
+        while not ws.closed:
+            await asyncio.sleep(self._turn.refresh_after_s)  # type: ignore[union-attr]
+            msg = IceServers(ice_servers=self._issue(room, peer_id))
+            await self._send_quietly(ws, msg.model_dump_json())
 
     def _message(self, m) -> Join | Offer | Answer | None:
         """The parsed client message; None when the socket closed; _Refuse when malformed."""

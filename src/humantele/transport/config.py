@@ -31,7 +31,11 @@ class LinkConfig(ConfigModel):
     """Settings of one peer link (one per daemon). Defaults run the loopback demo.
 
     ``ice_servers`` defaults to an explicit empty list: aiortc would otherwise try a public
-    STUN server. ``relay_only`` sets iceTransportPolicy="relay" (needs a TURN server).
+    STUN server. The TURN servers the signaling server issues time-limited credentials for
+    (its ``[turn]``) come on top of these, with each admission; a static ``username`` and
+    ``credential`` here still work (a TURN server the signaling server does not cover) but
+    are long-lived secrets on this machine: prefer the issued ones (docs/signaling.md).
+    ``relay_only`` sets iceTransportPolicy="relay" (needs a TURN server: one here, or issued).
     ``token`` falls back to $HUMANTELE_TOKEN, then to the loopback development token.
     ``pose_rate_hz`` paces the expert's poses; the follower's state goes out with each
     tracker image (``[follower] sensing_rate_hz``).
@@ -68,8 +72,4 @@ class LinkConfig(ConfigModel):
     def _consistent(self) -> Self:
         if self.heartbeat_timeout_s <= self.heartbeat_interval_s:
             raise ValueError("heartbeat_timeout_s must be longer than heartbeat_interval_s")
-        if self.relay_only and not any(
-            u.startswith(("turn:", "turns:")) for s in self.ice_servers for u in s.urls
-        ):
-            raise ValueError("relay_only needs at least one turn: server in ice_servers")
         return self

@@ -41,6 +41,10 @@ Behaviour:
   Callbacks that raise are logged and counted as ``"<channel>:callback_error"``.
 - Control messages are not queued while disconnected: resend what the peer must know (e.g.
   the ellipsoid model) when ``on_control`` receives the peer's :class:`Hello`.
+- ICE servers: ``config.ice_servers``, then the TURN servers with time-limited credentials
+  the signaling server issues (in ``joined``, renewed by ``ice_servers`` messages); each new
+  peer connection takes the latest unexpired ones. A malformed or expired entry is dropped,
+  logged and counted as ``"signaling:bad_ice_server"``.
 - ``media(pc, role)`` (optional) is called for each new peer connection so a daemon can add
   video: the expert's call comes before its offer (add recvonly transceivers there), the
   follower's after the remote offer is set and before its answer (add tracks there).
@@ -70,7 +74,15 @@ from aiortc import (
 from aiortc.rtcconfiguration import RTCIceTransportPolicy
 
 from humantele.signaling.client import SignalingClient, SignalingError, SignalingRefused
-from humantele.signaling.messages import Answer, Offer, PeerJoined, PeerLeft, resolve_token
+from humantele.signaling.messages import (
+    Answer,
+    IceServers,
+    Offer,
+    PeerJoined,
+    PeerLeft,
+    resolve_token,
+)
+from humantele.signaling.turn import IssuedIceServer, accept_issued
 from humantele.transport.clocksync import ClockSync
 from humantele.transport.config import LinkConfig
 from humantele.wire import (
@@ -197,6 +209,8 @@ class PeerLink:
         self._pings = 0
         self._offer_seq = 0
         self._tasks: set[asyncio.Task] = set()
+        self._issued: list[IssuedIceServer] = []  # TURN credentials from the signaling server
+        self._wall_clock: Callable[[], float] = time.time  # unix s: credential expiry
 
     def __repr__(self) -> str:
         return f"PeerLink({self.role!r}, room={self.config.room!r}, state={self._state!r})"
@@ -336,6 +350,7 @@ class PeerLink:
             if self._state == "unreachable":
                 self._set_state("connecting")
             self.peer_present = joined.peer_present
+            self._take_issued(joined.ice_servers)
             log.info("%s joined room %s (peer present: %s)", self.role, cfg.room, self.peer_present)
             if self.role == "expert" and self.peer_present and self._state != "connected":
                 await self._offer()
@@ -356,12 +371,55 @@ class PeerLink:
         elif isinstance(msg, PeerLeft):
             self.peer_present = False
             log.info("%s: the %s left the room", self.role, msg.role)
+        elif isinstance(msg, IceServers):
+            self._take_issued(msg.ice_servers)
         elif isinstance(msg, Offer) and self.role == "follower":
             await self._answer(msg)
         elif isinstance(msg, Answer) and self.role == "expert":
             await self._accept(msg)
         else:
             self.counters.dropped["signaling:unexpected"] += 1
+
+    def _take_issued(self, raw: list | None) -> None:
+        """Keep the valid TURN credentials of a ``joined`` or ``ice_servers`` message (none:
+        the server issues none); drop the others with a clear error."""
+        good, problems = accept_issued(raw, self._wall_clock())
+        for problem in problems:
+            log.error("%s: TURN server from the signaling server dropped: %s", self.role, problem)
+            self.counters.dropped["signaling:bad_ice_server"] += 1
+        if good or not problems:  # keep the last good ones if a refresh was all bad
+            self._issued = good
+        if good:
+            log.info("%s: TURN credentials from the signaling server: %s",
+                     self.role, "; ".join(str(e) for e in good))  # fmt: skip
+
+    def _ice_servers(self) -> list[RTCIceServer]:
+        """The configured ICE servers, then the issued TURN servers still valid."""
+        servers = [
+            RTCIceServer(
+                urls=s.urls,
+                username=s.username,
+                credential=s.credential.get_secret_value() if s.credential else None,
+            )
+            for s in self.config.ice_servers
+        ]
+        now = self._wall_clock()
+        for e in self._issued:
+            if e.expires <= now:
+                log.error("%s: the signaling server's TURN credential %s has expired and no "
+                          "fresh one came", self.role, e.username)  # fmt: skip
+                self.counters.dropped["signaling:expired_ice_server"] += 1
+                continue
+            servers.append(RTCIceServer(urls=e.urls, username=e.username, credential=e.credential))
+        if self.config.relay_only and not any(
+            u.startswith(("turn:", "turns:"))
+            for s in servers
+            for u in ([s.urls] if isinstance(s.urls, str) else s.urls)
+        ):
+            log.error("%s: relay_only but no TURN server: none in ice_servers and the signaling "
+                      "server issued none ([turn] in its config)", self.role)  # fmt: skip
+            self.counters.dropped["ice:no_turn_server"] += 1
+        return servers
 
     async def _offer(self) -> None:
         async with self._lock:
@@ -433,14 +491,7 @@ class PeerLink:
 
     def _new_peer(self) -> _Peer:
         cfg = self.config
-        servers = [
-            RTCIceServer(
-                urls=s.urls,
-                username=s.username,
-                credential=s.credential.get_secret_value() if s.credential else None,
-            )
-            for s in cfg.ice_servers
-        ]
+        servers = self._ice_servers()
         policy = RTCIceTransportPolicy.RELAY if cfg.relay_only else RTCIceTransportPolicy.ALL
         # an explicit (possibly empty) list: aiortc would otherwise try a public STUN server
         pc = RTCPeerConnection(RTCConfiguration(iceServers=servers, iceTransportPolicy=policy))

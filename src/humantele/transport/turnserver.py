@@ -10,6 +10,11 @@ Usage::
     async with TurnServer() as turn:          # TurnServerError if it cannot start
         cfg = LinkConfig(ice_servers=[turn.ice_server()], relay_only=True)
 
+``TurnServer(auth_secret=S)`` runs it as a deployment would with time-limited credentials
+(coturn's ``use-auth-secret`` + ``static-auth-secret=S``, the TURN REST scheme of
+:mod:`humantele.signaling.turn`) instead of the one long-term user; a list of secrets gives
+one ``static-auth-secret`` line each (coturn accepts any of them: how a secret is rotated).
+
 ``TurnServer.available()`` says whether ``turnserver`` is installed (Debian package coturn).
 """
 
@@ -101,6 +106,7 @@ class TurnServer:
         username: str = "humantele",
         realm: str = "humantele",
         start_timeout_s: float = 15.0,
+        auth_secret: str | list[str] | None = None,
     ) -> None:
         self.host = host
         self.port = port
@@ -108,6 +114,12 @@ class TurnServer:
         self.realm = realm
         self.start_timeout_s = start_timeout_s
         self._password = secrets.token_urlsafe(18)
+        # use-auth-secret: no static user at all
+        self._auth_secrets = [auth_secret] if isinstance(auth_secret, str) else auth_secret
+        if self._auth_secrets is not None and (
+            not self._auth_secrets or any(not x.isprintable() for x in self._auth_secrets)
+        ):
+            raise ValueError("auth_secret: one or more printable secrets (one line each)")
         self._dir: tempfile.TemporaryDirectory | None = None
         self._proc: asyncio.subprocess.Process | None = None
 
@@ -127,7 +139,10 @@ class TurnServer:
 
     def ice_server(self, host: str | None = None, port: int | None = None) -> IceServer:
         """The link's ICE server entry for this server, or for a relay in front of it at
-        ``host:port`` (same credentials)."""
+        ``host:port`` (same credentials). Only without ``auth_secret`` (whose credentials
+        are issued: :mod:`humantele.signaling.turn`)."""
+        if self._auth_secrets is not None:
+            raise TurnServerError("this turnserver has no static user (use-auth-secret)")
         url = f"turn:{host or self.host}:{port or self.port}?transport=udp"
         return IceServer(urls=[url], username=self.username, credential=self._password)
 
@@ -154,8 +169,14 @@ class TurnServer:
                     f"listening-ip={self.host}",
                     f"relay-ip={self.host}",
                     f"listening-port={self.port}",
-                    "lt-cred-mech",
-                    f"user={self.username}:{self._password}",
+                    *(
+                        ["lt-cred-mech", f"user={self.username}:{self._password}"]
+                        if self._auth_secrets is None
+                        else [
+                            "use-auth-secret",
+                            *(f"static-auth-secret={x}" for x in self._auth_secrets),
+                        ]
+                    ),
                     f"realm={self.realm}",
                     "no-tls",
                     "no-dtls",

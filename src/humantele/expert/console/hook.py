@@ -1,11 +1,12 @@
 """The console in the expert daemon: the session it shows, and where its video comes from.
 
-:class:`DaemonSession` is the :class:`~humantele.expert.console.session.ConsoleSession` of an
-:class:`~humantele.expert.daemon.ExpertDaemon`. :func:`make_console` builds the server with the
-video ``[expert.console] video`` asks for:
+:class:`DaemonSession` is the :class:`~humantele.expert.console.session.ConsoleSession` of the
+expert daemon, which the console sees only as an :class:`~.expert_view.ExpertView` (a protocol:
+the console never imports the daemon). :func:`make_console` builds the server with the video
+``[expert.console] video`` asks for:
 
 - ``received``: the follower's tracks as the daemon's WebRTC receiver decodes them
-  (``daemon.video``, :mod:`humantele.media.receiver`; ``[expert.video] enabled``);
+  (:mod:`humantele.media.receiver`, given when ``[expert.video]`` is enabled);
 - ``sim``: sim sources here, rendering what the session knows (the patient model, the
   follower's tracked probe and force), labelled as simulated on the page: a stand-in for
   development and the demo while the tracks do not come over the link;
@@ -15,33 +16,30 @@ video ``[expert.console] video`` asks for:
 
 from __future__ import annotations
 
+import asyncio
+import logging
 import math
-from collections import deque
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
+from humantele.expert.console.expert_view import ExpertView
 from humantele.expert.console.frames import FrameProvider, ProcessFrames, ReceivedFrames
-from humantele.expert.console.server import ConsoleServer
+from humantele.expert.console.server import ConsoleConfig, ConsoleServer
 from humantele.geometry import Pose
 from humantele.recording import Recorder
 from humantele.video.scene import SceneSnapshot, look_at
 from humantele.video.sim_pov import SimPovConfig
 from humantele.video.sim_ultrasound import SimUltrasoundConfig
+from humantele.wire import UsScale
 
-if TYPE_CHECKING:
-    from humantele.expert.daemon import ExpertDaemon
-
-POSES_KEPT_S = 12.0  # pose history for captures (the cine buffer holds 10 s)
-LANDMARKS = ("xiphoid", "left", "right", "bed")  # humantele.follower.calibration.LANDMARKS
+log = logging.getLogger(__name__)
 
 
 def alignment(a: Pose, b: Pose) -> dict[str, float]:
     """Tip distance (mm) and rotation angle (deg) between two probe poses (same frame)."""
-    mm = float(np.linalg.norm(np.asarray(a.position) - np.asarray(b.position))) * 1000.0
-    d = abs(float(np.dot(a.quaternion, b.quaternion)))
-    deg = math.degrees(2.0 * math.acos(min(1.0, d)))
-    return {"mm": mm, "deg": deg}
+    m, rad = a.distance_to(b)
+    return {"mm": m * 1000.0, "deg": math.degrees(rad)}
 
 
 def pressing_n(force_tip: Any) -> float:
@@ -51,30 +49,11 @@ def pressing_n(force_tip: Any) -> float:
     return -float(force_tip[2])
 
 
-class PoseHistory:
-    """Timed poses (s, the expert's clock) of the last ``seconds``; ``at(t)`` the nearest."""
-
-    def __init__(self, seconds: float = POSES_KEPT_S) -> None:
-        self.seconds = seconds
-        self.items: deque[tuple[float, Pose]] = deque()
-
-    def add(self, t: float, pose: Pose) -> None:
-        self.items.append((t, pose))
-        while self.items and t - self.items[0][0] > self.seconds:
-            self.items.popleft()
-
-    def at(self, t: float, within_s: float = 0.25) -> Pose | None:
-        best = min(self.items, key=lambda it: abs(it[0] - t), default=None)
-        if best is None or abs(best[0] - t) > within_s:
-            return None
-        return best[1]
-
-
 class DaemonSession:
     """The expert daemon as the console sees it."""
 
-    def __init__(self, daemon: ExpertDaemon) -> None:
-        self.d = daemon
+    def __init__(self, expert: ExpertView) -> None:
+        self.d = expert
 
     @property
     def recorder(self) -> Recorder | None:
@@ -152,8 +131,8 @@ class SessionScene:
     0.5 m above and beside the probe, looking at it. Called from the sources' threads: it only
     reads references the daemon replaces whole."""
 
-    def __init__(self, daemon: ExpertDaemon) -> None:
-        self.d = daemon
+    def __init__(self, expert: ExpertView) -> None:
+        self.d = expert
 
     def __call__(self) -> SceneSnapshot:
         d = self.d
@@ -167,7 +146,7 @@ class SessionScene:
         return SceneSnapshot(d.clock(), model, tip, force, head, d.last_pose)
 
 
-def sim_frames(daemon: ExpertDaemon) -> ProcessFrames:
+def sim_frames(expert: ExpertView) -> ProcessFrames:
     """Sim ultrasound and POV of the session, rendered in a child process (lighter than the
     follower's: 15 fps, POV 640 x 360), for ``video = "sim"``."""
     return ProcessFrames(
@@ -175,23 +154,77 @@ def sim_frames(daemon: ExpertDaemon) -> ProcessFrames:
             "us": SimUltrasoundConfig(fps=15.0),
             "pov": SimPovConfig(fps=15.0, width=640, height=360),
         },
-        SessionScene(daemon),
+        SessionScene(expert),
     )
 
 
-def make_console(daemon: ExpertDaemon) -> tuple[ConsoleServer, ProcessFrames | None]:
-    """The console server for ``daemon`` and, for sim video, its sources (they run while a
-    console page is open; the daemon stops them at the end)."""
-    cfg = daemon.config.console
+def make_console(
+    expert: ExpertView, cfg: ConsoleConfig, receiver: Any | None
+) -> tuple[ConsoleServer, ProcessFrames | None]:
+    """The console server for ``expert`` (``cfg``: ``[expert.console]``; ``receiver``: the
+    daemon's :class:`~humantele.media.receiver.VideoReceiver`, None when ``[expert.video]`` is
+    off) and, for sim video, its sources (they run while a console page is open; the daemon
+    stops them at the end)."""
     received: FrameProvider | None = None
-    if daemon.config.video.enabled:
-        received = ReceivedFrames(daemon.video, cfg.us_pixel_spacing_mm, cfg.us_depth_origin_row)
+    if receiver is not None:
+        received = ReceivedFrames(receiver, cfg.us_pixel_spacing_mm, cfg.us_depth_origin_row)
     mode = cfg.video
     if mode == "auto":
         mode = "received" if received is not None else "sim"
-    local = sim_frames(daemon) if mode == "sim" else None
+    local = sim_frames(expert) if mode == "sim" else None
     frames = received if mode == "received" else local
     server = ConsoleServer(
-        cfg, frames, DaemonSession(daemon), clock=daemon.clock, video=mode, on_demand=local
+        cfg, frames, DaemonSession(expert), clock=expert.clock, video=mode, on_demand=local
     )
     return server, local
+
+
+class DaemonConsole:
+    """The console of the expert daemon (``cfg``: ``[expert.console]``; ``receiver``: the
+    daemon's video receiver, None when ``[expert.video]`` is off): served from the daemon's
+    start (a port that cannot be had is logged and the daemon runs without it: the haptics come
+    first), the follower's US scale on its received frames, stopped at the daemon's end."""
+
+    def __init__(self, cfg: ConsoleConfig, receiver: Any | None) -> None:
+        self.cfg = cfg
+        self.receiver = receiver
+        self.server: Any = None  # the ConsoleServer while served (tests may put a stand-in)
+        self.local: ProcessFrames | None = None  # sim video sources, stopped at the end
+        self.us_scale: tuple[tuple[float, float], float] | None = None  # the follower's
+
+    def on_us_scale(self, msg: UsScale) -> None:
+        """The follower's scanner scale: the console's calipers and depth scale take it,
+        unless ``[expert.console]`` sets them (the configuration wins, and says so)."""
+        if self.cfg.us_pixel_spacing_mm is not None or self.cfg.us_depth_origin_row is not None:
+            log.info("expert: the follower's US scale %s ignored: [expert.console] sets it",
+                     msg.pixel_spacing_mm)  # fmt: skip
+            return
+        self.us_scale = (msg.pixel_spacing_mm, msg.depth_origin_row)
+        self.apply_us_scale(getattr(self.server, "frames", None))
+
+    def apply_us_scale(self, frames: object) -> None:
+        """The follower's scale on the console's received frames (not the sim stand-in)."""
+        if self.us_scale is not None and hasattr(frames, "us_spacing_mm"):
+            frames.us_spacing_mm, frames.us_depth_origin_row = self.us_scale
+
+    async def start(self, expert: ExpertView) -> None:
+        """Serve the console page of ``expert`` (nothing if disabled or already served)."""
+        if not self.cfg.enabled or self.server is not None:
+            return
+        self.server, self.local = make_console(expert, self.cfg, self.receiver)
+        self.apply_us_scale(self.server.frames)  # one that came before the console
+        try:
+            await self.server.start()
+        except OSError as exc:
+            log.error("expert: console not served: %s", exc)
+            print(f"humantele expert: console not served: {exc}", flush=True)
+            self.server = None
+            return
+        print(f"humantele expert: {self.server.banner()}", flush=True)
+
+    async def stop(self) -> None:
+        if self.local is not None:
+            await asyncio.to_thread(self.local.stop)
+            self.local = None
+        if self.server is not None:
+            await self.server.stop()
