@@ -52,6 +52,22 @@ class ServoDouble:
         self.alive = True
         self.pid = None
         self.late_ticks = 0
+        self.down = ""  # the SupervisedServo's supervision: never down here
+        self.cannot_run = ""
+        self.restarts = 0
+        self.stopped = False
+
+    def check(self, t):
+        pass
+
+    def state(self, latest):
+        return "stopped" if self.stopped else "running"
+
+    def cpu_percent(self):
+        return None
+
+    async def stop(self):
+        self.stopped = True
 
     def set_model(self, model):
         self.model = model

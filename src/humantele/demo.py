@@ -183,8 +183,46 @@ def _status_line(e: dict[str, Any], f: dict[str, Any], elapsed: float) -> str:
         f"alignment {num(f.get('alignment_mm_rms'), '.1f')} mm "
         f"{num(f.get('alignment_deg_rms'), '.1f')} deg | "
         + _servo_status(e)
+        + _children_status(f)
         + _recording_status(e, f)
     )
+
+
+def _children_status(f: dict[str, Any]) -> str:
+    """The follower's children when one is not running: `` | video DOWN (...)``, `` | video
+    restarting (1)``, `` | sensing restarting (1), no measurements 4 s`` (else '')."""
+    out = ""
+    video = (f.get("video") or {}).get("process") or {}
+    state = str(video.get("state") or "running")
+    if state.startswith(("down", "failed")):
+        out += f" | video DOWN ({state.partition(': ')[2][:80]})"
+    elif state.startswith("restarting"):
+        out += f" | video {state}"
+    sensing = str(f.get("sensing_state") or "running")
+    if sensing.startswith(("restarting", "failed")):
+        out += f" | sensing {sensing[:80]}"
+        age = f.get("measurement_age_s")
+        if age is not None and age > 0.5:
+            out += f", no measurements {age:.0f} s"
+    return out
+
+
+def children_summary(e: dict[str, Any], f: dict[str, Any]) -> dict[str, Any]:
+    """Each daemon child's restarts and state at the end; the follower's time without
+    measurements after its first (a restarted sensing process takes seconds to measure)."""
+    video = (f.get("video") or {}).get("process")
+    return {
+        "servo": {"restarts": e.get("servo_restarts", 0), "state": e.get("servo_state")},
+        "sensing": {
+            "restarts": f.get("sensing_restarts", 0),
+            "state": f.get("sensing_state"),
+            **{
+                k: f.get(k)
+                for k in ("measurement_gaps", "measurement_gap_s", "measurement_gap_max_s")
+            },
+        },  # fmt: skip
+        "video": None if not video else {k: video.get(k) for k in ("restarts", "state")},
+    }
 
 
 def _servo_status(e: dict[str, Any]) -> str:
@@ -320,6 +358,7 @@ def summarize(
         "scans": e.get("scans_started", 0),
         "recording": recording or None,
         "video": video_summary(e.get("video"), f.get("video")),
+        "children": children_summary(e, f),
         "exit_codes": codes,
     }
 
@@ -340,6 +379,7 @@ def video_summary(e: dict[str, Any] | None, f: dict[str, Any] | None) -> dict[st
         out[name] = {k: t.get(k) for k in (*keys, "size")}
     if f:
         out["pov_level"] = f.get("pov_level")
+        out["us_level"] = f.get("us_level")
         out["pov_level_changes"] = f.get("pov_level_changes")
         out["process"] = f.get("process")
         out["follower"] = {n: f.get(n) for n in ("us", "pov")}

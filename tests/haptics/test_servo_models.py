@@ -194,14 +194,14 @@ def test_fuzz_control_message_to_expert_to_servo(texts):
     d = ExpertDaemon(ExpertConfig(), pressing_config())  # its servo process is not started
     r = ForceRenderer(d.servo_config)
     d.on_control(parse_control(_msg()))  # a good model first
-    apply_commands(r, d.servo._cmd_values.copy(), 0.0)  # noqa: SLF001 - what the servo reads
+    apply_commands(r, d.servo.process._cmd_values.copy(), 0.0)  # noqa: SLF001 - what the servo reads
     for text in texts:
         try:
             msg = parse_control(text)
         except WireError:
             continue
         d.on_control(msg)
-    apply_commands(r, d.servo._cmd_values.copy(), 0.0)  # noqa: SLF001
+    apply_commands(r, d.servo.process._cmd_values.copy(), 0.0)  # noqa: SLF001
     f = _lockstep(r, 50)
     assert np.all(np.isfinite(f)) and np.all(np.linalg.norm(f, axis=1) <= 3.0 + 1e-9)
     assert d.model is not None and d.model.problem() is None
@@ -290,17 +290,17 @@ def test_no_shared_memory_leaks_when_the_process_cannot_be_spawned(monkeypatch):
 
 async def test_a_servo_that_cannot_run_is_a_fault_in_the_status_not_force_none():
     d = ExpertDaemon(ExpertConfig(), ServoConfig(device={"backend": "touchx", "library": "/x"}))
-    d.check_servo(0.0)  # not running: noticed
-    d.check_servo(10.0)  # restart attempt (off the loop): fails on the missing driver
-    assert d.servo_restarting
-    d.check_servo(20.0)  # one restart at a time
-    await d._servo_restart
+    d.servo.check(0.0)  # not running: noticed
+    d.servo.check(10.0)  # restart attempt (off the loop): fails on the missing driver
+    assert d.servo.restarting
+    d.servo.check(20.0)  # one restart at a time
+    await d.servo.restarter.task
     s = d.stats()
     assert s["servo_state"].startswith("down: servo did not start") and "libHD" in s["servo_state"]
     assert s["force_n"] == 0.0 and s["servo_fault"] == s["servo_state"]
     line = _status_line(s, {"link_state": "connected"}, 1.0)
     assert "servo DOWN (servo did not start" in line and "force 0.00 N" in line
-    assert d.servo_restarts == 0
+    assert d.servo.restarts == 0 and "libHD" in d.servo.cannot_run  # exit code 1 at the end
     assert math.isfinite(s["force_n"])
 
 
@@ -318,16 +318,16 @@ async def test_a_dead_servo_is_restarted_off_the_event_loop(monkeypatch):
         real_start(self, *args, **kwargs)
 
     monkeypatch.setattr(ServoProcess, "start", gated_start)
-    d.check_servo(0.0)  # never started: noticed as dead
-    d.check_servo(10.0)  # the restart begins
+    d.servo.check(0.0)  # never started: noticed as dead
+    d.servo.check(10.0)  # the restart begins
     assert await asyncio.to_thread(entered.wait, 30.0)
-    assert d.servo_restarting and d.servo_restarts == 0  # the loop runs while it starts
-    d.model = demo_model()  # a model arrives meanwhile
+    assert d.servo.restarting and d.servo.restarts == 0  # the loop runs while it starts
+    d.servo.set_model(demo_model())  # a model arrives meanwhile
     release.set()
-    await d._servo_restart
+    await d.servo.restarter.task
     try:
-        assert d.servo.alive and d.servo_restarts == 1 and d.servo_down == ""
-        assert d.servo._cmd_values[C_MODEL_ON] == 1.0  # the model that came meanwhile
+        assert d.servo.alive and d.servo.restarts == 1 and d.servo.down == ""
+        assert d.servo.process._cmd_values[C_MODEL_ON] == 1.0  # the model that came meanwhile
         assert wait_for(lambda: d.servo.latest() is not None, 10.0)
     finally:
-        d.servo.stop()
+        d.servo.stop_now()

@@ -100,10 +100,10 @@ def _orphaned_video_child(stop) -> None:
     """A video process whose follower is already gone, with a thread that never ends."""
     import threading as th
 
-    from humantele.media.process import _watch_parent
+    from humantele.runtime.child import watch_parent
 
     th.Thread(target=lambda: th.Event().wait()).start()  # not a daemon thread
-    _watch_parent(os.getppid() + 1_000_000, stop)  # not our parent: the follower is gone
+    watch_parent(os.getppid() + 1_000_000, stop.set).join()  # not our parent: the follower is gone
 
 
 def test_a_video_process_whose_follower_is_gone_ends_itself():

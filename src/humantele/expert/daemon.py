@@ -1,7 +1,7 @@
 """The expert daemon (the sonographer's side); ``humantele expert`` runs it.
 
-It runs the 1 kHz servo process (:class:`humantele.haptics.servo.ServoProcess`, its own OS
-process), and at the link's pose rate:
+It runs the 1 kHz servo process (:class:`humantele.haptics.supervisor.SupervisedServo`: its
+own OS process, restarted when it dies), and at the link's pose rate:
 
 - reads the servo's latest sample, maps the stylus as the device read it (``T_device_stylus``)
   once through the registration and clutch (:mod:`humantele.expert.mapping`) and publishes the
@@ -33,7 +33,6 @@ Its configuration is :mod:`humantele.expert.config` (motion scaling has one sett
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import math
 import sys
@@ -51,13 +50,12 @@ from humantele.expert.mapping import Registration, StylusMapping, default_regist
 from humantele.expert.scans import ScanScript
 from humantele.geometry import Pose
 from humantele.haptics.ellipsoid import Ellipsoid
-from humantele.haptics.servo import ServoProcess
 from humantele.haptics.servo_config import ServoConfig
-from humantele.haptics.servo_layout import ServoError, ServoSample
+from humantele.haptics.servo_layout import ServoError
+from humantele.haptics.supervisor import SupervisedServo
 from humantele.interop.sessions import ExpertIgtl
 from humantele.media.receiver import VideoReceiver
 from humantele.runtime.daemon import Daemon
-from humantele.runtime.stats import process_cpu_percent
 from humantele.transport import PeerLink
 from humantele.wire import (
     CalibrationProgress,
@@ -84,7 +82,7 @@ class ExpertDaemon(Daemon):
     ) -> None:
         super().__init__(config, stats_file)
         self.servo_config = servo_config_for(config.mapping, servo_config or ServoConfig())
-        self.servo = ServoProcess(self.servo_config)
+        self.servo = SupervisedServo(self.servo_config, config.servo_restart_s)
         self.model: Ellipsoid | None = None
         self.mapping = StylusMapping(
             config.mapping, default_registration(config.mapping, (0.0, 0.0, 0.0))
@@ -115,14 +113,8 @@ class ExpertDaemon(Daemon):
         self.models_installed = 0
         self.models_refused = 0
         self.model_refusal = ""  # why the last refused model was refused
-        self.servo_down = ""  # why the servo is not running ("" while it runs)
-        self.servo_stopped = False  # stopped by the daemon (its end)
         self.calibration_events: list[str] = []
         self.last_sample_t = -math.inf
-        self.servo_restarts = 0
-        self._servo_dead_since: float | None = None
-        self._servo_restart: asyncio.Future | None = None
-        self._servo_cpu_last: float | None = None
         self.scans = ScanScript(
             config.scans, lambda msg: self.link.send_control(msg), lambda: self.rec
         )
@@ -294,74 +286,13 @@ class ExpertDaemon(Daemon):
             self.clock_log.update(self.rec, self.link.clock)
             self.figures.record(self.rec, t, self.servo)
 
-    def check_servo(self, t: float) -> None:
-        """A dead servo process is restarted (the daemon itself keeps running); while it is
-        down, ``servo_down`` says why (the status and the JSON show it as a fault)."""
-        if self.servo.alive:
-            self._servo_dead_since = None
-            self.servo_down = ""
-            return
-        if self._servo_dead_since is None:
-            self._servo_dead_since = t
-            if not self.servo_down:
-                self.servo_down = f"servo process exited with code {self.servo.returncode}"
-            log.error("expert: %s; restarting it", self.servo_down)
-        if t - self._servo_dead_since < self.config.servo_restart_s or self.servo_restarting:
-            return
-        self._servo_dead_since = t
-        self._servo_restart = asyncio.ensure_future(self.restart_servo())
-
-    @property
-    def servo_restarting(self) -> bool:
-        return self._servo_restart is not None and not self._servo_restart.done()
-
-    async def restart_servo(self) -> None:
-        """Replace the dead servo process with a new one, started off the event loop: spawning
-        it and opening the device take 0.5-2 s (up to the 30 s start timeout), and the link's
-        heartbeats, the console and the follower's state must go on meanwhile."""
-        loop = asyncio.get_running_loop()
-        new = ServoProcess(self.servo_config, None if self.mapping.clutched else self.model)
-        try:
-            await loop.run_in_executor(None, self.servo.stop)
-            await loop.run_in_executor(None, new.start)
-        except ServoError as exc:
-            self.servo_down = str(exc)
-            log.error("expert: %s", exc)
-            return
-        if self.servo_stopped:  # the daemon ended while this one started
-            await loop.run_in_executor(None, new.stop)
-            return
-        self.servo = new
-        new.set_model(None if self.mapping.clutched else self.model)  # it may have changed
-        self.servo_down = ""
-        self.servo_restarts += 1
-        self.push_registration()
-
-    def servo_state(self, latest: ServoSample | None) -> str:
-        """``running``, ``fault: <names>`` (force zeroed by the loop), ``down: <reason>``, or
-        ``stopped`` (by the daemon, at its end)."""
-        if self.servo_stopped and not self.servo_down:
-            return "stopped"
-        if self.servo_down or not self.servo.alive:
-            return f"down: {self.servo_down or 'servo process not running'}"
-        if latest is not None and latest.fault:
-            return f"fault: {latest.fault}"
-        return "running" if latest is not None else "starting"
-
-    def servo_cpu_percent(self) -> float | None:
-        """CPU use (% of one core) of the servo process since it started."""
-        cpu = process_cpu_percent(self.servo.pid)
-        if cpu is not None:
-            self._servo_cpu_last = cpu
-        return self._servo_cpu_last
-
     def stats(self) -> dict:
         try:
             servo = self.servo.stats().as_dict()
         except ServoError:
             servo = {}
         latest = self.servo.latest() if self.servo.alive else None
-        state = self.servo_state(latest)
+        state = self.servo.state(latest)
         # A servo that is down drives no force: 0, and the state says why (never None).
         force = 0.0 if latest is None else round(float(np.linalg.norm(latest.force)), 3)
         return {
@@ -383,8 +314,8 @@ class ExpertDaemon(Daemon):
             "servo_overruns": servo.get("overruns"),
             "servo_period_p99_us": servo.get("period_p99_us"),
             "servo_realtime": servo.get("realtime"),
-            "servo_restarts": self.servo_restarts,
-            "cpu_percent_servo": self.servo_cpu_percent(),
+            "servo_restarts": self.servo.restarts,
+            "cpu_percent_servo": self.servo.cpu_percent(),
             "scan": self.scan,
             "scans_started": self.scans_started,
             "step_errors": self.step_errors,
@@ -416,7 +347,7 @@ class ExpertDaemon(Daemon):
         link_task = asyncio.create_task(self.link.run())
         try:
             async for t in self.loop_ticks(self.config.link.pose_rate_hz, duration_s, link_task):
-                self.check_servo(t)
+                self.servo.check(t)
                 self.publish_pose(t)
                 # aiortc sends from a task of its own: let the pose go before the rest of the
                 # tick (OpenIGTLink, scans, recording reports) instead of after it.
@@ -429,16 +360,13 @@ class ExpertDaemon(Daemon):
             await self.close_link(self.link, link_task)
             await self.console_host.stop()
             await self.video.close()
-            self.servo_cpu_percent()
-            self.servo_stopped = True
-            if self._servo_restart is not None:  # a restart in flight stops what it started
-                with contextlib.suppress(Exception):
-                    await self._servo_restart
-            self.servo.stop()
+            await self.servo.stop()  # a restart in flight stops what it started
             await self.igtl.stop()
             self.finish_run()
         code = self.run_result(link_task)
-        if code == 0 and self.servo_down:  # the haptics were off at the end: not a clean run
-            print(f"humantele expert: servo not running: {self.servo_down}", file=sys.stderr)
+        # The haptics could not run at the end (not: killed and restarting): not a clean run.
+        if code == 0 and self.servo.cannot_run:
+            print(f"humantele expert: servo not running: {self.servo.cannot_run}",
+                  file=sys.stderr)  # fmt: skip
             return EXIT_FAILED
         return code

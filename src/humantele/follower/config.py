@@ -15,6 +15,7 @@ from humantele.follower.registration import RegistrationConfig
 from humantele.interop.igtl import IgtlConfig
 from humantele.media.config import FollowerVideoConfig
 from humantele.recording import RecorderConfig
+from humantele.runtime.child import PRIORITY
 from humantele.runtime.session import SessionConfig
 from humantele.transport import LinkConfig
 
@@ -48,8 +49,10 @@ class FollowerConfig(ConfigModel):
         "GIL apart from the loop's) or a thread",
     )
     sensing_nice: int = Field(
-        10, ge=0, le=19, description="the sensing process's nice: the daemon's loop wakes first"
-    )
+        PRIORITY["sensing"].nice, ge=0, le=18,
+        description="the sensing process's nice: the daemon's loop wakes first; below "
+        "[follower.video] process_nice (the tracker before the video)",
+    )  # fmt: skip
     tool: str = Field(
         "probe_default", description="the probe's tool definition: tracked, drawn, tip (one)"
     )
@@ -62,6 +65,17 @@ class FollowerConfig(ConfigModel):
     recording: RecorderConfig = RecorderConfig()
     igtl: IgtlConfig = IgtlConfig()
     registration: RegistrationConfig = RegistrationConfig()
+
+    @model_validator(mode="after")
+    def _tracker_before_video(self) -> FollowerConfig:
+        """The video gives way first (issue 19 §2): the sensing process (tracker, force) must
+        run at a lower nice than the video process."""
+        if self.sensing_worker == "process" and self.sensing_nice >= self.video.process_nice:
+            raise ValueError(
+                f"sensing_nice = {self.sensing_nice} must be below [follower.video] "
+                f"process_nice = {self.video.process_nice}: the tracker comes before the video"
+            )
+        return self
 
     @model_validator(mode="after")
     def _sim_needs_the_sim_clinic(self) -> FollowerConfig:

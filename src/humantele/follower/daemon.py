@@ -344,7 +344,8 @@ class FollowerDaemon(Daemon):
                     self.tick(t)
                     self.record_reports(t)
                     if self.video is not None:
-                        self.video.tick(t, self.ticks.late_ticks)
+                        self.video.tick(t, self.ticks.late_ticks, self.measurements,
+                                        self.config.sensing_rate_hz)  # fmt: skip
                 except Exception:  # never let one bad tick end the daemon
                     self.tick_errors += 1
                     if self.tick_errors in (1, 10, 100, 1000):
@@ -356,6 +357,7 @@ class FollowerDaemon(Daemon):
                 await asyncio.to_thread(self.video.close)
                 with contextlib.suppress(BaseException):
                     await asyncio.wait_for(video_task, 5.0)
+                await self.video.settle()  # a restart of the video process in flight
             await self.igtl.stop()
             self.worker.close()
             self.finish_run()

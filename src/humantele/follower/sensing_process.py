@@ -15,14 +15,13 @@ answers with ``add_reader`` (never blocks on the child). One frame at most is in
 caller skips frames while :attr:`busy`, as it did with the thread. A child that dies is
 restarted (``max_restarts``, then :attr:`failed` and the caller falls back to its thread); a
 child that cannot build its sensing (a bad config) reports why and is not restarted. The child
-ignores SIGINT and SIGTERM (Ctrl-C and systemd reach the whole process group; the daemon stops
-it) and exits when the pipe closes, so it never outlives the daemon. Once started it runs at
-``nice`` +10 by
-default (``sensing_nice``): when the daemon's loop and the child both want the CPU, the loop,
-which only needs it briefly to read a pose, wakes first; the child still gets every idle
-moment. On an overloaded machine it then measures fewer frames (skipped, counted) rather
-than delay the poses. If the daemon runs with a real-time policy (``chrt``, a systemd unit),
-the child drops to the normal one: 5 ms bursts at 45 Hz must not hold a core against it.
+is started by :func:`humantele.runtime.child.spawn` (SIGINT and SIGTERM ignored: the daemon
+stops it; it ends when the daemon is gone, and when the pipe closes). Once started it runs at
+``nice`` +2 by default (``sensing_nice``, :data:`~humantele.runtime.child.PRIORITY`): below
+the daemon's loop, which only needs the CPU briefly to read a pose and wakes first, and
+above the video process (nice 5, its POV thread 8), so when CPU is short the video gives way
+before the tracker (issue 19 §2). It never takes a real-time policy (a daemon run with
+``chrt`` or a systemd unit): 5 ms bursts at 45 Hz must not hold a core against the servo.
 """
 
 from __future__ import annotations
@@ -32,24 +31,22 @@ import contextlib
 import logging
 import multiprocessing as mp
 import os
-import signal
 import time
 from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
+from humantele.runtime.child import PRIORITY, Priority, set_priority, spawn, stop_process
 from humantele.runtime.stats import process_cpu_percent
 
 log = logging.getLogger(__name__)
 
-NICE = 10  # the child's nice: the loops it shares the CPU with wake first (it is a batch job)
+NICE = PRIORITY["sensing"].nice  # below the daemon's loop, above the video (runtime.child)
 OnResult = Callable[[int, Any, float], None]  # (job, Measurement, seconds measuring)
 
 
 def sensing_main(config: Any, sensing_config: Any, conn: Connection, nice: int = 0) -> None:
     """The child: build the sensing, then measure each request until the pipe closes."""
-    for sig in (signal.SIGINT, signal.SIGTERM):  # to the group: the daemon stops the child
-        signal.signal(sig, signal.SIG_IGN)
     try:
         from humantele.follower.sensing import Sensing
 
@@ -58,12 +55,8 @@ def sensing_main(config: Any, sensing_config: Any, conn: Connection, nice: int =
         with contextlib.suppress(OSError):
             conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
-    if hasattr(os, "sched_setscheduler"):  # a batch job: never a real-time daemon's policy
-        with contextlib.suppress(OSError):
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    if nice:  # after starting at the daemon's priority: a niced start can starve for long
-        with contextlib.suppress(OSError):
-            os.nice(nice)
+    # After starting at the daemon's priority: a niced start can starve for long.
+    set_priority(Priority(nice=nice))
     try:
         from humantele.follower.clinic import simulator_modules
 
@@ -141,15 +134,9 @@ class SensingProcess:
         return self.ready
 
     def _spawn(self) -> None:
-        ctx = mp.get_context("spawn")
-        parent, child = ctx.Pipe(duplex=True)
-        self._proc = ctx.Process(
-            target=sensing_main,
-            args=(self.config, self.sensing_config, child, self.nice),
-            name="humantele-sensing",
-            daemon=True,
-        )
-        self._proc.start()
+        parent, child = mp.get_context("spawn").Pipe(duplex=True)
+        self._proc = spawn(sensing_main, (self.config, self.sensing_config, child, self.nice),
+                           name="humantele-sensing")  # fmt: skip
         child.close()
         self._errors_before = self.child_errors
         self._conn = parent
@@ -199,8 +186,9 @@ class SensingProcess:
                 self.on_error(msg[1])
 
     def _died(self) -> None:
-        code = self._proc.exitcode if self._proc is not None else None
-        self._drop_child()
+        proc = self._proc
+        self._drop_child()  # reaped: its exit code is known
+        code = proc.exitcode if proc is not None else None
         if self.restarts >= self.max_restarts:
             self.failed = True
             log.error(
@@ -223,11 +211,7 @@ class SensingProcess:
                 with contextlib.suppress(Exception):
                     self._loop.remove_reader(conn.fileno())
             conn.close()
-        if proc is not None:
-            proc.join(1.0)
-            if proc.is_alive():
-                proc.kill()
-                proc.join()
+        stop_process(proc, timeout_s=1.0, term=False)
 
     def close(self, timeout_s: float = 3.0) -> None:
         """Ask the child to stop (the frame being measured ends first), then reap it."""
@@ -240,12 +224,5 @@ class SensingProcess:
             with contextlib.suppress(OSError):
                 conn.send(None)
             conn.close()
-        if proc is not None:
-            proc.join(timeout_s)
-            if proc.is_alive():
-                proc.terminate()
-                proc.join(timeout_s)
-            if proc.is_alive():
-                proc.kill()
-                proc.join()
+        stop_process(proc, timeout_s=timeout_s, term=False)
         self.busy = self.ready = False

@@ -7,6 +7,11 @@ the pose path is never held up); ``sensing_worker = "thread"`` (or a child that 
 good) measures on a worker thread; before :meth:`start`, frames are measured in line. Frames
 are measured in order and never overlap: a frame due while the previous one is measured is
 skipped (``skipped``), and so are those due while the child starts (``starting``).
+
+A sensing process that dies is restarted, and its replacement takes 10-15 s on a loaded
+machine to import and build its sensing: no measurement meanwhile (no state to the expert,
+the tracker's pose stale). :class:`MeasurementGaps` counts such gaps (issue 20 §2), shown in
+the stats and the demo's ``--json``.
 """
 
 from __future__ import annotations
@@ -25,6 +30,39 @@ from humantele.runtime.stats import SortedWindow, percentile_ms
 log = logging.getLogger(__name__)
 
 OnMeasured = Callable[[TrackerImage, Measurement], None]
+
+GAP_S = 0.5  # s without a measurement that counts as a gap (22 frames at 45 Hz)
+
+
+class MeasurementGaps:
+    """Time without measurements after the first one (s, the daemon's clock): gaps longer
+    than ``GAP_S`` counted and summed, the one going on included."""
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+        self.clock = clock
+        self.last_t: float | None = None
+        self.count = 0
+        self.total_s = 0.0
+        self.max_s = 0.0
+
+    def measured(self, t: float) -> None:
+        if self.last_t is not None and t - self.last_t > GAP_S:
+            gap = t - self.last_t
+            self.count += 1
+            self.total_s += gap
+            self.max_s = max(self.max_s, gap)
+        self.last_t = t if self.last_t is None else max(t, self.last_t)
+
+    def stats(self) -> dict[str, Any]:
+        now = self.clock()
+        ongoing = 0.0 if self.last_t is None else max(0.0, now - self.last_t)
+        ongoing = ongoing if ongoing > GAP_S else 0.0
+        return {
+            "measurement_age_s": None if self.last_t is None else round(now - self.last_t, 3),
+            "measurement_gaps": self.count + (ongoing > 0.0),
+            "measurement_gap_s": round(self.total_s + ongoing, 3),
+            "measurement_gap_max_s": round(max(self.max_s, ongoing), 3),
+        }
 
 
 class SensingWorker:
@@ -53,6 +91,8 @@ class SensingWorker:
         self.starting = 0  # frames due before the sensing process was ready
         self.failure: str | None = None
         self.times = SortedWindow(2000)  # s per measurement (thread or child)
+        self.gaps = MeasurementGaps()
+        self.closed = False
 
     def start(self) -> None:
         """Start the worker thread and, by default, the sensing process (it starts while the
@@ -85,6 +125,7 @@ class SensingWorker:
                     self.skipped += 1
             return
         if self.executor is None:
+            self.gaps.measured(frame.t)
             self.on_measured(frame, self.sensing.measure(frame.t, frame.world))
             return
         if self._pending is not None:
@@ -98,6 +139,7 @@ class SensingWorker:
         pending, self._proc_frame = self._proc_frame, None
         self.times.append(seconds)
         if pending is not None and pending[0] == job:  # else: a child since replaced
+            self.gaps.measured(pending[1].t)
             self.on_measured(pending[1], m)
 
     def _cannot_start(self, reason: str) -> None:
@@ -121,6 +163,7 @@ class SensingWorker:
             if self.errors in (1, 10, 100, 1000):
                 log.error("follower: sensing worker failed (%d so far): %r", self.errors, exc)
             return
+        self.gaps.measured(frame.t)
         self.on_measured(frame, fut.result())
 
     def stats(self) -> dict[str, Any]:
@@ -137,10 +180,27 @@ class SensingWorker:
             "sensing_p50_ms": percentile_ms(self.times, 50),
             "sensing_p99_ms": percentile_ms(self.times, 99),
             "cpu_percent_sensing": None if proc is None else proc.cpu_percent(),
+            "sensing_state": self.state(),
+            **self.gaps.stats(),
         }
+
+    def state(self) -> str:
+        """``thread``, ``starting``, ``restarting (N)``, ``running``, ``failed: <why>`` or
+        ``stopped`` (closed)."""
+        proc = self.proc
+        if self.closed:
+            return "stopped"
+        if proc is None:
+            return "thread"
+        if proc.failed:
+            return f"failed: {proc.error or 'exited too often; measuring in a thread'}"
+        if not proc.ready:
+            return f"restarting ({proc.restarts})" if proc.restarts else "starting"
+        return "running"
 
     def close(self) -> None:
         """Stop the thread (the frame being measured ends first) and the child."""
+        self.closed = True
         if self.executor is not None:
             self.executor.shutdown(wait=True)
             self.executor = None

@@ -54,6 +54,7 @@ from humantele.haptics.servo_layout import (
     ServoStats,
 )
 from humantele.haptics.shm import SeqlockArray
+from humantele.runtime.child import spawn, stop_process
 
 
 class ServoProcess:
@@ -86,17 +87,11 @@ class ServoProcess:
         self._blocks = [self._cmd, self._out, self._st]
         with self._lock:
             self._cmd.write(self._cmd_values)
-        ctx = mp.get_context("spawn")
-        parent_conn, child_conn = ctx.Pipe(duplex=False)
+        parent_conn, child_conn = mp.get_context("spawn").Pipe(duplex=False)
         names = (self._cmd.name, self._out.name, self._st.name)
-        self._proc = ctx.Process(
-            target=servo_main,
-            args=(self.config.model_dump_json(), names, os.getpid(), child_conn),
-            name="humantele-servo",
-            daemon=True,
-        )
-        try:
-            self._proc.start()
+        try:  # the servo checks its parent in its loop (runtime.child: watch=False)
+            args = (self.config.model_dump_json(), names, os.getpid(), child_conn)
+            self._proc = spawn(servo_main, args, name="humantele-servo", watch=False)
         except BaseException as exc:
             self._proc = None
             parent_conn.close()
@@ -126,14 +121,8 @@ class ServoProcess:
                 with self._lock:
                     self._cmd_values[C_STOP] = 1.0
                     self._cmd.write(self._cmd_values)
-                proc.join(timeout_s)
-                if proc.is_alive():
-                    proc.terminate()  # SIGTERM: the servo zeroes the force and exits
-                    proc.join(timeout_s)
-                if proc.is_alive():
-                    proc.kill()
-                    proc.join()
-                self.exitcode = proc.exitcode
+                # SIGTERM next: the servo zeroes the force and exits
+                self.exitcode = stop_process(proc, timeout_s=timeout_s)
                 self._proc = None
                 with contextlib.suppress(ServoError):
                     self._final_stats = self._read_stats()

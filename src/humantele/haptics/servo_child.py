@@ -66,6 +66,7 @@ from humantele.haptics.servo_layout import (
     STATS_LEN,
 )
 from humantele.haptics.shm import SeqlockArray
+from humantele.runtime.child import Priority, set_priority
 
 log = logging.getLogger(__name__)
 
@@ -122,13 +123,14 @@ class PeriodTiming:
 
 
 def try_realtime(config: ServoConfig) -> bool:
+    """SCHED_FIFO at ``realtime_priority`` (the first of :data:`humantele.runtime.child.
+    PRIORITY`), the CPU affinity, 1 ns timer slack; True when the real-time policy was had."""
     ok = False
     if config.realtime_priority > 0:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(config.realtime_priority))
-            ok = True
-        except (OSError, AttributeError) as exc:
-            log.warning("servo: SCHED_FIFO refused (%s); running with normal priority", exc)
+        got = set_priority(Priority(fifo=config.realtime_priority))
+        ok = "refused" not in got
+        if not ok:
+            log.warning("servo: SCHED_FIFO refused (%s); running with normal priority", got)
     if config.cpu_affinity:
         try:
             os.sched_setaffinity(0, config.cpu_affinity)

@@ -16,7 +16,6 @@ received), and the ultrasound ``Image`` when it receives frames (``tick(..., us)
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import math
 import multiprocessing
@@ -44,6 +43,7 @@ from humantele.interop.igtl import (
     ras_from_patient,
     world_from_ras,
 )
+from humantele.runtime.child import PRIORITY, ignore_group_signals, set_priority, watch_parent
 
 log = logging.getLogger(__name__)
 
@@ -240,9 +240,13 @@ _US_SOURCE = None  # the sim ultrasound of the render process
 
 
 def _us_init(config_json: str) -> None:
+    """The render process's start (a pool worker, so not :func:`~humantele.runtime.child.
+    spawn`; the same rules): group signals ignored, the follower watched, below everything
+    else that runs (:data:`~humantele.runtime.child.PRIORITY`)."""
     global _US_SOURCE
-    with contextlib.suppress(OSError):
-        os.nice(10)  # below the daemons
+    ignore_group_signals()
+    watch_parent(os.getppid())
+    set_priority(PRIORITY["igtl_render"])
     from humantele.video.sim_ultrasound import SimUltrasound, SimUltrasoundConfig
 
     _US_SOURCE = SimUltrasound(SimUltrasoundConfig.model_validate_json(config_json))

@@ -12,6 +12,7 @@ from typing import Any, Literal
 from pydantic import Field, model_validator
 
 from humantele.config import ConfigModel
+from humantele.runtime.child import POV_EXTRA_NICE, PRIORITY
 from humantele.video.sim_config import SimPovConfig, SimUltrasoundConfig
 from humantele.video.sources import PovSourceConfig, UltrasoundSourceConfig
 
@@ -59,13 +60,15 @@ class PovBitrateConfig(BitrateConfig):
 
 
 class DegradeConfig(ConfigModel):
-    """When CPU or bandwidth runs short the POV degrades, the US image does not.
+    """When CPU or bandwidth runs short the POV degrades; the US frame rate only for the tracker.
 
     Once a second the follower looks at the last window: the share of US frames the encoder
     took (of those captured), the loss the expert reports (RTCP) on either track, and the
-    follower's late ticks. If any is bad, the POV drops one level; after ``recover_s`` with
-    all good, it climbs back one level. Levels (POV only): 0 full size and rate; 1 full size,
-    half rate; 2 half size (each side), half rate; 3 half size, quarter rate.
+    follower's late ticks, and the tracker's frames measured against its rate. If any is
+    bad, the POV drops one level; when the POV is at its lowest and the tracker is still
+    short, the US rate drops one level (x0.75, x0.5); after ``recover_s`` with all good, one
+    level climbs back, the US's first. POV levels: 0 full size and rate; 1 full size, half
+    rate; 2 half size (each side), half rate; 3 half size, quarter rate.
     """
 
     enabled: bool = True
@@ -76,6 +79,14 @@ class DegradeConfig(ConfigModel):
     max_late_ticks_per_s: float = Field(5.0, ge=0.0, description="follower ticks late per second")
     recover_s: float = Field(5.0, gt=0.0, le=300.0, description="all good this long: climb back")
     max_level: int = Field(3, ge=0, le=3)
+    min_tracker_ratio: float = Field(
+        0.9, ge=0.0, le=1.0,
+        description="tracker frames measured / due below this: the video gives way (POV, "
+        "then the US rate)",
+    )  # fmt: skip
+    max_us_level: int = Field(
+        2, ge=0, le=2, description="how far the US rate may fall for the tracker: 0.75, 0.5"
+    )
 
 
 class FollowerVideoConfig(ConfigModel):
@@ -122,7 +133,11 @@ class FollowerVideoConfig(ConfigModel):
     process: bool = Field(
         True, description="render/capture in a separate, lower-priority process (not threads)"
     )
-    process_nice: int = Field(5, ge=0, le=19, description="the video process's nice increment")
+    process_nice: int = Field(
+        PRIORITY["video_us"].nice, ge=1, le=19,
+        description="the video process's nice increment (its POV thread "
+        f"{POV_EXTRA_NICE} more); above [follower] sensing_nice: the video gives way first",
+    )  # fmt: skip
     record_us_hz: float = Field(
         3.0, ge=0.0, le=120.0, description="US frames recorded as JPEG per second (0: none)"
     )

@@ -5,9 +5,15 @@ Why: the sim ultrasound and POV cost tens of ms of CPU per frame on these cores 
 benchmarks.md). In the follower's process they compete for the GIL with the asyncio loop,
 the sensing worker and aiortc, and the pose stream and sensing ran seconds late on a loaded
 machine. In a separate process they only compete for CPU, and the process runs at a lower
-priority (``[follower.video] process_nice``), so when CPU is short the video gives way first
-(and the POV before the US, by the degradation policy) while the pose and state streams keep
-their budget.
+priority (``[follower.video] process_nice``, its POV thread lower still:
+:data:`humantele.runtime.child.PRIORITY`), so when CPU is short the video gives way first
+(the POV before the US, also by the degradation policy) while the pose and state streams and
+the tracker keep their budget.
+
+The process is a :func:`humantele.runtime.child.spawn` child. One that dies (killed, a
+crash) is restarted by the follower (:class:`humantele.media.sender.VideoSender` with a
+:class:`~humantele.runtime.child.Restarter`): :meth:`ProcessVideo.restart` starts a new one on
+the same shared memory, pipes and latest-frame slots, so the tracks carry on with its frames.
 
 Plumbing (``multiprocessing`` spawn):
 
@@ -31,7 +37,6 @@ import contextlib
 import logging
 import multiprocessing as mp
 import os
-import signal
 import threading
 import time
 from multiprocessing import shared_memory
@@ -43,6 +48,15 @@ from humantele.geometry import Pose
 from humantele.haptics.shm import SeqlockArray
 from humantele.media.capture import CapturedFrame, VideoCapture, i420_frame
 from humantele.media.slot import LatestSlot
+from humantele.runtime.child import (
+    POV_EXTRA_NICE,
+    Priority,
+    set_priority,
+    set_thread_nice,
+    spawn,
+    stop_process,
+    watch_parent,
+)
 from humantele.video.base import SourceCounters, VideoSourceUnavailable
 
 if TYPE_CHECKING:
@@ -91,6 +105,11 @@ def _frame_bytes(width: int, height: int) -> int:
 # --- the video process ------------------------------------------------------------------------
 
 
+class VideoProcessDied(VideoSourceUnavailable):
+    """The video process ended (killed, crashed) before its sources opened: a restart may
+    help, unlike a source that refused to open."""
+
+
 class StopFlag:
     """The video process's stop signal: one byte of shared memory, set by the follower and
     polled. Not a ``multiprocessing.Event``: its ``set()`` waits for every sleeper to take
@@ -104,6 +123,9 @@ class StopFlag:
 
     def set(self) -> None:
         self._flag.value = 1
+
+    def clear(self) -> None:
+        self._flag.value = 0
 
     def is_set(self) -> bool:
         return bool(self._flag.value)
@@ -119,37 +141,20 @@ class StopFlag:
         return True
 
 
-def _watch_parent(parent_pid: int, stop: Any) -> None:
-    """Set ``stop`` when the follower (``parent_pid``) is gone, then end the process if its
-    threads have not ended by themselves: a video process never outlives its follower.
-
-    It polls with ``time.sleep``: it only sets the flag (:class:`StopFlag`), which never
-    waits on anyone."""
-    while True:
-        time.sleep(0.5)
-        if os.getppid() != parent_pid:  # the follower died without stopping us
-            stop.set()
-            time.sleep(3.0)
-            os._exit(0)
-
-
 def _child(
     specs: dict[str, dict], patient: Any, scene_name: str, controls: dict, conn: Any, stop: Any,
     nice: int, parent_pid: int,
 ) -> None:  # fmt: skip
-    """The video process: one capture thread per source until ``stop`` is set or the
-    follower ``parent_pid`` is gone (watched from the start: it may die while we open). It
-    ignores SIGINT and SIGTERM, which reach the whole process group (Ctrl-C, systemd's stop):
-    the follower stops it."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, signal.SIG_IGN)
-    threading.Thread(target=_watch_parent, args=(parent_pid, stop), daemon=True).start()
+    """The video process (:func:`~humantele.runtime.child.spawn` ignores SIGINT and SIGTERM
+    for it: the follower stops it): one capture thread per source until ``stop`` is set or
+    the follower ``parent_pid`` is gone (watched from the start: it may die while we open;
+    the watch only sets the flag, which never waits on anyone)."""
+    watch_parent(parent_pid, stop.set)
     import cv2
 
     from humantele.video.sources import make_video_source
 
-    with contextlib.suppress(OSError):
-        os.nice(nice)
+    set_priority(Priority(nice=nice))
     cv2.setNumThreads(1)
     scene_shm = SeqlockArray(SCENE_N, name=scene_name)
     send_lock = threading.Lock()
@@ -210,8 +215,14 @@ class RingCapture(VideoCapture):
         self._last_error = ""
 
     def start_thread(self) -> None:
-        self._thread = threading.Thread(target=self._run, name=f"video-{self.name}")
+        self._thread = threading.Thread(target=self._run_at_priority, name=f"video-{self.name}")
         self._thread.start()
+
+    def _run_at_priority(self) -> None:
+        """The POV's thread runs below the US's (it gives way first)."""
+        if self.name == "pov":
+            set_thread_nice(POV_EXTRA_NICE)
+        self._run()
 
     def _take(self, f: Any) -> None:
         self.scale = float(self.control[0])
@@ -249,7 +260,7 @@ class _Shared:
         self.ctx = ctx
         self.scene = SeqlockArray(SCENE_N)
         self.stop = StopFlag(ctx)
-        self.recv_conn, self.send_conn = ctx.Pipe(duplex=False)
+        self.recv_conn: Any = None  # the current process's pipe (ProcessVideo._launch)
         self.process: Any = None
         self.captures: dict[str, ProcessCapture] = {}
         self.opened: dict[str, str | None] = {}
@@ -347,6 +358,7 @@ class ProcessVideo:
         self.nice = nice
         self.specs = specs
         self.closed = False
+        self._lock = threading.Lock()  # a (re)start and the close, one at a time
         self.simulator_modules: list[str] | None = None  # loaded in the video process (opened)
         self._cpu_s: float | None = None
         self.captures = {
@@ -361,32 +373,86 @@ class ProcessVideo:
     def open(self) -> None:
         """Start the process and wait until it opened every source (VideoSourceUnavailable
         with the source's message if one could not)."""
-        sh = self.shared
-        sh.process = sh.ctx.Process(
-            target=_child,
-            args=(self.specs, self.patient, sh.scene.name,
-                  {n: c.control for n, c in self.captures.items()}, sh.send_conn, sh.stop,
-                  self.nice, os.getpid()),
-            name="humantele-video", daemon=True,
-        )  # fmt: skip
-        sh.process.start()
-        sh.reader = threading.Thread(target=self._read, name="humantele-video-rx", daemon=True)
-        sh.reader.start()
-        if not sh.opened_event.wait(OPEN_TIMEOUT_S):
+        with self._lock:
+            if self.closed:
+                return
+            self._launch()
+        try:
+            self._wait_opened()
+        except VideoProcessDied:
+            raise  # not the sources' fault: the follower restarts it (VideoSender)
+        except VideoSourceUnavailable:
             self.close()
+            raise
+
+    def restart(self) -> None:
+        """After the process died: a new one on the same shared memory and slots (blocks
+        until it opened its sources; VideoSourceUnavailable if it could not, and then it is
+        stopped). Nothing when closed meanwhile."""
+        with self._lock:
+            if self.closed:
+                return
+            self._reap()
+            self._launch()
+        try:
+            self._wait_opened()
+        except VideoSourceUnavailable:
+            with self._lock:
+                self._reap()
+            raise
+
+    def _launch(self) -> None:
+        """Spawn the process and its pipe's reader (with the lock held)."""
+        sh = self.shared
+        sh.stop.clear()
+        sh.opened.clear()
+        sh.opened_event.clear()
+        recv_conn, send_conn = sh.ctx.Pipe(duplex=False)
+        controls = {n: c.control for n, c in self.captures.items()}
+        try:
+            sh.process = spawn(
+                _child,
+                (self.specs, self.patient, sh.scene.name, controls, send_conn, sh.stop,
+                 self.nice, os.getpid()),
+                name="humantele-video", watch=False,
+            )  # fmt: skip
+        finally:
+            send_conn.close()  # the child has its own: its death ends the reader (EOF)
+        sh.recv_conn = recv_conn
+        sh.reader = threading.Thread(
+            target=self._read, args=(recv_conn,), name="humantele-video-rx", daemon=True
+        )
+        sh.reader.start()
+
+    def _wait_opened(self) -> None:
+        sh = self.shared
+        if not sh.opened_event.wait(OPEN_TIMEOUT_S):
             raise VideoSourceUnavailable("video process: the sources did not open in time")
         if self.closed:  # closed while opening (the daemon is stopping)
             return
         failed = [m for m in sh.opened.values() if m]
         if failed:
-            self.close()
             raise VideoSourceUnavailable(failed[0])
+        if len(sh.opened) < len(self.captures):
+            code = None if sh.process is None else sh.process.exitcode
+            raise VideoProcessDied(f"video process exited with code {code} while opening")
 
-    def _read(self) -> None:
+    def _reap(self) -> None:
+        """Stop and reap the current process and its reader (with the lock held)."""
+        sh = self.shared
+        sh.stop.set()
+        stop_process(sh.process, timeout_s=2.0, term=False)
+        if sh.recv_conn is not None:
+            with contextlib.suppress(Exception):
+                sh.recv_conn.close()
+        if sh.reader is not None and sh.reader is not threading.current_thread():
+            sh.reader.join(timeout=2.0)
+
+    def _read(self, conn: Any) -> None:
         sh = self.shared
         while True:
             try:
-                msg = sh.recv_conn.recv()
+                msg = conn.recv()
             except (EOFError, OSError):
                 break
             kind = msg[0]
@@ -410,7 +476,8 @@ class ProcessVideo:
                     cap.error = msg[2]
             except Exception:
                 log.exception("video: bad message from the video process")
-        sh.opened_event.set()
+        if conn is sh.recv_conn:  # the current process ended: an open() waiting returns
+            sh.opened_event.set()
 
     def close(self) -> None:
         if self.closed:
@@ -418,17 +485,9 @@ class ProcessVideo:
         self.cpu_seconds()  # the last figure, while it runs
         self.closed = True
         sh = self.shared
-        sh.stop.set()
-        sh.opened_event.set()  # an open() still waiting returns now (it sees closed)
-        if sh.process is not None:
-            sh.process.join(timeout=2.0)
-            if sh.process.is_alive():
-                sh.process.kill()
-                sh.process.join(timeout=2.0)
-        with contextlib.suppress(Exception):
-            sh.send_conn.close()
-        if sh.reader is not None:
-            sh.reader.join(timeout=2.0)
+        sh.opened_event.set()  # an open() or restart() still waiting returns now (sees closed)
+        with self._lock:  # a (re)start in progress has spawned its process: it is stopped too
+            self._reap()
         for cap in self.captures.values():
             cap.stop()
         with contextlib.suppress(Exception):
@@ -439,6 +498,16 @@ class ProcessVideo:
     def alive(self) -> bool:
         p = self.shared.process
         return p is not None and p.is_alive()
+
+    @property
+    def exitcode(self) -> int | None:
+        p = self.shared.process
+        return None if p is None else p.exitcode
+
+    @property
+    def pid(self) -> int | None:
+        p = self.shared.process
+        return None if p is None else p.pid
 
     def cpu_seconds(self) -> float | None:
         from humantele.runtime.stats import process_cpu_seconds

@@ -19,6 +19,7 @@ import asyncio
 import contextlib
 import logging
 import math
+import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -36,6 +37,7 @@ from humantele.media.config import TRACKS, FollowerVideoConfig
 from humantele.media.encoders import ENCODERS, make_encoder
 from humantele.media.frameinfo import FrameInfo
 from humantele.media.policy import DegradationPolicy, Health
+from humantele.runtime.child import Restarter
 from humantele.video.sources import make_video_source
 
 if TYPE_CHECKING:
@@ -102,6 +104,7 @@ class VideoSender:
         sources = {"us": config.us, "pov": config.pov}
         rates = {"us": config.record_us_hz, "pov": config.record_pov_hz}
         self.process: Any = None
+        self.restarter: Restarter | None = None  # of the video process, once it runs
         if config.process:  # the sources in a video process (humantele.media.process)
             from humantele.media.process import ProcessVideo
 
@@ -118,6 +121,7 @@ class VideoSender:
                 }  # fmt: skip
             self.process = ProcessVideo(specs, patient, record, config.process_nice)
             self.captures: dict[str, Any] = self.process.captures
+            self.restarter = Restarter("video", self._restart_process, first_s=1.0, max_s=30.0)
         else:
             self.captures = {
                 name: VideoCapture(
@@ -131,6 +135,7 @@ class VideoSender:
                 for name in TRACKS
             }
         self.pov_fps = float(self.captures["pov"].source.fps)
+        self.us_fps = float(self.captures["us"].source.fps)
         self.infos_sent = 0
         self.infos_dropped = 0
         self.attached = 0
@@ -142,6 +147,7 @@ class VideoSender:
         self._started = False
         self._closed = False
         self._policy_t, self._policy_late = -math.inf, 0  # the last check: time, late ticks
+        self._policy_frames = 0  # tracker frames measured by the last check
 
     def publish_scene(self, snapshot: Any) -> None:
         """The sim world's latest snapshot, for the video process (threads call ``scene``)."""
@@ -151,7 +157,12 @@ class VideoSender:
     def open(self) -> None:
         """Open both sources (blocks); VideoSourceUnavailable names the one that failed."""
         if self.process is not None:
-            self.process.open()
+            from humantele.media.process import VideoProcessDied
+
+            try:
+                self.process.open()
+            except VideoProcessDied as exc:  # started anyway: the restarter brings it back
+                log.error("video: %s", exc)
             return
         opened = []
         try:
@@ -171,8 +182,19 @@ class VideoSender:
             cap.start(loop)
         self._started = True
 
+    async def _restart_process(self) -> None:
+        """A new video process for the dead one, off the loop (it takes seconds to open)."""
+        await asyncio.to_thread(self.process.restart)
+
+    async def settle(self) -> None:
+        """After :meth:`close`: a restart in flight has ended (it saw the close)."""
+        if self.restarter is not None:
+            await self.restarter.close()
+
     def close(self) -> None:
         self._closed = True
+        if self.restarter is not None:
+            self.restarter.closed = True  # no new restart; one in flight sees the close
         if self.process is not None:
             self.process.close()
         else:
@@ -236,43 +258,68 @@ class VideoSender:
                         worst = f if worst is None else max(worst, f)
         return worst
 
-    def tick(self, t: float, late_ticks: int) -> None:
-        """From the daemon's tick (``late_ticks``: its count so far): once a second, the
-        degradation policy (:meth:`check`) in a task."""
+    def tick(
+        self, t: float, late_ticks: int, tracker_frames: int = 0, tracker_hz: float = 0.0
+    ) -> None:
+        """From the daemon's tick (``t``: its monotonic clock, s; ``late_ticks``: its count so
+        far): a dead video process restarted (:class:`~humantele.runtime.child.Restarter`);
+        once a second, the degradation policy (:meth:`check`) in a task, with the tracker's
+        frames measured (``tracker_frames``, a count so far) against its rate (Hz)."""
+        if self.restarter is not None and self._started:
+            self.restarter.check(t, self.process.alive, self.process.exitcode)
         if t - self._policy_t < 1.0:
             return
         dt = 1.0 if self._policy_t == -math.inf else t - self._policy_t
         late = (late_ticks - self._policy_late) / dt
+        frames = tracker_frames - self._policy_frames
+        first = self._policy_t == -math.inf
+        ratio = frames / (tracker_hz * dt) if frames > 0 and tracker_hz > 0 and not first else None
         self._policy_t, self._policy_late = t, late_ticks
-        task = asyncio.ensure_future(self.check(t, late))
+        self._policy_frames = tracker_frames
+        task = asyncio.ensure_future(self.check(t, late, ratio))
         task.add_done_callback(_log_check_error)
 
-    async def check(self, t: float, late_ticks_per_s: float) -> int:
-        """Once a second: the policy's inputs over the last window; applies the POV level."""
+    async def check(
+        self, t: float, late_ticks_per_s: float, tracker_ratio: float | None = None
+    ) -> int:
+        """Once a second: the policy's inputs over the last window; applies the POV level and
+        the US rate. US delivery is of the frames published (a US rate the policy lowered is
+        not the encoder falling behind)."""
         us = self.captures["us"]
-        captured = us.captured - self._last_counts["captured"]
+        published = us.published - self._last_counts["captured"]
         sent = us.sent - self._last_counts["sent"]
-        self._last_counts = {"captured": us.captured, "sent": us.sent}
-        delivery = min(1.0, sent / captured) if captured >= 5 and self._senders else None
-        health = Health(delivery, await self.loss(), late_ticks_per_s)
-        before = self.policy.level
+        self._last_counts = {"captured": us.published, "sent": us.sent}
+        delivery = min(1.0, sent / published) if published >= 5 and self._senders else None
+        health = Health(delivery, await self.loss(), late_ticks_per_s, tracker_ratio)
+        before = (self.policy.level, self.policy.us_level)
         level = self.policy.update(t, health)
-        if level != before:
-            log.warning(
-                "video: POV level %d -> %d (%s)", before, level, self.policy.reason or "recovered"
-            )
+        if (level, self.policy.us_level) != before:
+            why = self.policy.reason or "recovered"
+            log.warning("video: POV level %d -> %d, US level %d -> %d (%s)", before[0], level,
+                        before[1], self.policy.us_level, why)  # fmt: skip
         pov = self.captures["pov"]
         pov.scale = self.policy.pov_scale
         factor = self.policy.pov_rate_factor
         pov.max_fps = None if factor >= 1.0 else self.pov_fps * factor
+        us_factor = self.policy.us_rate_factor
+        us.max_fps = None if us_factor >= 1.0 else self.us_fps * us_factor
         return level
+
+    def process_stats(self) -> dict[str, Any]:
+        """The video process: alive, its state (``running``, ``down: ...``, ``restarting``),
+        restarts, CPU seconds."""
+        p, r = self.process, self.restarter
+        assert p is not None and r is not None
+        alive = p.alive
+        state = r.state(time.monotonic(), alive) if self._started or r.closed else "starting"
+        return {"alive": alive, "state": state, "restarts": r.restarts, "pid": p.pid,
+                "cpu_s": p.cpu_seconds()}  # fmt: skip
 
     def stats(self) -> dict[str, Any]:
         out: dict[str, Any] = {
-            "process": None
-            if self.process is None
-            else {"alive": self.process.alive, "cpu_s": self.process.cpu_seconds()},
+            "process": None if self.process is None else self.process_stats(),
             "pov_level": self.policy.level,
+            "us_level": self.policy.us_level,
             "pov_level_changes": self.policy.changes,
             "pov_level_reason": self.policy.reason,
             "infos_sent": self.infos_sent,

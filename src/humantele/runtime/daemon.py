@@ -14,7 +14,7 @@ import time
 from collections.abc import AsyncIterator, Callable
 from typing import Any
 
-from humantele.cliargs import EXIT_OK, EXIT_REFUSED, duration_s, log_level
+from humantele.cliargs import EXIT_FAILED, EXIT_OK, EXIT_REFUSED, duration_s, log_level
 from humantele.recording import Recorder
 from humantele.runtime.pacing import daemon_ticks
 from humantele.runtime.process import (
@@ -55,6 +55,7 @@ class Daemon:
         self.clock_log = ClockSyncLog(f"/{self.role}/clock_sync")
         self._last_report = -math.inf
         self.loop_priority = "off"  # the event loop thread's scheduling (start_run sets it)
+        self.link_ended_early: asyncio.Task | None = None  # the link's task, if it ended the run
         self.step_errors = 0  # steps run by guarded() that failed
 
     def stats(self) -> dict:
@@ -126,10 +127,20 @@ class Daemon:
     ) -> AsyncIterator[float]:
         """The main loop's ticks (s, :attr:`clock`) until stopped, the link task ends, or
         ``duration_s`` has passed; the stats file is written every 0.5 s."""
+        self.link_ended_early = None
+
+        def running() -> bool:
+            if self._stop.is_set():
+                return False
+            if link_task.done():  # nobody asked: the exit code says so (run_result)
+                self.link_ended_early = link_task
+                return False
+            return True
+
         return daemon_ticks(
             rate_hz,
             duration_s,
-            running=lambda: not self._stop.is_set() and not link_task.done(),
+            running=running,
             report=self.write_stats,
             clock=self.clock,
             on_late=on_late,
@@ -143,18 +154,37 @@ class Daemon:
 
     def run_result(self, link_task: asyncio.Task) -> int:
         """The exit code of :meth:`run` after its teardown: ``EXIT_REFUSED`` (the reason on
-        stderr) when the signaling server refused this daemon (wrong token, room full),
-        else 0."""
+        stderr) when the signaling server refused this daemon (wrong token, room full);
+        ``EXIT_FAILED`` when the link's task ended before anyone asked the daemon to stop (it
+        raised, or returned: the main loop ends with it); else 0 (stopped on request: a
+        signal, :meth:`stop`, ``--duration``, or the demo that started it gone).
+
+        Why: a supervisor reads 0 as "stopped on request" (systemd's ``Restart=on-failure``
+        does not restart it). A daemon that was not asked to stop never exits 0: under load a
+        link whose task raised (an error the retry loop did not expect) once ended the
+        expert's main loop in the middle of a run, and it exited 0 (issue 20 §2)."""
         refused = link_refusal(link_task)
         if refused:
             print(f"humantele {self.role}: {refused}", file=sys.stderr)
             return EXIT_REFUSED
+        if self.link_ended_early:
+            why = link_end(self.link_ended_early)
+            print(f"humantele {self.role}: the link ended unexpectedly ({why})", file=sys.stderr)
+            return EXIT_FAILED
         return EXIT_OK
 
     def finish_run(self) -> None:
         """The end of :meth:`run`: the recording closed, the final stats written."""
         self.close_recording()
         self.stats_out.close(self.stats())
+
+
+def link_end(task: asyncio.Task) -> str:
+    """How a link's task ended, in a few words (for the exit message)."""
+    if task.cancelled():
+        return "cancelled"
+    exc = task.exception()
+    return "returned" if exc is None else f"{type(exc).__name__}: {exc}"
 
 
 def run_daemon_process(daemon: Daemon, duration_s: float | None) -> int:

@@ -271,7 +271,9 @@ class PeerLink:
 
     async def run(self) -> None:
         """Join the room and keep the link up until :meth:`close`. Reconnects to signaling
-        with backoff; raises SignalingRefused only when retrying cannot help (bad token)."""
+        with backoff, also after an error it did not expect (logged with its traceback,
+        counted as ``signaling:error``); raises SignalingRefused only when retrying cannot
+        help (bad token)."""
         self._run_task = asyncio.current_task()
         self._set_state("connecting")
         watchdog = asyncio.create_task(self._watchdog())
@@ -290,6 +292,14 @@ class PeerLink:
                     if self._closing:
                         break
                     log.warning("%s link: %s; retrying in %.1f s", self.role, exc, delay)
+                    if self._state != "connected":
+                        self._set_state("unreachable")
+                except Exception as exc:  # an error signaling does not wrap: retry, never end
+                    if self._closing:
+                        break
+                    self.counters.dropped["signaling:error"] += 1
+                    log.exception("%s link: unexpected %s; retrying in %.1f s", self.role,
+                                  type(exc).__name__, delay)  # fmt: skip
                     if self._state != "connected":
                         self._set_state("unreachable")
                 else:
