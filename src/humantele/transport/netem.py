@@ -12,9 +12,10 @@ and dropped with probability ``loss`` (independent per datagram, from a seeded g
 run is repeatable given the same arrival order). With ``bandwidth_kbps`` each direction is
 also a link of that rate: a datagram waits for the ones before it to be sent (its size at the
 rate) before its delay starts, and one that would wait longer than ``queue_s`` for the link is
-dropped (a tail-drop queue; counted in ``overflow``), as netem's ``rate`` with a ``limit``. Without ``reorder`` the link is a FIFO: a
-datagram never leaves before the one that arrived before it (it waits for it, as in a real
-queue); with ``reorder`` jittered datagrams may overtake each other, as Linux netem does.
+dropped (a tail-drop queue; counted in ``overflow``), as netem's ``rate`` with a ``limit``.
+Without ``reorder`` the link is a FIFO: a datagram never leaves before the one that arrived
+before it (it waits for it, as in a real queue); with ``reorder`` jittered datagrams may
+overtake each other, as Linux netem does.
 
 A path through a TURN server that crosses the relay once each way (only one peer uses the
 relay's port, the other talks to the server directly) gets exactly one ``delay_s`` each way.
