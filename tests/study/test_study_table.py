@@ -135,3 +135,25 @@ def test_the_verdict_names_the_cause_from_the_figures():
     assert v["follows"] and v["cause"].startswith("video freezes")  # the expert's picture only
     v = table.verdict(_cond(position_rmse_mm=60.0, lag_removed_centered_mm=30.0))
     assert not v["follows"] and "no single cause" in v["cause"]
+
+
+def test_where_it_breaks_is_the_first_condition_that_does_not_follow():
+    def cond(name, delay, loss, centered, **kw):
+        s = _cond(delay_ms=delay, centered_position_rmse_mm=centered, **kw)
+        return {**s, "name": name, "loss_pct": loss, "bandwidth_kbps": 0.0,
+                **table.verdict({**s, "delay_ms": delay})}  # fmt: skip
+
+    summary = [
+        cond("d0", 0.0, 0.0, 6.0), cond("d100", 100.0, 0.0, 10.0),
+        cond("d200", 200.0, 0.0, 14.0), cond("d400", 400.0, 0.0, 22.0),
+        cond("l5", 50.0, 5.0, 8.0), cond("l10", 50.0, 10.0, 8.0, stale_pct=70.0),
+    ]  # fmt: skip
+    b = table.breaking_points(summary)
+    assert b["delay"]["name"] == "d400" and b["loss"]["name"] == "l10"
+    # 6 + 0.04 mm/ms: the line crosses 18.5 mm at 312.5 ms
+    assert b["delay_crossing_ms"] == pytest.approx(312.5)
+    text = table.breaking_text(b)
+    assert "stops following at 400 ms" in text and "at 10 %" in text and "pose staleness" in text
+    fine = table.breaking_points(summary[:3])
+    assert fine["delay"] is None and fine["largest_delay_ms"] == 200.0
+    assert "still follows at the largest delay run, 200 ms" in table.breaking_text(fine)

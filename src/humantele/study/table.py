@@ -184,6 +184,7 @@ def run_scans(run_dir: Path, summary: dict) -> list[dict[str, Any]]:
             row["stale_pct"] = min(100.0, 100.0 * sum(stale) / span) if stale and span else None
             row["pose_age_p50_ms"] = float(np.median(one_way)) * 1e3 if one_way else None
             row["setup_s"] = setup
+            row["load_1min"] = (summary.get("load_at_start") or [None])[0]
             row["servo_rate_hz"] = demo.get("servo_rate_hz")
             row["servo_overruns"] = demo.get("servo_overruns")
             rows.append(row)
@@ -201,7 +202,7 @@ SUMMARY_KEYS = (
     *(k for k, _ in ALIGN), "effective_lag_s", "lag_removed_centered_mm", "mean_error_y_mm",
     "us_age_p50_ms", "us_age_p95_ms", "pov_age_p50_ms", "pov_age_p95_ms", "us_fps", "pov_fps",
     "us_freezes_per_min", "us_frozen_pct", "pov_freezes_per_min", "pov_frozen_pct",
-    "stale_pct", "pose_age_p50_ms", "setup_s", "sim_image_quality",
+    "stale_pct", "pose_age_p50_ms", "setup_s", "sim_image_quality", "load_1min",
 )  # fmt: skip
 
 
@@ -272,7 +273,7 @@ SCAN_HEADER = [
 ]  # fmt: skip
 COND_HEADER = [
     "condition", "one way ms", "loss %", "kbit/s", "scans", *(h for _, h in ALIGN), "lag s",
-    "US p95 ms", "POV p95 ms", "US / POV frozen %", "stale %", "set-up s", "follows",
+    "US p95 ms", "POV p95 ms", "US / POV frozen %", "stale %", "set-up s", "load", "follows",
 ]  # fmt: skip
 
 
@@ -303,7 +304,7 @@ def condition_table(summary: list[dict]) -> str:
             *(_ms(s[k], s[f"{k}_sd"], 1 if "position" in k else 2) for k, _ in ALIGN),
             _f(s["effective_lag_s"], 2), _f(s["us_age_p95_ms"], 0), _f(s["pov_age_p95_ms"], 0),
             f"{_f(s['us_frozen_pct'])} / {_f(s['pov_frozen_pct'])}", _f(s["stale_pct"]),
-            _f(s["setup_s"]), follows,
+            _f(s["setup_s"]), _f(s["load_1min"]), follows,
         ])  # fmt: skip
     return markdown_table(COND_HEADER, out)
 
@@ -319,11 +320,65 @@ def study_line() -> str:
     )
 
 
+def breaking_points(summary: list[dict]) -> dict[str, Any]:
+    """Where the follower stops following: the first delay (conditions without loss or a cap)
+    and the first loss at which it does not (None: not within the conditions run), and the
+    delay at which a straight line through the centered RMSE against delay crosses the bound
+    (None without a rising trend)."""
+    ran = [s for s in summary if s.get("follows") is not None]
+    clean = sorted((s for s in ran if not s["loss_pct"] and not s["bandwidth_kbps"]),
+                   key=lambda s: s["delay_ms"])  # fmt: skip
+    lossy = sorted((s for s in ran if s["loss_pct"]), key=lambda s: (s["loss_pct"], s["delay_ms"]))
+    first_delay = next((s for s in clean if not s["follows"]), None)
+    first_loss = next((s for s in lossy if not s["follows"]), None)
+    crossing = None
+    pts = [(s["delay_ms"], s["centered_position_rmse_mm"]) for s in clean
+           if s.get("centered_position_rmse_mm") is not None]  # fmt: skip
+    if len({x for x, _ in pts}) >= 3:
+        slope, icpt = np.polyfit([x for x, _ in pts], [y for _, y in pts], 1)
+        if slope > 0:
+            crossing = float((BOUND["centered_position_rmse_mm"] - icpt) / slope)
+    return {
+        "delay": first_delay, "loss": first_loss, "delay_crossing_ms": crossing,
+        "largest_delay_ms": clean[-1]["delay_ms"] if clean else None,
+        "largest_loss_pct": lossy[-1]["loss_pct"] if lossy else None,
+    }  # fmt: skip
+
+
+def breaking_text(b: dict[str, Any]) -> str:
+    """The breaking points in words."""
+    lines = []
+    if b["delay"] is not None:
+        s = b["delay"]
+        lines.append(f"- delay: the follower stops following at {s['delay_ms']:g} ms one way "
+                     f"({s['name']}): {s['cause']}")  # fmt: skip
+    elif b["largest_delay_ms"] is not None:
+        lines.append(f"- delay: it still follows at the largest delay run, "
+                     f"{b['largest_delay_ms']:g} ms one way")  # fmt: skip
+    if b["delay_crossing_ms"] is not None:
+        lines.append(
+            f"- a straight line through the centered position RMSE against delay crosses the "
+            f"study's bound ({BOUND['centered_position_rmse_mm']:g} mm) at "
+            f"{b['delay_crossing_ms']:.0f} ms one way"
+        )
+    if b["loss"] is not None:
+        s = b["loss"]
+        lines.append(f"- loss: the follower stops following at {s['loss_pct']:g} % "
+                     f"({s['name']}, {s['delay_ms']:g} ms): {s['cause']}")  # fmt: skip
+    elif b["largest_loss_pct"] is not None:
+        lines.append(f"- loss: it still follows at the largest loss run, "
+                     f"{b['largest_loss_pct']:g} % each way")  # fmt: skip
+    return "\n".join(lines)
+
+
 def markdown(rows: list[dict], summary: list[dict], header: str = "") -> str:
     """The whole table as markdown: per condition, the causes, then per scan."""
     parts = [header] if header else []
     parts += ["### Per condition (mean ± SD over its scans)", condition_table(summary),
               study_line()]  # fmt: skip
+    where = breaking_text(breaking_points(summary))
+    if where:
+        parts += ["### Where it breaks", where]
     broken = [s for s in summary if s.get("cause")]
     if broken:
         parts.append("\n".join(f"- **{s['name']}**: {s['cause']}" for s in broken))
