@@ -42,7 +42,8 @@ def _run_dir(tmp_path, name="c1-s1"):
     rec.close()
     spec = {"condition": CONDITION, "seed": 1, "scans": 2, "scan_s": 13.5, "gap_s": 1.0,
             "video": True}  # fmt: skip
-    summary = {"spec": spec, "demo": {"servo_rate_hz": 1000.0, "servo_overruns": 0}}
+    demo = {"servo_rate_hz": 1000.0, "servo_overruns": 0, "link_connections": 2}
+    summary = {"spec": spec, "demo": demo, "load_at_start": [3.5, 2.0, 1.0]}
     (d / "summary.json").write_text(json.dumps(summary))
     return d, summary
 
@@ -77,6 +78,7 @@ def test_rows_from_a_recorded_run_give_the_known_answers(tmp_path):
     # set-up: the first landmark (990) to the model at the expert (scan 1 less 2 s)
     assert r1["setup_s"] == pytest.approx(SCAN1[0] - 2.0 - 990.0, abs=1e-3)
     assert r1["servo_rate_hz"] == 1000.0
+    assert r1["link_drops"] == 1 and r1["load_1min"] == 3.5  # two connections: one drop
 
 
 def test_the_condition_summary_and_the_markdown(tmp_path):
@@ -93,6 +95,11 @@ def test_the_condition_summary_and_the_markdown(tmp_path):
     assert "| c1 | 50 | 2 | - | 2 |" in md  # the condition's row
     assert "31.9 ± 10.2" in md  # the 750 km study beside it
     assert md.count("\n| c1 | 1 | ") == 2  # per scan: two rows of seed 1
+    assert "unimpaired link" not in md  # c1 is impaired: no baseline to judge the machine by
+    base = {**s, "name": "lan", "delay_ms": 0.0, "loss_pct": 0.0, "us_frozen_pct": 40.0}
+    assert "on the unimpaired link (lan) the picture is itself frozen 40 / 0 %" in (
+        table.markdown(rows, [base])
+    )
     paths = write_charts(summ, tmp_path / "img")
     assert [p.name for p in paths] == ["study_alignment_vs_delay.png", "study_freezes_vs_loss.png"]
     assert all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in paths)
@@ -133,6 +140,8 @@ def test_the_verdict_names_the_cause_from_the_figures():
     assert not v["follows"] and v["cause"].startswith("pose staleness")
     v = table.verdict(_cond(us_frozen_pct=90.0))
     assert v["follows"] and v["cause"].startswith("video freezes")  # the expert's picture only
+    v = table.verdict(_cond(stale_pct=30.0, link_drops=1))  # under half: it still follows
+    assert v["follows"] and v["cause"].startswith("the link dropped and reconnected")
     v = table.verdict(_cond(position_rmse_mm=60.0, lag_removed_centered_mm=30.0))
     assert not v["follows"] and "no single cause" in v["cause"]
 

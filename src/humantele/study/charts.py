@@ -56,7 +56,7 @@ def alignment_vs_delay(summary: list[dict], path: Path) -> Path:
 
 def freezes_vs_loss(summary: list[dict], path: Path) -> Path:
     """Share of each scan the expert's US and POV pictures were frozen (mean ± SD) against
-    the loss each way, for every condition (the delay written beside each point)."""
+    the loss each way, for every condition (the delay, and a cap, written beside each point)."""
     fig, ax = plt.subplots(figsize=(7.5, 4.3))
     for key, colour, label in (
         ("us_frozen_pct", "tab:green", "ultrasound"),
@@ -66,7 +66,8 @@ def freezes_vs_loss(summary: list[dict], path: Path) -> Path:
         ax.errorbar(x, y, yerr=sd, fmt="o", color=colour, capsize=3, label=label)
     for s in summary:
         if s.get("us_frozen_pct") is not None:
-            ax.annotate(f"{s['delay_ms']:g} ms", (s["loss_pct"], s["us_frozen_pct"]),
+            cap = f", {s['bandwidth_kbps']:g} kbit/s" if s["bandwidth_kbps"] else ""
+            ax.annotate(f"{s['delay_ms']:g} ms{cap}", (s["loss_pct"], s["us_frozen_pct"]),
                         xytext=(4, 3), textcoords="offset points", fontsize=6)  # fmt: skip
     ax.set_xlabel("datagrams lost each way (%)")
     ax.set_ylabel("time frozen at the expert (% of the scan)")

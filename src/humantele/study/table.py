@@ -51,6 +51,7 @@ BOUND = {"position_rmse_mm": 51.8, "centered_position_rmse_mm": 18.5}
 STUDY_ONE_WAY_MS = 754 * 4.9e-3
 STALE_BREAK_PCT = 50.0  # the virtual probe stale this share of a scan: it cannot be followed
 FROZEN_BREAK_PCT = 50.0  # the expert's picture frozen this share of a scan
+BASELINE_FROZEN_PCT = 10.0  # an unimpaired link's picture frozen more: the machine is busy
 START_AFTER_MODEL_S = 2.0  # as humantele.study.session
 EXTRA_TOPICS = ("/expert/video_frame", "/follower/latency", "/follower/calibration")
 LAG_MAX_S, LAG_STEP_S = 2.0, 0.01
@@ -185,6 +186,8 @@ def run_scans(run_dir: Path, summary: dict) -> list[dict[str, Any]]:
             row["pose_age_p50_ms"] = float(np.median(one_way)) * 1e3 if one_way else None
             row["setup_s"] = setup
             row["load_1min"] = (summary.get("load_at_start") or [None])[0]
+            conns = demo.get("link_connections")
+            row["link_drops"] = None if conns is None else max(0, int(conns) - 1)
             row["servo_rate_hz"] = demo.get("servo_rate_hz")
             row["servo_overruns"] = demo.get("servo_overruns")
             rows.append(row)
@@ -202,7 +205,7 @@ SUMMARY_KEYS = (
     *(k for k, _ in ALIGN), "effective_lag_s", "lag_removed_centered_mm", "mean_error_y_mm",
     "us_age_p50_ms", "us_age_p95_ms", "pov_age_p50_ms", "pov_age_p95_ms", "us_fps", "pov_fps",
     "us_freezes_per_min", "us_frozen_pct", "pov_freezes_per_min", "pov_frozen_pct",
-    "stale_pct", "pose_age_p50_ms", "setup_s", "sim_image_quality", "load_1min",
+    "stale_pct", "pose_age_p50_ms", "setup_s", "sim_image_quality", "load_1min", "link_drops",
 )  # fmt: skip
 
 
@@ -229,8 +232,14 @@ def verdict(s: dict[str, Any]) -> dict[str, Any]:
         cen is not None and cen > BOUND["centered_position_rmse_mm"]
     )
     stale = s.get("stale_pct")
+    drops = s.get("link_drops")
     if stale is not None and stale > STALE_BREAK_PCT:
         causes.append(f"pose staleness: the virtual probe stale {stale:.0f} % of the scan")
+    if drops and stale:  # the link fell and came back (a reconnection): said whatever the bound
+        causes.append(
+            f"the link dropped and reconnected ({drops:g} time(s) per run): the virtual probe "
+            f"stale {stale:.0f} % of the scan"
+        )
     if over:
         lag, lag_c = s.get("effective_lag_s"), s.get("lag_removed_centered_mm")
         y = s.get("mean_error_y_mm")
@@ -273,7 +282,8 @@ SCAN_HEADER = [
 ]  # fmt: skip
 COND_HEADER = [
     "condition", "one way ms", "loss %", "kbit/s", "scans", *(h for _, h in ALIGN), "lag s",
-    "US p95 ms", "POV p95 ms", "US / POV frozen %", "stale %", "set-up s", "load", "follows",
+    "US p95 ms", "POV p95 ms", "US / POV frozen %", "stale %", "link drops", "set-up s", "load",
+    "follows",
 ]  # fmt: skip
 
 
@@ -304,7 +314,7 @@ def condition_table(summary: list[dict]) -> str:
             *(_ms(s[k], s[f"{k}_sd"], 1 if "position" in k else 2) for k, _ in ALIGN),
             _f(s["effective_lag_s"], 2), _f(s["us_age_p95_ms"], 0), _f(s["pov_age_p95_ms"], 0),
             f"{_f(s['us_frozen_pct'])} / {_f(s['pov_frozen_pct'])}", _f(s["stale_pct"]),
-            _f(s["setup_s"]), _f(s["load_1min"]), follows,
+            _f(s["link_drops"], 0), _f(s["setup_s"]), _f(s["load_1min"]), follows,
         ])  # fmt: skip
     return markdown_table(COND_HEADER, out)
 
@@ -379,6 +389,17 @@ def markdown(rows: list[dict], summary: list[dict], header: str = "") -> str:
     where = breaking_text(breaking_points(summary))
     if where:
         parts += ["### Where it breaks", where]
+    base = [s for s in summary if s.get("scans") and not (s["delay_ms"] or s["jitter_ms"]
+            or s["loss_pct"] or s["bandwidth_kbps"])]  # fmt: skip
+    for s in base:
+        fz = [s.get(f"{n}_frozen_pct") for n in ("us", "pov")]
+        if any(f is not None and f > BASELINE_FROZEN_PCT for f in fz):
+            parts.append(
+                f"Note: on the unimpaired link ({s['name']}) the picture is itself frozen "
+                + " / ".join(_f(f, 0) for f in fz)
+                + f" % of the scan (US / POV), at a load average of {_f(s.get('load_1min'))}: "
+                "the machine, not the link, explains that much of the video figures."
+            )
     broken = [s for s in summary if s.get("cause")]
     if broken:
         parts.append("\n".join(f"- **{s['name']}**: {s['cause']}" for s in broken))
