@@ -11,10 +11,11 @@ Ctrl-C) is moved aside to ``RUN_ID.incomplete-<time>`` and run again. Then the t
 (:mod:`humantele.study.charts`, into ``--charts`` or OUT).
 
 Runs side by side (``--jobs auto``): as many as the cores free of other work hold, one core
-each (``SESSION_CORES``: a session measured ~0.6-0.8 of a core here - expert, servo, follower,
-its sensing and video processes, coturn, the emulator - rounded up so the servo keeps its
-budget), at least 1: ``floor((cores - 1-minute load) / SESSION_CORES)``. On the 2-core project
-machine that is 1 unless it is idle. A finished run whose servo missed its budget (rate under
+each (``SESSION_CORES``: a session used 0.55 of a core on average here - expert, servo,
+follower, its sensing and video processes, coturn, the emulator; more while it scans -
+rounded up so the servo keeps its budget), at least 1:
+``floor((cores - 1-minute load) / SESSION_CORES)``. On the 2-core project machine that is 1
+unless it is idle. A finished run whose servo missed its budget (rate under
 990 Hz, or over 0.1 % of ticks late) drops the study to one run at a time.
 """
 
