@@ -398,7 +398,8 @@ def markdown(rows: list[dict], summary: list[dict], header: str = "") -> str:
                 f"Note: on the unimpaired link ({s['name']}) the picture is itself frozen "
                 + " / ".join(_f(f, 0) for f in fz)
                 + f" % of the scan (US / POV), at a load average of {_f(s.get('load_1min'))}: "
-                "the machine, not the link, explains that much of the video figures."
+                "that much of the video figures is the machine's (or the video pipeline's), not "
+                "the link's."
             )
     broken = [s for s in summary if s.get("cause")]
     if broken:
