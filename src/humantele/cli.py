@@ -17,6 +17,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "follower": ("humantele.follower.cli", "run the follower daemon (tracking, force, video)"),
     "signal": ("humantele.signaling.server", "run the signaling server"),
     "analyze": ("humantele.analysis.cli", "the study's analysis of recorded sessions"),
+    "study": (
+        "humantele.study.cli",
+        "the study in simulation: whole recorded sessions per network condition, the table and "
+        "charts (alignment against delay, video freezes against loss)",
+    ),
     "export": (
         "humantele.export.cli",
         "recorded video per scan: MP4 (H.264) for raters, MCAP for Foxglove",

@@ -87,8 +87,29 @@ def test_calibration_model_probe_pose_and_force_are_recorded(tmp_path):
     for st in pressed:
         assert np.allclose(f_by_t[round(st.t_sent, 6)], st.force, atol=1e-6)
     # The pose stream's one-way latency, about once a second.
-    lat = rec.samples("/follower/latency")
+    lat = [s for s in rec.samples("/follower/latency") if s["name"] == "pose_one_way"]
     assert 2 <= len(lat) <= 4 and all(s["value_s"] == pytest.approx(0.006) for s in lat)
+    stale = [s for s in rec.samples("/follower/latency") if s["name"] == "pose_stale_s"]
+    # the first report covers the time since the fit (no pose yet: stale); then never stale
+    assert len(stale) == len(lat) and all(s["value_s"] == 0.0 for s in stale[1:])
+
+
+def test_the_time_the_virtual_probe_was_stale_is_recorded_once_a_second(tmp_path):
+    d = make(tmp_path)
+    t0 = calibrate(d)
+    t = follow(d, t0, 1.5)
+    for _ in range(200):  # 2 s without a pose: stale after stale_after_s (0.3 s)
+        d.tick(t)
+        d.record_reports(t)
+        t += 0.01
+    t = follow(d, t, 1.5)
+    d.rec.close()
+    rec = read_recording(d.rec.path)
+    stale = [s for s in rec.samples("/follower/latency") if s["name"] == "pose_stale_s"]
+    stale = [s for s in stale if s["t"] > t0 + 0.5]  # the first: the time before any pose
+    total = sum(s["value_s"] for s in stale)
+    assert total == pytest.approx(2.0 - d.config.stale_after_s, abs=0.03)
+    assert all(0.0 <= s["value_s"] <= 1.01 for s in stale)  # per report, at most its second
 
 
 def test_untracked_frames_are_recorded_as_such_and_clock_sync_on_change(tmp_path):

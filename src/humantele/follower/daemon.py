@@ -201,6 +201,7 @@ class FollowerDaemon(Daemon):
 
     def tick(self, t: float) -> None:
         """The clinic sees the guide; at the tracker's rate, a frame is measured."""
+        self.poses.tick(t, None if self.calibration is None else self.virtual_stale(t))
         virtual = self.virtual.world()
         live = virtual is not None and not self.virtual_stale(t) and not self.last_pose.clutch
         target = virtual if live else None  # the guide the novice follows (clutch: hold still)
@@ -267,7 +268,8 @@ class FollowerDaemon(Daemon):
 
     def record_reports(self, t: float) -> None:
         """The clock-sync estimate when it changes; the pose stream's one-way latency (median
-        since the last report) about once a second."""
+        since the last report) and how long the virtual probe was stale since then
+        (``pose_stale_s``, once calibrated) about once a second."""
         if self.rec is None:
             return
         self.clock_log.update(self.rec, self.link.clock)

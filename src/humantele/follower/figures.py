@@ -1,6 +1,7 @@
 """The follower's running figures: the expert's pose stream as it arrives (rate, age; its
-latency recorded about once a second), the alignment error of the real probe to the virtual
-one while following, and how late the daemon's ticks come."""
+latency and how long the virtual probe was stale recorded about once a second), the
+alignment error of the real probe to the virtual one while following, and how late the
+daemon's ticks come."""
 
 from __future__ import annotations
 
@@ -27,6 +28,9 @@ class PoseStreamFigures:
         self.times: deque[float] = deque(maxlen=2000)
         self._reported = 0
         self._last_report = -math.inf
+        self.stale_s = 0.0  # s the virtual probe was stale since the last report (calibrated)
+        self._judged = False  # staleness judged since the last report (a calibration exists)
+        self._tick_t: float | None = None
 
     def add(self, t_rx: float, age_s: float | None) -> None:
         self.received += 1
@@ -45,15 +49,29 @@ class PoseStreamFigures:
         self._reported = self.received
         return float(np.median(self.ages.last(new))) if new > 0 else None
 
+    def tick(self, t: float, stale: bool | None) -> None:
+        """Each daemon tick (``t``: s): whether the virtual probe is stale now (None: not
+        judged, before a calibration); the time since the last tick counts as stale."""
+        if stale is not None:
+            self._judged = True
+            if stale and self._tick_t is not None:
+                self.stale_s += t - self._tick_t
+        self._tick_t = t
+
     def report(self, rec: Any, t: float) -> None:
-        """About once a second (``t``: the daemon's clock, s): the pose stream's one-way
-        latency, the median since the last report, to the recording ``rec``."""
+        """About once a second (``t``: the daemon's clock, s), to the recording ``rec``: the
+        pose stream's one-way latency, the median since the last report (``pose_one_way``),
+        and how long the virtual probe was stale since then (``pose_stale_s``, s; once
+        calibrated)."""
         if t - self._last_report < REPORT_PERIOD_S:
             return
         self._last_report = t
         value = self.median_since_last()
         if value is not None:
             rec.write("/follower/latency", t, {"name": "pose_one_way", "value_s": value})
+        if self._judged:
+            rec.write("/follower/latency", t, {"name": "pose_stale_s", "value_s": self.stale_s})
+        self.stale_s, self._judged = 0.0, False
 
     def stats(self, now: float) -> dict:
         return {

@@ -6,7 +6,9 @@
   false with a zero pose when the probe was not found);
 - ``/follower/calibration``: reset, each landmark taken or refused, the fit;
 - ``/follower/ellipsoid``: the fitted model (world frame), once per calibration;
-- ``/follower/latency``: the pose stream's one-way latency about once a second; the
+- ``/follower/latency``: the pose stream's one-way latency (``pose_one_way``) and the time
+  the virtual probe was stale since the last report (``pose_stale_s``, s) about once a
+  second; the
   clock-sync estimate when it changes (``/follower/clock_sync``).
 
 A path that cannot be recorded to stops the daemon at start (exit code 2); a failure during

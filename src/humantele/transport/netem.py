@@ -9,9 +9,13 @@ TURN server)::
 
 Every datagram, in each direction, is held for ``delay_s + N(0, jitter_s)`` (never less than 0)
 and dropped with probability ``loss`` (independent per datagram, from a seeded generator, so a
-run is repeatable given the same arrival order). Without ``reorder`` the link is a FIFO: a
-datagram never leaves before the one that arrived before it (it waits for it, as in a real
-queue); with ``reorder`` jittered datagrams may overtake each other, as Linux netem does.
+run is repeatable given the same arrival order). With ``bandwidth_kbps`` each direction is
+also a link of that rate: a datagram waits for the ones before it to be sent (its size at the
+rate) before its delay starts, and one that would wait longer than ``queue_s`` for the link is
+dropped (a tail-drop queue; counted in ``overflow``), as netem's ``rate`` with a ``limit``.
+Without ``reorder`` the link is a FIFO: a datagram never leaves before the one that arrived
+before it (it waits for it, as in a real queue); with ``reorder`` jittered datagrams may
+overtake each other, as Linux netem does.
 
 A path through a TURN server that crosses the relay once each way (only one peer uses the
 relay's port, the other talks to the server directly) gets exactly one ``delay_s`` each way.
@@ -62,6 +66,8 @@ class NetemConfig(ConfigModel):
     reorder: bool = False  # jittered datagrams may overtake each other
     seed: int = 0  # seeds the delay and loss generators
     max_queue: int = Field(10_000, ge=1)  # datagrams held per direction; beyond: dropped
+    bandwidth_kbps: float = Field(0.0, ge=0.0, le=10_000_000.0)  # link rate each way; 0: none
+    queue_s: float = Field(0.2, gt=0.0, le=10.0)  # longest wait for the link (bandwidth_kbps)
     max_clients: int = Field(64, ge=1)  # client addresses given an upstream socket
 
 
@@ -117,6 +123,7 @@ class _Direction:
         self.heap: list[tuple[float, int, float, bytes, socket.socket, Address | None]] = []
         self.seq = 0
         self.last_due = 0.0
+        self.link_free = 0.0  # when the rate-limited link has sent all it holds (monotonic, s)
         self.cond = threading.Condition()
         self.stopped = False
         self.thread = threading.Thread(target=self._run, name=f"netem-{name}", daemon=True)
@@ -137,7 +144,14 @@ class _Direction:
             if len(self.heap) >= cfg.max_queue:
                 c.overflow += 1
                 return
-            due = t + delay
+            sent = t
+            if cfg.bandwidth_kbps > 0.0:  # wait for the link, then the datagram's own time on it
+                start = max(t, self.link_free)
+                if start - t > cfg.queue_s:
+                    c.overflow += 1
+                    return
+                self.link_free = sent = start + len(data) * 8.0 / (cfg.bandwidth_kbps * 1e3)
+            due = sent + delay
             if not cfg.reorder:
                 due = max(due, self.last_due)
                 self.last_due = due
