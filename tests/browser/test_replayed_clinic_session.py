@@ -62,7 +62,9 @@ def test_force_board_and_video_files_reach_the_expert(run):
         sent = f["video"][track]
         assert sent["errors"] == 0 and sent["captured"] > 20 and sent["sent"] > 20, sent
         got = e["video"][track]
-        assert got["frames"] > 20 and got["unreadable"] == 0, got
+        # (a real source's frames carry no stamped counter: each is placed in time by the
+        # follower's frame records, so its age from capture is known)
+        assert got["frames"] > 20 and got["age_p50_ms"] is not None, got
     assert sorted(e["video"]["us"]["size"]) == [480, 640]  # the file's (POV may degrade)
 
 

@@ -26,7 +26,6 @@ import json
 import math
 import time
 
-import numpy as np
 from headset_views import next_frames
 from replayed_clinic import (
     T_RIG_CAMERA,
@@ -73,58 +72,44 @@ def save_registration(state_dir) -> None:
     (state_dir / HEADSETS_FILE).write_text(json.dumps({HEADSET: entry}))
 
 
-class RecordedHead:
-    """The IWER headset moved as the recorded head: the viewer pose (XR) of the recorded frame
-    the page last heard of."""
+# In the page, every 20 ms: the recorded frame nearest the probe's device time (binary search
+# in ``table``: [t, device position, device quaternion]), and IWER's device put there.
+FOLLOW_JS = """(table) => {
+  window.recordedHead = { moves: 0 };
+  setInterval(() => {
+    const p = headset.state.probe;
+    const t = p && p.device_time_s;
+    if (t === undefined || t === null) return;
+    let lo = 0, hi = table.length - 1;
+    while (hi - lo > 1) {
+      const m = (lo + hi) >> 1;
+      if (table[m][0] <= t) lo = m; else hi = m;
+    }
+    const r = Math.abs(table[hi][0] - t) < Math.abs(table[lo][0] - t) ? table[hi] : table[lo];
+    xrDevice.position.set(r[1], r[2], r[3]);
+    xrDevice.quaternion.set(r[4], r[5], r[6], r[7]);
+    window.recordedHead.moves += 1;
+  }, 20);
+}"""
 
-    def __init__(self, page, rigs: dict[float, Pose]) -> None:
-        self.page = page
-        self.times = np.array(sorted(rigs))
-        self.rigs = [rigs[t] for t in self.times]
-        self.T_off: Pose | None = None  # IWER's device pose -> the page's viewer pose
-        self.moves = 0
-        self.error = ""
-        self.task = asyncio.create_task(self.run())
 
-    async def device(self) -> Pose:
-        p, q = "xrDevice.position", "xrDevice.quaternion"
-        d = await self.page.evaluate(f"[[{p}.x, {p}.y, {p}.z], [{q}.x, {q}.y, {q}.z, {q}.w]]")
-        return Pose(d[0], d[1])
-
-    async def run(self) -> None:
-        try:
-            await self.follow()
-        except asyncio.CancelledError:
-            raise
-        except Exception as exc:  # said at the end (a task's error is otherwise lost)
-            self.error = repr(exc)
-
-    async def follow(self) -> None:
-        # IWER's device pose and the viewer pose the page gets (local-floor) differ by a fixed
-        # transform: measured once, the headset still.
-        while not await self.page.evaluate("!!headset.registration.viewer"):
-            await asyncio.sleep(0.05)
-        device = await self.device()
-        await asyncio.sleep(0.3)
-        v = await self.page.evaluate("headset.registration.viewer")
-        self.T_off = Pose(v["position"], v["quaternion"]) @ device.inverse()
-        while True:
-            probe = await self.page.evaluate("headset.state.probe")
-            t = None if not probe else probe.get("device_time_s")
-            if t is not None:
-                k = int(np.argmin(np.abs(self.times - t)))
-                viewer = T_WORLD_XR.inverse() @ self.rigs[k] @ T_VIEWER_RIG.inverse()
-                d = self.T_off.inverse() @ viewer
-                p, q = d.position.tolist(), d.quaternion.tolist()
-                await self.page.evaluate(
-                    f"xrDevice.position.set({p[0]}, {p[1]}, {p[2]});"
-                    f" xrDevice.quaternion.set({q[0]}, {q[1]}, {q[2]}, {q[3]})"
-                )
-                self.moves += 1
-            await asyncio.sleep(0.04)
-
-    def stop(self) -> None:
-        self.task.cancel()
+async def follow_the_recorded_head(page, rigs: dict[float, Pose]) -> None:
+    """Move the IWER headset as the recorded head: the viewer pose (XR) of the recorded frame
+    the page last heard of (done in the page: a loaded machine's round trips lag seconds)."""
+    # IWER's device pose and the viewer pose the page gets (local-floor) differ by a fixed
+    # transform: measured once, the headset still.
+    while not await page.evaluate("!!headset.registration.viewer"):
+        await asyncio.sleep(0.05)
+    p, q = "xrDevice.position", "xrDevice.quaternion"
+    d = await page.evaluate(f"[[{p}.x, {p}.y, {p}.z], [{q}.x, {q}.y, {q}.z, {q}.w]]")
+    await asyncio.sleep(0.3)
+    v = await page.evaluate("headset.registration.viewer")
+    T_device_viewer = (Pose(v["position"], v["quaternion"]) @ Pose(d[0], d[1]).inverse()).inverse()
+    table = []
+    for t in sorted(rigs):
+        device = T_device_viewer @ T_WORLD_XR.inverse() @ rigs[t] @ T_VIEWER_RIG.inverse()
+        table.append([t, *device.position.tolist(), *device.quaternion.tolist()])
+    await page.evaluate(FOLLOW_JS, table)
 
 
 async def hud_when(ctx, page, condition: str, timeout: float = 60.0) -> dict:
@@ -144,7 +129,6 @@ async def run(ctx) -> dict:
     # round again, as a technician re-presses.
     server, port = start_hl2ss_server(rec.dir / "ahat.npz", loop=True)
     s = await ctx.daemons()
-    head = None
     try:
         expert_cfg = expert_on_fake_touchx(ctx.out, s.env)
         await s.start("expert", "--config", str(expert_cfg), "--record", str(ctx.out / "e.mcap"))
@@ -167,8 +151,8 @@ async def run(ctx) -> dict:
         await ctx.until(page, "headset.xr.supported", timeout=20)
         await page.click("#enter-ar")
         await ctx.until(page, "headset.presenting", timeout=20)
-        head = RecordedHead(page, rec.rigs)
         await ctx.until(page, "headset.state.probe && headset.state.probe.device_time_s", 30)
+        await follow_the_recorded_head(page, rec.rigs)
         watched = (
             "h.registration.state === 'registered' && h.registration.watch === 'ok'"
             " && h.guide.live && headset.state.model"
@@ -176,7 +160,8 @@ async def run(ctx) -> dict:
         try:
             data["registered"] = await hud_when(ctx, page, watched, timeout=90)
         except AssertionError as exc:
-            raise AssertionError(f"{exc}; the IWER head: {head.moves} moves {head.error}") from None
+            moves = await page.evaluate("recordedHead.moves")
+            raise AssertionError(f"{exc}; the IWER head moved {moves} times") from None
         ctx.mark("registered and watched")
         # The picture held still while live: the virtual probe drawn (XR) and the pose the
         # feed sent for it (world).
@@ -191,16 +176,13 @@ async def run(ctx) -> dict:
         data["hud"] = await page.evaluate("headset.hud()")
         await ctx.shot(page, "replayed_clinic_headset")
         await page.evaluate("headset.freeze(false)")
-        data["head_moves"], data["head_error"] = head.moves, head.error
+        data["head_moves"] = await page.evaluate("recordedHead.moves")
         data["follower"] = s.stats("follower")
         data["expert"] = s.stats("expert")
-        head.stop()
         await ctx.close_page(page)
         data["follower_exit"] = await s.terminate("follower")
         data["expert_exit"] = await s.terminate("expert")
     finally:
-        if head is not None:
-            head.stop()
         server.kill()
         server.communicate(timeout=10)
     return data
