@@ -8,11 +8,15 @@ simulator; a file that is not a device recording is one clear line."""
 from __future__ import annotations
 
 import json
+import os
+import signal
 import subprocess
 import sys
+import time
 
 import pytest
 from replayed_clinic import calibration_presses, follower_config, make_recording, replay_env
+from session_helpers import read_json
 
 from humantele.devices import record as record_cmd
 from humantele.follower.sim_world import SimWorld
@@ -45,15 +49,31 @@ def record_clinic(tmp_path, monkeypatch):
 
 def test_demo_replays_a_recorded_clinic_through_the_real_backends(tmp_path, monkeypatch):
     mcap = record_clinic(tmp_path, monkeypatch)
-    run = subprocess.run(
-        [sys.executable, "-m", "humantele", "demo", "--replay", str(mcap), "--duration", "60",
-         "--json"],
-        capture_output=True, text=True, timeout=400, cwd=tmp_path,
+    # Ctrl-C once the follower is calibrated and following (--duration only bounds it).
+    demo = subprocess.Popen(
+        [sys.executable, "-m", "humantele", "demo", "--replay", str(mcap), "--duration", "240",
+         "--json", "--keep"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+        env=dict(os.environ, TMPDIR=str(tmp_path)),
     )  # fmt: skip
-    assert run.returncode == 0, run.stderr[-3000:]
-    summary = json.loads(run.stdout.strip().splitlines()[-1])
-    assert summary["calibrated"] is True, run.stderr[-3000:]
+    try:
+        deadline = time.monotonic() + 240
+        while demo.poll() is None and time.monotonic() < deadline:
+            stats = [read_json(p) for p in tmp_path.glob("humantele-demo-*/follower.json")]
+            if any(f.get("calibrated") and f.get("poses_received", 0) > 100 for f in stats):
+                break
+            time.sleep(0.5)
+        demo.send_signal(signal.SIGINT)
+        out, err = demo.communicate(timeout=60)
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+            demo.communicate()
+    assert demo.returncode == 0, err[-3000:]
+    summary = json.loads(out.strip().splitlines()[-1])
+    assert summary["calibrated"] is True, err[-3000:]
     assert summary["poses_received"] > 100
+    assert summary["exit_codes"] == {"expert": 0, "follower": 0}
     # a session recording, or any other file, is not a device recording: one line, exit 2
     bad = tmp_path / "notes.mcap"
     bad.write_bytes(b"not an mcap")
