@@ -4,9 +4,10 @@ puts a conftest's folder there), so tests import the daemons' doubles from
 
 The suite runs on two pytest-xdist workers (``-n 2 --dist loadgroup``, pyproject.toml). Tests
 that run real processes for seconds (the daemons, the servo, the demo, coturn, a browser) must
-not run two at a time on a 2-core machine, or they starve each other's real-time loops: they
-all go to one worker, one after the other (the xdist group ``processes``), and the other tests
-run on the other worker beside them. Such a test is marked ``slow`` or uses a fixture that
+not all run at once on a 2-core machine, or they starve each other's real-time loops: the
+ones on the host's network go to one worker, one after the other (the xdist group
+``processes``); the browser scenarios, each in a network namespace of its own (so no port of
+theirs meets the host's), to another (``processes-netns``); the other tests run beside them. Such a test is marked ``slow`` or uses a fixture that
 starts those processes; it is also marked ``e2e``, so ``python -m pytest -q -m "not e2e"`` is
 the fast lane for everyday work (the README's command runs everything).
 
@@ -32,5 +33,6 @@ settings.load_profile("suite")
 def pytest_collection_modifyitems(items):
     for item in items:
         if item.get_closest_marker("slow") or PROCESS_FIXTURES & set(item.fixturenames):
-            item.add_marker(pytest.mark.xdist_group("processes"))
+            netns = "browser_scenario" in item.fixturenames
+            item.add_marker(pytest.mark.xdist_group("processes-netns" if netns else "processes"))
             item.add_marker(pytest.mark.e2e)  # the fast lane, -m "not e2e", leaves them out
