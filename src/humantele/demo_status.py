@@ -11,7 +11,8 @@ The phases, in order (the first that applies):
   yet (the presses it would miss are not asked for);
 - ``calibrating: press left (2 of 4)``: the follower's technician presses the landmarks;
 - ``sending the patient model``: calibrated, the expert has no model yet;
-- ``following``: the expert has the model; the novice follows the virtual probe.
+- ``following``: the expert has the model; the novice follows the virtual probe;
+- ``link closed``: the daemons said bye (the run's end).
 
 "calibrating" is never said before the link is up: before then the demo waits for the link,
 whatever the follower does meanwhile.
@@ -31,6 +32,8 @@ def demo_phase(e: dict[str, Any], f: dict[str, Any]) -> str:
     if missing:
         return f"starting daemons ({', '.join(missing)})"
     link = f.get("link_state") or "new"
+    if link == "closed":  # the end of the run: the daemons said bye
+        return "link closed"
     if link != "connected":
         return f"waiting for the link ({link})"
     if not f.get("calibrated"):

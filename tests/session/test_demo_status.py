@@ -24,16 +24,17 @@ def test_phases_in_order():
     # The link lost later: the demo waits for it again, whatever it had reached.
     lost = {"link_state": "disconnected", "calibrated": True}
     assert demo_phase({"has_model": True}, lost) == "waiting for the link (disconnected)"
+    assert demo_phase({"has_model": True}, {**lost, "link_state": "closed"}) == "link closed"
 
 
 def test_never_calibrating_before_the_link():
     """The follower's technician may press while the link connects: the line says what the
     demo waits for, the link."""
-    for link in ("new", "connecting", "disconnected", "unreachable", None):
+    for link in ("new", "connecting", "disconnected", "unreachable", "closed", None):
         for step in ("xiphoid", "bed", None):
             f = {"link_state": link, "calibrated": False, "calibration_step": step}
             line = _status_line({"has_model": False}, f, 3.0)
-            assert "calibrat" not in line and "waiting for the link" in line, line
+            assert "calibrat" not in line and ("waiting for the link" in line or "closed" in line)
 
 
 def test_status_line_leads_with_the_phase():
