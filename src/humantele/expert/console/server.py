@@ -698,7 +698,7 @@ class ConsoleServer:
         self._record("capture", payload)
         if rec is not None and hasattr(rec, "attach"):
             rec.attach(path.name, "image/jpeg", f.jpeg, f.t_capture)
-        item = self._add_item("capture", f, file=path.name, clip=None)
+        item = self._add_item("capture", f, file=path.name, clip=None, clip_pending=bool(clip))
         detail = path.name + (f" and a {clip_s:g} s clip (writing)" if clip else "")
         self._result(client, "capture", True, detail, seq=f.seq, file=str(path), id=m.id)
         if clip:
@@ -734,6 +734,7 @@ class ConsoleServer:
                          f"{info.frames} frames)", file=str(path), id=cmd_id)  # fmt: skip
         finally:
             self.clips_writing -= 1
+            item["clip_pending"] = False
         self.pages.post("items", self._items_message())
 
     def _add_item(self, kind: str, f: CineFrame, **fields: Any) -> dict[str, Any]:
