@@ -524,7 +524,7 @@ function tick() {
   app.health = h;
   const bound = staleBound();
   chip("chip-expert", { ok: "ok", slow: "warn", connecting: "off", lost: "bad" }[h.level],
-    h.level === "ok" ? `ok · ${fmt(h.delay, 0, " ms")}` : h.level === "slow" ? `slow (${Math.round(h.delay)} ms)`
+    h.level === "ok" ? `ok · ${fmt(h.delay, 0, " ms")}` : h.level === "slow" ? `slow (${Math.round(h.peak)} ms)`
       : h.level === "lost" ? "lost contact" : "connecting");
   const lost = !hb.open;
   const slow = !lost && h.delay !== null && h.delay >= bound;

@@ -3,7 +3,8 @@
 // Heartbeat: the page pings the daemon twice a second; the daemon answers at once with its
 // clock (``pong``: ``n``, ``t`` in s). The oldest unanswered ping's age (else the last round
 // trip) is how late the daemon answers now: a daemon whose event loop is held up is "slow
-// (N ms)" while its socket is open, and lost only when the socket closes. The answers also
+// (N ms)" (the longest of the last 3 s) while its socket is open, and lost only when the
+// socket closes. The answers also
 // map the daemon's clock onto this page's (the offset of the fastest round trip of the last
 // minute, +- half of it): a frame's capture time and a state's time become ages on this page,
 // so "live" means a picture captured less than the stale bound ago, whatever the page did
@@ -17,6 +18,7 @@ export const PING_MS = 500;
 export const SLOW_MS = 300; // answers later than this: the daemon is slow
 export const ACK_MS = 3000; // a click not answered by then: said so
 const OFFSET_WINDOW_MS = 60000;
+const PEAK_MS = 3000;
 
 export class Heartbeat {
   constructor(send) {
@@ -29,10 +31,11 @@ export class Heartbeat {
     this.open = false;
     this.lastPing = -Infinity;
     this.lastHeard = -Infinity; // page ms of the last message of any kind
+    this.peaks = []; // [page ms, delay ms] of the last PEAK_MS
   }
 
   opened(now) { this.open = true; this.out.clear(); this.lastHeard = now; this.lastPing = -Infinity; this.tick(now); }
-  closed() { this.open = false; this.out.clear(); }
+  closed() { this.open = false; this.out.clear(); this.peaks = []; }
   heard(now) { this.lastHeard = now; }
 
   tick(now) {
@@ -64,11 +67,16 @@ export class Heartbeat {
   // A daemon time (s) as a page time (ms), or null while the clocks are not mapped.
   toPage(tS) { return this.offset === null || tS == null ? null : tS * 1000 - this.offset; }
 
-  // The daemon as the page sees it: {level: ok|slow|lost|connecting, delay (ms)}.
+  // The daemon as the page sees it: {level: ok|slow|lost|connecting, delay (ms, now),
+  // peak (ms, the longest of the last PEAK_MS: a daemon held up now and then stays "slow"
+  // with it, rather than flickering between ok and slow)}.
   health(now) {
-    if (!this.open) return { level: this.n === 0 && this.lastHeard === -Infinity ? "connecting" : "lost", delay: null };
+    if (!this.open) return { level: this.n === 0 && this.lastHeard === -Infinity ? "connecting" : "lost", delay: null, peak: null };
     const d = this.delay(now);
-    return { level: d !== null && d >= SLOW_MS ? "slow" : "ok", delay: d };
+    if (d !== null) this.peaks.push([now, d]);
+    while (this.peaks.length && now - this.peaks[0][0] > PEAK_MS) this.peaks.shift();
+    const peak = this.peaks.reduce((m, p) => Math.max(m, p[1]), d ?? 0);
+    return { level: peak >= SLOW_MS ? "slow" : "ok", delay: d, peak };
   }
 }
 
