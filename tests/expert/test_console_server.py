@@ -647,3 +647,37 @@ async def test_a_clip_counts_in_the_disk_budget(tmp_path):
     assert not r1["ok"] and "captures_max_mb" in r1["detail"] and r1["id"] == 1
     assert r2["ok"] and r2["id"] == 2
     assert server.refused["capture_disk"] == 1
+
+
+async def test_a_page_that_reads_late_gets_no_state_nor_frames_until_it_catches_up(tmp_path):
+    """The page's ping says how late it reads what it is sent (the expert's time of the newest
+    message it read): more than a second, and the states and frames wait (latest wins) while
+    the answers to its clicks and pings still go; caught up, they flow again."""
+    clock = FakeClock(50.0)
+    frames = ManualFrames(clock)
+    server = await serve(frames, Session(), tmp_path, clock=clock)
+    try:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
+            await next_message(ws, lambda k, d: k == "json" and d["type"] == "state")
+            await ws.send_json({"type": "ping", "n": 1, "seen": 45.0})  # read 5 s late
+            await next_message(ws, lambda k, d: k == "json" and d["type"] == "pong")
+            await asyncio.sleep(0.3)  # states meanwhile (20 a second), if any, are queued...
+            while True:  # ... drain what was sent before the ping arrived
+                try:
+                    await ws.receive(timeout=0.2)
+                except TimeoutError:
+                    break
+            frames.next("us")
+            await ws.send_json({"type": "scan", "action": "start", "id": 9})
+            got = []
+            with pytest.raises(TimeoutError):
+                while True:
+                    got.append(await next_message(ws, lambda k, d: True, timeout=0.8))
+            held = server.events["held_page_behind"]
+            await ws.send_json({"type": "ping", "n": 2, "seen": 50.0})  # caught up
+            state = await next_message(ws, lambda k, d: k == "json" and d["type"] == "state")
+            frame = await next_message(ws, lambda k, d: k == "frame")
+    finally:
+        await server.stop()
+    assert [(m["type"], m.get("id")) for m in got] == [("result", 9)]  # the click's answer only
+    assert held > 0 and state["t"] == 50.0 and frame[0]["track"] == "us"

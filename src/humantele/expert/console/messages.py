@@ -105,10 +105,13 @@ class _Command(_Msg):
 
 class Ping(_Msg):
     """The page's heartbeat: answered at once with ``pong`` (same ``n``, the expert's clock
-    ``t``, s), which measures how late the daemon answers and maps its clock to the page's."""
+    ``t``, s), which measures how late the daemon answers and maps its clock to the page's.
+    ``seen``: the expert's time (s) of the newest message the page has read (a state's or a
+    pong's ``t``): how far behind the page reads what it is sent."""
 
     type: Literal["ping"]
     n: CommandId
+    seen: float | None = Field(None, allow_inf_nan=False)
 
 
 class ScanCommand(_Command):

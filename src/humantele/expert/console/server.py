@@ -83,6 +83,11 @@ IN_FLIGHT = 2  # frames of a track sent to a page and not yet drawn; more wait (
 CAPTURE_BURST = 10  # captures at once before captures_per_minute applies
 IN_FLIGHT_TIMEOUT_S = 0.5  # a page that echoes nothing for this long gets the next frame
 SEQS_KEPT = 256  # frames per track whose times are kept for the page's echoes
+# A page that reads what it is sent this late (its pings say) gets no more state nor frames
+# until it catches up (latest wins meanwhile): a busy browser's queue never grows to seconds,
+# and the answers to its clicks (never held) reach it. A page that stops pinging is released.
+PAGE_BEHIND_S = 1.0
+PAGE_BEHIND_FOR_S = 2.0
 
 
 class ConsoleConfig(ConfigModel):
@@ -164,6 +169,12 @@ class _Client(PageClient):
         # Frames sent and not yet drawn, per track (seq, when sent): a page that draws slower
         # than frames come gets the newest when it is ready, not a queue in the socket.
         self.in_flight: dict[str, deque[tuple[int, float]]] = {t: deque() for t in TRACKS}
+        self.behind_s = 0.0  # how late the page read our newest message, at its last ping
+        self.behind_at = -math.inf  # when that ping came (time.monotonic)
+
+    def behind(self, now: float) -> bool:
+        """Whether the page is reading what it is sent more than PAGE_BEHIND_S late."""
+        return self.behind_s > PAGE_BEHIND_S and now - self.behind_at < PAGE_BEHIND_FOR_S
 
     def can_take(self, track: str, now: float, timeout_s: float) -> bool:
         q = self.in_flight[track]
@@ -342,10 +353,15 @@ class ConsoleServer:
     def _hold(self, client: PageClient, key: str, data: str | bytes) -> bool:
         """Whether a frame waits: its page has ``IN_FLIGHT`` frames of the track not yet
         drawn (the newest is sent when it draws one, or after the in-flight timeout)."""
-        track = key[6:] if key.startswith("frame:") else None
-        if track not in TRACKS or not isinstance(client, _Client):
+        if not isinstance(client, _Client):
             return False
         now = time.monotonic()
+        if (key == "state" or key.startswith("frame:")) and client.behind(now):
+            self.events["held_page_behind"] += 1
+            return True
+        track = key[6:] if key.startswith("frame:") else None
+        if track not in TRACKS:
+            return False
         if not client.can_take(track, now, self.in_flight_timeout_s):
             return True
         client.in_flight[track].append((int.from_bytes(data[4:8], "little"), now))
@@ -498,8 +514,10 @@ class ConsoleServer:
         if isinstance(m, Drawn):
             self._on_drawn(client, m, arrival)
         elif isinstance(m, Ping):  # answered at once: the page measures how late we are
-            pong = {"type": "pong", "n": m.n, "t": self.clock()}
-            client.post("pong", json.dumps(pong))
+            now = self.clock()
+            if m.seen is not None:
+                client.behind_s, client.behind_at = now - m.seen, time.monotonic()
+            client.post("pong", json.dumps({"type": "pong", "n": m.n, "t": now}))
         elif isinstance(m, ScanCommand):
             self._on_scan(client, m)
         elif isinstance(m, ClutchCommand):

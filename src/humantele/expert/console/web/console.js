@@ -44,7 +44,8 @@ window.consoleApp = app;
 app.plot = plot;
 app.depthScale = depthScale;
 const hb = new Heartbeat(send);
-const clicks = new Clicks(send, showClick);
+const clicks = new Clicks(send, showClick, () => (hb.health(performance.now()).level === "behind"
+  ? "this page reads the expert daemon's answers late (the browser is behind)" : "the expert daemon is slow"));
 const itemsList = new ItemsList($("items"), $("items-count"), () => sessionStorage.getItem(KEY_STORE));
 app.heartbeat = hb;
 app.clicks = clicks;
@@ -100,7 +101,7 @@ function send(msg) {
 }
 
 function onText(m) {
-  if (m.type === "state") { app.state = m; app.stateAt = performance.now(); renderState(); }
+  if (m.type === "state") { app.state = m; app.stateAt = performance.now(); hb.saw(m.t, app.stateAt); renderState(); }
   else if (m.type === "pong") hb.pong(m, performance.now());
   else if (m.type === "items") itemsList.set(m.items);
   else if (m.type === "hello") onHello(m);
@@ -469,7 +470,12 @@ function greyChips(now, age) {
       : "the follower's data is stale: no fresh pose over the link";
     if (el.title !== title) el.title = title;
   }
-  for (const id of ["force-panel", "numbers"]) setData($(id), "stale", String(age > bound));
+  const old = age > bound;
+  for (const id of ["force-panel", "numbers"]) setData($(id), "stale", String(old));
+  if (old) { // the numbers the state gave are not now's: not shown as such
+    for (const id of ["n-pose", "n-fm", "n-fr", "n-servo"]) setText($(id), "stale");
+    setText($("fbar-value"), "–");
+  }
 }
 
 // The picture on screen: how old it is (ms, from its capture on the daemon's clock mapped to
@@ -523,22 +529,26 @@ function tick() {
   const h = hb.health(now);
   app.health = h;
   const bound = staleBound();
-  chip("chip-expert", { ok: "ok", slow: "warn", connecting: "off", lost: "bad" }[h.level],
+  chip("chip-expert", { ok: "ok", slow: "warn", behind: "warn", connecting: "off", lost: "bad" }[h.level],
     h.level === "ok" ? `ok · ${fmt(h.delay, 0, " ms")}` : h.level === "slow" ? `slow (${Math.round(h.peak)} ms)`
-      : h.level === "lost" ? "lost contact" : "connecting");
+      : h.level === "behind" ? `page behind (${Math.round(h.behind)} ms)` : h.level === "lost" ? "lost contact" : "connecting");
   const lost = !hb.open;
-  const slow = !lost && h.delay !== null && h.delay >= bound;
-  setData(document.body, "conn", lost ? "lost" : slow ? "slow" : "live");
+  const pageBehind = !lost && h.behind >= bound;
+  const slow = !lost && !pageBehind && h.delay !== null && h.delay >= bound;
   setHidden($("lost"), !lost || (app.stateAt === -Infinity && !app.closedReason && now < 3000));
   if (lost) {
     setText($("lost"), app.closedReason ? `The console is not connected: ${app.closedReason}`
       : "Lost contact with the expert daemon: nothing on this page is live (reconnecting…)");
   }
-  setHidden($("slow"), !slow);
+  setHidden($("slow"), !slow && !pageBehind);
   if (slow) {
     setText($("slow"), `The expert daemon is slow: no answer for ${fmtS(h.delay)} (its connection is open). `
       + "What is older than the stale bound is greyed.");
+  } else if (pageBehind) {
+    setText($("slow"), `This page is behind: it reads the expert daemon's messages ${fmtS(h.behind)} late `
+      + "(this browser cannot keep up; the machine is busy). What is older than the stale bound is greyed.");
   }
+  setData(document.body, "conn", lost ? "lost" : slow || pageBehind ? "slow" : "live");
   greyChips(now, age);
   for (const track of TRACKS) {
     const { v, live, age: fAge, last } = videoInfo(track, now);
@@ -556,6 +566,7 @@ function tick() {
       else {
         const newer = v && !v.stale && v.age_ms != null && v.age_ms < fAge - 250;
         why = `last frame ${fmtS(fAge)} old` + (lost ? " (daemon out of reach)" : slow ? " (the expert daemon is slow)"
+          : pageBehind ? " (this page is behind)"
           : newer ? `: the expert daemon has one ${fmtS(v.age_ms)} old, this page is behind drawing them` : "");
       }
       setText(overlay.querySelector("span"), why);

@@ -10,6 +10,12 @@
 // so "live" means a picture captured less than the stale bound ago, whatever the page did
 // with it meanwhile.
 //
+// Who is late: a daemon held up sends nothing (what this page reads was fresh when it came);
+// a page that cannot keep up reads messages that were sent long before (a busy browser). The
+// lag of the newest timed message read (a state's or pong's time against this page's clock)
+// tells them apart, and each ping tells the daemon how far behind the page reads, so it holds
+// its states and frames until the page catches up.
+//
 // Clicks: each click's message carries an id; the daemon's ``result`` with that id says what
 // became of it. A click that cannot be sent (no socket) or is not answered within ACK_MS is
 // said on the page, as is one whose socket dropped before its answer.
@@ -32,6 +38,8 @@ export class Heartbeat {
     this.lastPing = -Infinity;
     this.lastHeard = -Infinity; // page ms of the last message of any kind
     this.peaks = []; // [page ms, delay ms] of the last PEAK_MS
+    this.seenT = null; // daemon s of the newest timed message read
+    this.behind = 0; // ms: how late that message was read here (sent -> read)
   }
 
   opened(now) { this.open = true; this.out.clear(); this.lastHeard = now; this.lastPing = -Infinity; this.tick(now); }
@@ -42,12 +50,20 @@ export class Heartbeat {
     if (!this.open || now - this.lastPing < PING_MS) return;
     this.lastPing = now;
     const n = ++this.n;
-    if (this.send({ type: "ping", n })) this.out.set(n, now);
+    if (this.send({ type: "ping", n, seen: this.seenT })) this.out.set(n, now);
+  }
+
+  // A message with the daemon's time ``tS`` (s) read now: how late this page reads.
+  saw(tS, now) {
+    if (typeof tS !== "number" || !Number.isFinite(tS)) return;
+    this.seenT = this.seenT === null ? tS : Math.max(this.seenT, tS);
+    const at = this.toPage(tS);
+    if (at !== null) this.behind = Math.max(0, now - at);
   }
 
   pong(m, now) {
     const sent = this.out.get(m.n);
-    if (sent === undefined) return;
+    if (sent === undefined) { this.saw(m.t, now); return; }
     for (const k of [...this.out.keys()]) if (k <= m.n) this.out.delete(k);
     this.rtt = now - sent;
     this.samples.push({ at: now, rtt: this.rtt, off: m.t * 1000 - (sent + now) / 2 });
@@ -55,6 +71,7 @@ export class Heartbeat {
     let best = this.samples[0];
     for (const s of this.samples) if (s.rtt < best.rtt) best = s;
     this.offset = best.off;
+    this.saw(m.t, now);
   }
 
   // How late the daemon answers now (ms): the oldest unanswered ping's age, else the last
@@ -70,21 +87,25 @@ export class Heartbeat {
   // The daemon as the page sees it: {level: ok|slow|lost|connecting, delay (ms, now),
   // peak (ms, the longest of the last PEAK_MS: a daemon held up now and then stays "slow"
   // with it, rather than flickering between ok and slow)}.
+  // "behind": this page reads the daemon's messages late (the daemon is not to blame).
   health(now) {
-    if (!this.open) return { level: this.n === 0 && this.lastHeard === -Infinity ? "connecting" : "lost", delay: null, peak: null };
+    if (!this.open) return { level: this.n === 0 && this.lastHeard === -Infinity ? "connecting" : "lost", delay: null, peak: null, behind: 0 };
     const d = this.delay(now);
     if (d !== null) this.peaks.push([now, d]);
     while (this.peaks.length && now - this.peaks[0][0] > PEAK_MS) this.peaks.shift();
     const peak = this.peaks.reduce((m, p) => Math.max(m, p[1]), d ?? 0);
-    return { level: peak >= SLOW_MS ? "slow" : "ok", delay: d, peak };
+    const level = this.behind >= SLOW_MS ? "behind" : peak >= SLOW_MS ? "slow" : "ok";
+    return { level, delay: d, peak, behind: this.behind };
   }
 }
 
 export class Clicks {
-  // send(message) => bool; show({of, state: "sent"|"ok"|"failed"|"late", detail})
-  constructor(send, show) {
+  // send(message) => bool; show({of, state: "sent"|"ok"|"failed"|"late", detail}); why() =>
+  // who is late (text), for a click not acknowledged in time
+  constructor(send, show, why = () => "the expert daemon is slow") {
     this.send = send;
     this.show = show;
+    this.why = why;
     this.id = 0;
     this.pending = new Map(); // id -> {of, at, late}
   }
@@ -115,7 +136,7 @@ export class Clicks {
     for (const p of this.pending.values()) {
       if (!p.late && now - p.at > ACK_MS) {
         p.late = true;
-        this.show({ of: p.of, state: "late", detail: `sent ${((now - p.at) / 1000).toFixed(1)} s ago, not acknowledged yet: the expert daemon is slow` });
+        this.show({ of: p.of, state: "late", detail: `sent ${((now - p.at) / 1000).toFixed(1)} s ago, not acknowledged yet: ${this.why()}` });
       }
     }
   }
