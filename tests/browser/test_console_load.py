@@ -16,7 +16,8 @@ def test_console_tells_the_truth_when_the_daemon_is_slow(browser_scenario):
     assert "waiting for the follower's ultrasound" in d["no_video"]
     assert "waiting for the follower's probe contact" in d["empty"]
     assert d["live"]["us_stale"] == "false" and d["live"]["empty"] is None
-    assert d["live"]["expert_level"] == "ok" and d["live"]["lost"] is None
+    # (a loaded machine may make it slow or the page behind, not lost)
+    assert d["live"]["expert_level"] in ("ok", "warn") and d["live"]["lost"] is None
     # Frames keep coming but were captured 1.6 s before: not live, and it says how old.
     assert d["late_frames"][1] > d["late_frames"][0]
     assert "No live ultrasound" in d["late"], d["late"]
@@ -53,4 +54,5 @@ def test_console_tells_the_truth_when_the_daemon_is_slow(browser_scenario):
     # The daemon gone (socket closed): lost contact, and a click cannot be sent.
     assert "Lost contact with the expert daemon" in d["gone"]
     assert "not sent" in d["gone_click"] and d["gone_snap"]["expert"] == "lost contact"
+    assert len(d["gone_snap"]["chips_stale"]) == 6  # nothing shown as now's
     assert d["held_s"] > 5.0  # the loop was really held

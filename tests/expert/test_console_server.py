@@ -650,16 +650,16 @@ async def test_a_clip_counts_in_the_disk_budget(tmp_path):
 
 
 async def test_a_page_that_reads_late_gets_no_state_nor_frames_until_it_catches_up(tmp_path):
-    """The page's ping says how late it reads what it is sent (the expert's time of the newest
-    message it read): more than a second, and the states and frames wait (latest wins) while
-    the answers to its clicks and pings still go; caught up, they flow again."""
+    """The page's ping says how late it reads what it is sent: more than a second, and the
+    states and frames wait (latest wins) while the answers to its clicks and pings still go;
+    caught up, they flow again."""
     clock = FakeClock(50.0)
     frames = ManualFrames(clock)
     server = await serve(frames, Session(), tmp_path, clock=clock)
     try:
         async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
             await next_message(ws, lambda k, d: k == "json" and d["type"] == "state")
-            await ws.send_json({"type": "ping", "n": 1, "seen": 45.0})  # read 5 s late
+            await ws.send_json({"type": "ping", "n": 1, "behind_ms": 5000.0})  # reads 5 s late
             await next_message(ws, lambda k, d: k == "json" and d["type"] == "pong")
             await asyncio.sleep(0.3)  # states meanwhile (20 a second), if any, are queued...
             while True:  # ... drain what was sent before the ping arrived
@@ -674,7 +674,7 @@ async def test_a_page_that_reads_late_gets_no_state_nor_frames_until_it_catches_
                 while True:
                     got.append(await next_message(ws, lambda k, d: True, timeout=0.8))
             held = server.events["held_page_behind"]
-            await ws.send_json({"type": "ping", "n": 2, "seen": 50.0})  # caught up
+            await ws.send_json({"type": "ping", "n": 2, "behind_ms": 20.0})  # caught up
             state = await next_message(ws, lambda k, d: k == "json" and d["type"] == "state")
             frame = await next_message(ws, lambda k, d: k == "frame")
     finally:

@@ -106,12 +106,12 @@ class _Command(_Msg):
 class Ping(_Msg):
     """The page's heartbeat: answered at once with ``pong`` (same ``n``, the expert's clock
     ``t``, s), which measures how late the daemon answers and maps its clock to the page's.
-    ``seen``: the expert's time (s) of the newest message the page has read (a state's or a
-    pong's ``t``): how far behind the page reads what it is sent."""
+    ``behind_ms``: how late the page reads what it is sent (the least lag of the messages it
+    read in the last 2 s, from their ``t``; None: not known)."""
 
     type: Literal["ping"]
     n: CommandId
-    seen: float | None = Field(None, allow_inf_nan=False)
+    behind_ms: float | None = Field(None, ge=0.0, le=3.6e6, allow_inf_nan=False)
 
 
 class ScanCommand(_Command):

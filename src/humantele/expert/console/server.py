@@ -514,10 +514,9 @@ class ConsoleServer:
         if isinstance(m, Drawn):
             self._on_drawn(client, m, arrival)
         elif isinstance(m, Ping):  # answered at once: the page measures how late we are
-            now = self.clock()
-            if m.seen is not None:
-                client.behind_s, client.behind_at = now - m.seen, time.monotonic()
-            client.post("pong", json.dumps({"type": "pong", "n": m.n, "t": now}))
+            if m.behind_ms is not None:
+                client.behind_s, client.behind_at = m.behind_ms / 1000.0, time.monotonic()
+            client.post("pong", json.dumps({"type": "pong", "n": m.n, "t": self.clock()}))
         elif isinstance(m, ScanCommand):
             self._on_scan(client, m)
         elif isinstance(m, ClutchCommand):

@@ -463,14 +463,14 @@ function greyChips(now, age) {
   const bound = staleBound();
   const linkStale = !app.state || Boolean((app.state.link || {}).stale);
   for (const [id, src] of Object.entries(CHIP_SOURCE)) {
-    const el = $(id), old = age > bound;
+    const el = $(id), old = age > bound || !hb.open; // no socket: nothing is now's
     const stale = old || (src === "follower" && linkStale);
     setData(el, "stale", String(stale));
     const title = !stale ? "" : old ? `as the expert daemon last said, ${age === Infinity ? "never" : `${fmtS(age)} ago`}`
       : "the follower's data is stale: no fresh pose over the link";
     if (el.title !== title) el.title = title;
   }
-  const old = age > bound;
+  const old = age > bound || !hb.open;
   for (const id of ["force-panel", "numbers"]) setData($(id), "stale", String(old));
   if (old) { // the numbers the state gave are not now's: not shown as such
     for (const id of ["n-pose", "n-fm", "n-fr", "n-servo"]) setText($(id), "stale");

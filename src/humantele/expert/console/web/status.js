@@ -10,11 +10,11 @@
 // so "live" means a picture captured less than the stale bound ago, whatever the page did
 // with it meanwhile.
 //
-// Who is late: a daemon held up sends nothing (what this page reads was fresh when it came);
-// a page that cannot keep up reads messages that were sent long before (a busy browser). The
-// lag of the newest timed message read (a state's or pong's time against this page's clock)
-// tells them apart, and each ping tells the daemon how far behind the page reads, so it holds
-// its states and frames until the page catches up.
+// Who is late: a daemon held up sends nothing, then one late message and fresh ones again; a
+// page that cannot keep up reads every message long after it was sent (a busy browser). The
+// least lag of the timed messages read in the last 2 s (a state's or pong's time against this
+// page's clock; none read: not behind) tells them apart, and each ping tells the daemon how
+// far behind the page reads, so it holds its states and frames until the page catches up.
 //
 // Clicks: each click's message carries an id; the daemon's ``result`` with that id says what
 // became of it. A click that cannot be sent (no socket) or is not answered within ACK_MS is
@@ -25,6 +25,7 @@ export const SLOW_MS = 300; // answers later than this: the daemon is slow
 export const ACK_MS = 3000; // a click not answered by then: said so
 const OFFSET_WINDOW_MS = 60000;
 const PEAK_MS = 3000;
+const BEHIND_WINDOW_MS = 2000;
 
 export class Heartbeat {
   constructor(send) {
@@ -38,8 +39,8 @@ export class Heartbeat {
     this.lastPing = -Infinity;
     this.lastHeard = -Infinity; // page ms of the last message of any kind
     this.peaks = []; // [page ms, delay ms] of the last PEAK_MS
-    this.seenT = null; // daemon s of the newest timed message read
-    this.behind = 0; // ms: how late that message was read here (sent -> read)
+    this.lags = []; // [page ms, ms from its daemon time to its reading] of timed messages read
+    this.behind = 0; // ms: the least of those lags over the last BEHIND_WINDOW_MS
   }
 
   opened(now) { this.open = true; this.out.clear(); this.lastHeard = now; this.lastPing = -Infinity; this.tick(now); }
@@ -50,15 +51,21 @@ export class Heartbeat {
     if (!this.open || now - this.lastPing < PING_MS) return;
     this.lastPing = now;
     const n = ++this.n;
-    if (this.send({ type: "ping", n, seen: this.seenT })) this.out.set(n, now);
+    this.update(now);
+    if (this.send({ type: "ping", n, behind_ms: Math.round(this.behind) })) this.out.set(n, now);
   }
 
   // A message with the daemon's time ``tS`` (s) read now: how late this page reads.
   saw(tS, now) {
     if (typeof tS !== "number" || !Number.isFinite(tS)) return;
-    this.seenT = this.seenT === null ? tS : Math.max(this.seenT, tS);
     const at = this.toPage(tS);
-    if (at !== null) this.behind = Math.max(0, now - at);
+    if (at !== null) this.lags.push([now, Math.max(0, now - at)]);
+    this.update(now);
+  }
+
+  update(now) {
+    while (this.lags.length && now - this.lags[0][0] > BEHIND_WINDOW_MS) this.lags.shift();
+    this.behind = this.lags.length >= 2 ? Math.min(...this.lags.map((l) => l[1])) : 0;
   }
 
   pong(m, now) {
@@ -91,6 +98,7 @@ export class Heartbeat {
   health(now) {
     if (!this.open) return { level: this.n === 0 && this.lastHeard === -Infinity ? "connecting" : "lost", delay: null, peak: null, behind: 0 };
     const d = this.delay(now);
+    this.update(now);
     if (d !== null) this.peaks.push([now, d]);
     while (this.peaks.length && now - this.peaks[0][0] > PEAK_MS) this.peaks.shift();
     const peak = this.peaks.reduce((m, p) => Math.max(m, p[1]), d ?? 0);
