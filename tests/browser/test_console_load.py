@@ -51,6 +51,12 @@ def test_console_tells_the_truth_when_the_daemon_is_slow(browser_scenario):
     assert d["commands"] == ["scan"]
     r = d["recovered"]
     assert r["slow"] is None and r["chips_stale"] == [] and r["expert_level"] == "ok"
+    # A page that cannot keep up (CPU throttled): "page behind", not the daemon's fault nor
+    # lost; the daemon held its states and frames meanwhile; it caught up.
+    b = d["behind"]
+    assert b["lost"] is None and b["slow"].startswith("This page is behind: it reads"), b
+    assert d["held_page_behind"] > 0
+    assert d["caught_up"]["slow"] is None and d["caught_up"]["lost"] is None
     # The daemon gone (socket closed): lost contact, and a click cannot be sent.
     assert "Lost contact with the expert daemon" in d["gone"]
     assert "not sent" in d["gone_click"] and d["gone_snap"]["expert"] == "lost contact"

@@ -5,6 +5,7 @@ and record, and bad input is refused and counted while the server goes on."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import math
 import time
@@ -649,10 +650,12 @@ async def test_a_clip_counts_in_the_disk_budget(tmp_path):
     assert server.refused["capture_disk"] == 1
 
 
-async def test_a_page_that_reads_late_gets_no_state_nor_frames_until_it_catches_up(tmp_path):
+async def test_a_page_that_reads_late_gets_a_state_and_a_frame_a_second_till_it_catches_up(
+    tmp_path,
+):
     """The page's ping says how late it reads what it is sent: more than a second, and the
-    states and frames wait (latest wins) while the answers to its clicks and pings still go;
-    caught up, they flow again."""
+    states and frames wait (the newest sent once a second) while the answers to its clicks and
+    pings still go; caught up, they flow again."""
     clock = FakeClock(50.0)
     frames = ManualFrames(clock)
     server = await serve(frames, Session(), tmp_path, clock=clock)
@@ -661,23 +664,25 @@ async def test_a_page_that_reads_late_gets_no_state_nor_frames_until_it_catches_
             await next_message(ws, lambda k, d: k == "json" and d["type"] == "state")
             await ws.send_json({"type": "ping", "n": 1, "behind_ms": 5000.0})  # reads 5 s late
             await next_message(ws, lambda k, d: k == "json" and d["type"] == "pong")
-            await asyncio.sleep(0.3)  # states meanwhile (20 a second), if any, are queued...
-            while True:  # ... drain what was sent before the ping arrived
-                try:
-                    await ws.receive(timeout=0.2)
-                except TimeoutError:
-                    break
             frames.next("us")
             await ws.send_json({"type": "scan", "action": "start", "id": 9})
-            got = []
-            with pytest.raises(TimeoutError):
-                while True:
-                    got.append(await next_message(ws, lambda k, d: True, timeout=0.8))
+            got, t0 = [], time.monotonic()
+            while time.monotonic() - t0 < 1.9:  # within the 2 s a ping's word holds
+                with contextlib.suppress(TimeoutError):
+                    got.append(await next_message(ws, lambda k, d: True, timeout=0.1))
             held = server.events["held_page_behind"]
             await ws.send_json({"type": "ping", "n": 2, "behind_ms": 20.0})  # caught up
             state = await next_message(ws, lambda k, d: k == "json" and d["type"] == "state")
+            frames.next("us")
             frame = await next_message(ws, lambda k, d: k == "frame")
+            states = 0
+            while states < 5:  # twenty a second again
+                await next_message(ws, lambda k, d: k == "json" and d["type"] == "state", 1.0)
+                states += 1
     finally:
         await server.stop()
-    assert [(m["type"], m.get("id")) for m in got] == [("result", 9)]  # the click's answer only
-    assert held > 0 and state["t"] == 50.0 and frame[0]["track"] == "us"
+    kinds = [m["type"] if isinstance(m, dict) else m[0]["track"] for m in got]
+    assert ("result", 9) in [(m.get("type"), m.get("id")) for m in got if isinstance(m, dict)]
+    # Twenty states a second and a frame were due; a state and the frame about once a second.
+    assert 1 <= kinds.count("state") <= 3 and kinds.count("us") <= 1, kinds
+    assert held > 20 and state["t"] == 50.0 and frame[0]["track"] == "us"

@@ -257,7 +257,22 @@ async def run(ctx) -> dict:
         data["recovered"] = await snap()
         data["commands"] = list(session.commands)
 
-        # 5. The daemon gone (its socket closed): lost contact; a click cannot be sent.
+        # 5. A page that cannot keep up (Chromium's CPU throttled 40 times): it reads the
+        #    daemon's messages late, says so ("page behind", not "slow", never "lost"), and the
+        #    daemon holds its states and frames until it catches up (then it does).
+        cdp = await page.context.new_cdp_session(page)
+        await cdp.send("Emulation.setCPUThrottlingRate", {"rate": 40})
+        data["behind"] = await ctx.until(
+            page, "(() => { const s = (" + SNAPSHOT_JS + ")();"
+            " return s.expert.startsWith('page behind') && s.slow && s; })()", 120,
+        )  # fmt: skip
+        await cdp.send("Emulation.setCPUThrottlingRate", {"rate": 1})
+        data["held_page_behind"] = server.events["held_page_behind"]
+        await ctx.until(page, "document.getElementById('chip-expert').dataset.level === 'ok'"
+                        " && document.getElementById('slow').hidden", 120)  # fmt: skip
+        data["caught_up"] = await snap()
+
+        # 6. The daemon gone (its socket closed): lost contact; a click cannot be sent.
         await daemon.run(server.stop())
         data["gone"] = await ctx.until(
             page, "!document.getElementById('lost').hidden && document.getElementById('lost')"

@@ -83,11 +83,13 @@ IN_FLIGHT = 2  # frames of a track sent to a page and not yet drawn; more wait (
 CAPTURE_BURST = 10  # captures at once before captures_per_minute applies
 IN_FLIGHT_TIMEOUT_S = 0.5  # a page that echoes nothing for this long gets the next frame
 SEQS_KEPT = 256  # frames per track whose times are kept for the page's echoes
-# A page that reads what it is sent this late (its pings say) gets no more state nor frames
-# until it catches up (latest wins meanwhile): a busy browser's queue never grows to seconds,
-# and the answers to its clicks (never held) reach it. A page that stops pinging is released.
+# A page that reads what it is sent this late (its pings say) gets the state and each track's
+# frames once every PAGE_BEHIND_EVERY_S only (the newest) until it catches up: a busy
+# browser's queue never grows to seconds, it still sees something, and the answers to its
+# clicks (never held) reach it. A page that stops pinging is released.
 PAGE_BEHIND_S = 1.0
 PAGE_BEHIND_FOR_S = 2.0
+PAGE_BEHIND_EVERY_S = 1.0
 
 
 class ConsoleConfig(ConfigModel):
@@ -171,6 +173,7 @@ class _Client(PageClient):
         self.in_flight: dict[str, deque[tuple[int, float]]] = {t: deque() for t in TRACKS}
         self.behind_s = 0.0  # how late the page read our newest message, at its last ping
         self.behind_at = -math.inf  # when that ping came (time.monotonic)
+        self.trickle: dict[str, float] = {}  # key -> when last sent while behind
 
     def behind(self, now: float) -> bool:
         """Whether the page is reading what it is sent more than PAGE_BEHIND_S late."""
@@ -357,8 +360,10 @@ class ConsoleServer:
             return False
         now = time.monotonic()
         if (key == "state" or key.startswith("frame:")) and client.behind(now):
-            self.events["held_page_behind"] += 1
-            return True
+            if now - client.trickle.get(key, -math.inf) < PAGE_BEHIND_EVERY_S:
+                self.events["held_page_behind"] += 1
+                return True
+            client.trickle[key] = now  # the newest, once a second
         track = key[6:] if key.startswith("frame:") else None
         if track not in TRACKS:
             return False

@@ -533,8 +533,11 @@ function tick() {
     h.level === "ok" ? `ok · ${fmt(h.delay, 0, " ms")}` : h.level === "slow" ? `slow (${Math.round(h.peak)} ms)`
       : h.level === "behind" ? `page behind (${Math.round(h.behind)} ms)` : h.level === "lost" ? "lost contact" : "connecting");
   const lost = !hb.open;
-  const pageBehind = !lost && h.behind >= bound;
-  const slow = !lost && !pageBehind && h.delay !== null && h.delay >= bound;
+  // Late by the stale bound or more: the page's fault when it reads late ("behind"), else the
+  // daemon's.
+  const late = Math.max(h.delay ?? 0, h.level === "behind" ? h.behind : 0);
+  const pageBehind = !lost && h.level === "behind" && late >= bound;
+  const slow = !lost && !pageBehind && late >= bound;
   setHidden($("lost"), !lost || (app.stateAt === -Infinity && !app.closedReason && now < 3000));
   if (lost) {
     setText($("lost"), app.closedReason ? `The console is not connected: ${app.closedReason}`
@@ -545,7 +548,7 @@ function tick() {
     setText($("slow"), `The expert daemon is slow: no answer for ${fmtS(h.delay)} (its connection is open). `
       + "What is older than the stale bound is greyed.");
   } else if (pageBehind) {
-    setText($("slow"), `This page is behind: it reads the expert daemon's messages ${fmtS(h.behind)} late `
+    setText($("slow"), `This page is behind: it reads the expert daemon's messages ${fmtS(late)} late `
       + "(this browser cannot keep up; the machine is busy). What is older than the stale bound is greyed.");
   }
   setData(document.body, "conn", lost ? "lost" : slow || pageBehind ? "slow" : "live");
