@@ -576,7 +576,8 @@ async def test_capture_keeps_a_clip_listed_with_the_measurements(tmp_path):
 
     clock = FakeClock()
     frames = ManualFrames(clock)
-    server = await serve(frames, Session(), tmp_path, clock=clock, clip_seconds=1.0)
+    rec = Recorder(tmp_path / "s.expert.mcap", "expert")
+    server = await serve(frames, Session(recorder=rec), tmp_path, clock=clock, clip_seconds=1.0)
     try:
         async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
             for _ in range(30):  # 1.5 s of frames at 20 fps
@@ -605,6 +606,7 @@ async def test_capture_keeps_a_clip_listed_with_the_measurements(tmp_path):
                 unknown = r.status
     finally:
         await server.stop()
+        rec.close()
     assert clip["ok"] and clip["id"] == 3
     kinds = [(i["kind"], i["seq"]) for i in items["items"]]
     assert kinds == [("caliper", 20), ("note", 20), ("capture", 25)]
@@ -622,6 +624,9 @@ async def test_capture_keeps_a_clip_listed_with_the_measurements(tmp_path):
     assert n == 21
     info = json.loads((tmp_path / "captures" / still.replace(".jpg", ".json")).read_text())
     assert info["clip"] == {"file": mp4, "frames": 21}
+    events = read_recording(tmp_path / "s.expert.mcap").samples("/expert/console")
+    assert [e["event"] for e in events] == ["caliper", "annotation", "capture", "clip"]
+    assert events[3]["file"] == mp4 and events[3]["still"] == still and events[3]["frames"] == 21
 
 
 async def test_a_clip_counts_in_the_disk_budget(tmp_path):

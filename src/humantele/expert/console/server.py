@@ -90,6 +90,7 @@ SEQS_KEPT = 256  # frames per track whose times are kept for the page's echoes
 PAGE_BEHIND_S = 1.0
 PAGE_BEHIND_FOR_S = 2.0
 PAGE_BEHIND_EVERY_S = 1.0
+CLIP_FINISH_S = 20.0  # at stop, a clip being written gets this long to finish
 
 
 class ConsoleConfig(ConfigModel):
@@ -264,6 +265,7 @@ class ConsoleServer:
         self._file_key = Credential(self.key, throttle=False)  # the captured files' reads
         self.clips_writing = 0
         self._tasks: list[asyncio.Task] = []
+        self._clips: set[asyncio.Task] = set()  # clips being written
         self.in_flight_timeout_s = IN_FLIGHT_TIMEOUT_S
         self._index = (WEB_DIR / "index.html").read_bytes()
 
@@ -322,6 +324,8 @@ class ConsoleServer:
 
     async def stop(self) -> None:
         self.pages.closing = True  # a page reconnecting now is turned away (cleanup waits)
+        if self._clips:  # a clip being written is finished (and recorded), not cut short
+            await asyncio.wait(list(self._clips), timeout=CLIP_FINISH_S)
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
@@ -725,8 +729,8 @@ class ConsoleServer:
         self._result(client, "capture", True, detail, seq=f.seq, file=str(path), id=m.id)
         if clip:
             task = asyncio.create_task(self._write_clip(client, path, clip, item, m.id))
-            self._tasks.append(task)
-            task.add_done_callback(self._tasks.remove)
+            self._clips.add(task)
+            task.add_done_callback(self._clips.discard)
 
     async def _write_clip(
         self, client: _Client, still: Path, frames: list[CineFrame], item: dict, cmd_id: int | None

@@ -473,7 +473,7 @@ function greyChips(now, age) {
   const old = age > bound || !hb.open;
   for (const id of ["force-panel", "numbers"]) setData($(id), "stale", String(old));
   if (old) { // the numbers the state gave are not now's: not shown as such
-    for (const id of ["n-pose", "n-fm", "n-fr", "n-servo"]) setText($(id), "stale");
+    for (const id of ["n-pose", "n-fm", "n-fr", "n-servo"]) setText($(id), app.state ? "stale" : "–");
     setText($("fbar-value"), "–");
   }
 }
@@ -529,9 +529,10 @@ function tick() {
   const h = hb.health(now);
   app.health = h;
   const bound = staleBound();
-  chip("chip-expert", { ok: "ok", slow: "warn", behind: "warn", connecting: "off", lost: "bad" }[h.level],
+  chip("chip-expert", app.closedReason && !hb.open ? "bad" : { ok: "ok", slow: "warn", behind: "warn", connecting: "off", lost: "bad" }[h.level],
     h.level === "ok" ? `ok · ${fmt(h.delay, 0, " ms")}` : h.level === "slow" ? `slow (${Math.round(h.peak)} ms)`
-      : h.level === "behind" ? `page behind (${Math.round(h.behind)} ms)` : h.level === "lost" ? "lost contact" : "connecting");
+      : h.level === "behind" ? `page behind (${Math.round(h.behind)} ms)` : app.closedReason ? "not connected"
+      : h.level === "lost" ? "lost contact" : "connecting");
   const lost = !hb.open;
   // Late by the stale bound or more: the page's fault when it reads late ("behind"), else the
   // daemon's.
