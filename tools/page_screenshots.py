@@ -22,6 +22,10 @@ PICTURES = {
         "console_page_frozen.png": "console_frozen.png",
         "console_page_stale.png": "console_stale.png",
     },
+    "console_load": {
+        "console_load_slow.png": "console_slow.png",
+        "console_load_empty.png": "console_empty.png",
+    },
     "demo_pages": {"console_sim.png": "console_sim.png"},
     "headset_feed": {"headset_pairing.png": "headset_pairing.png"},
     "headset_session": {
@@ -31,7 +35,7 @@ PICTURES = {
     },
 }
 GROUPS = {
-    "console": ("console_page", "demo_pages"),
+    "console": ("console_page", "console_load", "demo_pages"),
     "headset": ("headset_session", "headset_feed"),
 }
 

@@ -7,8 +7,10 @@ the expert (sim Touch X held by the scripted sonographer, 1 kHz servo process) a
 directory, so its simulated person performs the four-landmark calibration first; the expert
 then gets the patient model and the session runs.
 
-A status line shows the pose rate and age at the follower, the haptic force at the expert, the
-follower's alignment error and the link state. ``--duration S`` ends the run S seconds after
+A status line shows what the session does or waits for (:mod:`humantele.demo_status`:
+starting daemons, waiting for the link, starting the tracker, calibrating, following), the pose
+rate and age at the follower, the haptic force at the expert and the follower's alignment
+error. ``--duration S`` ends the run S seconds after
 both daemons have started (their first stats; a daemon not started within ``START_TIMEOUT_S``
 fails the demo), so a slow start on a busy machine never cuts the run short; ``--json`` prints
 one summary object, on one line, as the last line of output. Ctrl-C or SIGTERM: the daemons
@@ -45,6 +47,7 @@ from typing import Any
 from pydantic import field_validator
 
 from humantele.cliargs import duration_s, log_level, port
+from humantele.demo_status import demo_phase
 from humantele.recording.schemas import check_participant_id
 from humantele.runtime.process import PARENT_PID_ENV, ignore_stop_signals, on_stop_signals
 from humantele.runtime.stats import read_stats
@@ -171,12 +174,8 @@ def _status_line(e: dict[str, Any], f: dict[str, Any], elapsed: float) -> str:
     def num(v: Any, fmt: str) -> str:
         return "-" if v is None else format(v, fmt)
 
-    if f.get("calibrated"):
-        cal = "calibrated"
-    else:
-        cal = f"calibrating ({f.get('calibration_step') or '...'})"
     return (
-        f"[{elapsed:5.1f} s] link {f.get('link_state', '-')}, {cal} | "
+        f"[{elapsed:5.1f} s] {demo_phase(e, f)} | "
         f"poses {num(f.get('pose_rate_hz'), '.0f')} Hz, "
         f"age {num(f.get('pose_age_last_ms'), '.1f')} ms | "
         f"force {num(e.get('force_n'), '.2f')} N | "

@@ -28,10 +28,11 @@ def test_console_page(browser_scenario):
     assert c["label"] == pytest.approx(c["server_mm"])
     assert d["annotation"]["ok"] and d["annotation"]["detail"] == "lower pole, right kidney"
     assert d["capture"]["ok"]
-    assert len(d["captures"]) == 2 and d["captures"][0].endswith(".jpg")
+    # The still, its pose and the clip of the cine's seconds before it (the page's default).
+    assert [n.rsplit(".", 1)[1] for n in d["captures"]] == ["jpg", "json", "mp4"]
     # Stale video and a lost link are shown as such, never as live; and they clear.
     s = d["stale"]
-    assert "No ultrasound" in s["us"] and "last frame" in s["us"] and s["info"] == "not live"
+    assert "No live ultrasound" in s["us"] and "last frame" in s["us"] and s["info"] == "not live"
     assert "disconnected" in s["link"] and s["align"].endswith("–") and s["bar"] == "–"
     assert "connected ·" in d["recovered_link"]
     # Bad pages: a second console and another site's page are refused, nonsense counted.

@@ -5,6 +5,7 @@ and record, and bad input is refused and counted while the server goes on."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import math
 import time
@@ -521,3 +522,173 @@ async def test_captures_are_capped_in_rate_and_in_disk_use(tmp_path):
         await server.stop()
     assert not r["ok"] and "captures_max_mb" in r["detail"]
     assert server.refused["capture_disk"] == 1
+
+
+async def test_pings_clicks_and_their_answers(tmp_path):
+    """A ping is answered at once with the expert's clock; each click with an id gets its own
+    answer (two quick ones both come back); the state carries the expert's clock."""
+    clock = FakeClock(123.5)
+    session = Session()
+    server = await serve(ManualFrames(clock), session, tmp_path, clock=clock)
+    try:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
+            state = await next_message(ws, lambda k, d: k == "json" and d["type"] == "state")
+            assert state["t"] == 123.5
+            await ws.send_json({"type": "ping", "n": 7})
+            pong = await next_message(ws, lambda k, d: k == "json" and d["type"] == "pong")
+            assert pong == {"type": "pong", "n": 7, "t": 123.5}
+            await ws.send_json({"type": "scan", "action": "start", "id": 1})
+            await ws.send_json({"type": "clutch", "on": True, "id": 2})
+            await ws.send_json({"type": "scan", "action": "stop", "id": 3})
+            await ws.send_json({"type": "freeze", "on": True, "id": 4})
+            got = {}
+            while len(got) < 4:
+                r = await next_message(ws, lambda k, d: k == "json" and d["type"] == "result")
+                got[r["id"]] = (r["of"], r["ok"], r["detail"])
+            await ws.send_json({"type": "ping", "n": -1})  # refused, counted
+            await ws.send_json({"type": "capture", "seq": 1, "id": 5, "clip_s": 99.0})
+            for _ in range(100):
+                if server.refused["malformed"] >= 2:
+                    break
+                await asyncio.sleep(0.01)
+    finally:
+        await server.stop()
+    assert got == {
+        1: ("scan", True, "scan 1 started"),
+        2: ("clutch", True, "held"),
+        3: ("scan", True, "scan stopped"),
+        4: ("freeze", True, "frozen"),
+    }
+    assert server.refused["malformed"] == 2  # a clip of over 60 s is not asked for
+
+
+async def wait_for(pred, timeout: float = 20.0) -> None:
+    end = time.monotonic() + timeout
+    while not pred():
+        assert time.monotonic() < end, "timed out"
+        await asyncio.sleep(0.02)
+
+
+async def test_capture_keeps_a_clip_listed_with_the_measurements(tmp_path):
+    """Capture with clip_s: the still, then the cine's last seconds up to that frame as an MP4
+    beside it (written off the loop), listed with the session's calipers and notes; the page
+    can fetch both with the run's key, nothing else and not without it."""
+    from humantele.export.clip import write_clip  # noqa: F401 - needs PyAV (the export extra)
+
+    clock = FakeClock()
+    frames = ManualFrames(clock)
+    rec = Recorder(tmp_path / "s.expert.mcap", "expert")
+    server = await serve(frames, Session(recorder=rec), tmp_path, clock=clock, clip_seconds=1.0)
+    try:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
+            for _ in range(30):  # 1.5 s of frames at 20 fps
+                f = frames.next("us")
+                await next_message(ws, lambda k, d, s=f.seq: k == "frame" and d[0]["seq"] == s)
+                clock.t += 0.05
+            await ws.send_json({"type": "caliper", "seq": 20, "a": [10.0, 10.0],
+                                "b": [40.0, 50.0], "id": 1})  # fmt: skip
+            await ws.send_json({"type": "annotation", "seq": 20, "at": [5.0, 5.0],
+                                "text": "gallbladder", "id": 2})  # fmt: skip
+            await ws.send_json({"type": "capture", "seq": 25, "clip_s": 5.0, "id": 3})
+            clip = await next_message(
+                ws, lambda k, d: k == "json" and d["type"] == "result" and d["of"] == "clip", 60
+            )
+            items = await next_message(
+                ws, lambda k, d: k == "json" and d["type"] == "items"
+                and any(i.get("clip") for i in d["items"]),
+            )  # fmt: skip
+            base = server.address + "captures/"
+            still, mp4 = items["items"][-1]["file"], items["items"][-1]["clip"]
+            async with http.get(f"{base}{mp4}?key={server.key}") as r:
+                got = (r.status, await r.read())
+            async with http.get(f"{base}{still}") as r:
+                no_key = r.status
+            async with http.get(f"{base}capture-other.jpg?key={server.key}") as r:
+                unknown = r.status
+    finally:
+        await server.stop()
+        rec.close()
+    assert clip["ok"] and clip["id"] == 3
+    kinds = [(i["kind"], i["seq"]) for i in items["items"]]
+    assert kinds == [("caliper", 20), ("note", 20), ("capture", 25)]
+    cap = items["items"][-1]
+    # The clip's last second (clip_seconds caps the page's 5 s) up to frame 25: 21 frames.
+    assert cap["clip_frames"] == 21 and cap["clip_s"] == pytest.approx(1.0, abs=0.01)
+    saved = sorted(p.name for p in (tmp_path / "captures").iterdir())
+    assert saved == sorted([still, still.replace(".jpg", ".json"), mp4])
+    assert got[0] == 200 and got[1] == (tmp_path / "captures" / mp4).read_bytes()
+    assert no_key == 401 and unknown == 404
+    import av
+
+    with av.open(str(tmp_path / "captures" / mp4)) as c:
+        n = sum(1 for _ in c.decode(video=0))
+    assert n == 21
+    info = json.loads((tmp_path / "captures" / still.replace(".jpg", ".json")).read_text())
+    assert info["clip"] == {"file": mp4, "frames": 21}
+    events = read_recording(tmp_path / "s.expert.mcap").samples("/expert/console")
+    assert [e["event"] for e in events] == ["caliper", "annotation", "capture", "clip"]
+    assert events[3]["file"] == mp4 and events[3]["still"] == still and events[3]["frames"] == 21
+
+
+async def test_a_clip_counts_in_the_disk_budget(tmp_path):
+    """A capture whose clip would not fit the captures budget is refused whole, with the
+    reason (a still alone would have fitted)."""
+    clock = FakeClock()
+    frames = ManualFrames(clock)
+    server = await serve(frames, Session(), tmp_path, clock=clock, clip_seconds=5.0)
+    try:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
+            for _ in range(40):
+                f = frames.next("us")
+                await next_message(ws, lambda k, d, s=f.seq: k == "frame" and d[0]["seq"] == s)
+                clock.t += 0.05
+            frame_bytes = len(server.cine.get(f.seq).jpeg)
+            # Room for a still and a few frames, not for 40.
+            server.config.captures_max_mb = (frame_bytes * 5 + 2048) / 1e6
+            await ws.send_json({"type": "capture", "seq": f.seq, "clip_s": 5.0, "id": 1})
+            r1 = await next_message(ws, lambda k, d: k == "json" and d["type"] == "result")
+            await ws.send_json({"type": "capture", "seq": f.seq, "id": 2})  # a still: fits
+            r2 = await next_message(ws, lambda k, d: k == "json" and d["type"] == "result")
+    finally:
+        await server.stop()
+    assert not r1["ok"] and "captures_max_mb" in r1["detail"] and r1["id"] == 1
+    assert r2["ok"] and r2["id"] == 2
+    assert server.refused["capture_disk"] == 1
+
+
+async def test_a_page_that_reads_late_gets_a_state_and_a_frame_a_second_till_it_catches_up(
+    tmp_path,
+):
+    """The page's ping says how late it reads what it is sent: more than a second, and the
+    states and frames wait (the newest sent once a second) while the answers to its clicks and
+    pings still go; caught up, they flow again."""
+    clock = FakeClock(50.0)
+    frames = ManualFrames(clock)
+    server = await serve(frames, Session(), tmp_path, clock=clock)
+    try:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
+            await next_message(ws, lambda k, d: k == "json" and d["type"] == "state")
+            await ws.send_json({"type": "ping", "n": 1, "behind_ms": 5000.0})  # reads 5 s late
+            await next_message(ws, lambda k, d: k == "json" and d["type"] == "pong")
+            frames.next("us")
+            await ws.send_json({"type": "scan", "action": "start", "id": 9})
+            got, t0 = [], time.monotonic()
+            while time.monotonic() - t0 < 1.9:  # within the 2 s a ping's word holds
+                with contextlib.suppress(TimeoutError):
+                    got.append(await next_message(ws, lambda k, d: True, timeout=0.1))
+            held = server.events["held_page_behind"]
+            await ws.send_json({"type": "ping", "n": 2, "behind_ms": 20.0})  # caught up
+            state = await next_message(ws, lambda k, d: k == "json" and d["type"] == "state")
+            frames.next("us")
+            frame = await next_message(ws, lambda k, d: k == "frame")
+            states = 0
+            while states < 5:  # twenty a second again
+                await next_message(ws, lambda k, d: k == "json" and d["type"] == "state", 1.0)
+                states += 1
+    finally:
+        await server.stop()
+    kinds = [m["type"] if isinstance(m, dict) else m[0]["track"] for m in got]
+    assert ("result", 9) in [(m.get("type"), m.get("id")) for m in got if isinstance(m, dict)]
+    # Twenty states a second and a frame were due; a state and the frame about once a second.
+    assert 1 <= kinds.count("state") <= 3 and kinds.count("us") <= 1, kinds
+    assert held > 20 and state["t"] == 50.0 and frame[0]["track"] == "us"

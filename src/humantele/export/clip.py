@@ -1,6 +1,6 @@
 """A clip of the console's cine (the last seconds of ultrasound, as JPEGs the page drew) as
-an H.264 MP4, each frame at its capture time: the building block for the console's
-"Capture clip" beside the still (the console's wiring is not done here; docs/export.md).
+an H.264 MP4, each frame at its capture time: the console's Capture keeps one beside the
+still (:mod:`humantele.expert.console.server`, ``clip_seconds``; docs/console.md).
 Run it off the event loop: about 6 ms a 640 x 480 frame.
 """
 

@@ -176,6 +176,7 @@ class SensingWorker:
             "sensing_skipped": self.skipped,
             "sensing_starting": self.starting,
             "sensing_worker": "process" if running else "thread",
+            "sensing_ready": self.measuring(),  # False while the sensing process starts
             "sensing_restarts": 0 if proc is None else proc.restarts,
             "sensing_p50_ms": percentile_ms(self.times, 50),
             "sensing_p99_ms": percentile_ms(self.times, 99),

@@ -45,6 +45,11 @@ from humantele.tracking.tool import ToolDefinition
 from humantele.video.scene import SceneSnapshot
 
 OUT_OF_VIEW = Pose([0.0, 0.0, -1.0], [0.0, 0.0, 0.0, 1.0])  # behind the camera: not drawn
+# The scripted technician keeps a press on until the headset page says the landmark was taken
+# (it asks for the next one), as a person reading the page does, at most this long past the
+# script's hold (s): then lifts and presses again (a press the sensing never saw, or refused).
+CONFIRM_WAIT_S = 4.0
+LIFTED_M = 0.03  # the probe this near the script's lifted pose: lifted, off to the next one
 
 
 class SimClinic:
@@ -58,6 +63,8 @@ class SimClinic:
         self.on_scene = on_scene
         self.script: CalibrationScript | None = None
         self.script_t0 = 0.0
+        self.pressing: str | None = None  # the landmark the technician's press is for
+        self.waiting_since: float | None = None  # held past the script, for the page's word
         self._head: Pose | None = None
         self._scene: SceneSnapshot | None = None
 
@@ -66,19 +73,42 @@ class SimClinic:
         technician) onto the landmark asked for, again if refused; still otherwise."""
         t, target = guide.t, None
         if guide.landmark is not None and self.config.auto_calibrate:
-            if self.script is None:
-                self.script, self.script_t0 = self.world.calibration_script(), t
-            if not guide.measuring:  # a press before the sensing measures is not seen
-                self.script_t0 = t
-            target = self.script.target(guide.landmark, t - self.script_t0)
-            if target is None:
-                self.script_t0 = t
-                target = self.script.target(guide.landmark, 0.0)
+            target = self._press(guide)
         else:
-            self.script = None
+            self.script = self.pressing = None
             target = guide.virtual if guide.live else None
         self.world.step(t, target)
         self._publish_scene(t, guide.virtual)
+
+    def _press(self, guide: Guide) -> Pose:
+        """The scripted technician's target: the press of the landmark asked for, held until
+        the page asks for another one (taken) or ``CONFIRM_WAIT_S`` past the script's hold;
+        then lifted clear, and the landmark asked for then is pressed from the top. Driven by what
+        the page says, not by the clock alone: a loaded machine that measures a few frames a
+        second still sees every press."""
+        t = guide.t
+        if self.script is None or self.pressing is None:
+            self.script, self.script_t0 = self.world.calibration_script(), t
+            self.pressing, self.waiting_since = guide.landmark, None
+        script = self.script
+        if not guide.measuring:  # a press before the sensing measures is not seen
+            self.script_t0, self.pressing, self.waiting_since = t, guide.landmark, None
+        elapsed = t - self.script_t0
+        if self.pressing == guide.landmark and elapsed >= script.hold_end_s:
+            if self.waiting_since is None:
+                self.waiting_since = t
+            if t - self.waiting_since < CONFIRM_WAIT_S:  # not taken yet: keep pressing
+                self.script_t0, elapsed = t - script.hold_end_s, script.hold_end_s
+        target = script.target(self.pressing, elapsed)
+        if target is None:  # lifted clear (the hand lags the script) before moving on
+            high = script.target(self.pressing, script.segment_s)
+            tip = self.world.T_world_tip
+            if tip is not None and np.linalg.norm(tip.position - high.position) > LIFTED_M:
+                return high
+        if target is None:  # this press is over: the landmark asked for now, from the top
+            self.script_t0, self.pressing, self.waiting_since = t, guide.landmark, None
+            target = script.target(self.pressing, 0.0)
+        return target
 
     def world_at_frame(self, t: float) -> WorldTruth:
         """The world as the devices observe it at a tracker frame (the head follows)."""

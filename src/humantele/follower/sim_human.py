@@ -250,6 +250,7 @@ class CalibrationScript:
             self.segments[name] = seg
         self.segment_s = self.segments["xiphoid"][-1][0]
         self.duration_s = self.segment_s * len(self.LANDMARK_ORDER)
+        self.hold_end_s = 2 * move_s + press_s + hold_s  # pressed until here, then lifted
 
     def target(self, name: str, t: float) -> Pose | None:
         wp = self.segments[name]

@@ -200,22 +200,33 @@ CHANNELS: dict[str, ChannelSpec] = {
         ChannelSpec(
             "/expert/console",
             "the sonographer's console tools on the ultrasound image (freeze, live, calipers, "
-            "annotations, captures); points are image px (x right, y down from the top-left)",
+            "annotations, captures, their clips); points are image px (x right, y down from "
+            "the top-left)",
             {
-                "event": ("string", "'freeze', 'live', 'caliper', 'annotation' or 'capture'"),
+                "event": (
+                    "string",
+                    "'freeze', 'live', 'caliper', 'annotation', 'capture' or 'clip'",
+                ),
                 "seq": ("integer", "ultrasound frame number the tool was used on"),
                 "t_capture": ("number", "that frame's capture time, expert clock, s"),
                 "mm": ("number", "caliper distance, mm (from the source's pixel spacing)"),
                 "a_px": ("vec2", "caliper start or annotation point, image px"),
                 "b_px": ("vec2", "caliper end, image px"),
                 "text": ("string", "annotation text"),
-                "file": ("string", "capture: the saved JPEG (also attached to this recording)"),
+                "file": (
+                    "string",
+                    "capture: the saved JPEG (also attached to this recording); "
+                    "clip: the saved MP4 (H.264) of the cine's seconds up to the capture",
+                ),
+                "still": ("string", "clip: its capture's JPEG"),
+                "frames": ("integer", "clip: frames in it"),
+                "duration_s": ("number", "clip: first to last frame, s"),
                 **_POSE,
                 "virtual_position": ("vec3", "the expert's virtual probe, patient frame, m"),
                 "virtual_quaternion": ("quat", "the expert's virtual probe orientation"),
             },
             ("event",),
-            enums={"event": ("freeze", "live", "caliper", "annotation", "capture")},
+            enums={"event": ("freeze", "live", "caliper", "annotation", "capture", "clip")},
         ),
         *(
             ChannelSpec(

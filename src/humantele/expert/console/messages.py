@@ -9,16 +9,20 @@ To the page
         f32 depth_origin_row (px: the row of depth 0 on a US image; NaN when unknown)
 
     Text: JSON objects with a ``type``: ``state`` (the session at a glance, about 20 times a
-    second), ``cine`` (the frozen loop's frame numbers and times), ``result`` (what became of
-    a tool's request: a measurement, a saved capture, or why not), ``hello`` (the page's
-    settings: the console's limits and the track names).
+    second, with ``t``, the expert's clock when it was taken), ``cine`` (the frozen loop's
+    frame numbers and times), ``result`` (what became of a click: a scan started, a
+    measurement, a saved capture, or why not; with the click's ``id``), ``pong`` (the answer
+    to a ``ping``: ``n`` and ``t``, the expert's clock, s), ``captures`` (the session's
+    captures and measurements so far), ``hello`` (the page's settings: the console's limits
+    and the track names).
 
 From the page (:data:`PageMessage`; anything else is refused and counted)
-    ``drawn`` (a frame was drawn: latency echo), ``scan`` (start/stop), ``clutch`` (on/off),
-    ``freeze`` (on/off), ``cine`` (send frame ``seq`` of the frozen loop), ``caliper`` (two
-    points on a frame, image px), ``annotation`` (a text at a point of a frame), ``capture``
-    (save a frame with its pose). Points are image pixels (x right, y down, from the
-    top-left corner of the image the header describes).
+    ``drawn`` (a frame was drawn: latency echo), ``ping`` (heartbeat), ``scan``
+    (start/stop), ``clutch`` (on/off), ``freeze`` (on/off), ``cine`` (send frame ``seq`` of
+    the frozen loop), ``caliper`` (two points on a frame, image px), ``annotation`` (a text
+    at a point of a frame), ``capture`` (save a frame with its pose, and a clip of the cine
+    before it). Clicks may carry an ``id``, returned in their ``result``. Points are image
+    pixels (x right, y down, from the top-left corner of the image the header describes).
 """
 
 from __future__ import annotations
@@ -89,17 +93,38 @@ class Drawn(_Msg):
     counter: Annotated[int, Field(ge=0, le=0xFFFFFF)] | None = None
 
 
-class ScanCommand(_Msg):
+CommandId = Annotated[int, Field(ge=0, le=0x7FFFFFFF)]
+
+
+class _Command(_Msg):
+    """A click: ``id`` (the page's number for it) comes back in the ``result`` that says
+    what became of it, so the page can say a click was not acknowledged."""
+
+    id: CommandId | None = None
+
+
+class Ping(_Msg):
+    """The page's heartbeat: answered at once with ``pong`` (same ``n``, the expert's clock
+    ``t``, s), which measures how late the daemon answers and maps its clock to the page's.
+    ``behind_ms``: how late the page reads what it is sent (the least lag of the messages it
+    read in the last 2 s, from their ``t``; None: not known)."""
+
+    type: Literal["ping"]
+    n: CommandId
+    behind_ms: float | None = Field(None, ge=0.0, le=3.6e6, allow_inf_nan=False)
+
+
+class ScanCommand(_Command):
     type: Literal["scan"]
     action: Literal["start", "stop"]
 
 
-class ClutchCommand(_Msg):
+class ClutchCommand(_Command):
     type: Literal["clutch"]
     on: bool
 
 
-class Freeze(_Msg):
+class Freeze(_Command):
     """Freeze the ultrasound (``on``) or go back to live."""
 
     type: Literal["freeze"]
@@ -113,7 +138,7 @@ class CineRequest(_Msg):
     seq: Seq
 
 
-class Caliper(_Msg):
+class Caliper(_Command):
     """A distance between ``a`` and ``b`` (image px) on ultrasound frame ``seq``."""
 
     type: Literal["caliper"]
@@ -122,7 +147,7 @@ class Caliper(_Msg):
     b: Point
 
 
-class Annotation(_Msg):
+class Annotation(_Command):
     """``text`` at ``at`` (image px) on ultrasound frame ``seq``."""
 
     type: Literal["annotation"]
@@ -131,15 +156,25 @@ class Annotation(_Msg):
     text: str = Field(min_length=1, max_length=200)
 
 
-class Capture(_Msg):
-    """Save ultrasound frame ``seq`` with its pose."""
+class Capture(_Command):
+    """Save ultrasound frame ``seq`` with its pose and, with ``clip_s`` > 0, a clip of the
+    cine's last ``clip_s`` seconds up to that frame (MP4) beside it."""
 
     type: Literal["capture"]
     seq: Seq
+    clip_s: float = Field(0.0, ge=0.0, le=60.0, allow_inf_nan=False)
 
 
 PageMessage = Annotated[
-    Drawn | ScanCommand | ClutchCommand | Freeze | CineRequest | Caliper | Annotation | Capture,
+    Drawn
+    | Ping
+    | ScanCommand
+    | ClutchCommand
+    | Freeze
+    | CineRequest
+    | Caliper
+    | Annotation
+    | Capture,
     Field(discriminator="type"),
 ]
 PAGE_MESSAGE = TypeAdapter(PageMessage)

@@ -47,7 +47,7 @@ from aiohttp import web
 from pydantic import Field, field_validator
 
 from humantele.config import ConfigModel, DirectoryField, directory_problem
-from humantele.expert.console.captures import save_capture
+from humantele.expert.console.captures import SessionItems, clip_path, save_capture
 from humantele.expert.console.cine import CineBuffer, CineFrame
 from humantele.expert.console.frames import TRACKS, FrameProvider
 from humantele.expert.console.messages import (
@@ -60,6 +60,7 @@ from humantele.expert.console.messages import (
     ClutchCommand,
     Drawn,
     Freeze,
+    Ping,
     ScanCommand,
     frame_header,
 )
@@ -69,7 +70,7 @@ from humantele.signaling.messages import is_loopback
 from humantele.video.base import VideoFrame
 from humantele.video.counter import unwrap
 from humantele.web.connguard import GuardedPages
-from humantele.web.credential import Credential, key_from_env, new_key
+from humantele.web.credential import Credential, Verdict, key_from_env, new_key
 from humantele.web.guard import MessageBudget
 from humantele.web.pagesocket import Access, PageClient, PageLimits, PageSockets, validated
 from humantele.web.static import add_page_files
@@ -82,6 +83,14 @@ IN_FLIGHT = 2  # frames of a track sent to a page and not yet drawn; more wait (
 CAPTURE_BURST = 10  # captures at once before captures_per_minute applies
 IN_FLIGHT_TIMEOUT_S = 0.5  # a page that echoes nothing for this long gets the next frame
 SEQS_KEPT = 256  # frames per track whose times are kept for the page's echoes
+# A page that reads what it is sent this late (its pings say) gets the state and each track's
+# frames once every PAGE_BEHIND_EVERY_S only (the newest) until it catches up: a busy
+# browser's queue never grows to seconds, it still sees something, and the answers to its
+# clicks (never held) reach it. A page that stops pinging is released.
+PAGE_BEHIND_S = 1.0
+PAGE_BEHIND_FOR_S = 2.0
+PAGE_BEHIND_EVERY_S = 1.0
+CLIP_FINISH_S = 20.0  # at stop, a clip being written gets this long to finish
 
 
 class ConsoleConfig(ConfigModel):
@@ -131,6 +140,10 @@ class ConsoleConfig(ConfigModel):
     captures_max_mb: float = Field(
         1000.0, gt=0, le=1e6, description="disk budget of captures_dir (MB); beyond: refused"
     )
+    clip_seconds: float = Field(
+        5.0, ge=0, le=60, description="Capture also keeps the cine's last seconds as an MP4 "
+        "beside the still (0: stills only); in the same rate cap and disk budget",
+    )  # fmt: skip
 
     @field_validator("us_pixel_spacing_mm")
     @classmethod
@@ -159,6 +172,13 @@ class _Client(PageClient):
         # Frames sent and not yet drawn, per track (seq, when sent): a page that draws slower
         # than frames come gets the newest when it is ready, not a queue in the socket.
         self.in_flight: dict[str, deque[tuple[int, float]]] = {t: deque() for t in TRACKS}
+        self.behind_s = 0.0  # how late the page read our newest message, at its last ping
+        self.behind_at = -math.inf  # when that ping came (time.monotonic)
+        self.trickle: dict[str, float] = {}  # key -> when last sent while behind
+
+    def behind(self, now: float) -> bool:
+        """Whether the page is reading what it is sent more than PAGE_BEHIND_S late."""
+        return self.behind_s > PAGE_BEHIND_S and now - self.behind_at < PAGE_BEHIND_FOR_S
 
     def can_take(self, track: str, now: float, timeout_s: float) -> bool:
         q = self.in_flight[track]
@@ -241,7 +261,11 @@ class ConsoleServer:
         self.site = GuardedPages("console", log, self.connections)
         self.events: Counter[str] = Counter()
         self.captures: list[str] = []
+        self.items = SessionItems()  # captures and measurements, listed on the page
+        self._file_key = Credential(self.key, throttle=False)  # the captured files' reads
+        self.clips_writing = 0
         self._tasks: list[asyncio.Task] = []
+        self._clips: set[asyncio.Task] = set()  # clips being written
         self.in_flight_timeout_s = IN_FLIGHT_TIMEOUT_S
         self._index = (WEB_DIR / "index.html").read_bytes()
 
@@ -288,6 +312,7 @@ class ConsoleServer:
         def routes(app: web.Application) -> None:
             app.router.add_get("/", self._page)
             app.router.add_get("/ws", self._handle)
+            app.router.add_get("/captures/{name}", self._captured_file)
             add_page_files(app, WEB_DIR)  # only its own files; any other name: 404
 
         self.port = await self.site.start(routes, cfg, (self._host_guard,))
@@ -299,6 +324,8 @@ class ConsoleServer:
 
     async def stop(self) -> None:
         self.pages.closing = True  # a page reconnecting now is turned away (cleanup waits)
+        if self._clips:  # a clip being written is finished (and recorded), not cut short
+            await asyncio.wait(list(self._clips), timeout=CLIP_FINISH_S)
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
@@ -333,10 +360,17 @@ class ConsoleServer:
     def _hold(self, client: PageClient, key: str, data: str | bytes) -> bool:
         """Whether a frame waits: its page has ``IN_FLIGHT`` frames of the track not yet
         drawn (the newest is sent when it draws one, or after the in-flight timeout)."""
-        track = key[6:] if key.startswith("frame:") else None
-        if track not in TRACKS or not isinstance(client, _Client):
+        if not isinstance(client, _Client):
             return False
         now = time.monotonic()
+        if (key == "state" or key.startswith("frame:")) and client.behind(now):
+            if now - client.trickle.get(key, -math.inf) < PAGE_BEHIND_EVERY_S:
+                self.events["held_page_behind"] += 1
+                return True
+            client.trickle[key] = now  # the newest, once a second
+        track = key[6:] if key.startswith("frame:") else None
+        if track not in TRACKS:
+            return False
         if not client.can_take(track, now, self.in_flight_timeout_s):
             return True
         client.in_flight[track].append((int.from_bytes(data[4:8], "little"), now))
@@ -441,11 +475,13 @@ class ConsoleServer:
                 v["stale"] = True
         snap.update(
             type="state",
+            t=now,
             video=video,
             cine={"frozen": self.cine.frozen, "frames": len(self.cine)},
             captures={
                 "saved": len(self.captures),
                 "refused": self.refused["capture_rate"] + self.refused["capture_disk"],
+                "clips_writing": self.clips_writing,
             },
             stale_after_ms=stale_ms,
         )
@@ -467,9 +503,11 @@ class ConsoleServer:
             "cine_seconds": self.config.cine_seconds,
             "stale_after_ms": self.config.stale_after_s * 1000.0,
             "video": self.video,
+            "clip_seconds": self.config.clip_seconds,
         }
         client.post("hello", json.dumps(hello))
         client.post("state", json.dumps(_clean(self.state())))
+        client.post("items", self._items_message())
         if self.cine.frozen:
             client.post("cine", self._cine_index())
 
@@ -484,21 +522,38 @@ class ConsoleServer:
             return
         if isinstance(m, Drawn):
             self._on_drawn(client, m, arrival)
+        elif isinstance(m, Ping):  # answered at once: the page measures how late we are
+            if m.behind_ms is not None:
+                client.behind_s, client.behind_at = m.behind_ms / 1000.0, time.monotonic()
+            client.post("pong", json.dumps({"type": "pong", "n": m.n, "t": self.clock()}))
         elif isinstance(m, ScanCommand):
-            if m.action == "start":
-                self.session.start_scan()
-            else:
-                self.session.stop_scan()
-            self.events[f"scan_{m.action}"] += 1
+            self._on_scan(client, m)
         elif isinstance(m, ClutchCommand):
             self.session.set_clutch(m.on)
             self.events["clutch_on" if m.on else "clutch_off"] += 1
+            self._ack(client, "clutch", True, "held" if m.on else "released", m.id)
         elif isinstance(m, Freeze):
             self._on_freeze(m.on)
+            self._ack(client, "freeze", True, "frozen" if m.on else "live", m.id)
         elif isinstance(m, CineRequest):
             self._on_cine(client, m.seq)
         elif isinstance(m, Caliper | Annotation | Capture):
             self._on_tool(client, m)
+
+    def _on_scan(self, client: _Client, m: ScanCommand) -> None:
+        try:
+            if m.action == "start":
+                n = self.session.start_scan()
+                detail = f"scan {n} started"
+            else:
+                self.session.stop_scan()
+                detail = "scan stopped"
+        except Exception as exc:  # noqa: BLE001 - said on the page, the daemon goes on
+            log.exception("console: scan %s failed", m.action)
+            self._ack(client, "scan", False, f"not done: {exc}", m.id)
+            return
+        self.events[f"scan_{m.action}"] += 1
+        self._ack(client, "scan", True, detail, m.id)
 
     def _on_drawn(self, client: _Client, m: Drawn, arrival: float) -> None:
         client.drawn(m.track, m.seq)
@@ -568,7 +623,9 @@ class ConsoleServer:
         f = self.cine.get(m.seq)
         if f is None:
             self.refused["unknown_frame"] += 1
-            self._result(client, m.type, False, f"frame {m.seq} is no longer in the cine buffer")
+            self._result(
+                client, m.type, False, f"frame {m.seq} is no longer in the cine buffer", id=m.id
+            )
             return
         base = {"seq": f.seq, "t_capture": f.t_capture}
         if isinstance(m, Caliper):
@@ -576,23 +633,26 @@ class ConsoleServer:
                 self._result(
                     client, "caliper", False,
                     "no pixel spacing for this image: set [expert.console] us_pixel_spacing_mm",
+                    id=m.id,
                 )  # fmt: skip
                 return
             row, col = f.pixel_spacing_mm
             mm = math.hypot((m.b[0] - m.a[0]) * col, (m.b[1] - m.a[1]) * row)
             self.events["caliper"] += 1
             self._record("caliper", {**base, "mm": mm, "a_px": m.a, "b_px": m.b})
-            self._result(client, "caliper", True, f"{mm:.1f} mm", mm=mm, seq=f.seq)
+            self._result(client, "caliper", True, f"{mm:.1f} mm", mm=mm, seq=f.seq, id=m.id)
+            self._add_item("caliper", f, mm=round(mm, 2), text=f"{mm:.1f} mm")
         elif isinstance(m, Annotation):
             text = " ".join(m.text.split())
             if not text:
-                self._result(client, "annotation", False, "empty text")
+                self._result(client, "annotation", False, "empty text", id=m.id)
                 return
             self.events["annotation"] += 1
             self._record("annotation", {**base, "text": text, "a_px": m.at})
-            self._result(client, "annotation", True, text, seq=f.seq)
+            self._result(client, "annotation", True, text, seq=f.seq, id=m.id)
+            self._add_item("note", f, text=text)
         else:
-            self._capture(client, f, base)
+            self._capture(client, f, base, m)
 
     def _capture_refusal(self, directory: Path, size: int) -> str | None:
         """Why a capture of ``size`` bytes is refused now (counted), or None."""
@@ -613,12 +673,27 @@ class ConsoleServer:
             )
         return None
 
-    def _capture(self, client: _Client, f: CineFrame, base: dict[str, Any]) -> None:
+    def _clip_frames(self, f: CineFrame, seconds: float) -> list[CineFrame]:
+        """The cine's frames of the ``seconds`` up to ``f`` (oldest first)."""
+        out = []
+        for seq, t in self.cine.index():
+            if seq <= f.seq and f.t_capture - t <= seconds:
+                g = self.cine.get(seq)
+                if g is not None:
+                    out.append(g)
+        return out
+
+    def _capture(self, client: _Client, f: CineFrame, base: dict[str, Any], m: Capture) -> None:
         directory = Path(self.config.captures_dir).expanduser()
-        refusal = self._capture_refusal(directory, len(f.jpeg) + 1024)
+        clip_s = min(m.clip_s, self.config.clip_seconds)
+        clip = self._clip_frames(f, clip_s) if clip_s > 0 else []
+        clip = clip if len(clip) >= 2 else []
+        # The clip's size is bounded by its JPEGs (its H.264 is smaller): the budget holds it.
+        size = len(f.jpeg) + 1024 + sum(len(g.jpeg) for g in clip)
+        refusal = self._capture_refusal(directory, size)
         if refusal is not None:
             n = self.refused["capture_rate"] + self.refused["capture_disk"]
-            self._result(client, "capture", False, f"{refusal} ({n} refused this run)")
+            self._result(client, "capture", False, f"{refusal} ({n} refused this run)", id=m.id)
             return
         pose = self.session.pose_at(f.t_capture)
         info: dict[str, Any] = {
@@ -634,11 +709,11 @@ class ConsoleServer:
         if rec is not None:
             info["session_id"] = rec.metadata.get("session_id")
         try:
-            path = save_capture(directory, f.seq, f.jpeg, _clean(info))
+            path = save_capture(directory, f.seq, f.jpeg, _clean(info), len(clip))
         except OSError as exc:
             self.refused["capture_failed"] += 1
             log.error("console: capture not saved: %s", exc)
-            self._result(client, "capture", False, f"not saved: {exc.strerror or exc}")
+            self._result(client, "capture", False, f"not saved: {exc.strerror or exc}", id=m.id)
             return
         self.events["capture"] += 1
         self.captures.append(str(path))
@@ -649,11 +724,83 @@ class ConsoleServer:
         self._record("capture", payload)
         if rec is not None and hasattr(rec, "attach"):
             rec.attach(path.name, "image/jpeg", f.jpeg, f.t_capture)
-        self._result(client, "capture", True, path.name, seq=f.seq, file=str(path))
+        item = self._add_item("capture", f, file=path.name, clip=None, clip_pending=bool(clip))
+        detail = path.name + (f" and a {clip_s:g} s clip (writing)" if clip else "")
+        self._result(client, "capture", True, detail, seq=f.seq, file=str(path), id=m.id)
+        if clip:
+            task = asyncio.create_task(self._write_clip(client, path, clip, item, m.id))
+            self._clips.add(task)
+            task.add_done_callback(self._clips.discard)
+
+    async def _write_clip(
+        self, client: _Client, still: Path, frames: list[CineFrame], item: dict, cmd_id: int | None
+    ) -> None:
+        """The clip beside the still ``still`` (off the loop: ~6 ms a frame); the item and
+        the page told when it is there, or why not."""
+        from humantele.export.clip import write_clip
+
+        path = clip_path(still)
+        self.clips_writing += 1
+        try:
+            info = await asyncio.to_thread(
+                write_clip, [(g.t_capture, g.jpeg) for g in frames], path
+            )
+        except (OSError, ValueError) as exc:
+            self.refused["clip_failed"] += 1
+            log.error("console: clip %s not written: %s", path.name, exc)
+            item["clip_error"] = str(exc)[:200]
+            self._result(client, "clip", False, f"clip not saved: {exc}", id=cmd_id)
+        else:
+            self.events["clip"] += 1
+            self.captures_bytes = (self.captures_bytes or 0) + _size(path)
+            item.update(clip=path.name, clip_s=round(info.duration_s, 2), clip_frames=info.frames)
+            self._record("clip", {"file": path.name, "still": still.name, "frames": info.frames,
+                                  "duration_s": info.duration_s})  # fmt: skip
+            self._result(client, "clip", True, f"{path.name} ({info.duration_s:.1f} s, "
+                         f"{info.frames} frames)", file=str(path), id=cmd_id)  # fmt: skip
+        finally:
+            self.clips_writing -= 1
+            item["clip_pending"] = False
+        self.pages.post("items", self._items_message())
+
+    def _add_item(self, kind: str, f: CineFrame, **fields: Any) -> dict[str, Any]:
+        """One more capture or measurement in the session's list (the page is sent it)."""
+        item = self.items.add(kind, f.seq, f.t_capture, **fields)
+        self.pages.post("items", self._items_message())
+        return item
+
+    def _items_message(self) -> str:
+        return json.dumps(_clean({"type": "items", "items": self.items.list()}))
+
+    async def _captured_file(self, request: web.Request) -> web.StreamResponse:
+        """A still or clip captured this run, for the page's list (with the run's key)."""
+        verdict = self._file_key.check(request.query.get("key"), request.remote or "?")
+        name = request.match_info["name"]
+        known = {Path(c).name for c in self.captures} | self.items.clip_names()
+        if verdict is not Verdict.OK:
+            self.refused["unauthorized"] += 1
+            raise web.HTTPUnauthorized(text="this console's key is missing or wrong\n")
+        if name not in known:
+            raise web.HTTPNotFound()
+        path = Path(self.config.captures_dir).expanduser() / name
+        if not path.is_file():
+            raise web.HTTPNotFound()
+        return web.FileResponse(path, headers={"Cache-Control": "no-store"})
+
+    def _ack(self, client: _Client, of: str, ok: bool, detail: str, cmd_id: int | None) -> None:
+        """The answer to a click that asked for one (``id``); the session's state shows the
+        effect either way."""
+        if cmd_id is not None:
+            self._result(client, of, ok, detail, id=cmd_id)
 
     def _result(self, client: _Client, of: str, ok: bool, detail: str, **more: Any) -> None:
         msg = {"type": "result", "of": of, "ok": ok, "detail": detail, **more}
-        client.post(f"result:{of}", json.dumps(_clean(msg)))
+        if msg.get("id") is None:
+            msg.pop("id", None)
+            key = f"result:{of}"
+        else:  # each click's answer is sent (not replaced by a later one's)
+            key = f"result:{of}:{msg['id']}"
+        client.post(key, json.dumps(_clean(msg)))
 
     def _record(self, event: str, payload: dict[str, Any]) -> None:
         rec = self.session.recorder
@@ -707,6 +854,13 @@ def _file_bytes(jpeg: Path) -> int:
         except OSError:
             pass
     return total
+
+
+def _size(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0
 
 
 def _dir_bytes(directory: Path) -> int:

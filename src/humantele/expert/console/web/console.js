@@ -2,16 +2,20 @@
 // the session at a glance. One WebSocket to the expert daemon (same origin, /ws): binary
 // messages are video frames (32-byte header + JPEG), text messages JSON (see the daemon's
 // humantele.expert.console.messages). Nothing stale is shown as live: each panel greys out
-// when its data is older than the daemon's stale_after_ms, or when this page hears nothing.
+// when its data is older than the daemon's stale_after_ms (ages from capture and state times
+// mapped onto this page's clock by the heartbeat, status.js); a daemon slow to answer is
+// "slow (N ms)" while its socket is open, lost only when it closes; every click says what
+// became of it.
 
 import { readCounter } from "./counter.js";
 import { ForcePlot } from "./plot.js";
 import { DepthScale } from "./scale.js";
 import { Marks } from "./tools.js";
+import { Clicks, Heartbeat } from "./status.js";
+import { ItemsList } from "./items.js";
 
 const $ = (id) => document.getElementById(id);
 const TRACKS = ["us", "pov"];
-const LOST_AFTER_MS = 1500; // no state message for this long: the daemon is out of reach
 const FORCE_BAR_MAX_N = 20;
 const SCALE_GUTTER_PX = 30; // right of the ultrasound image: its depth scale
 const COUNTER_PX = [64, 32]; // the frame counter's patch, top left of a frame (image px)
@@ -39,6 +43,14 @@ const app = {
 window.consoleApp = app;
 app.plot = plot;
 app.depthScale = depthScale;
+const hb = new Heartbeat(send);
+const clicks = new Clicks(send, showClick, () => (hb.health(performance.now()).level === "behind"
+  ? "this page reads the expert daemon's answers late (the browser is behind)" : "the expert daemon is slow"));
+const itemsList = new ItemsList($("items"), $("items-count"), () => sessionStorage.getItem(KEY_STORE));
+app.heartbeat = hb;
+app.clicks = clicks;
+app.items = itemsList;
+app.drawn = { us: [], pov: [] }; // [page ms, frames drawn] samples, for the drawn frame rate
 
 // --- the connection -------------------------------------------------------------------------
 
@@ -67,9 +79,15 @@ function connect() {
   const ws = new WebSocket(`${scheme}://${location.host}/ws?key=${encodeURIComponent(key)}`);
   ws.binaryType = "arraybuffer";
   app.ws = ws;
-  ws.onmessage = (ev) => (typeof ev.data === "string" ? onText(JSON.parse(ev.data)) : onFrame(ev.data));
+  ws.onopen = () => hb.opened(performance.now());
+  ws.onmessage = (ev) => {
+    hb.heard(performance.now());
+    if (typeof ev.data === "string") onText(JSON.parse(ev.data)); else onFrame(ev.data);
+  };
   ws.onclose = (ev) => {
     app.ws = null;
+    hb.closed();
+    clicks.closed();
     app.closedReason = ev.reason || null;
     if (ev.code === CLOSE_UNAUTHORIZED) { sessionStorage.removeItem(KEY_STORE); return; }
     setTimeout(connect, ev.code === CLOSE_THROTTLED ? 30000 : 1000);
@@ -83,7 +101,9 @@ function send(msg) {
 }
 
 function onText(m) {
-  if (m.type === "state") { app.state = m; app.stateAt = performance.now(); renderState(); }
+  if (m.type === "state") { app.state = m; app.stateAt = performance.now(); hb.saw(m.t, app.stateAt); renderState(); }
+  else if (m.type === "pong") hb.pong(m, performance.now());
+  else if (m.type === "items") itemsList.set(m.items);
   else if (m.type === "hello") onHello(m);
   else if (m.type === "cine") onCineIndex(m);
   else if (m.type === "result") onResult(m);
@@ -97,6 +117,9 @@ function onHello(m) {
   document.querySelector("#pov-panel .name").textContent = sim ? "Follower's view: SIMULATED" : "Follower's view";
   for (const t of TRACKS) $(`${t}-sim`).hidden = !sim;
   if (m.video === "none") for (const t of TRACKS) $(`${t}-stale`).querySelector("b").textContent = "No video on this console";
+  const clipS = Number(m.clip_seconds || 0);
+  $("clip-label").hidden = !(clipS > 0);
+  $("clip-s").textContent = String(clipS);
 }
 
 // --- video ----------------------------------------------------------------------------------
@@ -208,7 +231,7 @@ for (const id of TRACKS) boxWatch.observe($(`${id}-box`));
 // --- freeze and cine ------------------------------------------------------------------------
 
 function setFrozen(on) {
-  if (!send({ type: "freeze", on })) return;
+  if (clicks.click("freeze", { type: "freeze", on }) === null) return;
   app.frozen = on;
   marks.visible = on;
   $("us-marks").hidden = !on; // the marks layer exists on a frozen image only
@@ -260,7 +283,7 @@ $("cine").oninput = (ev) => {
 
 // --- calipers, annotations, capture ---------------------------------------------------------
 
-const marks = new Marks($("us-marks"), send);
+const marks = new Marks($("us-marks"), (msg) => clicks.click(msg.type, msg));
 app.marks = marks;
 
 function setTool(tool) {
@@ -281,7 +304,8 @@ $("capture").onclick = () => capture();
 function capture() {
   const f = app.frozen ? app.shown : app.lastFrame.us;
   if (!f) { showResult({ of: "capture", ok: false, detail: "no ultrasound frame to capture" }); return; }
-  send({ type: "capture", seq: f.seq });
+  const clip = app.hello && app.hello.clip_seconds > 0 && $("clip").checked ? app.hello.clip_seconds : 0;
+  clicks.click("capture", { type: "capture", seq: f.seq, clip_s: clip });
 }
 
 let notePoint = null;
@@ -312,17 +336,27 @@ $("note-input").addEventListener("keydown", (ev) => {
 });
 
 function onResult(m) {
+  if (m.id !== undefined) clicks.answered(m);
   if (m.of === "caliper" && m.ok) marks.confirm(m);
   showResult(m);
   app.results.push(m);
 }
 
+const NAMES = { caliper: "Caliper", annotation: "Annotation", capture: "Capture", cine: "Cine",
+  clip: "Clip", freeze: "Freeze", scan: "Scan", clutch: "Clutch" };
+
 function showResult(m) {
-  const names = { caliper: "Caliper", annotation: "Annotation", capture: "Captured", cine: "Cine" };
-  const el = $("tool-result");
-  el.dataset.ok = String(m.ok);
-  const name = m.of === "capture" && !m.ok ? "Capture" : names[m.of] || m.of;
+  showClick({ of: m.of, state: m.ok ? "ok" : "failed", detail: m.detail });
+}
+
+// What became of a click (sent, answered, refused, late, not sent), beside its buttons.
+function showClick(m) {
+  const el = $(m.of === "scan" || m.of === "clutch" ? "control-result" : "tool-result");
+  el.dataset.ok = String(m.state !== "failed");
+  el.dataset.state = m.state;
+  const name = m.of === "capture" && m.state === "ok" ? "Captured" : NAMES[m.of] || m.of;
   el.textContent = `${name}: ${m.detail}`;
+  app.shownClicks = (app.shownClicks || []).concat([{ ...m, text: el.textContent }]).slice(-50);
 }
 
 document.addEventListener("keydown", (ev) => {
@@ -342,10 +376,10 @@ document.addEventListener("keydown", (ev) => {
 // --- scan and clutch ------------------------------------------------------------------------
 
 // The button does what it says (its label is the state the sonographer saw when clicking).
-$("scan").onclick = () => send({ type: "scan", action: $("scan").dataset.scanning === "true" ? "stop" : "start" });
+$("scan").onclick = () => clicks.click("scan", { type: "scan", action: $("scan").dataset.scanning === "true" ? "stop" : "start" });
 $("clutch").onclick = () => {
   const on = $("clutch").getAttribute("aria-pressed") !== "true";
-  if (send({ type: "clutch", on })) $("clutch").setAttribute("aria-pressed", String(on));
+  if (clicks.click("clutch", { type: "clutch", on }) !== null) $("clutch").setAttribute("aria-pressed", String(on));
 };
 
 // --- the session at a glance ----------------------------------------------------------------
@@ -409,43 +443,150 @@ function renderState() {
 }
 
 
-function videoInfo(track) {
-  const s = app.state, v = s && s.video ? s.video[track] : null;
-  const last = app.lastFrame[track];
-  const staleMs = (app.hello && app.hello.stale_after_ms) || 1000;
-  const pageAge = last ? performance.now() - last.at : Infinity;
-  const stale = !v || v.stale || pageAge > staleMs || app.stateAge > LOST_AFTER_MS;
-  return { v, stale, pageAge, last };
+const fmtS = (ms) => `${(ms / 1000).toFixed(1)} s`;
+const staleBound = () => (app.hello && app.hello.stale_after_ms) || 1000;
+
+// Each chip's source: "daemon" (the expert's own word: stale when its state is), "follower"
+// (over the link: stale also when the follower's poses are).
+const CHIP_SOURCE = { "chip-link": "daemon", "chip-cal": "follower", "chip-align": "follower",
+  "chip-servo": "daemon", "chip-rec": "daemon", "chip-scan": "daemon" };
+
+// How old the session state on the page is (ms): from its time on the daemon's clock when the
+// clocks are mapped, and never less than since it arrived.
+function stateAge(now) {
+  if (!app.state) return Infinity;
+  const at = hb.toPage(app.state.t);
+  return Math.max(now - app.stateAt, at === null ? 0 : now - at);
 }
 
-// Ten times a second: staleness of the video and of the page's own link; the plot scrolls.
+function greyChips(now, age) {
+  const bound = staleBound();
+  const linkStale = !app.state || Boolean((app.state.link || {}).stale);
+  for (const [id, src] of Object.entries(CHIP_SOURCE)) {
+    const el = $(id), old = age > bound || !hb.open; // no socket: nothing is now's
+    const stale = old || (src === "follower" && linkStale);
+    setData(el, "stale", String(stale));
+    const title = !stale ? "" : old ? `as the expert daemon last said, ${age === Infinity ? "never" : `${fmtS(age)} ago`}`
+      : "the follower's data is stale: no fresh pose over the link";
+    if (el.title !== title) el.title = title;
+  }
+  const old = age > bound || !hb.open;
+  for (const id of ["force-panel", "numbers"]) setData($(id), "stale", String(old));
+  if (old) { // the numbers the state gave are not now's: not shown as such
+    for (const id of ["n-pose", "n-fm", "n-fr", "n-servo"]) setText($(id), app.state ? "stale" : "–");
+    setText($("fbar-value"), "–");
+  }
+}
+
+// The picture on screen: how old it is (ms, from its capture on the daemon's clock mapped to
+// this page's; before the clocks are mapped, from when it was drawn, with the daemon's word on
+// its newest frame), and whether that is live (younger than the stale bound).
+function videoInfo(track, now) {
+  const s = app.state, v = s && s.video ? s.video[track] : null;
+  const last = app.lastFrame[track];
+  let age = null, mapped = false;
+  if (last) {
+    const cap = hb.toPage(last.tCapture);
+    mapped = cap !== null;
+    age = mapped ? Math.max(now - cap, now - last.at) : now - last.at;
+  }
+  const live = Boolean(last) && hb.open && age <= staleBound() && (mapped || Boolean(v && !v.stale));
+  return { v, live, age, last };
+}
+
+function drawnFps(track, now) {
+  const q = app.drawn[track];
+  q.push([now, app.frames[track]]);
+  while (q.length > 2 && now - q[0][0] > 2000) q.shift();
+  const dt = (q[q.length - 1][0] - q[0][0]) / 1000;
+  return dt > 0.5 ? (q[q.length - 1][1] - q[0][1]) / dt : null;
+}
+
+// Why there is no picture yet, from what the page knows.
+function noFrameYet(track) {
+  const link = (app.state && app.state.link) || {};
+  if (!hb.open) return "this page is not connected to the expert daemon";
+  if (link.state !== "connected") return `waiting for the link to the follower (${link.state || "connecting"})`;
+  return track === "us" ? "waiting for the follower's ultrasound" : "waiting for the follower's camera";
+}
+
+// An empty ultrasound picture explained: live frames while the follower's probe is not on the
+// patient (the image of a probe in air is black).
+function emptyReason() {
+  const s = app.state || {}, f = s.force || {}, link = s.link || {}, cal = s.calibration || {};
+  if (link.stale || f.contact !== false) return null;
+  const calibrating = cal.state === "calibrating" ? ` (the follower is calibrating: ${cal.landmark ? `press ${cal.landmark}` : "…"})` : "";
+  return `No ultrasound yet: waiting for the follower's probe contact. The probe is not on the patient, so the image is empty${calibrating}.`;
+}
+
+// Ten times a second: the daemon's health, staleness of every panel, clicks not answered.
 function tick() {
   const now = performance.now();
-  app.stateAge = now - app.stateAt;
-  const lost = app.stateAge > LOST_AFTER_MS;
-  setData(document.body, "conn", lost ? "lost" : "live");
+  hb.tick(now);
+  clicks.tick(now);
+  const age = stateAge(now);
+  app.stateAge = age;
+  const h = hb.health(now);
+  app.health = h;
+  const bound = staleBound();
+  chip("chip-expert", app.closedReason && !hb.open ? "bad" : { ok: "ok", slow: "warn", behind: "warn", connecting: "off", lost: "bad" }[h.level],
+    h.level === "ok" ? `ok · ${fmt(h.delay, 0, " ms")}` : h.level === "slow" ? `slow (${Math.round(h.peak)} ms)`
+      : h.level === "behind" ? `page behind (${Math.round(h.behind)} ms)` : app.closedReason ? "not connected"
+      : h.level === "lost" ? "lost contact" : "connecting");
+  const lost = !hb.open;
+  // Late by the stale bound or more: the page's fault when it reads late ("behind"), else the
+  // daemon's.
+  const late = Math.max(h.delay ?? 0, h.level === "behind" ? h.behind : 0);
+  const pageBehind = !lost && h.level === "behind" && late >= bound;
+  const slow = !lost && !pageBehind && late >= bound;
   setHidden($("lost"), !lost || (app.stateAt === -Infinity && !app.closedReason && now < 3000));
-  if (lost && app.closedReason) setText($("lost"), `The console is not connected: ${app.closedReason}`);
+  if (lost) {
+    setText($("lost"), app.closedReason ? `The console is not connected: ${app.closedReason}`
+      : "Lost contact with the expert daemon: nothing on this page is live (reconnecting…)");
+  }
+  setHidden($("slow"), !slow && !pageBehind);
+  if (slow) {
+    setText($("slow"), `The expert daemon is slow: no answer for ${fmtS(h.delay)} (its connection is open). `
+      + "What is older than the stale bound is greyed.");
+  } else if (pageBehind) {
+    setText($("slow"), `This page is behind: it reads the expert daemon's messages ${fmtS(late)} late `
+      + "(this browser cannot keep up; the machine is busy). What is older than the stale bound is greyed.");
+  }
+  setData(document.body, "conn", lost ? "lost" : slow || pageBehind ? "slow" : "live");
+  greyChips(now, age);
   for (const track of TRACKS) {
-    const { v, stale, pageAge, last } = videoInfo(track);
+    const { v, live, age: fAge, last } = videoInfo(track, now);
     const box = $(`${track}-box`), overlay = $(`${track}-stale`);
     const frozenUs = track === "us" && app.frozen;
+    const stale = !live;
     setData(box, "stale", String(stale && !frozenUs));
     setHidden(overlay, !stale || frozenUs);
-    if (stale && !frozenUs) {
-      const age = v && v.age_ms != null ? v.age_ms / 1000 : last ? pageAge / 1000 : null;
-      setText(overlay.querySelector("span"), age === null ? "no frame received yet"
-        : `last frame ${age.toFixed(1)} s ago${lost ? " (daemon out of reach)" : ""}`);
+    const fps = drawnFps(track, now);
+    if (stale && !frozenUs && !(app.hello && app.hello.video === "none")) {
+      const what = track === "us" ? "ultrasound" : "video";
+      setText(overlay.querySelector("b"), last ? `No live ${what}` : `No ${what} yet`);
+      let why;
+      if (!last) why = noFrameYet(track);
+      else {
+        const newer = v && !v.stale && v.age_ms != null && v.age_ms < fAge - 250;
+        why = `last frame ${fmtS(fAge)} old` + (lost ? " (daemon out of reach)" : slow ? " (the expert daemon is slow)"
+          : pageBehind ? " (this page is behind)"
+          : newer ? `: the expert daemon has one ${fmtS(v.age_ms)} old, this page is behind drawing them` : "");
+      }
+      setText(overlay.querySelector("span"), why);
     }
     const info = $(`${track}-info`);
     if (frozenUs && app.shown) setText(info, `frozen · frame ${app.shown.seq}`);
-    else if (v && !stale) {
+    else if (live) {
       const sim = app.hello && app.hello.video === "sim" ? "simulated · " : "";
-      setText(info, `${sim}${fmt(v.fps, 0)} fps · ${fmt(v.age_ms, 0)} ms old`);
+      setText(info, `${sim}${fmt(fps, 0)} fps · ${fmt(fAge, 0)} ms old`);
     }
     else setText(info, "not live");
   }
-  if (lost) plot.draw(now); // no state messages: the plot still scrolls, with a gap
+  const empty = !app.frozen && videoInfo("us", now).live ? emptyReason() : null;
+  setHidden($("us-empty"), empty === null);
+  if (empty !== null) setText($("us-empty"), empty);
+  if (lost || age > bound) plot.draw(now); // no state messages: the plot still scrolls, with a gap
 }
 
 fit();
