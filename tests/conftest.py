@@ -7,8 +7,8 @@ that run real processes for seconds (the daemons, the servo, the demo, coturn, a
 not all run at once on a 2-core machine, or they starve each other's real-time loops: the
 ones on the host's network go to one worker, one after the other (the xdist group
 ``processes``); the browser scenarios, each in a network namespace of its own (so no port of
-theirs meets the host's), to another (``processes-netns``); the other tests run beside them. Such a test is marked ``slow`` or uses a fixture that
-starts those processes; it is also marked ``e2e``, so ``python -m pytest -q -m "not e2e"`` is
+theirs meets the host's), to another (``processes-netns``); the other tests run beside them.
+Such a test is marked ``slow`` or uses a fixture that starts those processes; it is also marked ``e2e``, so ``python -m pytest -q -m "not e2e"`` is
 the fast lane for everyday work (the README's command runs everything).
 
 Whatever a test process started is killed with its process group when pytest ends, also on
