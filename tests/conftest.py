@@ -9,7 +9,8 @@ ones on the host's network go to one worker, one after the other (the xdist grou
 ``processes``); the browser scenarios, each in a network namespace of its own (so no port of
 theirs meets the host's), to another (``processes-netns``); the other tests run beside them.
 Such a test is marked ``slow`` or uses a fixture that starts those processes; it is also
-marked ``e2e``, so ``python -m pytest -q -m "not e2e"`` is the fast lane for everyday work (the README's command runs everything).
+marked ``e2e``, so ``python -m pytest -q -m "not e2e"`` is the fast lane for everyday work
+(the README's command runs everything).
 
 Whatever a test process started is killed with its process group when pytest ends, also on
 Ctrl-C, SIGTERM or SIGHUP (``procgroups``): stopping pytest leaves no daemon or Chromium.
