@@ -16,6 +16,7 @@ import pytest
 
 from humantele.expert.console import ConsoleConfig, ConsoleServer, SourceFrames
 from humantele.expert.console.cine import CineBuffer, CineFrame
+from humantele.expert.console.frames import _Subscribers
 from humantele.expert.console.hook import PoseHistory, alignment, pressing_n
 from humantele.expert.console.messages import HEADER_SIZE, parse_header
 from humantele.geometry import Pose, quat_from_axis_angle
@@ -68,10 +69,12 @@ class Session:
         self.commands.append(("clutch", on))
 
 
-class ManualFrames:
-    """A provider whose frames the test renders from the sim sources, one at a time."""
+class ManualFrames(_Subscribers):
+    """A provider whose frames the test renders from the sim sources, one at a time (each
+    handed to the subscribers, as a source's thread does)."""
 
     def __init__(self, clock: FakeClock) -> None:
+        super().__init__()
         scene = DemoScene(clock=clock)
         self.us = SimUltrasound(SimUltrasoundConfig(width=320, height=240), scene, clock=clock)
         self.pov = SimPov(SimPovConfig(width=320, height=180), scene, clock=clock)
@@ -81,6 +84,7 @@ class ManualFrames:
     def next(self, track: str):
         src = self.us if track == "us" else self.pov
         self.frames[track] = src.render(self.scene())
+        self._notify(track, self.frames[track])
         return self.frames[track]
 
     def latest(self, track: str):
@@ -100,6 +104,7 @@ class ReceivedManualFrames(ManualFrames):
         f = src.render(self.scene())
         self.clock.t += 0.04
         self.frames[track] = Received(f, f.t_capture + 0.03)
+        self._notify(track, self.frames[track])
         return self.frames[track]
 
 
@@ -220,24 +225,58 @@ async def test_state_marks_old_video_and_a_lost_link_as_stale(tmp_path):
     session = Session()
     server = await serve(frames, session, tmp_path, clock=clock, stale_after_s=1.0)
     try:
-        state = server.state()
-        assert state["video"]["us"]["stale"] and state["video"]["us"]["age_ms"] is None
-        frames.next("us")
-        await asyncio.sleep(0.05)  # the pump takes it
-        state = server.state()
-        assert not state["video"]["us"]["stale"] and state["video"]["us"]["age_ms"] == 0.0
-        assert state["video"]["pov"]["stale"]  # never had a frame
-        assert not state["link"]["stale"]
-        clock.t += 1.5  # no new frame for 1.5 s
-        state = server.state()
-        assert state["video"]["us"]["stale"] and state["video"]["us"]["age_ms"] == 1500.0
-        session.link = {"state": "disconnected", "pose_age_ms": 40.0}
-        assert server.state()["link"]["stale"]
-        session.link = {"state": "connected", "pose_age_ms": 2500.0}
-        assert server.state()["link"]["stale"]
         async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
             st = await next_message(ws, lambda k, d: k == "json" and d["type"] == "state")
             assert st["alignment"] == {"mm": 3.0, "deg": None}  # NaN sent as null
+            state = server.state()
+            assert state["video"]["us"]["stale"] and state["video"]["us"]["age_ms"] is None
+            frames.next("us")
+            await next_message(ws, lambda k, d: k == "frame")
+            state = server.state()
+            assert not state["video"]["us"]["stale"] and state["video"]["us"]["age_ms"] == 0.0
+            assert state["video"]["pov"]["stale"]  # never had a frame
+            assert not state["link"]["stale"]
+            clock.t += 1.5  # no new frame for 1.5 s
+            state = server.state()
+            assert state["video"]["us"]["stale"] and state["video"]["us"]["age_ms"] == 1500.0
+            session.link = {"state": "disconnected", "pose_age_ms": 40.0}
+            assert server.state()["link"]["stale"]
+            session.link = {"state": "connected", "pose_age_ms": 2500.0}
+            assert server.state()["link"]["stale"]
+    finally:
+        await server.stop()
+
+
+async def test_no_page_no_video_work(tmp_path):
+    """With no page open the console takes no frame at all (no subscription: the provider
+    hands on nothing, nothing is encoded or kept); a page opening subscribes, its closing
+    unsubscribes and empties the cine loop."""
+    clock = FakeClock()
+    frames = ManualFrames(clock)
+    server = await serve(frames, Session(), tmp_path, clock=clock)
+    try:
+        for _ in range(5):
+            frames.next("us")
+            frames.next("pov")
+        await asyncio.sleep(0.05)
+        assert frames.notified == 0 and not server.stats()["subscribed"]
+        assert server.tracks["us"].frames == 0 and server.tracks["us"].jpegs == 0
+        assert len(server.cine) == 0
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
+            f = frames.next("us")
+            await next_message(ws, lambda k, d: k == "frame" and d[0]["seq"] == f.seq)
+            assert frames.notified == 1 and server.tracks["us"].jpegs == 1
+            assert len(server.cine) == 1
+        for _ in range(300):
+            if not server.stats()["subscribed"]:
+                break
+            await asyncio.sleep(0.01)
+        assert not server.stats()["subscribed"] and len(server.cine) == 0
+        before = frames.notified
+        for _ in range(5):
+            frames.next("us")
+        await asyncio.sleep(0.05)
+        assert frames.notified == before and server.tracks["us"].jpegs == 1
     finally:
         await server.stop()
 
@@ -346,7 +385,7 @@ async def test_bad_pages_are_refused_and_counted_and_the_server_goes_on(tmp_path
             await ws.send_bytes(b"\x00\x01")
             for _ in range(200):  # a flood: beyond the budget, dropped and counted
                 await ws.send_str("{}")
-            await ws.send_str("y" * 5000)  # too big: the socket is closed
+            await ws.send_str("y" * 20000)  # too big: the socket is closed
             msg = await ws.receive(timeout=5)
             while msg.type not in (aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSED):
                 msg = await ws.receive(timeout=5)
@@ -376,9 +415,10 @@ async def test_a_slow_page_gets_the_newest_frame_not_a_queue(tmp_path):
     try:
         async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
             got = []
-            for f in rendered:
+            for i, f in enumerate(rendered):
                 frames.frames["us"] = f
-                while server.tracks["us"].seq != f.seq:  # the server has taken it
+                frames._notify("us", f)
+                while server.tracks["us"].jpegs != i + 1:  # the server has encoded it
                     await asyncio.sleep(0.005)
             while len(got) < 2:
                 h, _ = await next_message(ws, lambda k, d: k == "frame")
