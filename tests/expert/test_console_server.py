@@ -560,3 +560,96 @@ async def test_captures_are_capped_in_rate_and_in_disk_use(tmp_path):
         await server.stop()
     assert not r["ok"] and "captures_max_mb" in r["detail"]
     assert server.refused["capture_disk"] == 1
+
+
+class EncodedFrames(ManualFrames):
+    """As the expert's receiver gives frames: decoded (an I420 ``av_frame``) with the encoded
+    frame each came from (here a stand-in: its number as bytes), and keyframes on request."""
+
+    def __init__(self, clock: FakeClock) -> None:
+        super().__init__(clock)
+        self.keyframe_requests = 0
+        self.key_next = False
+
+    def request_keyframe(self, track: str) -> bool:
+        self.keyframe_requests += 1
+        self.key_next = True
+        return True
+
+    def push(self, track: str = "us", key: bool | None = None):
+        import av
+
+        from humantele.media.receiver import Encoded
+
+        src = self.us if track == "us" else self.pov
+        f = src.render(self.scene())
+        frame = Received(f, f.t_capture + 0.01)
+        frame.av_frame = av.VideoFrame.from_ndarray(f.image, format="bgr24").reformat(
+            format="yuv420p"
+        )
+        key = self.key_next if key is None else key
+        self.key_next = False
+        self.frames[track] = frame
+        for fn in self.subscribers[track]:
+            fn(frame, Encoded(b"vp8:%d" % f.seq, key, "VP8"))
+        return frame
+
+
+async def test_webcodecs_pages_get_the_encoded_frames_in_order_from_a_keyframe(tmp_path):
+    """The default transport: the page gets the encoded frames themselves, from a keyframe
+    (asked for when it opens), in order and none replaced by a newer one; the expert encodes
+    no JPEG; the cine loop keeps the decoded frames and makes a JPEG of the one asked for,
+    the very picture (its counter)."""
+    clock = FakeClock()
+    frames = EncodedFrames(clock)
+    server = await serve(frames, Session(), tmp_path, clock=clock)
+    try:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
+            hello = await next_message(ws, lambda k, d: k == "json" and d["type"] == "hello")
+            assert hello["transport"] == "webcodecs" and frames.keyframe_requests >= 1
+            frames.key_next = False
+            first = frames.push(key=False)  # before a keyframe: not sent, a keyframe asked
+            assert frames.keyframe_requests >= 2
+            sent = [frames.push() for _ in range(6)]  # the first is the keyframe asked for
+            got = []
+            while len(got) < 6:
+                h, data = await next_message(ws, lambda k, d: k == "frame")
+                got.append((h["seq"], h["encoded"], h["keyframe"], data))
+            assert [g[0] for g in got] == [f.seq for f in sent]
+            assert all(g[1] for g in got) and got[0][2] and not any(g[2] for g in got[1:])
+            assert [g[3] for g in got] == [b"vp8:%d" % f.seq for f in sent]
+            assert server.tracks["us"].jpegs == 0 and server.tracks["us"].encoded_dropped == 1
+            assert server.cine.get(first.seq) is not None  # decoded: in the cine all the same
+            await ws.send_json({"type": "freeze", "on": True})
+            await ws.send_json({"type": "cine", "seq": sent[2].seq})
+            h, jpeg = await next_message(ws, lambda k, d: k == "frame" and d[0]["cine"])
+            assert h["seq"] == sent[2].seq and read_counter(decode(jpeg)) == sent[2].seq
+    finally:
+        await server.stop()
+
+
+async def test_the_other_transports_on_request_and_sim_video_is_jpeg(tmp_path):
+    """``?transport=jpeg``: JPEGs made from the decoded planes; a provider without encoded
+    frames (sim) gives JPEG whatever the page asks."""
+    clock = FakeClock()
+    frames = EncodedFrames(clock)
+    server = await serve(frames, Session(), tmp_path, clock=clock)
+    try:
+        async with aiohttp.ClientSession() as http:
+            async with http.ws_connect(server.ws_url + "&transport=jpeg") as ws:
+                hello = await next_message(ws, lambda k, d: k == "json" and d["type"] == "hello")
+                assert hello["transport"] == "jpeg"
+                f = frames.push()
+                h, jpeg = await next_message(ws, lambda k, d: k == "frame")
+                assert not h["encoded"] and read_counter(decode(jpeg)) == f.seq == h["seq"]
+    finally:
+        await server.stop()
+    sim = ManualFrames(clock)
+    server = await serve(sim, Session(), tmp_path, clock=clock)
+    try:
+        async with aiohttp.ClientSession() as http:
+            async with http.ws_connect(server.ws_url + "&transport=webcodecs") as ws:
+                hello = await next_message(ws, lambda k, d: k == "json" and d["type"] == "hello")
+                assert hello["transport"] == "jpeg"
+    finally:
+        await server.stop()

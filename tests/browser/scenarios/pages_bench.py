@@ -16,7 +16,7 @@ headless Chromium in turn for ``seconds``; the console once per video transport
 
     python tests/browser/netns.py pages_bench --arg seconds=30 --arg write=1
 
-(``write=1``: the tables go to docs/benchmarks.md, sections ``pages`` and ``console video``,
+(``write=1``: the tables go to docs/benchmarks.md, sections ``pages`` and ``console``,
 and the chart of latency against frames drawn to docs/img/console_video.png.)
 """
 
@@ -321,7 +321,7 @@ def write_designs(data: dict) -> None:
         + f"\n\n![latency against frames drawn]({chart})\n\n"
         + machine_line()
     )
-    write_section("console video", text)
+    write_section("console", text)
 
 
 def plot_designs(summary: dict) -> str:

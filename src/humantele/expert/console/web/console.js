@@ -155,7 +155,7 @@ async function decode(lane, buf, h) {
 
 // A decoder per track, fed in order from a keyframe on; a decoder that fails or falls behind
 // is dropped and the daemon asked for a keyframe (the next one starts a new decoder).
-const MAX_DECODE_QUEUE = 12;
+const MAX_DECODE_QUEUE = 16; // (0.8 s of US): beyond, start again at a keyframe
 const decoders = { us: null, pov: null };
 const needKey = { us: true, pov: true };
 const headers = { us: new Map(), pov: new Map() }; // chunk timestamp (the seq) -> header
@@ -207,14 +207,23 @@ function onEncoded(h, buf) {
                                    data: new Uint8Array(buf, 32) }));
 }
 
+// Behind (more frames waiting to decode), a frame is drawn only if none was for
+// DRAW_AT_LEAST_MS: the newest is what the sonographer needs, and drawing is work.
+const DRAW_AT_LEAST_MS = 100;
+const drawnAt = { us: -Infinity, pov: -Infinity };
+
 function onDecoded(track, frame) {
   const map = headers[track], h = map.get(frame.timestamp);
   for (const k of map.keys()) { if (k <= frame.timestamp) map.delete(k); else break; }
   app.decoded[track] += 1;
   try {
     if (!h) return;
-    if (track === "us" && app.frozen) app.lastFrame.us = { seq: h.seq, at: performance.now(), ...h };
-    else draw(h, frame);
+    const d = decoders[track], now = performance.now();
+    if (track === "us" && app.frozen) app.lastFrame.us = { ...h, at: now };
+    else if (!d || d.decodeQueueSize === 0 || now - drawnAt[track] >= DRAW_AT_LEAST_MS) {
+      drawnAt[track] = now;
+      draw(h, frame);
+    }
   } finally {
     frame.close();
   }
