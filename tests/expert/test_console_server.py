@@ -653,3 +653,38 @@ async def test_the_other_transports_on_request_and_sim_video_is_jpeg(tmp_path):
                 assert hello["transport"] == "jpeg"
     finally:
         await server.stop()
+
+
+async def test_a_webcodecs_page_that_falls_behind_gets_the_newest_from_a_keyframe(tmp_path):
+    """A page that has not drawn the last 8 frames it was sent gets no more (its socket is
+    not a buffer); once it has drawn them it gets the newest, from a keyframe."""
+    clock = FakeClock()
+    frames = EncodedFrames(clock)
+    server = await serve(frames, Session(), tmp_path, clock=clock)
+    try:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
+            await next_message(ws, lambda k, d: k == "json" and d["type"] == "hello")
+            sent = [frames.push(key=i == 0) for i in range(12)]
+            await ws.send_json({"type": "drawn", "track": "us", "seq": sent[0].seq,
+                                "draw_to_send_ms": 0})  # fmt: skip
+            while not server.tracks["us"].drawn:
+                await asyncio.sleep(0.005)
+            asked = frames.keyframe_requests
+            more = [frames.push(key=False) for _ in range(3)]  # 11 undrawn: held back
+            got = []
+            while len(got) < 12:
+                h, _ = await next_message(ws, lambda k, d: k == "frame")
+                got.append(h["seq"])
+            assert got == [f.seq for f in sent]
+            assert server.tracks["us"].encoded_dropped == 3 and frames.keyframe_requests == asked
+            await ws.send_json({"type": "drawn", "track": "us", "seq": sent[-1].seq,
+                                "draw_to_send_ms": 0})  # fmt: skip
+            while server.tracks["us"].drawn < 2:
+                await asyncio.sleep(0.005)
+            frames.push(key=False)  # caught up: a keyframe is asked for, this one dropped
+            assert frames.keyframe_requests == asked + 1
+            key = frames.push()
+            h, _ = await next_message(ws, lambda k, d: k == "frame")
+            assert h["seq"] == key.seq and h["keyframe"] and more[-1].seq < key.seq
+    finally:
+        await server.stop()

@@ -105,6 +105,8 @@ IN_FLIGHT_TIMEOUT_S = 0.5  # a page that echoes nothing for this long gets the n
 SEQS_KEPT = 256  # frames per track whose times are kept for the page's echoes
 TRANSPORTS = ("webcodecs", "jpeg", "webrtc")
 ENCODED_BACKLOG = 12  # encoded frames of a track queued for a page; more: to the next keyframe
+ENCODED_LAG = 8  # frames of a track sent to a page beyond the newest it drew: it is behind
+ENCODED_LAG_S = 2.0  # ... unless it has drawn nothing for this long (then sent anyway)
 _ASKED: contextvars.ContextVar[str | None] = contextvars.ContextVar("transport", default=None)
 
 
@@ -192,6 +194,8 @@ class _Client(PageClient):
         self.transport = "jpeg"
         self.need_key = dict.fromkeys(TRACKS, True)  # encoded: waiting for a keyframe
         self.encoded_sent = 0  # numbers the encoded frames' message keys (never coalesced)
+        self.sent_seq: dict[str, int] = {}  # the newest encoded frame sent, per track
+        self.echo_at: dict[str, float] = {}  # when the page last said it drew (loop clock)
         self.peer: Any = None  # the webrtc transport's PagePeer
 
     def can_take(self, track: str, now: float, timeout_s: float) -> bool:
@@ -483,11 +487,20 @@ class ConsoleServer:
                 del c.pending[k]
             st.encoded_dropped += len(queued)
             c.need_key[track] = True
+        if track == "us" and self.cine.frozen:  # the page shows the cine loop, not these
+            c.need_key[track] = True
+            st.encoded_dropped += 1
+            return
+        if self._behind(c, track):  # a page that cannot keep up: the newest, from a
+            c.need_key[track] = True  # keyframe, once it has drawn what it has (its
+            st.encoded_dropped += 1  # socket and its task queue are not a buffer)
+            return
         if c.need_key[track] and not encoded.keyframe:
             st.encoded_dropped += 1
             self.frames.request_keyframe(track)  # type: ignore[union-attr]
             return
         c.need_key[track] = False
+        c.sent_seq[track] = frame.seq
         flags = FLAG_ENCODED | (FLAG_KEYFRAME if encoded.keyframe else 0)
         flags |= FLAG_H264 if encoded.codec.upper() == "H264" else 0
         header = frame_header(
@@ -497,6 +510,14 @@ class ConsoleServer:
         c.encoded_sent += 1
         c.post(f"{prefix}{c.encoded_sent}", header + encoded.data)
         st.forwarded += 1
+
+    def _behind(self, c: _Client, track: str) -> bool:
+        """Whether page ``c`` has ``ENCODED_LAG`` frames of ``track`` it was sent and has not
+        drawn (nor drawn a newer one), and said it drew within ``ENCODED_LAG_S``."""
+        sent, drawn = c.sent_seq.get(track), c.last_drawn.get(track)
+        if sent is None or drawn is None or sent - drawn <= ENCODED_LAG:
+            return False
+        return time.monotonic() - c.echo_at.get(track, 0.0) < ENCODED_LAG_S
 
     async def _jpeg_track(self, track: str) -> None:
         """Encode the newest frame of ``track`` for the JPEG pages, one at a time, latest
@@ -679,6 +700,7 @@ class ConsoleServer:
 
     def _on_drawn(self, client: _Client, m: Drawn, arrival: float) -> None:
         client.drawn(m.track, m.seq)
+        client.echo_at[m.track] = time.monotonic()
         client.wake.set()
         st = self.tracks[m.track]
         times = st.times.get(m.seq)
