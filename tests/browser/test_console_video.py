@@ -1,6 +1,6 @@
-"""The console on received video with the default transport, in headless Chromium
-(scenarios/console_video.py): no console work without a page, and freeze and capture
-frame-exact (the captured frame is the one on screen)."""
+"""The console on received video with the default transport (jpeg) and webcodecs, in
+headless Chromium (scenarios/console_video.py): no console work without a page, and freeze
+and capture frame-exact (the captured frame is the one on screen)."""
 
 import cv2
 import numpy as np
@@ -27,25 +27,28 @@ def _idle(d: dict) -> None:
 def test_no_console_work_without_a_page(run):
     _idle(run.data["idle_before"])
     _idle(run.data["idle_after"])
-    assert run.data["open"]["subscribed"] and run.data["open"]["us"] > 0
+    for name in ("default", "webcodecs"):
+        assert run.data[name]["open"]["subscribed"] and run.data[name]["open"]["us"] > 0
 
 
 @pytest.mark.e2e
 @pytest.mark.slow
-def test_received_video_is_drawn_by_the_default_transport(run):
-    d = run.data
-    assert d["transport"] == "webcodecs"
+@pytest.mark.parametrize(("name", "transport"), [("default", "jpeg"), ("webcodecs", "webcodecs")])
+def test_received_video_is_drawn(run, name, transport):
+    d = run.data[name]
+    assert d["transport"] == transport
     assert d["pixels"]["pov"]["mean"] > 10.0 and d["pixels"]["us"]["w"] == 640
-    assert [e for e in d["console_errors"] if "console" in e.lower()] == []
+    assert [e for e in run.data["console_errors"] if "console" in e.lower()] == []
 
 
 @pytest.mark.e2e
 @pytest.mark.slow
-def test_freeze_and_capture_keep_the_frame_on_screen(run):
-    d = run.data
+@pytest.mark.parametrize("name", ["default", "webcodecs"])
+def test_freeze_and_capture_keep_the_frame_on_screen(run, name):
+    d = run.data[name]
     shown, cap = d["shown"], d["capture"]
     assert cap["ok"] and cap["seq"] == shown["seq"] == d["shown_after"]["seq"]
-    on_screen = cv2.imread(str(run.path("shown_us.png")), cv2.IMREAD_COLOR)
+    on_screen = cv2.imread(str(run.path(d["png"])), cv2.IMREAD_COLOR)
     saved = cv2.imread(cap["file"], cv2.IMREAD_COLOR)
     assert on_screen.shape == saved.shape
     # the frame's own number, in the picture on screen and in the file

@@ -596,13 +596,13 @@ class EncodedFrames(ManualFrames):
 
 
 async def test_webcodecs_pages_get_the_encoded_frames_in_order_from_a_keyframe(tmp_path):
-    """The default transport: the page gets the encoded frames themselves, from a keyframe
+    """The webcodecs transport: the page gets the encoded frames themselves, from a keyframe
     (asked for when it opens), in order and none replaced by a newer one; the expert encodes
     no JPEG; the cine loop keeps the decoded frames and makes a JPEG of the one asked for,
     the very picture (its counter)."""
     clock = FakeClock()
     frames = EncodedFrames(clock)
-    server = await serve(frames, Session(), tmp_path, clock=clock)
+    server = await serve(frames, Session(), tmp_path, clock=clock, transport="webcodecs")
     try:
         async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
             hello = await next_message(ws, lambda k, d: k == "json" and d["type"] == "hello")
@@ -629,14 +629,19 @@ async def test_webcodecs_pages_get_the_encoded_frames_in_order_from_a_keyframe(t
 
 
 async def test_the_other_transports_on_request_and_sim_video_is_jpeg(tmp_path):
-    """``?transport=jpeg``: JPEGs made from the decoded planes; a provider without encoded
-    frames (sim) gives JPEG whatever the page asks."""
+    """The default (jpeg): JPEGs made from the decoded planes; ``?transport=`` asks another;
+    a provider without encoded frames (sim) gives JPEG whatever the page asks."""
     clock = FakeClock()
     frames = EncodedFrames(clock)
     server = await serve(frames, Session(), tmp_path, clock=clock)
     try:
         async with aiohttp.ClientSession() as http:
-            async with http.ws_connect(server.ws_url + "&transport=jpeg") as ws:
+            async with http.ws_connect(server.ws_url + "&transport=webcodecs") as ws:
+                hello = await next_message(ws, lambda k, d: k == "json" and d["type"] == "hello")
+                assert hello["transport"] == "webcodecs"
+            while server.clients:
+                await asyncio.sleep(0.01)
+            async with http.ws_connect(server.ws_url) as ws:
                 hello = await next_message(ws, lambda k, d: k == "json" and d["type"] == "hello")
                 assert hello["transport"] == "jpeg"
                 f = frames.push()
@@ -660,7 +665,7 @@ async def test_a_webcodecs_page_that_falls_behind_gets_the_newest_from_a_keyfram
     not a buffer); once it has drawn them it gets the newest, from a keyframe."""
     clock = FakeClock()
     frames = EncodedFrames(clock)
-    server = await serve(frames, Session(), tmp_path, clock=clock)
+    server = await serve(frames, Session(), tmp_path, clock=clock, transport="webcodecs")
     try:
         async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
             await next_message(ws, lambda k, d: k == "json" and d["type"] == "hello")

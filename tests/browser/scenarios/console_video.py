@@ -1,8 +1,8 @@
 """The console on the follower's received video (``humantele demo --config
-configs/demo.toml``: sim ultrasound and POV over WebRTC), with the default transport (issue
-19 §1): no console work per frame while no page is open; both pictures drawn; freeze keeps
-the frame on screen and a capture saves that very frame (its counter, its pixels); once
-the page has closed the console takes no frame again."""
+configs/demo.toml``: sim ultrasound and POV over WebRTC), with the default transport (jpeg)
+and then webcodecs (issue 19 §1): no console work per frame while no page is open; both
+pictures drawn; freeze keeps the frame on screen and a capture saves that very frame (its
+counter, its pixels); once the page has closed the console takes no frame again."""
 
 from __future__ import annotations
 
@@ -31,6 +31,43 @@ async def idle(demo, seconds: float = 3.0) -> dict:
     return {"before": a, "after": b, "received": [ra.get("frames"), rb.get("frames")]}
 
 
+async def visit(ctx, demo, transport: str | None) -> dict:
+    """Open the console (asking ``transport``), freeze, capture, close: what it showed."""
+    url = console_url(demo.stats("expert"))
+    if transport:
+        base, _, frag = url.partition("#")
+        url = f"{base}?transport={transport}#{frag}"
+    name = transport or "default"
+    page = await ctx.page(url, width=1440, height=900)
+    await ctx.until_progress(
+        page,
+        "window.consoleApp && consoleApp.frames.us > 10 && consoleApp.frames.pov > 10",
+        "window.consoleApp ? [consoleApp.frames.us, consoleApp.frames.pov] : null",
+        stall_s=90,
+    )
+    out: dict = {"transport": await page.evaluate("consoleApp.transport")}
+    out["pixels"] = {t: await pixels(page, t) for t in ("us", "pov")}
+    out["open"] = console_frames(demo)
+    await ctx.shot(page, f"console_video_{name}_live")
+    # Freeze: the frame on screen stays; capture it.
+    await page.click("#freeze")
+    await ctx.until(page, "consoleApp.frozen && consoleApp.cine.length > 3", 20)
+    await asyncio.sleep(0.5)  # frames keep coming: none may replace the frozen one
+    out["shown"] = await page.evaluate("consoleApp.shown")
+    png = await page.evaluate(CANVAS_PNG)
+    out["png"] = f"shown_us_{name}.png"
+    (ctx.out / out["png"]).write_bytes(base64.b64decode(png.split(",", 1)[1]))
+    await page.click("#capture")
+    out["capture"] = await result(ctx, page, "capture", 1)
+    out["shown_after"] = await page.evaluate("consoleApp.shown")
+    await ctx.shot(page, f"console_video_{name}_frozen")
+    await page.evaluate("document.getElementById('freeze').click()")
+    await ctx.until(page, "!consoleApp.frozen", 5)
+    await ctx.close_page(page)
+    await demo.wait("the page gone", lambda e, f: not console_frames(demo)["subscribed"], 30)
+    return out
+
+
 async def run(ctx) -> dict:
     demo = await ctx.demo("--config", str(REPO / "configs" / "demo.toml"), "--duration", "900")
 
@@ -40,31 +77,7 @@ async def run(ctx) -> dict:
 
     await demo.wait("video received", ready, timeout=240)
     data: dict = {"idle_before": await idle(demo)}
-    page = await ctx.page(console_url(demo.stats("expert")), width=1440, height=900)
-    await ctx.until_progress(
-        page,
-        "window.consoleApp && consoleApp.frames.us > 10 && consoleApp.frames.pov > 10",
-        "window.consoleApp ? [consoleApp.frames.us, consoleApp.frames.pov] : null",
-        stall_s=90,
-    )
-    data["transport"] = await page.evaluate("consoleApp.transport")
-    data["pixels"] = {t: await pixels(page, t) for t in ("us", "pov")}
-    data["open"] = console_frames(demo)
-    await ctx.shot(page, "console_video_live")
-    # Freeze: the frame on screen stays; capture it.
-    await page.click("#freeze")
-    await ctx.until(page, "consoleApp.frozen && consoleApp.cine.length > 3", 20)
-    await asyncio.sleep(0.5)  # frames keep coming: none may replace the frozen one
-    data["shown"] = await page.evaluate("consoleApp.shown")
-    png = await page.evaluate(CANVAS_PNG)
-    (ctx.out / "shown_us.png").write_bytes(base64.b64decode(png.split(",", 1)[1]))
-    await page.click("#capture")
-    data["capture"] = await result(ctx, page, "capture", 1)
-    data["shown_after"] = await page.evaluate("consoleApp.shown")
-    await ctx.shot(page, "console_video_frozen")
-    await page.evaluate("document.getElementById('freeze').click()")
-    await ctx.until(page, "!consoleApp.frozen", 5)
-    await ctx.close_page(page)
-    await demo.wait("the page gone", lambda e, f: not console_frames(demo)["subscribed"], 30)
+    for transport in (None, "webcodecs"):
+        data[transport or "default"] = await visit(ctx, demo, transport)
     data["idle_after"] = await idle(demo)
     return data

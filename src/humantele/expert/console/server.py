@@ -5,16 +5,16 @@
 open (and only then) the server subscribes to each track of a
 :class:`~humantele.expert.console.frames.FrameProvider` and gets each new frame as it comes
 (no polling). How the page gets the pictures, ``transport`` (chosen by measurement:
-docs/benchmarks.md, "console video"):
+docs/console.md, "The video path"; figures in docs/benchmarks.md):
 
-- ``webcodecs`` (default): the encoded frames the expert received (VP8), forwarded as they
-  are over the WebSocket, decoded by the page's WebCodecs ``VideoDecoder``: the expert
-  encodes nothing; the cine buffer keeps the expert's own decode of the same frames (a JPEG
-  is made only of a frame the sonographer looks at or captures);
-- ``jpeg``: each frame JPEG-encoded from its I420 planes in a thread, latest wins (a slow
-  page sees the newest frame, never a backlog: ``coalesced`` counts the frames it skipped);
-  the cine buffer keeps the very bytes the page drew. Sim video (no encoded frames) always
-  goes this way;
+- ``jpeg`` (default): each frame JPEG-encoded from its I420 planes in a thread, latest wins
+  (a slow page sees the newest frame, never a backlog: ``coalesced`` counts the frames it
+  skipped); the cine buffer keeps the very bytes the page drew. Sim video (no encoded
+  frames) always goes this way;
+- ``webcodecs``: the encoded frames the expert received (VP8), forwarded as they are over
+  the WebSocket, decoded by the page's WebCodecs ``VideoDecoder``: the expert encodes
+  nothing; the cine buffer keeps the expert's own decode of the same frames (a JPEG is made
+  only of a frame the sonographer looks at or captures);
 - ``webrtc``: the page as a WebRTC receiver, the expert forwarding the encoded frames
   (:mod:`humantele.expert.console.rtcpeer`).
 
@@ -135,11 +135,11 @@ class ConsoleConfig(ConfigModel):
         "ultrasound frames: with the pixel spacing, the depth scale's cm labels; None: none",
     )
     transport: str = Field(
-        "webcodecs",
+        "jpeg",
         pattern=r"^(webcodecs|jpeg|webrtc)$",
-        description="how the page gets received video: 'webcodecs' (the encoded frames, "
-        "decoded by the page), 'jpeg' (JPEG per frame), 'webrtc' (the page a WebRTC peer); "
-        "sim video is always JPEG (docs/benchmarks.md: why webcodecs)",
+        description="how the page gets received video: 'jpeg' (a JPEG per frame, latest "
+        "wins), 'webcodecs' (the encoded frames, decoded by the page), 'webrtc' (the page a "
+        "WebRTC peer); sim video is always JPEG (docs/console.md: why jpeg)",
     )
     jpeg_quality: int = Field(88, ge=30, le=100, description="JPEG frames and captures")
     state_rate_hz: float = Field(20.0, gt=0, le=100)
