@@ -1,7 +1,7 @@
 """The two pages' figures (issue 11 §4), from one ``humantele demo`` with the video tracks on
 (``configs/demo.toml``: the follower's sim ultrasound and POV over WebRTC), each page open in
 headless Chromium in turn for ``seconds``; the console once per video transport
-(``designs``, default all three: ``webcodecs``, ``jpeg``, ``webrtc``), interleaved over
+(``designs``, default all three: ``jpeg``, ``webcodecs``, ``webrtc``), interleaved over
 ``rounds`` rounds (default 2) in the same run, a fresh page each time (issue 19 §1):
 
 - the console: ultrasound glass to glass as the page shows it (the follower's capture time to
@@ -79,7 +79,7 @@ def _sum(pids) -> float:
     return sum(process_cpu_seconds(p) or 0.0 for p in pids)
 
 
-DESIGNS = ("webcodecs", "jpeg", "webrtc")
+DESIGNS = ("jpeg", "webcodecs", "webrtc")  # the default first (the pages section takes it)
 
 
 async def console_phase(ctx, demo, seconds: float, transport: str | None = None,
@@ -296,7 +296,8 @@ def write_designs(data: dict) -> None:
     text = (
         "## Console video: the three transports, A/B (`python tests/browser/netns.py"
         " pages_bench --arg seconds=S --arg write=1`)\n\n"
-        f"The same demo run as above; the console opened afresh for each transport in turn"
+        "One `humantele demo --config configs/demo.toml` (the run of the pages section when"
+        " both are written together); the console opened afresh for each transport in turn"
         f" ({data['seconds']:g} s windows, the designs interleaved round by round). Glass to"
         " glass: the follower's capture to the page's draw of the frame whose counter the"
         " page read back from its canvas (the median of the windows' p50 and p95). Frames"
