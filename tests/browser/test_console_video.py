@@ -1,4 +1,4 @@
-"""The console on received video with the default transport (jpeg) and webcodecs, in
+"""The console on received video with the default transport (jpeg), in
 headless Chromium (scenarios/console_video.py): no console work without a page, and freeze
 and capture frame-exact (the captured frame is the one on screen)."""
 
@@ -27,25 +27,22 @@ def _idle(d: dict) -> None:
 def test_no_console_work_without_a_page(run):
     _idle(run.data["idle_before"])
     _idle(run.data["idle_after"])
-    for name in ("default", "webcodecs"):
-        assert run.data[name]["open"]["subscribed"] and run.data[name]["open"]["us"] > 0
+    assert run.data["default"]["open"]["subscribed"] and run.data["default"]["open"]["us"] > 0
 
 
 @pytest.mark.e2e
 @pytest.mark.slow
-@pytest.mark.parametrize(("name", "transport"), [("default", "jpeg"), ("webcodecs", "webcodecs")])
-def test_received_video_is_drawn(run, name, transport):
-    d = run.data[name]
-    assert d["transport"] == transport
+def test_received_video_is_drawn(run):
+    d = run.data["default"]
+    assert d["transport"] == "jpeg"
     assert d["pixels"]["pov"]["mean"] > 10.0 and d["pixels"]["us"]["w"] == 640
     assert [e for e in run.data["console_errors"] if "console" in e.lower()] == []
 
 
 @pytest.mark.e2e
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["default", "webcodecs"])
-def test_freeze_and_capture_keep_the_frame_on_screen(run, name):
-    d = run.data[name]
+def test_freeze_and_capture_keep_the_frame_on_screen(run):
+    d = run.data["default"]
     shown, cap = d["shown"], d["capture"]
     assert cap["ok"] and cap["seq"] == shown["seq"] == d["shown_after"]["seq"]
     on_screen = cv2.imread(str(run.path(d["png"])), cv2.IMREAD_COLOR)
