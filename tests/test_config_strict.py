@@ -26,8 +26,8 @@ def _load(tmp_path, model, section, text):
         ("[expert.console]\nenabled = 1\n", r"console\.enabled: must be true or false, not 1"),
         ("[expert.console]\nport = 8767.0\n", r"console\.port: must be an integer, not 8767\.0"),
         ("[expert.console]\nport = true\n", r"console\.port: must be an integer, not True"),
-        ('[expert.console]\npoll_hz = "250"\n', r"console\.poll_hz: must be a number"),
-        ("[expert.console]\npoll_hz = false\n", r"console\.poll_hz: must be a number"),
+        ('[expert.console]\nstate_rate_hz = "20"\n', r"console\.state_rate_hz: must be a number"),
+        ("[expert.console]\nstate_rate_hz = false\n", r"console\.state_rate_hz: must be a number"),
         (
             '[expert.mapping]\norigin_offset_m = [0.0, "0.1", 0.0]\n',
             r"mapping\.origin_offset_m: item 1 must be a number, not the string '0.1'",
@@ -45,10 +45,10 @@ def test_integers_fill_floats_and_arrays_fill_tuples(tmp_path):
         tmp_path,
         ExpertConfig,
         "expert",
-        "[expert.console]\npoll_hz = 100\nus_pixel_spacing_mm = [1, 0.5]\n"
+        "[expert.console]\nstate_rate_hz = 10\nus_pixel_spacing_mm = [1, 0.5]\n"
         "[expert.mapping]\norigin_offset_m = [0, 0.1, 0]\n",
     )
-    assert c.console.poll_hz == 100.0 and isinstance(c.console.poll_hz, float)
+    assert c.console.state_rate_hz == 10.0 and isinstance(c.console.state_rate_hz, float)
     assert c.console.us_pixel_spacing_mm == (1.0, 0.5)
     assert c.mapping.origin_offset_m == (0.0, 0.1, 0.0)
     f = _load(tmp_path, FollowerConfig, "follower", '[follower.feed]\nhosts = ["scanner.lan"]\n')

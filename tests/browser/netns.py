@@ -132,7 +132,9 @@ def main() -> int:
     parser.add_argument("scenario", help="a module of tests/browser/scenarios")
     parser.add_argument("--out", help="directory for the result, screenshots and logs")
     parser.add_argument("--arg", action="append", default=[], help="KEY=VALUE (JSON or text)")
-    parser.add_argument("--timeout", type=float, default=600.0)
+    parser.add_argument(
+        "--timeout", type=float, default=1800.0, help="s (the A/B bench takes ~10 min)"
+    )
     a = parser.parse_args()
     reason = skip_reason()
     if reason:

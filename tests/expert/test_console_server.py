@@ -18,6 +18,7 @@ import pytest
 from humantele.expert.console import ConsoleConfig, ConsoleServer, SourceFrames
 from humantele.expert.console.cine import CineBuffer, CineFrame
 from humantele.expert.console.expert_view import PoseHistory
+from humantele.expert.console.frames import _Subscribers
 from humantele.expert.console.hook import alignment, pressing_n
 from humantele.expert.console.messages import HEADER_SIZE, parse_header
 from humantele.geometry import Pose, quat_from_axis_angle
@@ -70,10 +71,12 @@ class Session:
         self.commands.append(("clutch", on))
 
 
-class ManualFrames:
-    """A provider whose frames the test renders from the sim sources, one at a time."""
+class ManualFrames(_Subscribers):
+    """A provider whose frames the test renders from the sim sources, one at a time (each
+    handed to the subscribers, as a source's thread does)."""
 
     def __init__(self, clock: FakeClock) -> None:
+        super().__init__()
         scene = DemoScene(clock=clock)
         self.us = SimUltrasound(SimUltrasoundConfig(width=320, height=240), scene, clock=clock)
         self.pov = SimPov(SimPovConfig(width=320, height=180), scene, clock=clock)
@@ -83,6 +86,7 @@ class ManualFrames:
     def next(self, track: str):
         src = self.us if track == "us" else self.pov
         self.frames[track] = src.render(self.scene())
+        self._notify(track, self.frames[track])
         return self.frames[track]
 
     def latest(self, track: str):
@@ -102,6 +106,7 @@ class ReceivedManualFrames(ManualFrames):
         f = src.render(self.scene())
         self.clock.t += 0.04
         self.frames[track] = Received(f, f.t_capture + 0.03)
+        self._notify(track, self.frames[track])
         return self.frames[track]
 
 
@@ -222,24 +227,58 @@ async def test_state_marks_old_video_and_a_lost_link_as_stale(tmp_path):
     session = Session()
     server = await serve(frames, session, tmp_path, clock=clock, stale_after_s=1.0)
     try:
-        state = server.state()
-        assert state["video"]["us"]["stale"] and state["video"]["us"]["age_ms"] is None
-        frames.next("us")
-        await asyncio.sleep(0.05)  # the pump takes it
-        state = server.state()
-        assert not state["video"]["us"]["stale"] and state["video"]["us"]["age_ms"] == 0.0
-        assert state["video"]["pov"]["stale"]  # never had a frame
-        assert not state["link"]["stale"]
-        clock.t += 1.5  # no new frame for 1.5 s
-        state = server.state()
-        assert state["video"]["us"]["stale"] and state["video"]["us"]["age_ms"] == 1500.0
-        session.link = {"state": "disconnected", "pose_age_ms": 40.0}
-        assert server.state()["link"]["stale"]
-        session.link = {"state": "connected", "pose_age_ms": 2500.0}
-        assert server.state()["link"]["stale"]
         async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
             st = await next_message(ws, lambda k, d: k == "json" and d["type"] == "state")
             assert st["alignment"] == {"mm": 3.0, "deg": None}  # NaN sent as null
+            state = server.state()
+            assert state["video"]["us"]["stale"] and state["video"]["us"]["age_ms"] is None
+            frames.next("us")
+            await next_message(ws, lambda k, d: k == "frame")
+            state = server.state()
+            assert not state["video"]["us"]["stale"] and state["video"]["us"]["age_ms"] == 0.0
+            assert state["video"]["pov"]["stale"]  # never had a frame
+            assert not state["link"]["stale"]
+            clock.t += 1.5  # no new frame for 1.5 s
+            state = server.state()
+            assert state["video"]["us"]["stale"] and state["video"]["us"]["age_ms"] == 1500.0
+            session.link = {"state": "disconnected", "pose_age_ms": 40.0}
+            assert server.state()["link"]["stale"]
+            session.link = {"state": "connected", "pose_age_ms": 2500.0}
+            assert server.state()["link"]["stale"]
+    finally:
+        await server.stop()
+
+
+async def test_no_page_no_video_work(tmp_path):
+    """With no page open the console takes no frame at all (no subscription: the provider
+    hands on nothing, nothing is encoded or kept); a page opening subscribes, its closing
+    unsubscribes and empties the cine loop."""
+    clock = FakeClock()
+    frames = ManualFrames(clock)
+    server = await serve(frames, Session(), tmp_path, clock=clock)
+    try:
+        for _ in range(5):
+            frames.next("us")
+            frames.next("pov")
+        await asyncio.sleep(0.05)
+        assert frames.notified == 0 and not server.stats()["subscribed"]
+        assert server.tracks["us"].frames == 0 and server.tracks["us"].jpegs == 0
+        assert len(server.cine) == 0
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
+            f = frames.next("us")
+            await next_message(ws, lambda k, d: k == "frame" and d[0]["seq"] == f.seq)
+            assert frames.notified == 1 and server.tracks["us"].jpegs == 1
+            assert len(server.cine) == 1
+        for _ in range(300):
+            if not server.stats()["subscribed"]:
+                break
+            await asyncio.sleep(0.01)
+        assert not server.stats()["subscribed"] and len(server.cine) == 0
+        before = frames.notified
+        for _ in range(5):
+            frames.next("us")
+        await asyncio.sleep(0.05)
+        assert frames.notified == before and server.tracks["us"].jpegs == 1
     finally:
         await server.stop()
 
@@ -348,7 +387,7 @@ async def test_bad_pages_are_refused_and_counted_and_the_server_goes_on(tmp_path
             await ws.send_bytes(b"\x00\x01")
             for _ in range(200):  # a flood: beyond the budget, dropped and counted
                 await ws.send_str("{}")
-            await ws.send_str("y" * 5000)  # too big: the socket is closed
+            await ws.send_str("y" * 20000)  # too big: the socket is closed
             msg = await ws.receive(timeout=5)
             while msg.type not in (aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSED):
                 msg = await ws.receive(timeout=5)
@@ -378,9 +417,10 @@ async def test_a_slow_page_gets_the_newest_frame_not_a_queue(tmp_path):
     try:
         async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
             got = []
-            for f in rendered:
+            for i, f in enumerate(rendered):
                 frames.frames["us"] = f
-                while server.tracks["us"].seq != f.seq:  # the server has taken it
+                frames._notify("us", f)
+                while server.tracks["us"].jpegs != i + 1:  # the server has encoded it
                     await asyncio.sleep(0.005)
             while len(got) < 2:
                 h, _ = await next_message(ws, lambda k, d: k == "frame")
@@ -692,3 +732,136 @@ async def test_a_page_that_reads_late_gets_a_state_and_a_frame_a_second_till_it_
     # Twenty states a second and a frame were due; a state and the frame about once a second.
     assert 1 <= kinds.count("state") <= 3 and kinds.count("us") <= 1, kinds
     assert held > 20 and state["t"] == 50.0 and frame[0]["track"] == "us"
+
+
+class EncodedFrames(ManualFrames):
+    """As the expert's receiver gives frames: decoded (an I420 ``av_frame``) with the encoded
+    frame each came from (here a stand-in: its number as bytes), and keyframes on request."""
+
+    def __init__(self, clock: FakeClock) -> None:
+        super().__init__(clock)
+        self.keyframe_requests = 0
+        self.key_next = False
+
+    def request_keyframe(self, track: str) -> bool:
+        self.keyframe_requests += 1
+        self.key_next = True
+        return True
+
+    def push(self, track: str = "us", key: bool | None = None):
+        import av
+
+        from humantele.media.receiver import Encoded
+
+        src = self.us if track == "us" else self.pov
+        f = src.render(self.scene())
+        frame = Received(f, f.t_capture + 0.01)
+        frame.av_frame = av.VideoFrame.from_ndarray(f.image, format="bgr24").reformat(
+            format="yuv420p"
+        )
+        key = self.key_next if key is None else key
+        self.key_next = False
+        self.frames[track] = frame
+        for fn in self.subscribers[track]:
+            fn(frame, Encoded(b"vp8:%d" % f.seq, key, "VP8"))
+        return frame
+
+
+async def test_webcodecs_pages_get_the_encoded_frames_in_order_from_a_keyframe(tmp_path):
+    """The webcodecs transport: the page gets the encoded frames themselves, from a keyframe
+    (asked for when it opens), in order and none replaced by a newer one; the expert encodes
+    no JPEG; the cine loop keeps the decoded frames and makes a JPEG of the one asked for,
+    the very picture (its counter)."""
+    clock = FakeClock()
+    frames = EncodedFrames(clock)
+    server = await serve(frames, Session(), tmp_path, clock=clock, transport="webcodecs")
+    try:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
+            hello = await next_message(ws, lambda k, d: k == "json" and d["type"] == "hello")
+            assert hello["transport"] == "webcodecs" and frames.keyframe_requests >= 1
+            frames.key_next = False
+            first = frames.push(key=False)  # before a keyframe: not sent, a keyframe asked
+            assert frames.keyframe_requests >= 2
+            sent = [frames.push() for _ in range(6)]  # the first is the keyframe asked for
+            got = []
+            while len(got) < 6:
+                h, data = await next_message(ws, lambda k, d: k == "frame")
+                got.append((h["seq"], h["encoded"], h["keyframe"], data))
+            assert [g[0] for g in got] == [f.seq for f in sent]
+            assert all(g[1] for g in got) and got[0][2] and not any(g[2] for g in got[1:])
+            assert [g[3] for g in got] == [b"vp8:%d" % f.seq for f in sent]
+            assert server.tracks["us"].jpegs == 0 and server.tracks["us"].encoded_dropped == 1
+            assert server.cine.get(first.seq) is not None  # decoded: in the cine all the same
+            await ws.send_json({"type": "freeze", "on": True})
+            await ws.send_json({"type": "cine", "seq": sent[2].seq})
+            h, jpeg = await next_message(ws, lambda k, d: k == "frame" and d[0]["cine"])
+            assert h["seq"] == sent[2].seq and read_counter(decode(jpeg)) == sent[2].seq
+    finally:
+        await server.stop()
+
+
+async def test_the_other_transports_on_request_and_sim_video_is_jpeg(tmp_path):
+    """The default (jpeg): JPEGs made from the decoded planes; ``?transport=`` asks another;
+    a provider without encoded frames (sim) gives JPEG whatever the page asks."""
+    clock = FakeClock()
+    frames = EncodedFrames(clock)
+    server = await serve(frames, Session(), tmp_path, clock=clock)
+    try:
+        async with aiohttp.ClientSession() as http:
+            async with http.ws_connect(server.ws_url + "&transport=webcodecs") as ws:
+                hello = await next_message(ws, lambda k, d: k == "json" and d["type"] == "hello")
+                assert hello["transport"] == "webcodecs"
+            while server.clients:
+                await asyncio.sleep(0.01)
+            async with http.ws_connect(server.ws_url) as ws:
+                hello = await next_message(ws, lambda k, d: k == "json" and d["type"] == "hello")
+                assert hello["transport"] == "jpeg"
+                f = frames.push()
+                h, jpeg = await next_message(ws, lambda k, d: k == "frame")
+                assert not h["encoded"] and read_counter(decode(jpeg)) == f.seq == h["seq"]
+    finally:
+        await server.stop()
+    sim = ManualFrames(clock)
+    server = await serve(sim, Session(), tmp_path, clock=clock)
+    try:
+        async with aiohttp.ClientSession() as http:
+            async with http.ws_connect(server.ws_url + "&transport=webcodecs") as ws:
+                hello = await next_message(ws, lambda k, d: k == "json" and d["type"] == "hello")
+                assert hello["transport"] == "jpeg"
+    finally:
+        await server.stop()
+
+
+async def test_a_webcodecs_page_that_falls_behind_gets_the_newest_from_a_keyframe(tmp_path):
+    """A page that has not drawn the last 8 frames it was sent gets no more (its socket is
+    not a buffer); once it has drawn them it gets the newest, from a keyframe."""
+    clock = FakeClock()
+    frames = EncodedFrames(clock)
+    server = await serve(frames, Session(), tmp_path, clock=clock, transport="webcodecs")
+    try:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
+            await next_message(ws, lambda k, d: k == "json" and d["type"] == "hello")
+            sent = [frames.push(key=i == 0) for i in range(12)]
+            await ws.send_json({"type": "drawn", "track": "us", "seq": sent[0].seq,
+                                "draw_to_send_ms": 0})  # fmt: skip
+            while not server.tracks["us"].drawn:
+                await asyncio.sleep(0.005)
+            asked = frames.keyframe_requests
+            more = [frames.push(key=False) for _ in range(3)]  # 11 undrawn: held back
+            got = []
+            while len(got) < 12:
+                h, _ = await next_message(ws, lambda k, d: k == "frame")
+                got.append(h["seq"])
+            assert got == [f.seq for f in sent]
+            assert server.tracks["us"].encoded_dropped == 3 and frames.keyframe_requests == asked
+            await ws.send_json({"type": "drawn", "track": "us", "seq": sent[-1].seq,
+                                "draw_to_send_ms": 0})  # fmt: skip
+            while server.tracks["us"].drawn < 2:
+                await asyncio.sleep(0.005)
+            frames.push(key=False)  # caught up: a keyframe is asked for, this one dropped
+            assert frames.keyframe_requests == asked + 1
+            key = frames.push()
+            h, _ = await next_message(ws, lambda k, d: k == "frame")
+            assert h["seq"] == key.seq and h["keyframe"] and more[-1].seq < key.seq
+    finally:
+        await server.stop()

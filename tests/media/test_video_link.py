@@ -204,3 +204,49 @@ async def test_us_image_follows_the_probe_through_the_video_process(server):
         for t in tasks:
             with contextlib.suppress(BaseException):
                 await asyncio.wait_for(t, 5)
+
+
+async def test_a_listener_gets_each_decoded_frame_with_the_encoded_frame_it_came_from(server):
+    """The console's forwarding: with no listener nothing is kept; a listener gets every
+    decoded frame in order with its encoded frame; after a keyframe request a keyframe comes,
+    and a fresh decoder fed the encoded frames from it gives the very pictures the expert
+    decoded (the page's decoder shows what the cine and captures keep)."""
+    import av
+    import numpy as np
+
+    expert, rx = expert_with_video(server, "vp8")
+    follower, tx = video_follower(server.url, "v", TOKEN)
+    loop = asyncio.get_running_loop()
+    tx.open()
+    tx.start(loop)
+    tasks = [asyncio.create_task(expert.run()), asyncio.create_task(follower.run())]
+    got: list = []
+    try:
+        await expert.wait_state("connected", timeout=30)
+        await until(lambda: rx.stats_by_track["us"].frames >= 10, 30)
+        assert not rx._released["us"] and not rx.listeners["us"]
+        rx.listen("us", lambda f, enc: got.append((f, enc)))
+        assert rx.request_keyframe("us")
+        await until(lambda: any(e is not None and e.keyframe for _, e in got), 20)
+        start = next(i for i, (_, e) in enumerate(got) if e is not None and e.keyframe)
+        await until(lambda: len(got) >= start + 12, 20)
+        rx.unlisten("us", got.append)  # (not the listener: nothing happens)
+        frames = got[start : start + 12]
+        seqs = [f.seq for f, _ in frames]
+        assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
+        assert all(e is not None for _, e in frames)
+        decoder = av.CodecContext.create("vp8", "r")
+        for f, enc in frames:
+            (mine,) = decoder.decode(av.Packet(enc.data))
+            a = mine.to_ndarray(format="yuv420p")
+            b = f.frame.to_ndarray(format="yuv420p")
+            assert np.array_equal(a, b), f.seq
+    finally:
+        rx.listeners["us"].clear()
+        await follower.close()
+        await expert.close()
+        tx.close()
+        await rx.close()
+        for t in tasks:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(t, 5)

@@ -18,7 +18,11 @@ aiortc (1.16) has no supported way to do these three things, each needed for the
    decoder thread (depacketised, before decoding: a VP8 frame or an H.264 access unit in
    Annex B), with their RTP timestamp as received, for the recording. It wraps the jitter
    buffer given to :func:`use_jitter_buffer`; aiortc rewrites the frame's timestamp only after
-   ``add`` returns.
+   ``add`` returns (so a released frame object kept by ``on_release`` carries the pts its
+   decoded frame will have once ``add`` has returned).
+5. :func:`request_keyframe`: send a PLI for a received stream (the console forwards the
+   encoded frames to a page, whose decoder must start at a keyframe; the follower's encoders
+   make keyframes only when asked).
 
 ``tests/media/test_aiortc_hooks.py`` fails if aiortc renames or retypes what these touch.
 """
@@ -36,6 +40,7 @@ from aiortc.jitterbuffer import JitterBuffer
 _SENDER_ENCODER = "_RTCRtpSender__encoder"
 _RECEIVER_JITTER = "_RTCRtpReceiver__jitter_buffer"
 _TRACK_QUEUE = "_queue"
+_RECEIVER_PLI = "_send_rtcp_pli"
 log = logging.getLogger(__name__)
 
 
@@ -70,10 +75,11 @@ def use_jitter_buffer(receiver: RTCRtpReceiver, buffer: Any) -> None:
     setattr(receiver, _RECEIVER_JITTER, buffer)
 
 
-def newest_frame(track: Any, frame: Any) -> tuple[Any, int]:
+def newest_frame(track: Any, frame: Any, older: list | None = None) -> tuple[Any, int]:
     """``frame`` (just taken with ``await track.recv()``) or, if newer decoded frames are
     already waiting in the track's queue, the newest of them: (frame, frames skipped). The
-    frame is None if the track ended meanwhile."""
+    frame is None if the track ended meanwhile. ``older``: the skipped frames are appended
+    to it, oldest first."""
     _check(track, _TRACK_QUEUE, None)
     queue = getattr(track, _TRACK_QUEUE)
     skipped = 0
@@ -82,8 +88,17 @@ def newest_frame(track: Any, frame: Any) -> tuple[Any, int]:
         if newer is None:  # the track ended
             return None, skipped
         skipped += 1
+        if older is not None:
+            older.append(frame)
         frame = newer
     return frame, skipped
+
+
+def request_keyframe(receiver: RTCRtpReceiver, ssrc: int) -> Any:
+    """Ask the sender of stream ``ssrc`` on ``receiver`` for a keyframe (an RTCP PLI); the
+    coroutine that sends it (schedule it on the loop)."""
+    _check(receiver, _RECEIVER_PLI, None)
+    return getattr(receiver, _RECEIVER_PLI)(ssrc)
 
 
 class EncodedFrameTap:
@@ -91,19 +106,33 @@ class EncodedFrameTap:
     releases to ``on_frame(data, rtp_timestamp)`` (bytes as aiortc will decode them; the RTP
     timestamp, 90 kHz, as the sender set it). ``on_frame`` runs on the event loop, inside
     aiortc's packet handler: it must only queue. Its failures are logged once and counted in
-    ``tap_errors``, never raised into aiortc's receive path."""
+    ``tap_errors``, never raised into aiortc's receive path. ``on_frame`` may be None;
+    ``on_release(frame)``, if given, gets the released frame object itself (its
+    ``timestamp`` becomes the decoded frame's pts once ``add`` has returned). ``ssrc``: the
+    stream's, from the last packet (for a keyframe request)."""
 
-    def __init__(self, buffer: Any, on_frame: Callable[[bytes, int], Any]) -> None:
+    def __init__(
+        self,
+        buffer: Any,
+        on_frame: Callable[[bytes, int], Any] | None,
+        on_release: Callable[[Any], Any] | None = None,
+    ) -> None:
         self.buffer = buffer
         self.on_frame = on_frame
+        self.on_release = on_release
         self.tapped = 0
         self.tap_errors = 0
+        self.ssrc: int | None = None
 
     def add(self, packet: Any) -> tuple[bool, Any]:
+        self.ssrc = getattr(packet, "ssrc", None)
         pli, frame = self.buffer.add(packet)
         if frame is not None:
             try:
-                self.on_frame(frame.data, int(frame.timestamp))
+                if self.on_release is not None:
+                    self.on_release(frame)
+                if self.on_frame is not None:
+                    self.on_frame(frame.data, int(frame.timestamp))
                 self.tapped += 1
             except Exception:  # noqa: BLE001 - the recording must never stop the video
                 if not self.tap_errors:

@@ -27,6 +27,11 @@ decodes, so no re-encoding and no copy beyond the recorder's), on ``/expert/us_v
 the stream's RTP clock is anchored, capture time (expert clock). ``humantele export`` makes
 MP4 and Foxglove files of them.
 
+Listeners (the console, only while a page is open: :meth:`VideoReceiver.listen`): each
+decoded frame of a track, in order, including those the loop skipped for a newer one, with
+the encoded frame it was decoded from (:class:`Encoded`, the tap's bytes: what a page's own
+decoder takes). With no listener nothing is kept or called beyond the recording's tap.
+
 Frame age (``age_s``) is capture to decoded-at-the-expert ("glass to glass" without the
 display). Frames whose counter does not read or whose record was lost are kept (they are the
 latest picture) with an unknown age, and counted.
@@ -37,6 +42,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import threading
 import time
 from collections import OrderedDict, deque
@@ -48,7 +54,12 @@ import numpy as np
 from aiortc import RTCPeerConnection, RTCRtpSender
 from aiortc.mediastreams import MediaStreamError
 
-from humantele.media.aiortc_hooks import EncodedFrameTap, newest_frame, use_jitter_buffer
+from humantele.media.aiortc_hooks import (
+    EncodedFrameTap,
+    newest_frame,
+    request_keyframe,
+    use_jitter_buffer,
+)
 from humantele.media.config import TRACKS, ExpertVideoConfig
 from humantele.media.frameinfo import FrameInfo, FrameInfoError
 from humantele.media.jitter import KEYFRAME_TESTS, BoundedJitterBuffer
@@ -63,6 +74,25 @@ log = logging.getLogger(__name__)
 Record = Callable[[str, float, dict], Any]
 INFO_KEEP = 256  # frame records kept per track for matching
 VIDEO_RATE = 90000  # RTP video clock, Hz
+
+
+KEYFRAME_EVERY_S = 0.5  # keyframe requests of a track (PLI) at most this often
+ENCODED_KEPT = 64  # encoded frames of a track awaiting their decoded frame (with a listener)
+
+
+class Encoded:
+    """The encoded frame a decoded frame came from: ``data`` (a VP8 frame or an H.264 access
+    unit, as received), ``keyframe``, ``codec`` ('VP8' or 'H264')."""
+
+    __slots__ = ("data", "keyframe", "codec")
+
+    def __init__(self, data: bytes, keyframe: bool, codec: str) -> None:
+        self.data = data
+        self.keyframe = keyframe
+        self.codec = codec
+
+
+Listener = Callable[["ReceivedFrame", "Encoded | None"], Any]
 
 
 class ReceivedFrame:
@@ -207,6 +237,40 @@ class VideoReceiver:
         self._pc: RTCPeerConnection | None = None
         self._jitter: dict[str, BoundedJitterBuffer] = {}  # the current connection's
         self._tasks: set[asyncio.Task] = set()
+        self.listeners: dict[str, list[Listener]] = {n: [] for n in TRACKS}
+        self._released: dict[str, deque[Any]] = {n: deque(maxlen=ENCODED_KEPT) for n in TRACKS}
+        self._taps: dict[str, EncodedFrameTap] = {}
+        self._receivers: dict[str, Any] = {}
+        self._keyframe_asked: dict[str, float] = dict.fromkeys(TRACKS, -math.inf)
+        self.keyframes_requested = 0
+
+    # --- listeners (the console's forwarding) -------------------------------------------------
+
+    def listen(self, track: str, fn: Listener) -> None:
+        """Call ``fn(frame, encoded)`` on the loop for each decoded frame of ``track`` from
+        now on (see the module doc)."""
+        if fn not in self.listeners[track]:
+            self.listeners[track].append(fn)
+
+    def unlisten(self, track: str, fn: Listener) -> None:
+        with contextlib.suppress(ValueError):
+            self.listeners[track].remove(fn)
+        if not self.listeners[track]:
+            self._released[track].clear()
+
+    def request_keyframe(self, track: str) -> bool:
+        """Ask the follower for a keyframe of ``track`` (at most every
+        ``KEYFRAME_EVERY_S``); whether a request went out."""
+        now = self.now()
+        tap, receiver = self._taps.get(track), self._receivers.get(track)
+        if tap is None or receiver is None or tap.ssrc is None:
+            return False
+        if now - self._keyframe_asked[track] < KEYFRAME_EVERY_S:
+            return False
+        self._keyframe_asked[track] = now
+        self.keyframes_requested += 1
+        self._spawn(request_keyframe(receiver, tap.ssrc))
+        return True
 
     # --- what the console reads ---------------------------------------------------------------
 
@@ -236,6 +300,7 @@ class VideoReceiver:
             self.stats_by_track[name].rtp_origin = None
             self._infos[name].clear()
             self._seq_at[name].clear()
+            self._released[name].clear()
         # The codec alone, without RTX: aiortc routes an RTX packet by its payload type when
         # its SSRC is unknown, and with two video tracks sharing that payload type it drops
         # every retransmission. Without RTX a retransmission is the original packet, routed
@@ -250,11 +315,15 @@ class VideoReceiver:
             buffer = BoundedJitterBuffer(
                 KEYFRAME_TESTS[self.config.codec], self.config.loss_wait_ms / 1000.0
             )
-            if self.record is not None and self.config.record_encoded and self.recording():
-                tap = EncodedFrameTap(buffer, self._encoded_recorder(name))
-                use_jitter_buffer(transceiver.receiver, tap)
-            else:
-                use_jitter_buffer(transceiver.receiver, buffer)
+            record = self.record is not None and self.config.record_encoded and self.recording()
+            tap = EncodedFrameTap(
+                buffer,
+                self._encoded_recorder(name) if record else None,
+                self._releaser(name),
+            )
+            use_jitter_buffer(transceiver.receiver, tap)
+            self._taps[name] = tap
+            self._receivers[name] = transceiver.receiver
             self._jitter[name] = buffer
             names[id(transceiver.receiver)] = name
         channel = pc.createDataChannel(
@@ -268,6 +337,30 @@ class VideoReceiver:
                     self._spawn(self._consume(pc, names[id(t.receiver)], track))
 
         pc.on("track", on_track)
+
+    def _releaser(self, name: str) -> Callable[[Any], None]:
+        """The tap's ``on_release`` for track ``name``: keep the released frame for the
+        listeners (only while there is one)."""
+        released, listeners = self._released[name], self.listeners[name]
+
+        def on_release(frame: Any) -> None:
+            if listeners:
+                released.append(frame)
+
+        return on_release
+
+    def _encoded_for(self, name: str, pts: Any) -> Encoded | None:
+        """The encoded frame whose (mapped) timestamp is ``pts``, dropping older ones."""
+        released = self._released[name]
+        while released:
+            jf = released[0]
+            if pts is None or jf.timestamp > pts:
+                return None
+            released.popleft()
+            if jf.timestamp == pts:
+                data = bytes(jf.data)
+                return Encoded(data, KEYFRAME_TESTS[self.config.codec](data), self.config.codec)
+        return None
 
     def _encoded_recorder(self, name: str) -> Callable[[bytes, int], None]:
         """The tap's callback for track ``name``: record the encoded frame (see module doc)."""
@@ -363,7 +456,9 @@ class VideoReceiver:
         while pc is self._pc:
             try:
                 # decoded frames that waited while this loop was held up: only the newest
-                frame, skipped = newest_frame(track, await track.recv())
+                # (the older ones to the listeners alone, if any)
+                older: list[Any] | None = [] if self.listeners[name] else None
+                frame, skipped = newest_frame(track, await track.recv(), older)
             except MediaStreamError:
                 return
             self.stats_by_track[name].stale_dropped += skipped
@@ -372,16 +467,21 @@ class VideoReceiver:
             if pc is not self._pc:
                 return
             try:
+                for old in older or ():
+                    self._on_frame(name, old, skipped=True)
                 self._on_frame(name, frame)
             except Exception:
                 log.exception("video %s: frame handling failed", name)
 
-    def _on_frame(self, name: str, frame: av.VideoFrame) -> None:
+    def _on_frame(self, name: str, frame: av.VideoFrame, skipped: bool = False) -> None:
+        """Number and time a decoded frame; the newest of the track unless ``skipped`` (a
+        newer one waits: then only the listeners get it)."""
         t = self.now()
         st = self.stats_by_track[name]
-        st.frames += 1
-        st.arrivals.append(t)
-        st.size = (frame.width, frame.height)
+        if not skipped:
+            st.frames += 1
+            st.arrivals.append(t)
+            st.size = (frame.width, frame.height)
         patch = luma_patch(frame)
         value = None if patch is None else read_counter(patch)
         seq = None
@@ -415,8 +515,17 @@ class VideoReceiver:
         received = ReceivedFrame(name, seq, frame, t, None)
         if t_follower is not None:
             self._set_capture(received, t_follower)
-        else:
+        elif not skipped:
             st.no_info += 1
+        if self.listeners[name]:
+            encoded = self._encoded_for(name, frame.pts)
+            for fn in list(self.listeners[name]):
+                try:
+                    fn(received, encoded)
+                except Exception:
+                    log.exception("video %s: a listener failed", name)
+        if skipped:
+            return
         self._latest[name] = received
         ev, self._events[name] = self._events[name], asyncio.Event()
         ev.set()

@@ -32,6 +32,10 @@ class PausableFrames(SourceFrames):
         self._held = {t: super(PausableFrames, self).latest(t) for t in ("us", "pov")}
         return self._held.get(track)
 
+    def _notify(self, track: str, frame) -> None:  # paused: no new frame reaches the console
+        if not self.paused:
+            super()._notify(track, frame)
+
 
 class ScriptedSession:
     """A session whose force breathes (measured 4 +- 2 N at 0.5 Hz, rendered a third of it),

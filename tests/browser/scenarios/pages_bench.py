@@ -1,6 +1,8 @@
 """The two pages' figures (issue 11 §4), from one ``humantele demo`` with the video tracks on
 (``configs/demo.toml``: the follower's sim ultrasound and POV over WebRTC), each page open in
-headless Chromium in turn for ``seconds``:
+headless Chromium in turn for ``seconds``; the console once per video transport
+(``designs``, default all three: ``jpeg``, ``webcodecs``, ``webrtc``), interleaved over
+``rounds`` rounds (default 2) in the same run, a fresh page each time (issue 19 §1):
 
 - the console: ultrasound glass to glass as the page shows it (the follower's capture time to
   the page's draw call, for the frame whose counter the page read back from its own canvas),
@@ -14,7 +16,8 @@ headless Chromium in turn for ``seconds``:
 
     python tests/browser/netns.py pages_bench --arg seconds=30 --arg write=1
 
-(``write=1``: the table goes to docs/benchmarks.md, section ``pages``.)
+(``write=1``: the tables go to docs/benchmarks.md, sections ``pages`` and ``console``,
+and the chart of latency against frames drawn to docs/img/console_video.png.)
 """
 
 from __future__ import annotations
@@ -76,25 +79,52 @@ def _sum(pids) -> float:
     return sum(process_cpu_seconds(p) or 0.0 for p in pids)
 
 
-async def console_phase(ctx, demo, seconds: float) -> dict:
+DESIGNS = ("jpeg", "webcodecs", "webrtc")  # the default first (the pages section takes it)
+
+
+async def console_phase(ctx, demo, seconds: float, transport: str | None = None,
+                        shot: str = "bench_console") -> dict:  # fmt: skip
     url = console_url(demo.stats("expert"))
+    if transport:
+        base, _, frag = url.partition("#")
+        url = f"{base}?transport={transport}#{frag}"
     page = await ctx.page(url, width=1440, height=900)
-    await ctx.until(page, "window.consoleApp && consoleApp.frames.us > 10", 90)
+    await ctx.until(page, "window.consoleApp && consoleApp.frames.us > 10"
+                    " && consoleApp.frames.pov > 10", 120)  # fmt: skip
+    got = await page.evaluate("consoleApp.transport")
+    if transport and got != transport:
+        raise AssertionError(f"asked for the {transport} transport, the page has {got}")
     f0 = await page.evaluate("({...consoleApp.frames})")
     w0 = Window(demo)
     await asyncio.sleep(seconds)
     w1 = Window(demo)
     f1 = await page.evaluate("({...consoleApp.frames})")
+    await asyncio.sleep(1.2)  # the expert's stats file is written every 0.5 s
     e = demo.stats("expert")
-    await ctx.shot(page, "bench_console")
+    await ctx.shot(page, shot)
     await ctx.close_page(page)
     dt = w1.t - w0.t
+    video = e.get("video") or {}
     return {
         **w0.to(w1),
+        "transport": got,
         "page_fps": {t: round((f1[t] - f0[t]) / dt, 1) for t in f0},
+        "received_fps": {t: (video.get(t) or {}).get("fps") for t in ("us", "pov")},
         "console": {t: e["console"][t] for t in ("us", "pov")},
-        "receiver": e.get("video"),
+        "receiver": video,
     }
+
+
+async def designs_phase(ctx, demo, seconds: float, designs, rounds: int) -> list[dict]:
+    """Each design's console window, interleaved: round 1 all designs, round 2..."""
+    out = []
+    for r in range(rounds):
+        for d in designs:
+            ph = await console_phase(ctx, demo, seconds, d, shot=f"bench_console_{d}_{r}")
+            ph["round"] = r
+            out.append(ph)
+            ctx.mark(f"console {d} round {r}")
+    return out
 
 
 async def headset_phase(ctx, demo, seconds: float) -> dict:
@@ -123,7 +153,11 @@ async def run(ctx) -> dict:
     await demo.wait("calibrated, following, video received", ready, timeout=180)
     ctx.mark("demo ready")
     data: dict = {"seconds": seconds, "started_load": round(os.getloadavg()[0], 2)}
-    data["console"] = await console_phase(ctx, demo, seconds)
+    designs = ctx.args.get("designs", ",".join(DESIGNS))
+    designs = [d for d in str(designs).split(",") if d]
+    rounds = int(ctx.args.get("rounds", 2))
+    data["designs"] = await designs_phase(ctx, demo, seconds, designs, rounds)
+    data["console"] = data["designs"][0]  # the default design's first window
     ctx.mark("console")
     data["headset"] = await headset_phase(ctx, demo, seconds)
     ctx.mark("headset")
@@ -138,7 +172,7 @@ def load_note(data: dict) -> str:
     demo, and Chromium rendering in software on the CPU), so it rises during the windows;
     other work is what was there before the demo started (2 cores: above 1.5)."""
     before = data["started_load"]
-    hi = max(x for ph in (data["console"], data["headset"]) for x in ph["load"])
+    hi = max(x for ph in (*data["designs"], data["headset"]) for x in ph["load"])
     if before <= 1.5:
         return (f"Load {before:g} before the demo started, up to {hi:g} during the windows:"
                 " the scene's own processes (the browser renders on the CPU); nothing else"
@@ -206,3 +240,126 @@ def write_benchmarks(data: dict) -> None:
         f" {load_note(data)}\n\n" + markdown_table(CPU_COLUMNS, cpu_rows) + "\n\n" + machine_line()
     )
     write_section("pages", text)
+    write_designs(data)
+
+
+def summarize_designs(data: dict) -> dict[str, dict]:
+    """Per design, over its windows: US and POV glass to glass p50/p95 (the median of the
+    windows' figures), frames drawn per second, received per second, CPU of expert and
+    browser (mean), and the loads."""
+    from statistics import mean, median
+
+    out: dict[str, dict] = {}
+    for ph in data["designs"]:
+        d = out.setdefault(ph["transport"], {"windows": []})
+        d["windows"].append(ph)
+    for d in out.values():
+        ws = d["windows"]
+
+        def med(track, key, ws=ws):
+            xs = [w["console"][track][key] for w in ws if w["console"][track][key] is not None]
+            return round(median(xs), 1) if xs else None
+
+        for t in ("us", "pov"):
+            d[t] = {
+                "p50_ms": med(t, "capture_to_draw_p50_ms"),
+                "p95_ms": med(t, "capture_to_draw_p95_ms"),
+                "drawn_fps": round(mean(w["page_fps"][t] for w in ws), 1),
+                "received_fps": round(mean((w["received_fps"][t] or 0) for w in ws), 1),
+                "counted": sum(w["console"][t]["counter_read"] for w in ws),
+            }
+        d["cpu_expert"] = round(mean(w["cpu_percent"]["expert"] for w in ws), 1)
+        d["cpu_browser"] = round(mean(w["cpu_percent"]["browser"] for w in ws), 1)
+        d["loads"] = [w["load"] for w in ws]
+    return out
+
+
+NOMINAL_FPS = {"us": 20, "pov": 25}  # the demo's sim sources (configs/demo.toml)
+
+
+def write_designs(data: dict) -> None:
+    from humantele.report import machine_line, markdown_table, write_section
+
+    summary = summarize_designs(data)
+    rows = []
+    for name, d in summary.items():
+        us, pov = d["us"], d["pov"]
+        rows.append([
+            name, f"{_ms(us['p50_ms'])} / {_ms(us['p95_ms'])}",
+            f"{us['drawn_fps']} of {us['received_fps']}",
+            f"{_ms(pov['p50_ms'])} / {_ms(pov['p95_ms'])}",
+            f"{pov['drawn_fps']} of {pov['received_fps']}",
+            d["cpu_expert"], d["cpu_browser"], len(d["windows"]),
+            "; ".join(f"{a}-{b}" for a, b in d["loads"]),
+        ])  # fmt: skip
+    chart = plot_designs(summary)
+    text = (
+        "## Console video: the three transports, A/B (`python tests/browser/netns.py"
+        " pages_bench --arg seconds=S --arg write=1`)\n\n"
+        "One `humantele demo --config configs/demo.toml` (the run of the pages section when"
+        " both are written together); the console opened afresh for each transport in turn"
+        f" ({data['seconds']:g} s windows, the designs interleaved round by round). Glass to"
+        " glass: the follower's capture to the page's draw of the frame whose counter the"
+        " page read back from its canvas (the median of the windows' p50 and p95). Frames"
+        " drawn per second by the page, of those the expert received per second (the sim"
+        f" sources make US {NOMINAL_FPS['us']} and POV {NOMINAL_FPS['pov']} a second). CPU in"
+        " % of one core, means over the windows. Load: the 1-minute load average at the"
+        f" start-end of each window. {load_note(data)}\n\n"
+        + markdown_table(
+            [
+                "transport",
+                "US p50 / p95 ms",
+                "US drawn / received fps",
+                "POV p50 / p95 ms",
+                "POV drawn / received fps",
+                "expert CPU %",
+                "browser CPU %",
+                "windows",
+                "load",
+            ],
+            rows,
+        )  # fmt: skip
+        + f"\n\n![latency against frames drawn]({chart})\n\n"
+        + machine_line()
+    )
+    write_section("console", text)
+
+
+def plot_designs(summary: dict) -> str:
+    """docs/img/console_video.png: US and POV p50 (marker) to p95 (bar) glass to glass
+    against frames drawn per second, one colour per design; its path from docs/."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6))
+    colours = {"webcodecs": "tab:green", "jpeg": "tab:red", "webrtc": "tab:blue"}
+    for ax, t in zip(axes, ("us", "pov"), strict=True):
+        for name, d in summary.items():
+            x, p50, p95 = d[t]["drawn_fps"], d[t]["p50_ms"], d[t]["p95_ms"]
+            if p50 is None or p95 is None:
+                continue
+            c = colours.get(name, "k")
+            for w in d["windows"]:  # each window's p95, faint
+                w95 = w["console"][t]["capture_to_draw_p95_ms"]
+                if w95 is not None:
+                    ax.plot(w["page_fps"][t], w95, "x", color=c, alpha=0.4, ms=5)
+            ax.plot([x, x], [p50, p95], color=c, lw=2)
+            ax.plot(x, p50, "o", color=c, label=f"{name} (p50 to p95)")
+            ax.plot(x, p95, "_", color=c, ms=14, mew=2)
+        ax.axvline(NOMINAL_FPS[t], color="0.6", ls=":", lw=1)
+        ax.set_xlim(0, NOMINAL_FPS[t] + 2)
+        ax.set_title(f"{t.upper()} ({NOMINAL_FPS[t]} fps sent)")
+        ax.set_xlabel("frames drawn per second")
+        ax.set_ylabel("capture to draw (ms)")
+        ax.set_ylim(bottom=0)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8, title="median of windows; x: each window's p95",
+                   title_fontsize=7)  # fmt: skip
+    fig.tight_layout()
+    path = REPO / "docs" / "img" / "console_video.png"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return "img/console_video.png"

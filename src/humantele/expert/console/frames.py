@@ -5,6 +5,11 @@ newest decoded :class:`~humantele.video.base.VideoFrame` of that track (``seq`` 
 ``t_capture`` the capture time mapped onto this process's ``time.monotonic()``), or None when
 there is none yet. It never blocks: the receiver (or a reader thread) keeps the latest frame.
 
+The console does no work per frame unless a page is open: it then ``subscribe`` s to each
+track (``fn(frame, encoded)`` for each new frame, from the provider's thread or the loop;
+``encoded`` the encoded frame the picture was decoded from, or None) and ``unsubscribe`` s
+when the last page closes. Providers count the frames they handed on (``notified``).
+
 :class:`SourceFrames` is a provider over local :class:`~humantele.video.base.VideoSource` s,
 one reader thread each (the sim sources in tests); :class:`ProcessFrames` renders sim sources in
 a child process (the daemon's stand-in for the follower's tracks: in-process, their numpy work
@@ -31,9 +36,38 @@ TRACKS = ("us", "pov")
 
 
 class FrameProvider(Protocol):
-    """The latest frame of a track (``"us"`` or ``"pov"``), or None; never blocks."""
+    """The latest frame of a track (``"us"`` or ``"pov"``), or None; never blocks; and the
+    new frames as they come to a subscriber (see the module doc)."""
 
     def latest(self, track: str) -> VideoFrame | None: ...
+
+    def subscribe(self, track: str, fn: Any) -> None: ...
+
+    def unsubscribe(self, track: str, fn: Any) -> None: ...
+
+
+class _Subscribers:
+    """Who gets each new frame of a track: ``fn(frame, None)`` (local sources have no
+    encoded frame), called from the source's thread."""
+
+    def __init__(self) -> None:
+        self.subscribers: dict[str, list[Any]] = {t: [] for t in TRACKS}
+        self.notified = 0
+
+    def subscribe(self, track: str, fn: Any) -> None:
+        if fn not in self.subscribers[track]:
+            self.subscribers[track] = [*self.subscribers[track], fn]
+
+    def unsubscribe(self, track: str, fn: Any) -> None:
+        self.subscribers[track] = [f for f in self.subscribers[track] if f is not fn]
+
+    def _notify(self, track: str, frame: Any) -> None:
+        for fn in self.subscribers.get(track, ()):
+            self.notified += 1
+            try:
+                fn(frame, None)
+            except Exception:
+                log.exception("console: a %s frame subscriber failed", track)
 
 
 class _OnDemand:
@@ -83,7 +117,7 @@ class _OnDemand:
         raise NotImplementedError
 
 
-class SourceFrames(_OnDemand):
+class SourceFrames(_OnDemand, _Subscribers):
     """A :class:`FrameProvider` reading local video sources, one daemon thread per track.
 
     ``sources``: track name -> source (not yet opened). :meth:`start` opens them in their
@@ -92,7 +126,8 @@ class SourceFrames(_OnDemand):
     why)."""
 
     def __init__(self, sources: Mapping[str, VideoSource]) -> None:
-        super().__init__()
+        _OnDemand.__init__(self)
+        _Subscribers.__init__(self)
         self.sources = dict(sources)
         self.errors: dict[str, str] = {}
         self._latest: dict[str, VideoFrame] = {}
@@ -134,6 +169,7 @@ class SourceFrames(_OnDemand):
                 if frame is not None:
                     with self._lock:
                         self._latest[track] = frame
+                    self._notify(track, frame)
         except VideoSourceError as exc:
             self.errors[track] = str(exc)
             log.error("console: %s source stopped: %s", track, exc)
@@ -141,7 +177,7 @@ class SourceFrames(_OnDemand):
             source.close()
 
 
-class ProcessFrames(_OnDemand):
+class ProcessFrames(_OnDemand, _Subscribers):
     """A :class:`FrameProvider` rendering sim sources in a child process (``spawn``), so their
     Python work never competes with the daemon's event loop for the GIL.
 
@@ -152,7 +188,8 @@ class ProcessFrames(_OnDemand):
     :class:`SourceFrames` (:class:`_OnDemand`)."""
 
     def __init__(self, configs: Mapping[str, Any], scene: Any, scene_hz: float = 30.0) -> None:
-        super().__init__()
+        _OnDemand.__init__(self)
+        _Subscribers.__init__(self)
         self.configs = dict(configs)
         self.scene = scene
         self.scene_hz = scene_hz
@@ -228,8 +265,10 @@ class ProcessFrames(_OnDemand):
                 self.errors[track] = error
                 log.error("console: %s sim source stopped: %s", track, error)
                 continue
+            frame = VideoFrame(image, seq, t, spacing, {}, depth0)
             with self._lock:
-                self._latest[track] = VideoFrame(image, seq, t, spacing, {}, depth0)
+                self._latest[track] = frame
+            self._notify(track, frame)
 
 
 def _render_child(configs: Mapping[str, Any], scene_q: Any, out_q: Any, stop: Any) -> None:
@@ -294,6 +333,11 @@ class _Received:
         return self._frame.image()
 
     @property
+    def av_frame(self) -> Any:
+        """The decoded frame (``av.VideoFrame``, yuv420p): its planes, for a JPEG."""
+        return self._frame.frame
+
+    @property
     def width(self) -> int:
         return self._frame.width
 
@@ -320,11 +364,38 @@ class ReceivedFrames:
         self.us_spacing_mm = us_spacing_mm
         self.us_depth_origin_row = us_depth_origin_row
         self._last: dict[str, tuple[Any, _Received]] = {}
+        self._listeners: dict[tuple[str, Any], Any] = {}
+        self.notified = 0
+
+    def subscribe(self, track: str, fn: Any) -> None:
+        """``fn(frame, encoded)`` on the loop for each decoded frame of ``track`` (those the
+        receiver skipped for a newer one too: a page decoding the encoded frames shows them)."""
+        if (track, fn) in self._listeners:
+            return
+
+        def listener(f: Any, encoded: Any) -> None:
+            self.notified += 1
+            fn(self._wrap(track, f), encoded)
+
+        self._listeners[(track, fn)] = listener
+        self.receiver.listen(track, listener)
+
+    def unsubscribe(self, track: str, fn: Any) -> None:
+        listener = self._listeners.pop((track, fn), None)
+        if listener is not None:
+            self.receiver.unlisten(track, listener)
+
+    def request_keyframe(self, track: str) -> bool:
+        """Ask the follower for a keyframe of ``track`` (a page's decoder starts on one)."""
+        return bool(self.receiver.request_keyframe(track))
 
     def latest(self, track: str) -> _Received | None:
         f = self.receiver.latest(track)
         if f is None:
             return None
+        return self._wrap(track, f)
+
+    def _wrap(self, track: str, f: Any) -> _Received:
         last = self._last.get(track)
         if last is not None and last[0] is f:
             return last[1]

@@ -1,9 +1,12 @@
 """What the console page and the expert daemon say to each other over the console's WebSocket.
 
 To the page
-    Binary: one video frame, a 32-byte little-endian header then the JPEG bytes::
+    Binary: one video frame, a 32-byte little-endian header then the JPEG bytes, or (flag 2)
+    the encoded frame as the expert received it (VP8 or H.264, for the page's WebCodecs
+    decoder; flag 4: a keyframe)::
 
-        u8 version (2) | u8 track (0 us, 1 pov) | u8 flags (1: a cine frame, not live) | u8 0
+        u8 version (2) | u8 track (0 us, 1 pov) | u8 flags (1: a cine frame, not live;
+        2: encoded, not JPEG; 4: a keyframe; 8: H.264, else VP8) | u8 0
         u32 seq | f64 t_capture (s, the expert's clock) | f32 spacing_row_mm |
         f32 spacing_col_mm (0 when unknown) | u16 width | u16 height |
         f32 depth_origin_row (px: the row of depth 0 on a US image; NaN when unknown)
@@ -21,8 +24,10 @@ From the page (:data:`PageMessage`; anything else is refused and counted)
     (start/stop), ``clutch`` (on/off), ``freeze`` (on/off), ``cine`` (send frame ``seq`` of
     the frozen loop), ``caliper`` (two points on a frame, image px), ``annotation`` (a text
     at a point of a frame), ``capture`` (save a frame with its pose, and a clip of the cine
-    before it). Clicks may carry an ``id``, returned in their ``result``. Points are image
-    pixels (x right, y down, from the top-left corner of the image the header describes).
+    before it), ``keyframe`` (the page's decoder of a track needs one), ``rtc_answer`` (the
+    page's SDP answer to the expert's ``rtc_offer``, the WebRTC transport). Clicks may carry
+    an ``id``, returned in their ``result``. Points are image pixels (x right, y down, from
+    the top-left corner of the image the header describes).
 """
 
 from __future__ import annotations
@@ -36,9 +41,14 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
 FRAME_VERSION = 2
 TRACK_IDS = {"us": 0, "pov": 1}
 FLAG_CINE = 1
+FLAG_ENCODED = 2
+FLAG_KEYFRAME = 4
+FLAG_H264 = 8
 _HEADER = struct.Struct("<BBBBIdffHHf")
 HEADER_SIZE = _HEADER.size  # 32
-MAX_PAGE_MESSAGE = 1024  # bytes: the longest is an annotation (text up to 200 characters)
+MAX_PAGE_MESSAGE = 16384  # bytes: the longest is a WebRTC SDP answer (~3 kB), then an
+# annotation (text up to 200 characters)
+MAX_SDP = 12000
 
 
 def frame_header(
@@ -50,11 +60,12 @@ def frame_header(
     height: int,
     cine: bool = False,
     depth0: float | None = None,
+    flags: int = 0,
 ) -> bytes:
     """The 32-byte header of a frame message (see the module docstring)."""
     row, col = spacing_mm if spacing_mm is not None else (0.0, 0.0)
     return _HEADER.pack(
-        FRAME_VERSION, TRACK_IDS[track], FLAG_CINE if cine else 0, 0,
+        FRAME_VERSION, TRACK_IDS[track], (FLAG_CINE if cine else 0) | flags, 0,
         seq & 0xFFFFFFFF, t_capture, row, col, width, height,
         math.nan if depth0 is None else depth0,
     )  # fmt: skip
@@ -66,6 +77,7 @@ def parse_header(data: bytes) -> dict:
     names = {i: n for n, i in TRACK_IDS.items()}
     return {
         "version": v, "track": names[track], "cine": bool(flags & FLAG_CINE), "seq": seq,
+        "encoded": bool(flags & FLAG_ENCODED), "keyframe": bool(flags & FLAG_KEYFRAME),
         "t_capture": t, "spacing_mm": (row, col), "width": w, "height": h,
         "depth_origin_row": None if math.isnan(depth0) else depth0,
     }  # fmt: skip
@@ -165,6 +177,20 @@ class Capture(_Command):
     clip_s: float = Field(0.0, ge=0.0, le=60.0, allow_inf_nan=False)
 
 
+class KeyframeRequest(_Msg):
+    """The page's decoder of ``track`` lost its place (an error, a backlog): a keyframe."""
+
+    type: Literal["keyframe"]
+    track: Literal["us", "pov"]
+
+
+class RtcAnswer(_Msg):
+    """The page's SDP answer to the expert's ``rtc_offer`` (the WebRTC transport)."""
+
+    type: Literal["rtc_answer"]
+    sdp: str = Field(max_length=MAX_SDP)
+
+
 PageMessage = Annotated[
     Drawn
     | Ping
@@ -174,7 +200,9 @@ PageMessage = Annotated[
     | CineRequest
     | Caliper
     | Annotation
-    | Capture,
+    | Capture
+    | KeyframeRequest
+    | RtcAnswer,
     Field(discriminator="type"),
 ]
 PAGE_MESSAGE = TypeAdapter(PageMessage)

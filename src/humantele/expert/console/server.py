@@ -1,12 +1,24 @@
 """The sonographer's console: one aiohttp server on loopback, a page and a WebSocket.
 
 ``GET /`` is the page (:mod:`humantele.expert.console` ``web/``), ``GET /web/...`` its files,
-``GET /ws`` the WebSocket (see :mod:`humantele.expert.console.messages`). The server takes the
-latest frame of each track from a :class:`~humantele.expert.console.frames.FrameProvider`,
-encodes it as JPEG once (in a thread) and sends it to the page, latest wins: a slow page sees
-the newest frame, never a backlog (``coalesced`` counts the frames it skipped); the cine
-buffer keeps the very bytes the page drew. Why JPEG and not a local WebRTC relay: see
-docs/console.md.
+``GET /ws`` the WebSocket (see :mod:`humantele.expert.console.messages`). While a page is
+open (and only then) the server subscribes to each track of a
+:class:`~humantele.expert.console.frames.FrameProvider` and gets each new frame as it comes
+(no polling). How the page gets the pictures, ``transport`` (chosen by measurement:
+docs/console.md, "The video path"; figures in docs/benchmarks.md):
+
+- ``jpeg`` (default): each frame JPEG-encoded from its I420 planes in a thread, latest wins
+  (a slow page sees the newest frame, never a backlog: ``coalesced`` counts the frames it
+  skipped); the cine buffer keeps the very bytes the page drew. Sim video (no encoded
+  frames) always goes this way;
+- ``webcodecs``: the encoded frames the expert received (VP8), forwarded as they are over
+  the WebSocket, decoded by the page's WebCodecs ``VideoDecoder``: the expert encodes
+  nothing; the cine buffer keeps the expert's own decode of the same frames (a JPEG is made
+  only of a frame the sonographer looks at or captures);
+- ``webrtc``: the page as a WebRTC receiver, the expert forwarding the encoded frames
+  (:mod:`humantele.expert.console.rtcpeer`).
+
+A page may ask another transport (``/ws?...&transport=jpeg``: the A/B bench does).
 
 The session's state (:class:`~humantele.expert.console.session.ConsoleSession`) goes to the
 page ``state_rate_hz`` times a second with each track's age, so the page shows stale data as
@@ -32,16 +44,19 @@ credentialed page held outside them. Captures are capped in rate and in disk use
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import contextvars
+import functools
 import json
 import logging
 import math
+import threading
 import time
 from collections import Counter, OrderedDict, deque
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 from aiohttp import web
 from pydantic import Field, field_validator
@@ -50,7 +65,11 @@ from humantele.config import ConfigModel, DirectoryField, directory_problem
 from humantele.expert.console.captures import SessionItems, clip_path, save_capture
 from humantele.expert.console.cine import CineBuffer, CineFrame
 from humantele.expert.console.frames import TRACKS, FrameProvider
+from humantele.expert.console.jpeg import I420Jpeg, frame_jpeg
 from humantele.expert.console.messages import (
+    FLAG_ENCODED,
+    FLAG_H264,
+    FLAG_KEYFRAME,
     MAX_PAGE_MESSAGE,
     PAGE_MESSAGE,
     Annotation,
@@ -60,7 +79,9 @@ from humantele.expert.console.messages import (
     ClutchCommand,
     Drawn,
     Freeze,
+    KeyframeRequest,
     Ping,
+    RtcAnswer,
     ScanCommand,
     frame_header,
 )
@@ -91,6 +112,11 @@ PAGE_BEHIND_S = 1.0
 PAGE_BEHIND_FOR_S = 2.0
 PAGE_BEHIND_EVERY_S = 1.0
 CLIP_FINISH_S = 20.0  # at stop, a clip being written gets this long to finish
+TRANSPORTS = ("webcodecs", "jpeg", "webrtc")
+ENCODED_BACKLOG = 12  # encoded frames of a track queued for a page; more: to the next keyframe
+ENCODED_LAG = 8  # frames of a track sent to a page beyond the newest it drew: it is behind
+ENCODED_LAG_S = 2.0  # ... unless it has drawn nothing for this long (then sent anyway)
+_ASKED: contextvars.ContextVar[str | None] = contextvars.ContextVar("transport", default=None)
 
 
 class ConsoleConfig(ConfigModel):
@@ -117,8 +143,14 @@ class ConsoleConfig(ConfigModel):
         description="row (px) of depth 0 (the skin under the probe's face) in the received "
         "ultrasound frames: with the pixel spacing, the depth scale's cm labels; None: none",
     )
-    jpeg_quality: int = Field(88, ge=30, le=100)
-    poll_hz: float = Field(250.0, gt=0, le=2000, description="how often new frames are looked for")
+    transport: str = Field(
+        "jpeg",
+        pattern=r"^(webcodecs|jpeg|webrtc)$",
+        description="how the page gets received video: 'jpeg' (a JPEG per frame, latest "
+        "wins), 'webcodecs' (the encoded frames, decoded by the page), 'webrtc' (the page a "
+        "WebRTC peer); sim video is always JPEG (docs/console.md: why jpeg)",
+    )
+    jpeg_quality: int = Field(88, ge=30, le=100, description="JPEG frames and captures")
     state_rate_hz: float = Field(20.0, gt=0, le=100)
     stale_after_s: float = Field(1.0, gt=0, le=60, description="older video or pose: stale")
     cine_seconds: float = Field(10.0, gt=0, le=60)
@@ -175,10 +207,20 @@ class _Client(PageClient):
         self.behind_s = 0.0  # how late the page read our newest message, at its last ping
         self.behind_at = -math.inf  # when that ping came (time.monotonic)
         self.trickle: dict[str, float] = {}  # key -> when last sent while behind
+        self.transport = "jpeg"
+        self.need_key = dict.fromkeys(TRACKS, True)  # encoded: waiting for a keyframe
+        self.encoded_sent = 0  # numbers the encoded frames' message keys (never coalesced)
+        self.sent_seq: dict[str, int] = {}  # the newest encoded frame sent, per track
+        self.echo_at: dict[str, float] = {}  # when the page last said it drew (loop clock)
+        self.peer: Any = None  # the webrtc transport's PagePeer
 
     def behind(self, now: float) -> bool:
         """Whether the page is reading what it is sent more than PAGE_BEHIND_S late."""
         return self.behind_s > PAGE_BEHIND_S and now - self.behind_at < PAGE_BEHIND_FOR_S
+        self.need_key = dict.fromkeys(TRACKS, True)  # encoded: waiting for a keyframe
+        self.encoded_sent = 0  # numbers the encoded frames' message keys (never coalesced)
+        self.sent_seq: dict[str, int] = {}  # the newest encoded frame sent, per track
+        self.echo_at: dict[str, float] = {}  # when the page last said it drew (loop clock)
 
     def can_take(self, track: str, now: float, timeout_s: float) -> bool:
         q = self.in_flight[track]
@@ -201,9 +243,13 @@ class _Track:
         self.t_seen: float | None = None
         self.size: tuple[int, int] | None = None
         self.spacing: tuple[float, float] | None = None
+        self.depth0: float | None = None
         self.times: OrderedDict[int, tuple[float, float]] = OrderedDict()  # seq -> capture, seen
         self.arrivals: deque[float] = deque(maxlen=200)
         self.frames = 0
+        self.jpegs = 0  # frames JPEG-encoded for a page
+        self.forwarded = 0  # encoded frames sent to pages
+        self.encoded_dropped = 0  # ... not sent (a backlog, waiting for a keyframe)
         self.encode_s: deque[float] = deque(maxlen=500)
         self.capture_to_draw: deque[float] = deque(maxlen=LATENCIES_KEPT)
         self.seen_to_draw: deque[float] = deque(maxlen=LATENCIES_KEPT)
@@ -212,6 +258,13 @@ class _Track:
         self.counter_read = 0  # drawn frames whose counter the page read from its canvas
         self.counter_unread = 0  # ... did not read (no counter, or a smeared one)
         self.counter_unmatched = 0  # ... read a number whose frame is not known here
+
+    def new_visit(self) -> None:
+        """Forget the last page's figures (a page opens with none open)."""
+        for q in (self.capture_to_draw, self.seen_to_draw, self.capture_to_seen, self.encode_s):
+            q.clear()
+        self.drawn = self.counter_read = self.counter_unread = self.counter_unmatched = 0
+        self.frames = self.jpegs = self.forwarded = self.encoded_dropped = 0
 
     def rate_hz(self, now: float, window_s: float = 2.0) -> float:
         n = sum(1 for t in self.arrivals if now - t <= window_s)
@@ -264,10 +317,19 @@ class ConsoleServer:
         self.items = SessionItems()  # captures and measurements, listed on the page
         self._file_key = Credential(self.key, throttle=False)  # the captured files' reads
         self.clips_writing = 0
-        self._tasks: list[asyncio.Task] = []
+        self._tasks: set[asyncio.Future] = set()
         self._clips: set[asyncio.Task] = set()  # clips being written
         self.in_flight_timeout_s = IN_FLIGHT_TIMEOUT_S
         self._index = (WEB_DIR / "index.html").read_bytes()
+        # Encoded frames to forward: a provider that has them (the WebRTC receiver's).
+        self.encoded_video = frames is not None and hasattr(frames, "request_keyframe")
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._loop_thread: int | None = None
+        self._subscribed = False
+        self._jpeg_next: dict[str, Any] = {}
+        self._jpeg_busy: dict[str, bool] = dict.fromkeys(TRACKS, False)
+        self._jpeg = {t: I420Jpeg(config.jpeg_quality) for t in TRACKS}
+        self._subscribers = {t: functools.partial(self._from_provider, t) for t in TRACKS}
 
     @property
     def clients(self) -> set[PageClient]:
@@ -315,23 +377,28 @@ class ConsoleServer:
             app.router.add_get("/captures/{name}", self._captured_file)
             add_page_files(app, WEB_DIR)  # only its own files; any other name: 404
 
+        self._loop = asyncio.get_running_loop()
+        self._loop_thread = threading.get_ident()
         self.port = await self.site.start(routes, cfg, (self._host_guard,))
         self.pages.guard = self.site.guard
-        if self.frames is not None:
-            for track in TRACKS:
-                self._tasks.append(asyncio.create_task(self._pump_video(track)))
-        self._tasks.append(asyncio.create_task(self._pump_state()))
+        self._spawn(self._pump_state())
 
     async def stop(self) -> None:
         self.pages.closing = True  # a page reconnecting now is turned away (cleanup waits)
         if self._clips:  # a clip being written is finished (and recorded), not cut short
             await asyncio.wait(list(self._clips), timeout=CLIP_FINISH_S)
-        for task in self._tasks:
+        for task in list(self._tasks):
             task.cancel()
-        await asyncio.gather(*self._tasks, return_exceptions=True)
+        await asyncio.gather(*list(self._tasks), return_exceptions=True)
         self._tasks.clear()
+        self._unsubscribe()
         await self.pages.close_all()
         await self.site.stop()
+
+    def _spawn(self, coro: Any) -> None:
+        task = asyncio.ensure_future(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
 
     @web.middleware
     async def _host_guard(self, request: web.Request, handler):
@@ -376,66 +443,161 @@ class ConsoleServer:
         client.in_flight[track].append((int.from_bytes(data[4:8], "little"), now))
         return False
 
-    async def _pump_video(self, track: str) -> None:
-        """Look for a new frame of ``track`` ``poll_hz`` times a second; encode, send, keep."""
-        period = 1.0 / self.config.poll_hz
+    # --- the frames, while a page is open ------------------------------------------------
+
+    def _subscribe(self) -> None:
+        if self._subscribed or self.frames is None or not hasattr(self.frames, "subscribe"):
+            return
+        self._subscribed = True
+        for track in TRACKS:  # the figures are those of this page's visit
+            self.tracks[track].new_visit()
+            self.frames.subscribe(track, self._subscribers[track])
+
+    def _unsubscribe(self) -> None:
+        if not self._subscribed or self.frames is None:
+            return
+        self._subscribed = False
+        for track in TRACKS:
+            self.frames.unsubscribe(track, self._subscribers[track])
+        for track in TRACKS:  # a stale picture must not be sent to the next page
+            self._jpeg_next.pop(track, None)
+        self.cine.clear()
+
+    def _from_provider(self, track: str, frame: Any, encoded: Any) -> None:
+        """A provider's new frame, from its thread or the loop: handled on the loop."""
+        if threading.get_ident() == self._loop_thread:
+            self._on_frame(track, frame, encoded)
+        elif self._loop is not None:
+            with contextlib.suppress(RuntimeError):  # the loop closed: the daemon's end
+                self._loop.call_soon_threadsafe(self._on_frame, track, frame, encoded)
+
+    def _on_frame(self, track: str, frame: Any, encoded: Any) -> None:
+        """A new frame of ``track`` while a page is open: note its times, then to each page
+        by its transport (see the module doc)."""
         st = self.tracks[track]
-        while True:
-            await asyncio.sleep(period)
-            try:
-                frame = self.frames.latest(track) if self.frames is not None else None
-            except Exception:  # noqa: BLE001 - a provider's failure is no reason to stop
-                self.refused["provider_error"] += 1
+        if not self.clients or frame.seq == st.seq:
+            return
+        seen = self.clock()
+        # When the frame was there: the receiver's decode time (the expert's receipt of a
+        # received frame), else now.
+        there = getattr(frame, "t_received", None)
+        there = seen if there is None or not math.isfinite(there) or there > seen else there
+        st.seq, st.t_capture, st.t_seen = frame.seq, frame.t_capture, seen
+        st.size, st.spacing = (frame.width, frame.height), _spacing(frame)
+        st.depth0 = _depth0(frame)
+        st.times[frame.seq] = (frame.t_capture, there)
+        while len(st.times) > SEQS_KEPT:
+            st.times.popitem(last=False)
+        st.arrivals.append(seen)
+        st.frames += 1
+        jpeg = False
+        for c in list(self.clients):
+            if not isinstance(c, _Client):
                 continue
-            if frame is None or frame.seq == st.seq:
-                continue
-            seen = self.clock()
-            # When the frame was there: the receiver's decode time (the expert's receipt of a
-            # received frame), else now.
-            there = getattr(frame, "t_received", None)
-            there = seen if there is None or not math.isfinite(there) or there > seen else there
-            try:
-                packet, cine = await asyncio.to_thread(self._encode, track, frame)
-            except (cv2.error, ValueError) as exc:
-                self.refused["bad_frame"] += 1
-                log.debug("console: %s frame %s not encoded: %s", track, frame.seq, exc)
-                st.seq = frame.seq
-                continue
-            st.encode_s.append(self.clock() - seen)
-            st.seq, st.t_capture, st.t_seen = frame.seq, frame.t_capture, seen
-            st.size, st.spacing = (frame.width, frame.height), frame.pixel_spacing_mm
-            st.times[frame.seq] = (frame.t_capture, there)
-            while len(st.times) > SEQS_KEPT:
-                st.times.popitem(last=False)
-            st.arrivals.append(seen)
-            st.frames += 1
+            if c.transport == "webcodecs":
+                self._forward(c, track, frame, encoded)
+            elif c.transport == "webrtc":
+                if c.peer is not None:
+                    c.peer.push(track, frame, encoded)
+            else:
+                jpeg = True
+        if jpeg:  # the cine keeps the JPEGs the page draws
+            self._jpeg_next[track] = frame
+            if not self._jpeg_busy[track]:
+                self._jpeg_busy[track] = True
+                self._spawn(self._jpeg_track(track))
+        elif track == "us":  # the cine keeps the decoded frame; a JPEG when looked at
+            cine = self._cine_frame(frame, None)
             if cine is not None:
                 self.cine.add(cine)
-            self.pages.post(f"frame:{track}", packet)
+
+    def _forward(self, c: _Client, track: str, frame: Any, encoded: Any) -> None:
+        """Send the encoded frame ``frame`` was decoded from to a WebCodecs page, in order,
+        from a keyframe on; a backlog is dropped up to the next keyframe."""
+        st = self.tracks[track]
+        if encoded is None:
+            st.encoded_dropped += 1
+            return
+        prefix = f"enc:{track}:"
+        queued = [k for k in c.pending if k.startswith(prefix)]
+        if len(queued) >= ENCODED_BACKLOG:
+            for k in queued:
+                del c.pending[k]
+            st.encoded_dropped += len(queued)
+            c.need_key[track] = True
+        if track == "us" and self.cine.frozen:  # the page shows the cine loop, not these
+            c.need_key[track] = True
+            st.encoded_dropped += 1
+            return
+        if self._behind(c, track):  # a page that cannot keep up: the newest, from a
+            c.need_key[track] = True  # keyframe, once it has drawn what it has (its
+            st.encoded_dropped += 1  # socket and its task queue are not a buffer)
+            return
+        if c.need_key[track] and not encoded.keyframe:
+            st.encoded_dropped += 1
+            self.frames.request_keyframe(track)  # type: ignore[union-attr]
+            return
+        c.need_key[track] = False
+        c.sent_seq[track] = frame.seq
+        flags = FLAG_ENCODED | (FLAG_KEYFRAME if encoded.keyframe else 0)
+        flags |= FLAG_H264 if encoded.codec.upper() == "H264" else 0
+        header = frame_header(
+            track, frame.seq, frame.t_capture, _spacing(frame), frame.width, frame.height,
+            depth0=_depth0(frame), flags=flags,
+        )  # fmt: skip
+        c.encoded_sent += 1
+        c.post(f"{prefix}{c.encoded_sent}", header + encoded.data)
+        st.forwarded += 1
+
+    def _behind(self, c: _Client, track: str) -> bool:
+        """Whether page ``c`` has ``ENCODED_LAG`` frames of ``track`` it was sent and has not
+        drawn (nor drawn a newer one), and said it drew within ``ENCODED_LAG_S``."""
+        sent, drawn = c.sent_seq.get(track), c.last_drawn.get(track)
+        if sent is None or drawn is None or sent - drawn <= ENCODED_LAG:
+            return False
+        return time.monotonic() - c.echo_at.get(track, 0.0) < ENCODED_LAG_S
+
+    async def _jpeg_track(self, track: str) -> None:
+        """Encode the newest frame of ``track`` for the JPEG pages, one at a time, latest
+        wins; ends when none waits."""
+        st = self.tracks[track]
+        try:
+            while (frame := self._jpeg_next.pop(track, None)) is not None:
+                t0 = self.clock()
+                try:
+                    packet, cine = await asyncio.to_thread(self._encode, track, frame)
+                except ValueError as exc:
+                    self.refused["bad_frame"] += 1
+                    log.debug("console: %s frame %s not encoded: %s", track, frame.seq, exc)
+                    continue
+                st.encode_s.append(self.clock() - t0)
+                st.jpegs += 1
+                if cine is not None:
+                    self.cine.add(cine)
+                for c in list(self.clients):
+                    if isinstance(c, _Client) and c.transport == "jpeg":
+                        if f"frame:{track}" in c.pending:
+                            self.pages.coalesced += 1
+                        c.post(f"frame:{track}", packet)
+        finally:
+            self._jpeg_busy[track] = False
 
     def _encode(self, track: str, frame: VideoFrame) -> tuple[bytes, CineFrame | None]:
-        image = frame.image
-        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
-            raise ValueError(f"not a BGR uint8 image: {image.shape} {image.dtype}")
-        ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.config.jpeg_quality])
-        if not ok:
-            raise ValueError("JPEG encoding failed")
-        jpeg = buf.tobytes()
-        spacing = frame.pixel_spacing_mm
-        if spacing is not None and not all(math.isfinite(s) and s > 0 for s in spacing):
-            spacing = None
-        depth0 = getattr(frame, "depth_origin_row", None)
-        if depth0 is not None and not math.isfinite(depth0):
-            depth0 = None
+        """The frame message (header + JPEG) and, for the ultrasound, its cine entry."""
+        jpeg = frame_jpeg(frame, self.config.jpeg_quality, self._jpeg[track])
         header = frame_header(
-            track, frame.seq, frame.t_capture, spacing, frame.width, frame.height, depth0=depth0
-        )
-        cine = None
-        if track == "us":
-            cine = CineFrame(
-                frame.seq, frame.t_capture, jpeg, frame.width, frame.height, spacing, depth0
-            )
-        return header + jpeg, cine
+            track, frame.seq, frame.t_capture, _spacing(frame), frame.width, frame.height,
+            depth0=_depth0(frame),
+        )  # fmt: skip
+        return header + jpeg, self._cine_frame(frame, jpeg) if track == "us" else None
+
+    def _cine_frame(self, frame: Any, jpeg: bytes | None) -> CineFrame | None:
+        quality = self.config.jpeg_quality
+        return CineFrame(
+            frame.seq, frame.t_capture, jpeg, frame.width, frame.height, _spacing(frame),
+            _depth0(frame), raw=None if jpeg is not None else frame,
+            to_jpeg=lambda f: frame_jpeg(f, quality),
+        )  # fmt: skip
 
     async def _pump_state(self) -> None:
         period = 1.0 / self.config.state_rate_hz
@@ -465,6 +627,8 @@ class ConsoleServer:
                 "fps": st.rate_hz(now),
                 "stale": age is None or age > stale_ms,
                 "size": st.size,
+                "spacing": st.spacing,  # (for the WebRTC transport, whose frames have no header)
+                "depth0": st.depth0,
             }
         link = snap.get("link") or {}
         pose_age = link.get("pose_age_ms")
@@ -490,6 +654,7 @@ class ConsoleServer:
     # --- from the page --------------------------------------------------------------------
 
     async def _handle(self, request: web.Request) -> web.StreamResponse:
+        _ASKED.set(request.query.get("transport"))  # read by _on_open, in this task
         return await self.pages.serve(
             request, self.on_page_message, self._on_open, self._on_close,
             hold=self._hold, wake_every_s=self.in_flight_timeout_s,
@@ -498,20 +663,47 @@ class ConsoleServer:
     def _on_open(self, client: PageClient) -> None:
         if len(self.clients) == 1 and self.on_demand is not None:
             self.on_demand.start()
+        transport = "jpeg"
+        if isinstance(client, _Client):
+            asked = _ASKED.get()
+            transport = asked if asked in TRANSPORTS else self.config.transport
+            if not self.encoded_video:
+                transport = "jpeg"  # sim or local sources: pictures, not encoded frames
+            client.transport = transport
+        self._subscribe()
         hello = {
             "type": "hello",
             "cine_seconds": self.config.cine_seconds,
             "stale_after_ms": self.config.stale_after_s * 1000.0,
             "video": self.video,
             "clip_seconds": self.config.clip_seconds,
+            "transport": transport,
         }
         client.post("hello", json.dumps(hello))
         client.post("state", json.dumps(_clean(self.state())))
         client.post("items", self._items_message())
         if self.cine.frozen:
             client.post("cine", self._cine_index())
+        if transport == "webrtc" and isinstance(client, _Client):
+            self._spawn(self._offer(client))
+        elif transport == "webcodecs":
+            for track in TRACKS:
+                self.frames.request_keyframe(track)  # type: ignore[union-attr]
+
+    async def _offer(self, client: _Client) -> None:
+        from humantele.expert.console.rtcpeer import PagePeer
+
+        codec = getattr(getattr(getattr(self.frames, "receiver", None), "config", None),
+                        "codec", "VP8")  # fmt: skip
+        client.peer = PagePeer(codec, self.frames.request_keyframe)  # type: ignore[union-attr]
+        sdp = await client.peer.offer()
+        client.post("rtc_offer", json.dumps({"type": "rtc_offer", "sdp": sdp}))
 
     async def _on_close(self, client: PageClient) -> None:
+        if isinstance(client, _Client) and client.peer is not None:
+            await client.peer.close()
+        if not self.clients:
+            self._unsubscribe()
         if not self.clients and self.on_demand is not None:
             await asyncio.to_thread(self.on_demand.stop)
 
@@ -539,6 +731,16 @@ class ConsoleServer:
             self._on_cine(client, m.seq)
         elif isinstance(m, Caliper | Annotation | Capture):
             self._on_tool(client, m)
+        elif isinstance(m, KeyframeRequest):
+            client.need_key[m.track] = True
+            self.events["keyframe_asked"] += 1
+            if self.encoded_video:
+                self.frames.request_keyframe(m.track)  # type: ignore[union-attr]
+        elif isinstance(m, RtcAnswer):
+            if client.peer is None:
+                self.refused["unexpected_answer"] += 1
+                return
+            self._spawn(client.peer.answer(m.sdp))
 
     def _on_scan(self, client: _Client, m: ScanCommand) -> None:
         try:
@@ -557,6 +759,7 @@ class ConsoleServer:
 
     def _on_drawn(self, client: _Client, m: Drawn, arrival: float) -> None:
         client.drawn(m.track, m.seq)
+        client.echo_at[m.track] = time.monotonic()
         client.wake.set()
         st = self.tracks[m.track]
         times = st.times.get(m.seq)
@@ -613,11 +816,20 @@ class ConsoleServer:
             self.refused["unknown_frame"] += 1
             self._result(client, "cine", False, f"frame {seq} is no longer in the cine buffer")
             return
+        self._spawn(self._send_cine(client, f))
+
+    async def _send_cine(self, client: _Client, f: CineFrame) -> None:
+        try:
+            jpeg = f.jpeg if f.jpeg is not None else await asyncio.to_thread(f.image_jpeg)
+        except ValueError as exc:
+            self.refused["bad_frame"] += 1
+            self._result(client, "cine", False, f"frame {f.seq}: {exc}")
+            return
         header = frame_header(
             "us", f.seq, f.t_capture, f.pixel_spacing_mm, f.width, f.height, cine=True,
             depth0=f.depth_origin_row,
         )  # fmt: skip
-        client.post("frame:cine", header + f.jpeg)
+        client.post("frame:cine", header + jpeg)
 
     def _on_tool(self, client: _Client, m: Caliper | Annotation | Capture) -> None:
         f = self.cine.get(m.seq)
@@ -652,7 +864,20 @@ class ConsoleServer:
             self._result(client, "annotation", True, text, seq=f.seq, id=m.id)
             self._add_item("note", f, text=text)
         else:
-            self._capture(client, f, base, m)
+            self._spawn(self._capture_when_encoded(client, f, base, m))
+
+    async def _capture_when_encoded(
+        self, client: _Client, f: CineFrame, base: dict[str, Any], m: Capture
+    ) -> None:
+        """The capture, once its frame is a JPEG (made in a thread, off the loop)."""
+        if f.jpeg is None:
+            try:
+                await asyncio.to_thread(f.image_jpeg)
+            except ValueError as exc:
+                self.refused["capture_failed"] += 1
+                self._result(client, "capture", False, f"not saved: {exc}", id=m.id)
+                return
+        self._capture(client, f, base, m)
 
     def _capture_refusal(self, directory: Path, size: int) -> str | None:
         """Why a capture of ``size`` bytes is refused now (counted), or None."""
@@ -685,11 +910,13 @@ class ConsoleServer:
 
     def _capture(self, client: _Client, f: CineFrame, base: dict[str, Any], m: Capture) -> None:
         directory = Path(self.config.captures_dir).expanduser()
+        assert f.jpeg is not None
         clip_s = min(m.clip_s, self.config.clip_seconds)
         clip = self._clip_frames(f, clip_s) if clip_s > 0 else []
         clip = clip if len(clip) >= 2 else []
-        # The clip's size is bounded by its JPEGs (its H.264 is smaller): the budget holds it.
-        size = len(f.jpeg) + 1024 + sum(len(g.jpeg) for g in clip)
+        # The clip's size is bounded by its frames' JPEGs (its H.264 is smaller; a frame not
+        # yet a JPEG counts as the still's size): the budget holds it.
+        size = len(f.jpeg) + 1024 + sum(len(g.jpeg or f.jpeg) for g in clip)
         refusal = self._capture_refusal(directory, size)
         if refusal is not None:
             n = self.refused["capture_rate"] + self.refused["capture_disk"]
@@ -742,8 +969,8 @@ class ConsoleServer:
         path = clip_path(still)
         self.clips_writing += 1
         try:
-            info = await asyncio.to_thread(
-                write_clip, [(g.t_capture, g.jpeg) for g in frames], path
+            info = await asyncio.to_thread(  # (frames not yet JPEGs are made there too)
+                lambda: write_clip([(g.t_capture, g.image_jpeg()) for g in frames], path)
             )
         except (OSError, ValueError) as exc:
             self.refused["clip_failed"] += 1
@@ -823,10 +1050,15 @@ class ConsoleServer:
             "captures": len(self.captures),
             "captures_refused": self.refused["capture_rate"] + self.refused["capture_disk"],
             "connections": dict(self.connections),
+            "transports": sorted({getattr(c, "transport", "?") for c in self.clients}),
+            "subscribed": self._subscribed,
         }
         for track, st in self.tracks.items():
             out[track] = {
                 "frames": st.frames,
+                "jpegs": st.jpegs,
+                "forwarded": st.forwarded,
+                "encoded_dropped": st.encoded_dropped,
                 "drawn": st.drawn,
                 "encode_p50_ms": percentile_ms(st.encode_s, 50, ndigits=2),
                 "seen_to_draw_p50_ms": percentile_ms(st.seen_to_draw, 50, ndigits=2),
@@ -843,6 +1075,18 @@ class ConsoleServer:
 
 
 _POSE_FIELDS = ("position", "quaternion", "virtual_position", "virtual_quaternion")
+
+
+def _spacing(frame: Any) -> tuple[float, float] | None:
+    spacing = getattr(frame, "pixel_spacing_mm", None)
+    if spacing is not None and not all(math.isfinite(s) and s > 0 for s in spacing):
+        return None
+    return spacing
+
+
+def _depth0(frame: Any) -> float | None:
+    depth0 = getattr(frame, "depth_origin_row", None)
+    return None if depth0 is None or not math.isfinite(depth0) else depth0
 
 
 def _file_bytes(jpeg: Path) -> int:

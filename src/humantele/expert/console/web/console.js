@@ -1,6 +1,8 @@
 // The sonographer's console: the ultrasound image large, the follower's view, the force,
 // the session at a glance. One WebSocket to the expert daemon (same origin, /ws): binary
-// messages are video frames (32-byte header + JPEG), text messages JSON (see the daemon's
+// messages are video frames (32-byte header + JPEG, or + the encoded frame as the expert
+// received it, which WebCodecs decodes here: the hello's "transport"; with "webrtc" the
+// pictures come over a WebRTC connection instead), text messages JSON (see the daemon's
 // humantele.expert.console.messages). Nothing stale is shown as live: each panel greys out
 // when its data is older than the daemon's stale_after_ms (ages from capture and state times
 // mapped onto this page's clock by the heartbeat, status.js); a daemon slow to answer is
@@ -76,7 +78,10 @@ function connect() {
     return;
   }
   const scheme = location.protocol === "https:" ? "wss" : "ws";
-  const ws = new WebSocket(`${scheme}://${location.host}/ws?key=${encodeURIComponent(key)}`);
+  // ?transport=jpeg|webcodecs|webrtc in the page's address asks the daemon for that one (A/B)
+  const asked = new URLSearchParams(location.search).get("transport");
+  const extra = asked ? `&transport=${encodeURIComponent(asked)}` : "";
+  const ws = new WebSocket(`${scheme}://${location.host}/ws?key=${encodeURIComponent(key)}${extra}`);
   ws.binaryType = "arraybuffer";
   app.ws = ws;
   ws.onopen = () => hb.opened(performance.now());
@@ -107,10 +112,13 @@ function onText(m) {
   else if (m.type === "hello") onHello(m);
   else if (m.type === "cine") onCineIndex(m);
   else if (m.type === "result") onResult(m);
+  else if (m.type === "rtc_offer") onRtcOffer(m);
 }
 
 function onHello(m) {
   app.hello = m;
+  app.transport = m.transport || "jpeg";
+  resetVideo();
   const sim = m.video === "sim";
   document.body.dataset.video = m.video;
   document.querySelector("#us-panel .name").textContent = sim ? "Ultrasound: SIMULATED" : "Ultrasound";
@@ -128,6 +136,8 @@ function parseHeader(buf) {
   const v = new DataView(buf);
   return {
     version: v.getUint8(0), track: TRACKS[v.getUint8(1)], cine: (v.getUint8(2) & 1) === 1,
+    encoded: (v.getUint8(2) & 2) === 2, keyframe: (v.getUint8(2) & 4) === 4,
+    h264: (v.getUint8(2) & 8) === 8,
     seq: v.getUint32(4, true), tCapture: v.getFloat64(8, true),
     spacing: [v.getFloat32(16, true), v.getFloat32(20, true)],
     width: v.getUint16(24, true), height: v.getUint16(26, true),
@@ -142,6 +152,7 @@ function onFrame(buf) {
   const h = parseHeader(buf);
   h.rx = performance.now();
   if (h.version !== 2 || !h.track) return;
+  if (h.encoded) { onEncoded(h, buf); return; }
   const lane = h.cine ? "cine" : h.track;
   if (decoding[lane]) { waiting[lane] = { buf, h }; return; } // latest wins while one decodes
   decode(lane, buf, h);
@@ -163,6 +174,130 @@ async function decode(lane, buf, h) {
   if (next) decode(lane, next.buf, next.h);
 }
 
+// --- WebCodecs: the encoded frames the expert received, decoded here ------------------------
+
+// A decoder per track, fed in order from a keyframe on; a decoder that fails or falls behind
+// is dropped and the daemon asked for a keyframe (the next one starts a new decoder).
+const MAX_DECODE_QUEUE = 16; // (0.8 s of US): beyond, start again at a keyframe
+const decoders = { us: null, pov: null };
+const needKey = { us: true, pov: true };
+const headers = { us: new Map(), pov: new Map() }; // chunk timestamp (the seq) -> header
+app.decoded = { us: 0, pov: 0 }; // frames WebCodecs gave back
+
+function resetVideo() {
+  for (const t of TRACKS) {
+    if (decoders[t] && decoders[t].state !== "closed") decoders[t].close();
+    decoders[t] = null; needKey[t] = true; headers[t].clear();
+  }
+  if (rtc.pc) { rtc.pc.close(); rtc.pc = null; }
+}
+
+function restart(track, why) {
+  if (decoders[track] && decoders[track].state !== "closed") decoders[track].close();
+  decoders[track] = null; needKey[track] = true; headers[track].clear();
+  console.warn(`${track}: decoder restarts at a keyframe (${why})`);
+  send({ type: "keyframe", track });
+}
+
+function decoderFor(track, h264) {
+  if (decoders[track]) return decoders[track];
+  const d = new VideoDecoder({
+    output: (frame) => onDecoded(track, frame),
+    error: (e) => { if (decoders[track] === d) restart(track, e.message); },
+  });
+  // Software decoding: a GPU decoder's round trips (through Chromium's GPU process, itself
+  // in software on a machine without one) decoded a frame in seconds.
+  d.configure({ codec: h264 ? "avc1.42E01F" : "vp8", optimizeForLatency: true,
+                hardwareAcceleration: "prefer-software" });
+  decoders[track] = d;
+  return d;
+}
+
+function onEncoded(h, buf) {
+  const track = h.track;
+  if (needKey[track] && !h.keyframe) return;
+  if (typeof VideoDecoder === "undefined") { app.closedReason = "this browser has no WebCodecs"; return; }
+  let d = decoderFor(track, h.h264);
+  if (d.decodeQueueSize > MAX_DECODE_QUEUE) {
+    restart(track, "fell behind");
+    if (!h.keyframe) return;
+    d = decoderFor(track, h.h264);
+  }
+  needKey[track] = false;
+  h.rx = performance.now();
+  headers[track].set(h.seq, h);
+  d.decode(new EncodedVideoChunk({ type: h.keyframe ? "key" : "delta", timestamp: h.seq,
+                                   data: new Uint8Array(buf, 32) }));
+}
+
+// Behind (more frames waiting to decode), a frame is drawn only if none was for
+// DRAW_AT_LEAST_MS: the newest is what the sonographer needs, and drawing is work.
+const DRAW_AT_LEAST_MS = 100;
+const drawnAt = { us: -Infinity, pov: -Infinity };
+
+function onDecoded(track, frame) {
+  const map = headers[track], h = map.get(frame.timestamp);
+  for (const k of map.keys()) { if (k <= frame.timestamp) map.delete(k); else break; }
+  app.decoded[track] += 1;
+  try {
+    if (!h) return;
+    const d = decoders[track], now = performance.now();
+    if (track === "us" && app.frozen) app.lastFrame.us = { ...h, at: now };
+    else if (!d || d.decodeQueueSize === 0 || now - drawnAt[track] >= DRAW_AT_LEAST_MS) {
+      drawnAt[track] = now;
+      draw(h, frame);
+    }
+  } finally {
+    frame.close();
+  }
+}
+
+// --- WebRTC: the page a receiver of the expert's forwarded tracks ----------------------------
+
+const rtc = { pc: null, videos: {} };
+
+async function onRtcOffer(m) {
+  if (rtc.pc) rtc.pc.close();
+  const pc = new RTCPeerConnection({ iceServers: [] });
+  rtc.pc = pc;
+  pc.ontrack = (ev) => {
+    const track = TRACKS[pc.getTransceivers().indexOf(ev.transceiver)];
+    // (its own stream: aiortc puts both tracks in one, whose video element plays the first)
+    if (track) watchVideo(track, new MediaStream([ev.track]));
+  };
+  await pc.setRemoteDescription({ type: "offer", sdp: m.sdp });
+  await pc.setLocalDescription(await pc.createAnswer());
+  if (pc.iceGatheringState !== "complete") {  // the daemon takes no trickled candidates
+    await new Promise((ok) => {
+      pc.addEventListener("icegatheringstatechange", () => { if (pc.iceGatheringState === "complete") ok(); });
+      setTimeout(ok, 2000);
+    });
+  }
+  send({ type: "rtc_answer", sdp: pc.localDescription.sdp });
+}
+
+function watchVideo(track, stream) {
+  let video = rtc.videos[track];
+  if (!video) {
+    video = document.createElement("video");
+    video.muted = true; video.autoplay = true; video.playsInline = true;
+    video.className = "rtc-source"; // played off screen; drawn into the track's canvas
+    document.body.appendChild(video);
+    rtc.videos[track] = video;
+  }
+  video.srcObject = stream;
+  video.play().catch(() => {});
+  const step = (now, meta) => {
+    const v = app.state && app.state.video ? app.state.video[track] : null;
+    const h = { track, seq: null, width: meta.width, height: meta.height, cine: false,
+                spacing: (v && v.spacing) || [0, 0], depth0: v && v.depth0 != null ? v.depth0 : NaN,
+                rx: performance.now() };
+    if (!(track === "us" && app.frozen)) draw(h, video);
+    video.requestVideoFrameCallback(step);
+  };
+  video.requestVideoFrameCallback(step);
+}
+
 function draw(h, bitmap) {
   const canvas = $(h.track);
   if (canvas.width !== h.width || canvas.height !== h.height) {
@@ -177,12 +312,15 @@ function draw(h, bitmap) {
   if (app.rxToDraw.length > 500) app.rxToDraw.shift();
   if (!h.cine) {
     app.frames[h.track] += 1;
-    app.lastFrame[h.track] = { seq: h.seq, at: t0, ...h };
     // The frame as drawn: its counter, read back from the canvas (glass-to-glass latency).
     const counter = readCounter(g);
     app.counters[h.track] = counter;
     setHidden($(`${h.track}-counter`), counter === null);
-    send({ type: "drawn", track: h.track, seq: h.seq, counter, draw_to_send_ms: performance.now() - t0 });
+    if (h.seq === null) h.seq = counter; // WebRTC: the frame is known by its counter only
+    app.lastFrame[h.track] = { ...h, at: t0 };
+    if (h.seq !== null) {
+      send({ type: "drawn", track: h.track, seq: h.seq, counter, draw_to_send_ms: performance.now() - t0 });
+    }
   }
   if (h.track === "us") {
     const spacing = h.spacing[0] > 0 ? h.spacing : null;

@@ -1,0 +1,85 @@
+"""The console on the follower's received video (``humantele demo --config
+configs/demo.toml``: sim ultrasound and POV over WebRTC), with the default transport (jpeg;
+webcodecs is covered without a browser: tests/media/test_video_link.py and
+tests/expert/test_console_server.py; on a machine at load 20 its page starved and lost its
+socket, see docs/console.md) (issue 19 §1): no console work per frame while no page is open; both
+pictures drawn; freeze keeps the frame on screen and a capture saves that very frame (its
+counter, its pixels); once the page has closed the console takes no frame again."""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+from pathlib import Path
+
+from console_views import pixels, result
+from stage import console_url
+
+REPO = Path(__file__).resolve().parents[3]
+CANVAS_PNG = "document.getElementById('us').toDataURL('image/png')"
+
+
+def console_frames(demo) -> dict:
+    c = demo.stats("expert").get("console") or {}
+    return {"us": (c.get("us") or {}).get("frames"), "pov": (c.get("pov") or {}).get("frames"),
+            "subscribed": c.get("subscribed"), "clients": c.get("clients")}  # fmt: skip
+
+
+async def idle(demo, seconds: float = 3.0) -> dict:
+    """The console's frame counters over ``seconds`` with no page (and the receiver's)."""
+    a, ra = console_frames(demo), (demo.stats("expert").get("video") or {}).get("us", {})
+    await asyncio.sleep(seconds)
+    b, rb = console_frames(demo), (demo.stats("expert").get("video") or {}).get("us", {})
+    return {"before": a, "after": b, "received": [ra.get("frames"), rb.get("frames")]}
+
+
+async def visit(ctx, demo, transport: str | None) -> dict:
+    """Open the console (asking ``transport``), freeze, capture, close: what it showed."""
+    url = console_url(demo.stats("expert"))
+    if transport:
+        base, _, frag = url.partition("#")
+        url = f"{base}?transport={transport}#{frag}"
+    name = transport or "default"
+    page = await ctx.page(url, width=1440, height=900)
+    await ctx.until_progress(
+        page,
+        "window.consoleApp && consoleApp.frames.us > 10 && consoleApp.frames.pov > 10",
+        "window.consoleApp ? [consoleApp.frames.us, consoleApp.frames.pov] : null",
+        stall_s=90,
+    )
+    out: dict = {"transport": await page.evaluate("consoleApp.transport")}
+    out["pixels"] = {t: await pixels(page, t) for t in ("us", "pov")}
+    out["open"] = console_frames(demo)
+    await ctx.shot(page, f"console_video_{name}_live")
+    # Freeze: the frame on screen stays; capture it.
+    await page.click("#freeze")
+    await ctx.until(page, "consoleApp.frozen && consoleApp.cine.length > 3", 20)
+    await asyncio.sleep(0.5)  # frames keep coming: none may replace the frozen one
+    out["shown"] = await page.evaluate("consoleApp.shown")
+    png = await page.evaluate(CANVAS_PNG)
+    out["png"] = f"shown_us_{name}.png"
+    (ctx.out / out["png"]).write_bytes(base64.b64decode(png.split(",", 1)[1]))
+    await page.click("#capture")
+    out["capture"] = await result(ctx, page, "capture", 1)
+    out["shown_after"] = await page.evaluate("consoleApp.shown")
+    await ctx.shot(page, f"console_video_{name}_frozen")
+    await page.evaluate("document.getElementById('freeze').click()")
+    await ctx.until(page, "!consoleApp.frozen", 5)
+    await ctx.close_page(page)
+    await demo.wait("the page gone", lambda e, f: not console_frames(demo)["subscribed"], 30)
+    return out
+
+
+async def run(ctx) -> dict:
+    demo = await ctx.demo("--config", str(REPO / "configs" / "demo.toml"), "--duration", "900")
+
+    def ready(e, f):
+        us = (e.get("video") or {}).get("us") or {}
+        return (e.get("console") or {}).get("url") and us.get("frames", 0) > 20
+
+    await demo.wait("video received", ready, timeout=240)
+    data: dict = {"idle_before": await idle(demo)}
+    for transport in ctx.args.get("transports", [None]):
+        data[transport or "default"] = await visit(ctx, demo, transport)
+    data["idle_after"] = await idle(demo)
+    return data
