@@ -204,10 +204,11 @@ def start_hl2ss_server(npz: Path, loop: bool = False):  # -> (subprocess.Popen, 
     import subprocess
     import sys
 
+    # (in the caller's process group: a scenario killed at its timeout takes it along)
     server = subprocess.Popen(
         [sys.executable, "-m", "humantele.tracking.hl2ss_replay", str(npz),
          *(["--loop"] if loop else [])],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     line = server.stdout.readline()
     port = int(line.rsplit(":", 1)[1].split()[0]) if ":" in line else 0
