@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from typing import Any
 
-LANDMARKS = ("xiphoid", "left", "right", "bed")  # humantele.follower.calibration.LANDMARKS
+from humantele.wire import LANDMARKS
 
 
 def demo_phase(e: dict[str, Any], f: dict[str, Any]) -> str:
@@ -46,3 +46,13 @@ def demo_phase(e: dict[str, Any], f: dict[str, Any]) -> str:
     if not e.get("has_model"):
         return "sending the patient model"
     return "following"
+
+
+def poses_flowing(status_line: str) -> bool:
+    """Whether a status line of the demo says the link is up and poses arrive (a phase after
+    the link came up, and a pose rate above 0 Hz): for scripts and tests reading stderr."""
+    if not status_line.startswith("[") or "] " not in status_line:
+        return False
+    phase = status_line.split("] ", 1)[1].split(" |", 1)[0]
+    down = phase.startswith(("starting daemons", "waiting for the link", "link closed"))
+    return not down and "poses 0 Hz" not in status_line and "poses - Hz" not in status_line

@@ -17,6 +17,8 @@ from pathlib import Path
 import pytest
 from session_helpers import descendants, pid_alive
 
+from humantele.demo_status import poses_flowing
+
 ROOT = Path(__file__).resolve().parents[2]
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -86,7 +88,7 @@ def test_a_killed_follower_child_is_restarted_and_ctrl_c_exits_0(comm, stop_when
             assert line, "demo ended early:\n" + "".join(lines[-10:])
             lines.append(line)
             seen |= descendants(proc.pid)
-            flowing = "link connected" in line and "poses 0 Hz" not in line
+            flowing = poses_flowing(line)
             if killed is None:
                 victim = _victim(proc.pid, comm) if flowing else None
                 if victim is not None:

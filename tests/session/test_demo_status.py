@@ -2,7 +2,7 @@
 never "calibrating" before the link is up."""
 
 from humantele.demo import _status_line
-from humantele.demo_status import demo_phase
+from humantele.demo_status import demo_phase, poses_flowing
 
 UP = {"link_state": "connected", "sensing_ready": True}
 
@@ -43,3 +43,16 @@ def test_status_line_leads_with_the_phase():
     line = _status_line(e, f, 12.0)
     assert line.startswith("[ 12.0 s] following | poses 100 Hz, age 0.8 ms")
     assert _status_line({}, {}, 0.4).startswith("[  0.4 s] starting daemons (expert, follower)")
+
+
+def test_poses_flowing_reads_the_status_line():
+    """What scripts and tests read from stderr: the link up (a phase after it) and poses."""
+
+    def line(phase: str, rate: str = "45") -> str:
+        return f"[ 12.0 s] {phase} | poses {rate} Hz, age 1.0 ms | force 0.00 N | servo 1000 Hz"
+
+    assert poses_flowing(line("following")) and poses_flowing(line("calibrating: press left"))
+    assert not poses_flowing(line("waiting for the link (connecting)"))
+    assert not poses_flowing(line("starting daemons (expert)", "-"))
+    assert not poses_flowing(line("link closed"))
+    assert not poses_flowing(line("following", "0")) and not poses_flowing("following")

@@ -14,6 +14,7 @@ import pytest
 from session_helpers import descendants, pid_alive
 
 from humantele.demo import CountWindow
+from humantele.demo_status import poses_flowing
 from humantele.runtime.supervise import SupervisedDaemon
 
 
@@ -107,7 +108,7 @@ def test_sigkill_of_the_follower_during_a_demo_it_comes_back_and_poses_flow_agai
             assert line, "demo ended early:\n" + "".join(lines[-10:])
             lines.append(line)
             seen |= descendants(proc.pid)
-            flowing = "link connected" in line and "poses 0 Hz" not in line
+            flowing = poses_flowing(line)
             if killed is None and flowing:
                 killed = _child(proc.pid, "follower")
                 assert killed is not None
