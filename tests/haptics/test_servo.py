@@ -349,3 +349,30 @@ def test_daemon_side_reads_survive_a_servo_killed_mid_write():
         assert st1.ticks >= st0.ticks
     finally:
         sp.stop()
+
+
+def test_the_servo_read_while_another_thread_frees_it_is_the_last_sample():
+    """The expert's loop reads the servo's sample while a restart frees the dead process's
+    shared memory in an executor thread (a Ctrl-C during a servo restart: the loop met a
+    closed block, TypeError, traceback, exit 1): a closed block reads as nothing new."""
+    from humantele.haptics.shm import SeqlockArray
+
+    block = SeqlockArray(4)
+    block.write([1.0, 2.0, 3.0, 4.0])
+    assert list(block.read()) == [1.0, 2.0, 3.0, 4.0]
+    block.close()
+    block.unlink()
+    with pytest.raises(TimeoutError):
+        block.read()
+    block.write([5.0])  # a command to a servo that is gone: nowhere, no error
+
+    servo = ServoProcess(ServoConfig())
+    from humantele.haptics.servo_layout import CMD_LEN, SAMPLE_LEN, STATS_LEN
+
+    servo._cmd, servo._out = SeqlockArray(CMD_LEN), SeqlockArray(SAMPLE_LEN)
+    servo._st = SeqlockArray(STATS_LEN)
+    servo._blocks = [servo._cmd, servo._out, servo._st]
+    servo._out.close()  # freed by the other thread between the loop's check and its read
+    assert servo.latest() is None  # nothing read yet: none (later: the last sample read)
+    servo.stop()  # frees the rest, the list first
+    assert servo._blocks == [] and servo.latest() is None

@@ -1,6 +1,7 @@
 """The one child-process helper (humantele.runtime.child): the restart back-off on a fake
 clock, and a spawned child's name, signals and priority as the system has them."""
 
+import contextlib
 import os
 import signal
 import time
@@ -152,3 +153,24 @@ def test_a_ctrl_c_while_the_child_imports_its_target_does_not_kill_it(tmp_path, 
         assert proc.exitcode == 0 and (flags / "ran").exists()
     finally:
         stop_process(proc, timeout_s=0.5)
+
+
+def test_a_ctrl_c_during_the_interpreters_start_up_does_not_kill_the_child(tmp_path):
+    """A terminal's Ctrl-C reaches the whole group, also a child the daemon is (re)starting
+    while its interpreter starts, before any of our code could ignore it: the servo restarted
+    as Ctrl-C came died in Python's site import ("Fatal Python error: init_import_site").
+    spawn starts the child with the group's signals blocked; it ignores them, then unblocks."""
+    flag = tmp_path / "up"
+    proc = spawn(_sleeper, (str(flag), 0), name="humantele-test")
+    try:
+        end = time.monotonic() + 120
+        while not flag.exists():  # SIGINT and SIGTERM, from fork to the target's first line
+            assert time.monotonic() < end and proc.is_alive(), proc.exitcode
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(proc.pid, sig)
+            time.sleep(0.002)
+        assert proc.is_alive()
+    finally:
+        code = stop_process(proc, timeout_s=0.5)
+    assert code == -signal.SIGKILL  # it ran on until stopped

@@ -127,12 +127,12 @@ class ServoProcess:
                 with contextlib.suppress(ServoError):
                     self._final_stats = self._read_stats()
         finally:  # the shared memory is freed whatever happened above
-            for b in self._blocks:
+            blocks, self._blocks = self._blocks, []  # readers on other threads see none now
+            for b in blocks:
                 with contextlib.suppress(OSError):
                     b.close()
                 with contextlib.suppress(OSError):
                     b.unlink()
-            self._blocks = []
             self._cmd_values[C_STOP] = 0.0
 
     @property

@@ -37,16 +37,22 @@ class SeqlockArray:
         return self._shm.name
 
     def write(self, values: NDArray[np.float64] | list[float] | tuple, start: int = 0) -> None:
-        """Write ``values`` at data offset ``start`` as one consistent update."""
+        """Write ``values`` at data offset ``start`` as one consistent update (nothing once
+        the block is closed: its reader is gone)."""
         a = self._a
+        if a is None:
+            return
         seq = a[0]
         a[0] = seq + 1.0  # odd: writing
         a[1 + start : 1 + start + len(values)] = values
         a[0] = seq + 2.0  # even: consistent
 
     def read(self, timeout_s: float = 0.01) -> NDArray[np.float64]:
-        """A consistent copy of the data; TimeoutError if the writer holds it odd too long."""
+        """A consistent copy of the data; TimeoutError if the writer holds it odd too long, or
+        if the block was closed meanwhile (by another thread: there is nothing to read)."""
         a = self._a
+        if a is None:
+            raise TimeoutError("shared memory block closed")
         deadline = None
         while True:
             s1 = a[0]

@@ -30,12 +30,14 @@ import contextlib
 import logging
 import multiprocessing as mp
 import os
+import signal
 import threading
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
 
 from humantele.runtime.child_entry import (
+    GROUP_SIGNALS,
     Pickled,
     child_main,
     ignore_group_signals,
@@ -134,7 +136,15 @@ def spawn(
         name=name,
         daemon=True,
     )
-    proc.start()
+    # The child is born with the group's signals blocked (a thread's signal mask is kept
+    # across fork and exec): a terminal's Ctrl-C during the interpreter's own start-up, before
+    # any of our code runs, would kill it (the servo restarted as Ctrl-C came: "Fatal Python
+    # error: init_import_site", KeyboardInterrupt). child_main ignores them, then unblocks.
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, GROUP_SIGNALS)
+    try:
+        proc.start()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
     return proc
 
 

@@ -17,10 +17,16 @@ import time
 PARENT_POLL_S = 0.5  # how often a child checks that its daemon is still there
 
 
+GROUP_SIGNALS = (signal.SIGINT, signal.SIGTERM)  # reach the whole process group
+
+
 def ignore_group_signals() -> None:
-    """SIGINT and SIGTERM ignored: they reach the whole process group; the daemon stops us."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    """SIGINT and SIGTERM ignored: they reach the whole process group; the daemon stops us.
+    Then unblocked (``spawn`` starts a child with them blocked: one that came meanwhile is
+    pending, and now dropped)."""
+    for sig in GROUP_SIGNALS:
         signal.signal(sig, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, GROUP_SIGNALS)
 
 
 def watch_parent(

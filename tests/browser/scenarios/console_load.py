@@ -14,6 +14,7 @@ import time
 
 import numpy as np
 
+from humantele.expert.console.frames import _Subscribers
 from humantele.video.base import VideoFrame
 
 SNAPSHOT_JS = """() => {
@@ -33,11 +34,13 @@ SNAPSHOT_JS = """() => {
 }"""
 
 
-class Frames:
+class Frames(_Subscribers):
     """A frame provider: a US and a POV frame every 100 ms (a grey picture with a moving bar),
-    captured ``capture_delay_s`` before they are there (a late source), none while ``off``."""
+    captured ``capture_delay_s`` before they are there (a late source), none while ``off``;
+    each new one also to the console's subscription (as the expert's sources give them)."""
 
     def __init__(self) -> None:
+        super().__init__()
         self.off = True
         self.capture_delay_s = 0.0
         self._latest: dict = {}
@@ -58,6 +61,7 @@ class Frames:
                 spacing = (0.2, 0.2) if track == "us" else None
                 t = time.monotonic() - self.capture_delay_s
                 self._latest[track] = VideoFrame(img, self._seq, t, spacing)
+                self._notify(track, self._latest[track])
 
     def latest(self, track: str):
         return None if self.off else self._latest.get(track)
