@@ -121,20 +121,16 @@ def make_recording(out: Path, seconds: float, targets: Callable[[float], Pose],
 
 
 def fake_libhd(tmp_path: Path) -> str:
-    """The fake OpenHaptics libHD (tests/devices/fake_libhd.c) built into ``tmp_path``."""
-    import shutil
-    import subprocess
-
+    """The fake OpenHaptics libHD (tests/devices/fake_libhd.c) built into ``tmp_path`` (by
+    the haptics bench's builder); skipped without a C compiler."""
     import pytest
 
-    cc = shutil.which("cc") or shutil.which("gcc")
-    if cc is None:
-        pytest.skip("no C compiler (cc/gcc) to build the fake OpenHaptics libHD")
-    out = tmp_path / "libHD.so"
-    src = Path(__file__).parent.parent / "devices" / "fake_libhd.c"
-    subprocess.run([cc, "-shared", "-fPIC", "-O1", "-o", str(out), str(src), "-lpthread", "-lm"],
-                   check=True)  # fmt: skip
-    return str(out)
+    from humantele.bench.haptics_callback import build_fake_libhd
+
+    try:
+        return str(build_fake_libhd(tmp_path))
+    except RuntimeError as exc:
+        pytest.skip(f"the fake OpenHaptics libHD: {exc}")
 
 
 def expert_on_fake_touchx(tmp_path: Path, env: dict[str, str], video: bool = True) -> Path:
