@@ -83,6 +83,7 @@ def _busy_port() -> socket.socket:
     return s
 
 
+@pytest.mark.e2e  # starts a daemon (the fast lane leaves it out)
 def test_signal_port_in_use_and_unknown_host():
     with _busy_port() as s:
         port = s.getsockname()[1]
@@ -101,6 +102,7 @@ def test_signal_port_in_use_and_unknown_host():
     _one_clear_line(r.stderr)
 
 
+@pytest.mark.e2e  # starts a daemon (the fast lane leaves it out)
 def test_follower_feed_port_in_use(tmp_path):
     with _busy_port() as s:
         port = s.getsockname()[1]
@@ -114,6 +116,7 @@ def test_follower_feed_port_in_use(tmp_path):
     _one_clear_line(r.stderr)
 
 
+@pytest.mark.e2e  # starts a daemon (the fast lane leaves it out)
 def test_follower_state_dir_that_cannot_hold_the_certificate(tmp_path):
     blocker = tmp_path / "a-file"
     blocker.write_text("not a directory")
@@ -127,6 +130,7 @@ def test_follower_state_dir_that_cannot_hold_the_certificate(tmp_path):
     _one_clear_line(r.stderr)
 
 
+@pytest.mark.e2e  # starts a daemon (the fast lane leaves it out)
 async def test_a_wrong_token_exits_3_with_the_reason():
     from humantele.signaling.server import SignalConfig, SignalingServer
 

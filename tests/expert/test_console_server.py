@@ -801,19 +801,20 @@ async def test_webcodecs_pages_get_the_encoded_frames_in_order_from_a_keyframe(t
 
 
 async def test_the_other_transports_on_request_and_sim_video_is_jpeg(tmp_path):
-    """The default (jpeg): JPEGs made from the decoded planes; ``?transport=`` asks another;
-    a provider without encoded frames (sim) gives JPEG whatever the page asks."""
+    """The default (webcodecs): the encoded frames; ``?transport=jpeg`` asks JPEGs made from
+    the decoded planes; a provider without encoded frames (sim) gives JPEG whatever the page
+    asks."""
     clock = FakeClock()
     frames = EncodedFrames(clock)
     server = await serve(frames, Session(), tmp_path, clock=clock)
     try:
         async with aiohttp.ClientSession() as http:
-            async with http.ws_connect(server.ws_url + "&transport=webcodecs") as ws:
+            async with http.ws_connect(server.ws_url) as ws:
                 hello = await next_message(ws, lambda k, d: k == "json" and d["type"] == "hello")
                 assert hello["transport"] == "webcodecs"
             while server.clients:
                 await asyncio.sleep(0.01)
-            async with http.ws_connect(server.ws_url) as ws:
+            async with http.ws_connect(server.ws_url + "&transport=jpeg") as ws:
                 hello = await next_message(ws, lambda k, d: k == "json" and d["type"] == "hello")
                 assert hello["transport"] == "jpeg"
                 f = frames.push()

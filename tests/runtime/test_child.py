@@ -174,3 +174,29 @@ def test_a_ctrl_c_during_the_interpreters_start_up_does_not_kill_the_child(tmp_p
     finally:
         code = stop_process(proc, timeout_s=0.5)
     assert code == -signal.SIGKILL  # it ran on until stopped
+
+
+REFUSED_FIFO = """
+import os
+from humantele.runtime.child import Priority, set_priority
+
+def refuse(*a):
+    raise PermissionError(1, "Operation not permitted")
+
+os.sched_setscheduler = refuse
+base = os.getpriority(os.PRIO_PROCESS, 0)
+print(set_priority(Priority(fifo=5, nice=2)))
+print(os.sched_getscheduler(0) == os.SCHED_OTHER, os.getpriority(os.PRIO_PROCESS, 0) - base)
+"""
+
+
+def test_a_refused_real_time_policy_falls_back_to_the_nice_and_says_so():
+    """Without the privilege for SCHED_FIFO (no root, no rtprio limit) a child that asked for
+    it still runs below the daemon at its nice, and the answer says what was refused."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", REFUSED_FIFO], capture_output=True, text=True,
+                         check=True).stdout.splitlines()  # fmt: skip
+    assert out[0].startswith("fifo 5 refused: ") and out[0].endswith("; nice 2")
+    assert out[1] == "True 2"

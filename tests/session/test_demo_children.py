@@ -57,95 +57,137 @@ def _victim(demo: int, comm: str) -> int | None:
     return next((p for p, (c, _) in _children(d).items() if c == comm), None)
 
 
-@pytest.mark.parametrize(
-    ("comm", "stop_when"),
-    [
-        ("humantele-video", "back"),  # restarted, frames again, then Ctrl-C
-        ("humantele-video", "restarting"),  # Ctrl-C while the new one starts
-        ("humantele-sensi", "back"),  # the sensing process: restarted, its gap counted
-        ("humantele-sensi", "restarting"),
-        ("humantele-servo", "back"),  # the expert's servo
-        ("humantele-servo", "restarting"),
-    ],
-)
-def test_a_killed_follower_child_is_restarted_and_ctrl_c_exits_0(comm, stop_when):
-    track = {"humantele-video": "video", "humantele-sensi": "sensing"}.get(comm, "servo")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "humantele", "demo", "--config", "configs/demo.toml",
-         "--duration", "900", "--json", "--keep"],
-        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(),
-        start_new_session=True,
-    )  # fmt: skip
-    lines: list[str] = []
-    seen: set[int] = set()
-    killed = new = None
-    saw_down = False
-    good = 0
-    try:
-        t_end = time.monotonic() + 600.0  # generous: a loaded 2-core machine starts slowly
-        while time.monotonic() < t_end:
-            line = proc.stderr.readline()
-            assert line, "demo ended early:\n" + "".join(lines[-10:])
-            lines.append(line)
-            seen |= descendants(proc.pid)
-            flowing = poses_flowing(line)
-            if killed is None:
-                # (the sensing measuring: its time without measurements counts from its first)
-                measuring = flowing and "starting the tracker" not in line
-                victim = _victim(proc.pid, comm) if measuring else None
+TRACKS = {"humantele-video": "video", "humantele-sensi": "sensing", "humantele-servo": "servo"}
+SAID = {  # the owner's log line on noticing the kill
+    "video": "video process exited with code -9; restarting it in 1 s",
+    "sensing": "the sensing process exited (code -9); restarting it",
+    "servo": "servo process exited with code -9; restarting it in 2 s",
+}
+
+
+def _down(track: str, line: str) -> bool:
+    """The status line says ``track``'s child is not running."""
+    down = f"{track} DOWN" in line or f"{track} restarting" in line
+    return down or (track == "servo" and "servo - Hz" in line)  # no rate: not running
+
+
+class Demo:
+    """``humantele demo --json --keep`` with video, read status line by status line."""
+
+    def __init__(self) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "humantele", "demo", "--config", "configs/demo.toml",
+             "--duration", "900", "--json", "--keep"],
+            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(),
+            start_new_session=True,
+        )  # fmt: skip
+        self.lines: list[str] = []
+        self.seen: set[int] = set()  # every process of the demo's, to check none is left
+        self.t_end = time.monotonic() + 600.0  # generous: a loaded 2-core machine is slow
+
+    def line(self) -> str:
+        assert time.monotonic() < self.t_end, "timed out:\n" + "".join(self.lines[-10:])
+        line = self.proc.stderr.readline()
+        assert line, "demo ended early:\n" + "".join(self.lines[-10:])
+        self.lines.append(line)
+        self.seen |= descendants(self.proc.pid)
+        return line
+
+    def kill_when_measuring(self, comm: str) -> int:
+        """SIGKILL ``comm`` once poses flow and the sensing measures (its time without
+        measurements counts from its first); its pid."""
+        while True:
+            line = self.line()
+            if poses_flowing(line) and "starting the tracker" not in line:
+                victim = _victim(self.proc.pid, comm)
                 if victim is not None:
-                    killed = victim
-                    os.kill(killed, signal.SIGKILL)
-                continue
-            down = f"{track} DOWN" in line or f"{track} restarting" in line
-            down = down or (track == "servo" and "servo - Hz" in line)  # no rate: not running
-            saw_down = saw_down or down
-            current = _victim(proc.pid, comm)
-            # (the sensing process is restarted at once, without a back-off: its new process
-            # may be there before a status line could say "restarting"; Ctrl-C then lands while
-            # it starts)
-            if stop_when == "restarting" and (down or current not in (None, killed)):
+                    os.kill(victim, signal.SIGKILL)
+                    return victim
+
+    def ctrl_c(self) -> tuple[dict, str, str]:
+        """A terminal's Ctrl-C (the whole group); the ``--json`` summary, the whole stderr
+        and the daemons' logs (expert then follower)."""
+        try:
+            self.seen |= descendants(self.proc.pid)
+            os.killpg(self.proc.pid, signal.SIGINT)
+            out, err = self.proc.communicate(timeout=120)
+        finally:
+            if self.proc.poll() is None:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.communicate()
+        text = "".join(self.lines) + err
+        assert self.proc.returncode == 0, text[-4000:]
+        summary = json.loads(out.strip().splitlines()[-1])
+        assert summary["exit_codes"] == {"expert": 0, "follower": 0}, summary
+        assert summary["restarts"] == {"expert": 0, "follower": 0}  # the child, not the daemon
+        self.run_dir = Path(re.search(r"run directory: (\S+)", err).group(1))
+        logs = {r: (self.run_dir / f"{r}.log").read_text() for r in ("expert", "follower")}
+        for log in logs.values():
+            assert "leaked" not in log and "Traceback" not in log, log[-3000:]
+        for _ in range(100):
+            if not any(pid_alive(p) for p in self.seen):
                 break
-            if stop_when == "back" and current not in (None, killed) and not down and flowing:
-                new = current
-                good += 1
-                if good >= 2:  # two status lines with the new one running
-                    break
-            else:
-                good = 0
-        else:
-            pytest.fail(f"{track} process did not come back:\n" + "".join(lines[-10:]))
-        seen |= descendants(proc.pid)
-        os.killpg(proc.pid, signal.SIGINT)  # a terminal's Ctrl-C: the whole group
-        out, err = proc.communicate(timeout=120)
+            time.sleep(0.1)
+        assert not [p for p in self.seen if pid_alive(p)]
+        return summary, text, logs
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.communicate()
+        if getattr(self, "run_dir", None):
+            shutil.rmtree(self.run_dir, ignore_errors=True)
+
+
+def _log_of(logs: dict[str, str], track: str) -> str:
+    return logs["expert" if track == "servo" else "follower"]
+
+
+def test_each_killed_child_comes_back_in_turn_and_ctrl_c_exits_0():
+    """One demo: the video process, then the sensing process, then the servo SIGKILLed, each
+    once the one before is back: each restarted once (the new one running through two
+    status lines with poses flowing), said in its daemon's log; the sensing's gap counted."""
+    demo = Demo()
+    try:
+        for comm, track in TRACKS.items():
+            killed = demo.kill_when_measuring(comm)
+            good = 0
+            while good < 2:  # two status lines with the new one running
+                line = demo.line()
+                current = _victim(demo.proc.pid, comm)
+                back = current not in (None, killed) and not _down(track, line)
+                good = good + 1 if back and poses_flowing(line) else 0
+        summary, _, logs = demo.ctrl_c()
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.communicate()
-    text = "".join(lines) + err
-    assert proc.returncode == 0, text[-4000:]
-    assert saw_down or stop_when == "back" or track == "sensing", "".join(lines[-10:])
-    summary = json.loads(out.strip().splitlines()[-1])
-    assert summary["exit_codes"] == {"expert": 0, "follower": 0}, summary
-    assert summary["restarts"] == {"expert": 0, "follower": 0}  # the child, not the daemon
-    child = summary["children"][track]
-    if stop_when == "back":
-        assert new is not None and child["restarts"] == 1, summary["children"]
-    if track == "sensing" and stop_when == "back":
-        assert summary["children"]["sensing"]["measurement_gaps"] >= 1
-        assert summary["children"]["sensing"]["measurement_gap_s"] > 0.5
-    run_dir = Path(re.search(r"run directory: (\S+)", err).group(1))
-    log = (run_dir / ("expert.log" if track == "servo" else "follower.log")).read_text()
-    said = {
-        "video": "video process exited with code -9; restarting it in 1 s",
-        "sensing": "the sensing process exited (code -9); restarting it",
-        "servo": "servo process exited with code -9; restarting it in 2 s",
-    }[track]
-    assert said in log, log[-3000:]
-    assert "leaked" not in log and "Traceback" not in log, log[-3000:]
-    for _ in range(100):
-        if not any(pid_alive(p) for p in seen):
-            break
-        time.sleep(0.1)
-    assert not [p for p in seen if pid_alive(p)]
-    shutil.rmtree(run_dir, ignore_errors=True)
+        demo.close()
+    for track in TRACKS.values():
+        assert summary["children"][track]["restarts"] == 1, summary["children"]
+        assert SAID[track] in _log_of(logs, track), _log_of(logs, track)[-3000:]
+    assert summary["children"]["sensing"]["measurement_gaps"] >= 1
+    assert summary["children"]["sensing"]["measurement_gap_s"] > 0.5
+
+
+def test_ctrl_c_while_the_killed_children_restart_exits_0():
+    """One demo: the three children SIGKILLed at once; Ctrl-C once the video's and the
+    servo's are being replaced (a status line says so, or the new process is there: the
+    video's comes after a 1 s back-off, between two status lines; the sensing process is
+    restarted at once and is still starting): exit 0, nothing left running."""
+    demo = Demo()
+    try:
+        killed = {"humantele-video": demo.kill_when_measuring("humantele-video")}
+        for comm in ("humantele-sensi", "humantele-servo"):
+            killed[comm] = _victim(demo.proc.pid, comm)
+            assert killed[comm] is not None, "".join(demo.lines[-5:])
+            os.kill(killed[comm], signal.SIGKILL)
+        replacing: set[str] = set()
+        while not {"humantele-video", "humantele-servo"} <= replacing:
+            line = demo.line()
+            for comm in ("humantele-video", "humantele-servo"):
+                new = _victim(demo.proc.pid, comm) not in (None, killed[comm])
+                if new or _down(TRACKS[comm], line):
+                    replacing.add(comm)
+        _, _, logs = demo.ctrl_c()
+    finally:
+        demo.close()
+    for track in TRACKS.values():
+        assert SAID[track] in _log_of(logs, track), _log_of(logs, track)[-3000:]

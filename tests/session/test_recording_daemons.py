@@ -21,6 +21,7 @@ async def run_cli(*args: str) -> tuple[int, str]:
     return proc.returncode, (out + err).decode()
 
 
+@pytest.mark.e2e  # starts a daemon (the fast lane leaves it out)
 async def test_an_unusable_recording_path_is_a_clear_error_at_start(tmp_path):
     existing = tmp_path / "s.follower.mcap"
     existing.write_bytes(b"an earlier session")

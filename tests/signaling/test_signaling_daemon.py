@@ -9,6 +9,8 @@ import subprocess
 import sys
 import time
 
+import pytest
+
 from humantele.runtime.process import PARENT_PID_ENV
 
 
@@ -19,6 +21,7 @@ def _stats(path) -> dict:
         return {}
 
 
+@pytest.mark.e2e  # starts a daemon (the fast lane leaves it out)
 def test_follower_with_an_unresolvable_signaling_host(tmp_path):
     stats, log_path = tmp_path / "follower.json", tmp_path / "follower.log"
     env = dict(os.environ, HUMANTELE_TOKEN="daemon-token", **{PARENT_PID_ENV: str(os.getpid())})

@@ -89,7 +89,7 @@ class _Follower:
             from humantele.follower.sensing_process import SensingProcess
 
             self.proc = SensingProcess(
-                self.config, None, self._done_proc, nice=self.config.sensing_nice
+                self.config, None, self._done_proc, priority=self.config.sensing_priority
             )
             self.proc.start()
             if not await self.proc.wait_ready():

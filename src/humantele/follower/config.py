@@ -15,7 +15,7 @@ from humantele.follower.registration import RegistrationConfig
 from humantele.interop.igtl import IgtlConfig
 from humantele.media.config import FollowerVideoConfig
 from humantele.recording import RecorderConfig
-from humantele.runtime.child import PRIORITY
+from humantele.runtime.child import PRIORITY, Priority
 from humantele.runtime.session import SessionConfig
 from humantele.transport import LinkConfig
 
@@ -48,9 +48,14 @@ class FollowerConfig(ConfigModel):
         description="where frames are measured while the daemon runs: a child process (its "
         "GIL apart from the loop's) or a thread",
     )
+    sensing_realtime_priority: int = Field(
+        PRIORITY["sensing"].fifo, ge=0, lt=PRIORITY["loop"].fifo,
+        description="the sensing process's SCHED_FIFO priority: below the daemons' loops, "
+        "above every normal process (the video, a browser); 0: normal policy at sensing_nice",
+    )  # fmt: skip
     sensing_nice: int = Field(
         PRIORITY["sensing"].nice, ge=0, le=18,
-        description="the sensing process's nice: the daemon's loop wakes first; below "
+        description="the sensing process's nice where it runs at the normal policy; below "
         "[follower.video] process_nice (the tracker before the video)",
     )  # fmt: skip
     tool: str = Field(
@@ -65,6 +70,11 @@ class FollowerConfig(ConfigModel):
     recording: RecorderConfig = RecorderConfig()
     igtl: IgtlConfig = IgtlConfig()
     registration: RegistrationConfig = RegistrationConfig()
+
+    @property
+    def sensing_priority(self) -> Priority:
+        """The sensing process's scheduling (:func:`humantele.runtime.child.set_priority`)."""
+        return Priority(fifo=self.sensing_realtime_priority, nice=self.sensing_nice)
 
     @model_validator(mode="after")
     def _tracker_before_video(self) -> FollowerConfig:

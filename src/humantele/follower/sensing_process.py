@@ -17,11 +17,11 @@ restarted (``max_restarts``, then :attr:`failed` and the caller falls back to it
 child that cannot build its sensing (a bad config) reports why and is not restarted. The child
 is started by :func:`humantele.runtime.child.spawn` (SIGINT and SIGTERM ignored: the daemon
 stops it; it ends when the daemon is gone, and when the pipe closes). Once started it runs at
-``nice`` +2 by default (``sensing_nice``, :data:`~humantele.runtime.child.PRIORITY`): below
-the daemon's loop, which only needs the CPU briefly to read a pose and wakes first, and
-above the video process (nice 5, its POV thread 8), so when CPU is short the video gives way
-before the tracker (issue 19 §2). It never takes a real-time policy (a daemon run with
-``chrt`` or a systemd unit): 5 ms bursts at 45 Hz must not hold a core against the servo.
+SCHED_FIFO 5 (``sensing_realtime_priority``, :data:`~humantele.runtime.child.PRIORITY`):
+below the servo (80) and the daemons' loops (10), which preempt it, and above every normal
+process: the video process (nice 5, its POV thread 8), and a browser or a build on the same
+machine, so when CPU is short the video and the rest give way before the tracker (issue 19
+§2). Where the system refuses a real-time policy it runs at ``sensing_nice`` (+2).
 """
 
 from __future__ import annotations
@@ -41,11 +41,12 @@ from humantele.runtime.stats import process_cpu_percent
 
 log = logging.getLogger(__name__)
 
-NICE = PRIORITY["sensing"].nice  # below the daemon's loop, above the video (runtime.child)
 OnResult = Callable[[int, Any, float], None]  # (job, Measurement, seconds measuring)
 
 
-def sensing_main(config: Any, sensing_config: Any, conn: Connection, nice: int = 0) -> None:
+def sensing_main(
+    config: Any, sensing_config: Any, conn: Connection, priority: Priority = PRIORITY["sensing"]
+) -> None:
     """The child: build the sensing, then measure each request until the pipe closes."""
     try:
         from humantele.follower.sensing import Sensing
@@ -56,7 +57,9 @@ def sensing_main(config: Any, sensing_config: Any, conn: Connection, nice: int =
             conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
     # After starting at the daemon's priority: a niced start can starve for long.
-    set_priority(Priority(nice=nice))
+    got = set_priority(priority)
+    if "refused" in got:
+        log.warning("sensing: %s", got)
     try:
         from humantele.follower.clinic import simulator_modules
 
@@ -91,14 +94,14 @@ class SensingProcess:
         on_result: OnResult,
         on_error: Callable[[str], None] | None = None,
         max_restarts: int = 5,
-        nice: int = NICE,
+        priority: Priority = PRIORITY["sensing"],
     ) -> None:
         self.config = config
         self.sensing_config = sensing_config
         self.on_result = on_result
         self.on_error = on_error
         self.max_restarts = max_restarts
-        self.nice = nice
+        self.priority = priority
         self.restarts = 0
         self.child_errors = 0  # sensing faults the child counted (all children so far)
         self._errors_before = 0
@@ -135,7 +138,7 @@ class SensingProcess:
 
     def _spawn(self) -> None:
         parent, child = mp.get_context("spawn").Pipe(duplex=True)
-        self._proc = spawn(sensing_main, (self.config, self.sensing_config, child, self.nice),
+        self._proc = spawn(sensing_main, (self.config, self.sensing_config, child, self.priority),
                            name="humantele-sensing")  # fmt: skip
         child.close()
         self._errors_before = self.child_errors

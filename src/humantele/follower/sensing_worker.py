@@ -101,7 +101,7 @@ class SensingWorker:
         if self.config.sensing_worker == "process" and self.sensing.unbuilt:
             self.proc = SensingProcess(self.config, self.sensing.sensing_config,
                                        self._measured_in_process, self._cannot_start,
-                                       nice=self.config.sensing_nice)  # fmt: skip
+                                       priority=self.config.sensing_priority)  # fmt: skip
             self.proc.start()
 
     def measuring(self) -> bool:

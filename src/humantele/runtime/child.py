@@ -34,6 +34,7 @@ import signal
 import threading
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
+from multiprocessing import resource_tracker
 from typing import Any
 
 from humantele.runtime.child_entry import (
@@ -54,7 +55,8 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class Priority:
     """One child's (or thread's) scheduling: ``fifo`` > 0 asks SCHED_FIFO at that priority,
-    else SCHED_OTHER at ``nice`` (added to the daemon's, 0-19; higher gives way)."""
+    else (or where the system refuses it) SCHED_OTHER at ``nice`` (added to the daemon's,
+    0-19; higher gives way)."""
 
     fifo: int = 0
     nice: int = 0
@@ -66,7 +68,9 @@ class Priority:
 PRIORITY: dict[str, Priority] = {
     "servo": Priority(fifo=80),  # [servo] realtime_priority
     "loop": Priority(fifo=10),  # [*.link] realtime_priority (the pose stream)
-    "sensing": Priority(nice=2),  # [follower] sensing_nice (the tracker, then the force)
+    # the tracker, then the force: [follower] sensing_realtime_priority, below the loops and
+    # above any normal process (a browser, a build); sensing_nice where FIFO is refused
+    "sensing": Priority(fifo=5, nice=2),
     "video_us": Priority(nice=5),  # [follower.video] process_nice: the video process
     "video_pov": Priority(nice=8),  # its POV thread: process_nice + POV_EXTRA_NICE
     "igtl_render": Priority(nice=10),  # the OpenIGTLink sim ultrasound (no video track)
@@ -76,14 +80,16 @@ POV_EXTRA_NICE = PRIORITY["video_pov"].nice - PRIORITY["video_us"].nice
 
 def set_priority(priority: Priority) -> str:
     """This process's scheduling (call it in the child): ``"fifo N"``, ``"nice N"``, or with
-    ``"refused: ..."`` appended when the system said no (no privilege: the child runs at the
-    normal policy, which the daemon logs)."""
+    ``"fifo N refused: ...; nice M"`` when the system said no (no privilege: the child runs at
+    the normal policy and its nice, which the daemon logs)."""
+    refused = ""
     if priority.fifo > 0:
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority.fifo))
         except (OSError, AttributeError) as exc:
-            return f"fifo {priority.fifo} refused: {exc}"
-        return f"fifo {priority.fifo}"
+            refused = f"fifo {priority.fifo} refused: {exc}; "
+        else:
+            return f"fifo {priority.fifo}"
     with contextlib.suppress(OSError, AttributeError):  # a batch job: never a real-time policy
         if os.sched_getscheduler(0) != os.SCHED_OTHER:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
@@ -91,8 +97,8 @@ def set_priority(priority: Priority) -> str:
         try:
             os.nice(priority.nice)
         except OSError as exc:
-            return f"nice {priority.nice} refused: {exc}"
-    return f"nice {priority.nice}"
+            return f"{refused}nice {priority.nice} refused: {exc}"
+    return f"{refused}nice {priority.nice}"
 
 
 def set_thread_nice(extra: int) -> None:
@@ -140,6 +146,10 @@ def spawn(
     # across fork and exec): a terminal's Ctrl-C during the interpreter's own start-up, before
     # any of our code runs, would kill it (the servo restarted as Ctrl-C came: "Fatal Python
     # error: init_import_site", KeyboardInterrupt). child_main ignores them, then unblocks.
+    # The resource tracker first: starting it (in the first ``start()`` of a process, or
+    # after it died) *unblocks* SIGINT and SIGTERM once it is up (multiprocessing's
+    # resource_tracker.ensure_running), which left the first child of a daemon unprotected.
+    resource_tracker.ensure_running()
     old = signal.pthread_sigmask(signal.SIG_BLOCK, GROUP_SIGNALS)
     try:
         proc.start()

@@ -1,8 +1,6 @@
 """The console on the follower's received video (``humantele demo --config
-configs/demo.toml``: sim ultrasound and POV over WebRTC), with the default transport (jpeg;
-webcodecs is covered without a browser: tests/media/test_video_link.py and
-tests/expert/test_console_server.py; on a machine at load 20 its page starved and lost its
-socket, see docs/console.md) (issue 19 §1): no console work per frame while no page is open; both
+configs/demo.toml``: sim ultrasound and POV over WebRTC), with the default transport
+(WebCodecs) and then JPEG (issue 19 §1): no console work per frame while no page is open; both
 pictures drawn; freeze keeps the frame on screen and a capture saves that very frame (its
 counter, its pixels); once the page has closed the console takes no frame again."""
 
@@ -17,6 +15,7 @@ from stage import console_url
 
 REPO = Path(__file__).resolve().parents[3]
 CANVAS_PNG = "document.getElementById('us').toDataURL('image/png')"
+CONTACT_MEAN = 8.0  # the US canvas's mean grey with an image (no contact: black, ~1)
 
 
 def console_frames(demo) -> dict:
@@ -51,9 +50,19 @@ async def visit(ctx, demo, transport: str | None) -> dict:
     out["pixels"] = {t: await pixels(page, t) for t in ("us", "pov")}
     out["open"] = console_frames(demo)
     await ctx.shot(page, f"console_video_{name}_live")
-    # Freeze: the frame on screen stays; capture it.
-    await page.click("#freeze")
-    await ctx.until(page, "consoleApp.frozen && consoleApp.cine.length > 3", 20)
+    # Freeze while the probe is in contact (the picture has an image, not the black of no
+    # contact): the frame on screen stays; capture it. The sim novice lifts now and then: a
+    # frozen picture that came out empty is let go and frozen again.
+    for _ in range(10):
+        await ctx.until(page, "(consoleApp.state?.force?.measured_n ?? 0) > 3", 120)
+        if (await pixels(page, "us"))["mean"] > CONTACT_MEAN:
+            await page.click("#freeze")
+            await ctx.until(page, "consoleApp.frozen && consoleApp.cine.length > 3", 20)
+            if (await pixels(page, "us"))["mean"] > CONTACT_MEAN:
+                break
+            await page.click("#freeze")  # live again
+            await ctx.until(page, "!consoleApp.frozen", 5)
+        await asyncio.sleep(0.3)
     await asyncio.sleep(0.5)  # frames keep coming: none may replace the frozen one
     out["shown"] = await page.evaluate("consoleApp.shown")
     png = await page.evaluate(CANVAS_PNG)
@@ -79,7 +88,7 @@ async def run(ctx) -> dict:
 
     await demo.wait("video received", ready, timeout=240)
     data: dict = {"idle_before": await idle(demo)}
-    for transport in ctx.args.get("transports", [None]):
+    for transport in ctx.args.get("transports", [None, "jpeg"]):
         data[transport or "default"] = await visit(ctx, demo, transport)
     data["idle_after"] = await idle(demo)
     return data

@@ -66,12 +66,17 @@ class Window:
         }
         self.overruns = e.get("servo_overruns", 0)
         self.servo_hz = e.get("servo_rate_hz")
+        self.measurements = f.get("measurements", 0)  # tracker frames measured so far
+        self.pose_age_p99 = f.get("pose_age_p99_ms")  # the expert's pose on arrival, recent
+        self.state_age_p99 = e.get("state_age_p99_ms")  # the follower's state on arrival
 
     def to(self, later: Window) -> dict:
         dt = later.t - self.t
         cpu = {k: round(100.0 * (later.cpu[k] - v) / dt, 1) for k, v in self.cpu.items()}
         return {"seconds": round(dt, 1), "cpu_percent": cpu, "servo_rate_hz": later.servo_hz,
                 "servo_overruns": later.overruns - self.overruns,
+                "tracker_hz": round((later.measurements - self.measurements) / dt, 1),
+                "pose_age_p99_ms": later.pose_age_p99, "state_age_p99_ms": later.state_age_p99,
                 "load": [round(self.load, 2), round(later.load, 2)]}  # fmt: skip
 
 
@@ -143,6 +148,21 @@ async def headset_phase(ctx, demo, seconds: float) -> dict:
 
 async def run(ctx) -> dict:
     seconds = float(ctx.args.get("seconds", 30.0))
+    busy = None
+    if ctx.args.get("busy"):  # one core kept busy by another process at normal priority
+        import subprocess
+        import sys
+
+        busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        return await _run(ctx, seconds, busy is not None)
+    finally:
+        if busy is not None:
+            busy.kill()
+            busy.wait()
+
+
+async def _run(ctx, seconds: float, busy: bool) -> dict:
     demo = await ctx.demo("--config", str(REPO / "configs" / "demo.toml"), "--duration", "3600")
 
     def ready(e, f):
@@ -152,7 +172,7 @@ async def run(ctx) -> dict:
 
     await demo.wait("calibrated, following, video received", ready, timeout=180)
     ctx.mark("demo ready")
-    data: dict = {"seconds": seconds, "started_load": round(os.getloadavg()[0], 2)}
+    data: dict = {"seconds": seconds, "started_load": round(os.getloadavg()[0], 2), "busy": busy}
     designs = ctx.args.get("designs", ",".join(DESIGNS))
     designs = [d for d in str(designs).split(",") if d]
     rounds = int(ctx.args.get("rounds", 2))
@@ -162,7 +182,9 @@ async def run(ctx) -> dict:
     data["headset"] = await headset_phase(ctx, demo, seconds)
     ctx.mark("headset")
     data["load_note"] = load_note(data)
-    if ctx.args.get("write"):
+    if ctx.args.get("write") and busy:
+        write_designs(data)  # the pages section is the quiet scene's
+    elif ctx.args.get("write"):
         write_benchmarks(data)
     return data
 
@@ -172,6 +194,11 @@ def load_note(data: dict) -> str:
     demo, and Chromium rendering in software on the CPU), so it rises during the windows;
     other work is what was there before the demo started (2 cores: above 1.5)."""
     before = data["started_load"]
+    if data.get("busy"):
+        return (
+            f"One core kept busy by another process at normal priority (`python -c 'while"
+            f" True: pass'`) from before the demo started; load {before:g} at the start."
+        )
     hi = max(x for ph in (*data["designs"], data["headset"]) for x in ph["load"])
     if before <= 1.5:
         return (f"Load {before:g} before the demo started, up to {hi:g} during the windows:"
@@ -270,6 +297,10 @@ def summarize_designs(data: dict) -> dict[str, dict]:
             }
         d["cpu_expert"] = round(mean(w["cpu_percent"]["expert"] for w in ws), 1)
         d["cpu_browser"] = round(mean(w["cpu_percent"]["browser"] for w in ws), 1)
+        d["tracker_hz_min"] = min(w.get("tracker_hz", 0.0) for w in ws)
+        ages = [w.get("pose_age_p99_ms") for w in ws if w.get("pose_age_p99_ms") is not None]
+        d["pose_age_p99_ms"] = max(ages) if ages else None
+        d["overruns_per_20s"] = max(20.0 * w["servo_overruns"] / w["seconds"] for w in ws)
         d["loads"] = [w["load"] for w in ws]
     return out
 
@@ -289,13 +320,16 @@ def write_designs(data: dict) -> None:
             f"{us['drawn_fps']} of {us['received_fps']}",
             f"{_ms(pov['p50_ms'])} / {_ms(pov['p95_ms'])}",
             f"{pov['drawn_fps']} of {pov['received_fps']}",
-            d["cpu_expert"], d["cpu_browser"], len(d["windows"]),
+            d["cpu_expert"], d["cpu_browser"], d["tracker_hz_min"], _ms(d["pose_age_p99_ms"]),
+            f"{d['overruns_per_20s']:.1f}", len(d["windows"]),
             "; ".join(f"{a}-{b}" for a, b in d["loads"]),
         ])  # fmt: skip
-    chart = plot_designs(summary)
+    busy = bool(data.get("busy"))
+    chart = plot_designs(summary, "console_video_busy.png" if busy else "console_video.png")
+    title = "one core busy" if busy else "quiet"
     text = (
-        "## Console video: the three transports, A/B (`python tests/browser/netns.py"
-        " pages_bench --arg seconds=S --arg write=1`)\n\n"
+        f"## Console video, {title}: the three transports, A/B (`python tests/browser/netns.py"
+        f" pages_bench --arg seconds=S{' --arg busy=1' if busy else ''} --arg write=1`)\n\n"
         "One `humantele demo --config configs/demo.toml` (the run of the pages section when"
         " both are written together); the console opened afresh for each transport in turn"
         f" ({data['seconds']:g} s windows, the designs interleaved round by round). Glass to"
@@ -304,7 +338,10 @@ def write_designs(data: dict) -> None:
         " drawn per second by the page, of those the expert received per second (the sim"
         f" sources make US {NOMINAL_FPS['us']} and POV {NOMINAL_FPS['pov']} a second). CPU in"
         " % of one core, means over the windows. Load: the 1-minute load average at the"
-        f" start-end of each window. {load_note(data)}\n\n"
+        f" start-end of each window. Tracker: frames the follower measured per second (the"
+        f" lowest window; 45 due). Pose age: the expert's pose on arrival at the follower, p99"
+        f" (the worst window; over the daemon's last 20000 poses). Servo overruns: periods over"
+        f" 1.5 ms, per 20 s (the worst window). {load_note(data)}\n\n"
         + markdown_table(
             [
                 "transport",
@@ -314,6 +351,9 @@ def write_designs(data: dict) -> None:
                 "POV drawn / received fps",
                 "expert CPU %",
                 "browser CPU %",
+                "tracker Hz",
+                "pose age p99 ms",
+                "servo overruns / 20 s",
                 "windows",
                 "load",
             ],
@@ -322,11 +362,11 @@ def write_designs(data: dict) -> None:
         + f"\n\n![latency against frames drawn]({chart})\n\n"
         + machine_line()
     )
-    write_section("console", text)
+    write_section("console_busy" if busy else "console", text)
 
 
-def plot_designs(summary: dict) -> str:
-    """docs/img/console_video.png: US and POV p50 (marker) to p95 (bar) glass to glass
+def plot_designs(summary: dict, filename: str = "console_video.png") -> str:
+    """docs/img/<filename>: US and POV p50 (marker) to p95 (bar) glass to glass
     against frames drawn per second, one colour per design; its path from docs/."""
     import matplotlib
 
@@ -358,8 +398,8 @@ def plot_designs(summary: dict) -> str:
     axes[0].legend(fontsize=8, title="median of windows; x: each window's p95",
                    title_fontsize=7)  # fmt: skip
     fig.tight_layout()
-    path = REPO / "docs" / "img" / "console_video.png"
+    path = REPO / "docs" / "img" / filename
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
-    return "img/console_video.png"
+    return f"img/{filename}"

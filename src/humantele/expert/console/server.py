@@ -144,11 +144,11 @@ class ConsoleConfig(ConfigModel):
         "ultrasound frames: with the pixel spacing, the depth scale's cm labels; None: none",
     )
     transport: str = Field(
-        "jpeg",
+        "webcodecs",
         pattern=r"^(webcodecs|jpeg|webrtc)$",
-        description="how the page gets received video: 'jpeg' (a JPEG per frame, latest "
-        "wins), 'webcodecs' (the encoded frames, decoded by the page), 'webrtc' (the page a "
-        "WebRTC peer); sim video is always JPEG (docs/console.md: why jpeg)",
+        description="how the page gets received video: 'webcodecs' (the encoded frames, "
+        "decoded by the page), 'jpeg' (a JPEG per frame, latest wins), 'webrtc' (the page a "
+        "WebRTC peer); sim video is always JPEG (docs/console.md: why WebCodecs)",
     )
     jpeg_quality: int = Field(88, ge=30, le=100, description="JPEG frames and captures")
     state_rate_hz: float = Field(20.0, gt=0, le=100)
