@@ -19,7 +19,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from servo_helpers import pressing_config, wait_for
 
-from humantele.demo import _status_line
+from humantele.demo_status import status_line
 from humantele.expert.config import ExpertConfig
 from humantele.expert.daemon import ExpertDaemon
 from humantele.haptics.demo_patient import demo_model
@@ -298,7 +298,7 @@ async def test_a_servo_that_cannot_run_is_a_fault_in_the_status_not_force_none()
     s = d.stats()
     assert s["servo_state"].startswith("down: servo did not start") and "libHD" in s["servo_state"]
     assert s["force_n"] == 0.0 and s["servo_fault"] == s["servo_state"]
-    line = _status_line(s, {"link_state": "connected"}, 1.0)
+    line = status_line(s, {"link_state": "connected"}, 1.0)
     assert "servo DOWN (servo did not start" in line and "force 0.00 N" in line
     assert d.servo.restarts == 0 and "libHD" in d.servo.cannot_run  # exit code 1 at the end
     assert math.isfinite(s["force_n"])

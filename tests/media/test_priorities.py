@@ -134,3 +134,29 @@ async def test_the_spawned_children_run_in_that_order(tmp_path):
     finally:
         sensing.close()
         await asyncio.to_thread(video.close)
+
+
+async def test_the_window_the_tracker_starts_measuring_in_is_not_contention():
+    """The sender's once-a-second check gets the tracker's ratio only once the tracker has
+    measured through a whole window: the window its sensing process came up in (half its
+    frames, say) must not lower the POV."""
+    from media_helpers import small_video_config
+
+    from humantele.media.sender import VideoSender
+    from humantele.video.scene import DEFAULT_PATIENT
+
+    sender = VideoSender(small_video_config(process=False), None, None, DEFAULT_PATIENT)
+    ratios = []
+
+    async def check(t, late, ratio=None):
+        ratios.append(ratio)
+        return 0
+
+    sender.check = check
+    counts = [0, 0, 20, 65, 110, 130]  # measured so far, once a second at 45 Hz
+    for t, n in enumerate(counts):
+        sender.tick(float(t), 0, n, 45.0)
+        await asyncio.sleep(0)
+    # t=0 the first; t=1 nothing measured; t=2 it starts (20): no ratio; then full, then short
+    assert ratios[:3] == [None, None, None]
+    assert ratios[3] == pytest.approx(1.0) and ratios[5] == pytest.approx(20 / 45)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from humantele.demo import _children_status, children_summary
+from humantele.demo_status import children_status, children_summary
 from humantele.runtime.child import Priority, Restarter, child_priority, spawn, stop_process
 
 
@@ -97,10 +97,10 @@ def test_the_demo_shows_a_child_that_is_not_running_and_sums_the_gaps():
         "sensing_state": "restarting (1)", "measurement_age_s": 4.2, "sensing_restarts": 1,
         "measurement_gaps": 1, "measurement_gap_s": 4.2, "measurement_gap_max_s": 4.2,
     }  # fmt: skip
-    line = _children_status(f)
+    line = children_status(f)
     assert "video DOWN (video process exited with code -9" in line
     assert "sensing restarting (1), no measurements 4 s" in line
-    assert _children_status({"video": {"process": {"state": "running"}},
+    assert children_status({"video": {"process": {"state": "running"}},
                              "sensing_state": "running"}) == ""  # fmt: skip
     s = children_summary({"servo_restarts": 2, "servo_state": "running"}, f)
     assert s["servo"] == {"restarts": 2, "state": "running"}
@@ -200,3 +200,34 @@ def test_a_refused_real_time_policy_falls_back_to_the_nice_and_says_so():
                          check=True).stdout.splitlines()  # fmt: skip
     assert out[0].startswith("fifo 5 refused: ") and out[0].endswith("; nice 2")
     assert out[1] == "True 2"
+
+
+LEFT_RUNNING = """
+import sys, time
+from humantele.runtime.child import spawn
+
+def forever():
+    while True:
+        time.sleep(1)
+
+if __name__ == "__main__":
+    proc = spawn(forever, (), name="humantele-test")
+    time.sleep(2.0)  # started; the owner exits without stopping it (an error path)
+    print(proc.pid, flush=True)
+"""
+
+
+def test_a_child_its_owner_did_not_stop_is_killed_at_exit(tmp_path):
+    """A daemon that leaves by an error path without stopping its child still exits: the
+    child ignores SIGTERM, and multiprocessing's exit handler (terminate, then join) would
+    wait for it forever."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "owner.py"
+    script.write_text(LEFT_RUNNING)
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                       timeout=120)  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    child = int(r.stdout.split()[0])
+    assert not Path(f"/proc/{child}").exists() or "Z" in Path(f"/proc/{child}/stat").read_text()

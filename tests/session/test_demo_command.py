@@ -6,7 +6,7 @@ import time
 import pytest
 from session_helpers import pid_alive
 
-from humantele.demo import summarize
+from humantele.demo_report import summarize
 from humantele.runtime.stats import percentile_ms
 
 

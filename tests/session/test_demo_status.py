@@ -1,8 +1,7 @@
 """The demo's status line says what the session waits for, in order, from the daemons' stats;
 never "calibrating" before the link is up."""
 
-from humantele.demo import _status_line
-from humantele.demo_status import demo_phase, poses_flowing
+from humantele.demo_status import demo_phase, poses_flowing, status_line
 
 UP = {"link_state": "connected", "sensing_ready": True}
 
@@ -33,19 +32,19 @@ def test_never_calibrating_before_the_link():
     for link in ("new", "connecting", "disconnected", "unreachable", "closed", None):
         for step in ("xiphoid", "bed", None):
             f = {"link_state": link, "calibrated": False, "calibration_step": step}
-            line = _status_line({"has_model": False}, f, 3.0)
+            line = status_line({"has_model": False}, f, 3.0)
             assert "calibrat" not in line and ("waiting for the link" in line or "closed" in line)
 
 
 def test_status_line_leads_with_the_phase():
     e = {"has_model": True, "force_n": 1.5, "servo_rate_hz": 1000.0}
     f = {**UP, "calibrated": True, "pose_rate_hz": 100.0, "pose_age_last_ms": 0.8}
-    line = _status_line(e, f, 12.0)
+    line = status_line(e, f, 12.0)
     assert line.startswith("[ 12.0 s] following | poses 100 Hz, age 0.8 ms")
-    assert _status_line({}, {}, 0.4).startswith("[  0.4 s] starting daemons (expert, follower)")
+    assert status_line({}, {}, 0.4).startswith("[  0.4 s] starting daemons (expert, follower)")
 
 
-def test_poses_flowing_reads_the_status_line():
+def test_poses_flowing_reads_thestatus_line():
     """What scripts and tests read from stderr: the link up (a phase after it) and poses."""
 
     def line(phase: str, rate: str = "45") -> str:

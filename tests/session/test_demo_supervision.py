@@ -13,7 +13,7 @@ import time
 import pytest
 from session_helpers import descendants, pid_alive
 
-from humantele.demo import CountWindow
+from humantele.demo_report import CountWindow
 from humantele.demo_status import poses_flowing
 from humantele.runtime.supervise import SupervisedDaemon
 

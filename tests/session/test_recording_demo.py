@@ -6,7 +6,8 @@ import math
 import pytest
 
 from humantele.analysis.report import analyze
-from humantele.demo import _status_line, summarize
+from humantele.demo_report import summarize
+from humantele.demo_status import status_line
 from humantele.follower.sim_human import SimHumanConfig
 from humantele.recording import read_recording
 
@@ -48,9 +49,9 @@ def test_demo_records_a_scan_that_analyze_measures(demo_run):
 def test_status_line_and_summary_report_a_failed_recording():
     ok = {"scan": 1, "scans_started": 1, "recording": {"error": None, "dropped": 0}}
     bad = {"recording": {"error": "OSError: [Errno 28] No space left on device", "dropped": 9}}
-    assert _status_line(ok, {"recording": ok["recording"]}, 5.0).endswith("scan 1, recording")
-    assert _status_line(ok, bad, 5.0).endswith("scan 1, recording FAILED")
-    assert "recording" not in _status_line({}, {}, 5.0)
+    assert status_line(ok, {"recording": ok["recording"]}, 5.0).endswith("scan 1, recording")
+    assert status_line(ok, bad, 5.0).endswith("scan 1, recording FAILED")
+    assert "recording" not in status_line({}, {}, 5.0)
     s = summarize(ok, bad, 5.0, {"expert": 0, "follower": 0})
     assert s["scans"] == 1 and s["recording"]["follower"]["dropped"] == 9
     assert summarize({}, {}, 5.0, {})["recording"] is None

@@ -320,10 +320,12 @@ class FollowerDaemon(Daemon):
             try:
                 await self.feed.start()
             except OSError as exc:  # port taken, unknown host, unwritable state dir
+                await self.stop_children(video_task)
                 self.close_recording()
                 print(self.feed.start_error(exc, self.state_dir), file=sys.stderr)
                 return EXIT_FAILED
             except BaseException:  # the recording is still closed
+                await self.stop_children(video_task)
                 self.close_recording()
                 raise
             print(f"humantele follower: {self.feed.banner()}", flush=True)
@@ -355,13 +357,8 @@ class FollowerDaemon(Daemon):
         finally:
             await self.close_link(self.link, link_task)
             await self.feed.stop()
-            if video_task is not None:  # close first: an open still waiting then returns
-                await asyncio.to_thread(self.video.close)
-                with contextlib.suppress(BaseException):
-                    await asyncio.wait_for(video_task, 5.0)
-                await self.video.settle()  # a restart of the video process in flight
+            await self.stop_children(video_task)
             await self.igtl.stop()
-            self.worker.close()
             self.finish_run()
         if self.worker.failure is not None:
             print(f"humantele follower: sensing cannot start: {self.worker.failure}", flush=True)
@@ -369,6 +366,16 @@ class FollowerDaemon(Daemon):
         if self.video_error:
             return 2
         return self.run_result(link_task)
+
+    async def stop_children(self, video_task: asyncio.Task | None) -> None:
+        """Stop the video process (its open, if still waiting, then returns) and the sensing
+        process."""
+        if video_task is not None:
+            await asyncio.to_thread(self.video.close)
+            with contextlib.suppress(BaseException):
+                await asyncio.wait_for(video_task, 5.0)
+            await self.video.settle()  # a restart of the video process in flight
+        self.worker.close()
 
     async def start_video(self) -> None:
         """Open the video sources (in a thread: it blocks) and start them; a source that

@@ -148,6 +148,7 @@ class VideoSender:
         self._closed = False
         self._policy_t, self._policy_late = -math.inf, 0  # the last check: time, late ticks
         self._policy_frames = 0  # tracker frames measured by the last check
+        self._tracker_measured = False  # the tracker measured in the window before the last
 
     def publish_scene(self, snapshot: Any) -> None:
         """The sim world's latest snapshot, for the video process (threads call ``scene``)."""
@@ -264,7 +265,8 @@ class VideoSender:
         """From the daemon's tick (``t``: its monotonic clock, s; ``late_ticks``: its count so
         far): a dead video process restarted (:class:`~humantele.runtime.child.Restarter`);
         once a second, the degradation policy (:meth:`check`) in a task, with the tracker's
-        frames measured (``tracker_frames``, a count so far) against its rate (Hz)."""
+        frames measured (``tracker_frames``, a count so far) against its rate (Hz): not in the
+        window the tracker started measuring in (its start is not contention)."""
         if self.restarter is not None and self._started:
             self.restarter.check(t, self.process.alive, self.process.exitcode)
         if t - self._policy_t < 1.0:
@@ -273,7 +275,11 @@ class VideoSender:
         late = (late_ticks - self._policy_late) / dt
         frames = tracker_frames - self._policy_frames
         first = self._policy_t == -math.inf
-        ratio = frames / (tracker_hz * dt) if frames > 0 and tracker_hz > 0 and not first else None
+        # A window in which the tracker started measuring (the sensing process came up, or
+        # back) is not contention: a ratio only once it measured through a whole window.
+        steady = frames > 0 and self._tracker_measured and not first
+        ratio = frames / (tracker_hz * dt) if steady and tracker_hz > 0 else None
+        self._tracker_measured = frames > 0
         self._policy_t, self._policy_late = t, late_ticks
         self._policy_frames = tracker_frames
         task = asyncio.ensure_future(self.check(t, late, ratio))

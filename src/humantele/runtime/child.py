@@ -26,12 +26,14 @@ to the same blocks by name): the owner unlinks it in its ``close()``, whatever h
 from __future__ import annotations
 
 import asyncio
+import atexit
 import contextlib
 import logging
 import multiprocessing as mp
 import os
 import signal
 import threading
+import weakref
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from multiprocessing import resource_tracker
@@ -128,6 +130,25 @@ class _Deferred:
         return (Pickled, (bytes(ForkingPickler.dumps(self.call)),))
 
 
+_SPAWNED: weakref.WeakSet[mp.process.BaseProcess] = weakref.WeakSet()  # by this process
+
+
+def _kill_leftover_children() -> None:
+    """At exit, a child its owner did not stop (an error path that left before its close):
+    killed. It ignores SIGTERM, so multiprocessing's own exit handler, which terminates a
+    daemonic child and then joins it, would wait for it forever (a follower whose feed port
+    was taken hung on its sensing child). Registered after multiprocessing's: runs first."""
+    for proc in list(_SPAWNED):
+        with contextlib.suppress(Exception):
+            if proc.is_alive():
+                log.info("%s still running at exit: killed", proc.name)
+                proc.kill()
+                proc.join(5.0)
+
+
+atexit.register(_kill_leftover_children)
+
+
 def spawn(
     target: Callable[..., Any], args: tuple = (), *, name: str, watch: bool = True
 ) -> mp.process.BaseProcess:
@@ -155,6 +176,7 @@ def spawn(
         proc.start()
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
+    _SPAWNED.add(proc)
     return proc
 
 
