@@ -125,6 +125,12 @@ async def serve(frames, session, tmp_path, clock=None, on_demand=None, **cfg) ->
     return server
 
 
+async def drawn(ws, seq: int) -> None:
+    """The page's echo of an ultrasound frame it drew (the console then sends the next one
+    at once, not after the in-flight bound's timeout)."""
+    await ws.send_json({"type": "drawn", "track": "us", "seq": seq, "draw_to_send_ms": 0.1})
+
+
 async def next_message(ws, want, timeout: float = 10.0):
     """The next message satisfying ``want(kind, data)`` (kind "frame" with the parsed header
     and the JPEG, or "json" with the object)."""
@@ -621,9 +627,10 @@ async def test_capture_keeps_a_clip_listed_with_the_measurements(tmp_path):
     server = await serve(frames, Session(recorder=rec), tmp_path, clock=clock, clip_seconds=1.0)
     try:
         async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
-            for _ in range(30):  # 1.5 s of frames at 20 fps
+            for _ in range(30):  # 1.5 s of frames at 20 fps, each drawn by the page
                 f = frames.next("us")
                 await next_message(ws, lambda k, d, s=f.seq: k == "frame" and d[0]["seq"] == s)
+                await drawn(ws, f.seq)
                 clock.t += 0.05
             await ws.send_json({"type": "caliper", "seq": 20, "a": [10.0, 10.0],
                                 "b": [40.0, 50.0], "id": 1})  # fmt: skip
@@ -681,6 +688,7 @@ async def test_a_clip_counts_in_the_disk_budget(tmp_path):
             for _ in range(40):
                 f = frames.next("us")
                 await next_message(ws, lambda k, d, s=f.seq: k == "frame" and d[0]["seq"] == s)
+                await drawn(ws, f.seq)
                 clock.t += 0.05
             frame_bytes = len(server.cine.get(f.seq).jpeg)
             # Room for a still and a few frames, not for 40.
