@@ -19,6 +19,9 @@ REPORT_PERIOD_S = 1.0  # the pose stream's latency is recorded this often
 ALIGN_KEPT = 3000  # alignment errors the RMS is over (the last ~65 s of 45 Hz frames)
 
 
+RECENT_POSES = 1000  # the recent pose ages' window (10 s of the expert's 100 Hz stream)
+
+
 class PoseStreamFigures:
     """Arrival times (s, monotonic) and one-way ages (s) of the expert's poses."""
 
@@ -79,6 +82,8 @@ class PoseStreamFigures:
             "pose_rate_hz": self.rate_hz(now),
             "pose_age_p50_ms": percentile_ms(self.ages, 50),
             "pose_age_p99_ms": percentile_ms(self.ages, 99),
+            # the last RECENT_POSES only (10 s at 100 Hz): the tail now, start-up not in it
+            "pose_age_recent_p99_ms": percentile_ms(self.ages.last(RECENT_POSES), 99),
             "pose_age_last_ms": percentile_ms(self.ages.last(1), 50),
         }
 

@@ -67,7 +67,7 @@ class Window:
         self.overruns = e.get("servo_overruns", 0)
         self.servo_hz = e.get("servo_rate_hz")
         self.measurements = f.get("measurements", 0)  # tracker frames measured so far
-        self.pose_age_p99 = f.get("pose_age_p99_ms")  # the expert's pose on arrival, recent
+        self.pose_age_p99 = f.get("pose_age_recent_p99_ms")  # the expert's pose, last 10 s
         self.state_age_p99 = e.get("state_age_p99_ms")  # the follower's state on arrival
 
     def to(self, later: Window) -> dict:
@@ -340,7 +340,7 @@ def write_designs(data: dict) -> None:
         " % of one core, means over the windows. Load: the 1-minute load average at the"
         f" start-end of each window. Tracker: frames the follower measured per second (the"
         f" lowest window; 45 due). Pose age: the expert's pose on arrival at the follower, p99"
-        f" (the worst window; over the daemon's last 20000 poses). Servo overruns: periods over"
+        f" of the last 10 s of each window (the worst window). Servo overruns: periods over"
         f" 1.5 ms, per 20 s (the worst window). {load_note(data)}\n\n"
         + markdown_table(
             [
