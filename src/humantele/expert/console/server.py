@@ -7,13 +7,13 @@ open (and only then) the server subscribes to each track of a
 (no polling). How the page gets the pictures, ``transport`` (chosen by measurement:
 docs/console.md, "The video path"; figures in docs/benchmarks.md):
 
-- ``jpeg`` (default): each frame JPEG-encoded from its I420 planes in a thread, latest wins
+- ``jpeg``: each frame JPEG-encoded from its I420 planes in a thread, latest wins
   (a slow page sees the newest frame, never a backlog: ``coalesced`` counts the frames it
   skipped); the cine buffer keeps the very bytes the page drew. Sim video (no encoded
   frames) always goes this way;
-- ``webcodecs``: the encoded frames the expert received (VP8), forwarded as they are over
-  the WebSocket, decoded by the page's WebCodecs ``VideoDecoder``: the expert encodes
-  nothing; the cine buffer keeps the expert's own decode of the same frames (a JPEG is made
+- ``webcodecs``, the default: the encoded frames the expert received (VP8), forwarded as
+  they are over the WebSocket, decoded by the page's WebCodecs ``VideoDecoder``: the expert
+  encodes nothing; the cine buffer keeps the expert's own decode of the same frames (a JPEG is made
   only of a frame the sonographer looks at or captures);
 - ``webrtc``: the page as a WebRTC receiver, the expert forwarding the encoded frames
   (:mod:`humantele.expert.console.rtcpeer`).
