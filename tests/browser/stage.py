@@ -39,11 +39,14 @@ CHROMIUM_ARGS = [
     "--autoplay-policy=no-user-gesture-required",
     "--enable-unsafe-swiftshader",  # WebGL in software, headless (the headset page)
     "--use-angle=swiftshader",
-    # The page's compositing in software, as Chromium does by itself on a machine without a
-    # GPU (chrome://gpu: "Compositing: Software only"): composited through SwiftShader's
-    # emulated GPU instead, the console's two videos cost the GPU process 76 % of a core.
-    "--disable-gpu-compositing",
 ]
+# The sonographer's pages composite in software, as Chromium does by itself on a machine
+# without a GPU (chrome://gpu: "Compositing: Software only"): composited through
+# SwiftShader's emulated GPU instead, the console's two videos cost the GPU process 76 % of a
+# core. A headset has a GPU: its pages (``headset=True``) open in a second Chromium that
+# composites on the emulated one, so WebGL frames are not read back to a software compositor
+# (that added ~90 ms from a pose's receipt to the page's draw).
+SOFTWARE_COMPOSITING = ["--disable-gpu-compositing"]
 # Meta's emulator as a Quest 3, installed before any page script runs.
 IWER_INSTALL = (  # the device kept as window.xrDevice: a scenario may move the headset
     "globalThis.xrDevice = new IWER.XRDevice(IWER.metaQuest3);"
@@ -57,7 +60,8 @@ class Ctx:
     def __init__(self, out_dir: Path, args: dict[str, Any]) -> None:
         self.out = out_dir
         self.args = args
-        self.browser: Browser | None = None
+        self.browser: Browser | None = None  # the sonographer's (software compositing)
+        self._headset_browser: Browser | None = None  # a headset's, on first use
         self.console_errors: list[str] = []
         self.t0 = time.monotonic()
         self.marks: list[tuple[str, float]] = []  # (step, s since the scenario started)
@@ -67,19 +71,23 @@ class Ctx:
 
     async def __aenter__(self) -> Ctx:
         self._pw = await async_playwright().start()
-        extra = ["--no-sandbox"] if os.geteuid() == 0 else []
-        self.browser = await self._pw.chromium.launch(
-            executable_path=chromium_path(), args=[*CHROMIUM_ARGS, *extra]
-        )
+        self.browser = await self._launch(SOFTWARE_COMPOSITING)
         return self
+
+    async def _launch(self, more: list[str]) -> Browser:
+        extra = ["--no-sandbox"] if os.geteuid() == 0 else []
+        return await self._pw.chromium.launch(
+            executable_path=chromium_path(), args=[*CHROMIUM_ARGS, *more, *extra]
+        )
 
     async def __aexit__(self, *exc: object) -> None:
         for c in self._contexts:  # pages first
             with contextlib.suppress(Exception):
                 await c.close()
         await self._services.aclose()
-        if self.browser is not None:
-            await self.browser.close()
+        for browser in (self.browser, self._headset_browser):
+            if browser is not None:
+                await browser.close()
         if self._pw is not None:
             await self._pw.stop()
 
@@ -96,11 +104,18 @@ class Ctx:
         width: int = 1280,
         height: int = 800,
         init_script: str = "",
+        headset: bool = False,
     ) -> Page:
         """A new page (its own context) at ``url``; with ``iwer``, the WebXR emulator;
-        ``init_script``: JavaScript run before the page's own (e.g. its storage)."""
+        ``init_script``: JavaScript run before the page's own (e.g. its storage);
+        ``headset`` (implied by ``iwer``): in the headset's browser (GPU compositing)."""
         assert self.browser is not None
-        context = await self.browser.new_context(
+        browser = self.browser
+        if headset or iwer:
+            if self._headset_browser is None:
+                self._headset_browser = await self._launch([])
+            browser = self._headset_browser
+        context = await browser.new_context(
             ignore_https_errors=True, viewport={"width": width, "height": height}
         )
         self._contexts.append(context)

@@ -45,7 +45,7 @@ ECHOES = 20  # the headset page's echoes the latency figure is taken over, at le
 async def headset_page(ctx, demo) -> dict:
     """The headset page while the demo follows: live, with the model, echoing its draws."""
     url = page_url(demo.stats("follower"))
-    page = await ctx.page(url)
+    page = await ctx.page(url, headset=True)
     out: dict = {"url": url}
     await demo.wait("calibrated and following", lambda e, f: f.get("calibrated")
                     and f.get("link_state") == "connected", timeout=90)  # fmt: skip

@@ -89,7 +89,7 @@ async def run(ctx) -> dict:
     feed.publish("calibration", calibration(calibrated=True))
     pub = Publisher(feed)
     url = f"https://127.0.0.1:{feed.port}/#code={feed.code}"
-    page = await ctx.page(url)
+    page = await ctx.page(url, headset=True)
     data["first_hud"] = await hud_when(ctx, page, "h.cue === 'red'")
 
     # 1. Where things are drawn, and with which objects.
@@ -154,7 +154,7 @@ async def run(ctx) -> dict:
     other = await ctx.other_site()
     data["cross_origin"] = await other.evaluate(CROSS_ORIGIN_JS, wss)
     await ctx.close_page(other)
-    tab = await ctx.page(url)
+    tab = await ctx.page(url, headset=True)
     await ctx.until(tab, "headset.frames > 5 && headset.state.messages > 5")
     disconnects = feed.disconnects
     await ctx.close_page(tab)
@@ -167,7 +167,7 @@ async def run(ctx) -> dict:
     # 7. Pairing: a headset without the code is asked for it, a wrong one is refused and asked
     # again, the right one (typed with its space) pairs and is kept for the next visit.
     plain = f"https://127.0.0.1:{feed.port}/"
-    fresh = await ctx.page(plain)
+    fresh = await ctx.page(plain, headset=True)
     form = "!document.getElementById('pairing').hidden"
     note = "document.getElementById('pairing-note').textContent"
     data["pairing_asked"] = await ctx.until(fresh, f"({form}) && {note}", 15)

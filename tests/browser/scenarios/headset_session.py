@@ -33,7 +33,7 @@ async def run(ctx) -> dict:
     await s.wait("the headset page", lambda e, f: (f.get("feed") or {}).get("page_url"))
     data["follower_feed"] = feed_stats(s)
     url = page_url(s.stats("follower"))
-    page = await ctx.page(url)
+    page = await ctx.page(url, headset=True)
     data["calibrating"] = await hud_when(ctx, page, "h.cue === 'calibrating'")
     await next_frames(ctx, page)
     await ctx.shot(page, "session_calibrating")

@@ -84,7 +84,7 @@ def _sum(pids) -> float:
     return sum(process_cpu_seconds(p) or 0.0 for p in pids)
 
 
-DESIGNS = ("jpeg", "webcodecs", "webrtc")  # the default first (the pages section takes it)
+DESIGNS = ("webcodecs", "jpeg", "webrtc")  # the default first (the pages section takes it)
 
 
 async def console_phase(ctx, demo, seconds: float, transport: str | None = None,
@@ -133,7 +133,7 @@ async def designs_phase(ctx, demo, seconds: float, designs, rounds: int) -> list
 
 
 async def headset_phase(ctx, demo, seconds: float) -> dict:
-    page = await ctx.page(page_url(demo.stats("follower")))
+    page = await ctx.page(page_url(demo.stats("follower")), headset=True)
     await ctx.until(page, LIVE, 90)
     fr0 = await page.evaluate("headset.frames")
     w0 = Window(demo)
@@ -253,9 +253,11 @@ def write_benchmarks(data: dict) -> None:
         " seconds=S --arg write=1`)\n\n"
         f"One `humantele demo --config configs/demo.toml` (both daemons on sim devices, the"
         " follower's sim ultrasound 640 x 480 and POV over WebRTC, VP8, loopback), calibrated"
-        " and following; then the console open in headless Chromium (software GPU, 1440 x 900)"
-        f" for {data['seconds']:g} s, then the headset page (1280 x 800, no WebXR) for"
-        f" {data['seconds']:g} s. Latencies are on one machine's monotonic clock (the"
+        f" and following; then the console open in headless Chromium ({c['transport']}, 1440 x"
+        f" 900, compositing in software as without a GPU) for {data['seconds']:g} s, then the"
+        " headset page (1280 x 800, no WebXR; a second Chromium compositing on SwiftShader's"
+        f" emulated GPU, as a headset's GPU would) for {data['seconds']:g} s. Latencies are on"
+        " one machine's monotonic clock (the"
         " follower's capture times mapped onto the expert's by the link's clock sync);"
         " a draw is the page's draw call, echoed to its daemon with the time between draw"
         " and echo taken off (the echo's transit, under 1 ms on loopback, is included).\n\n"
