@@ -57,6 +57,10 @@ def test_the_configured_order_servo_loop_sensing_video():
     # the tracker at SCHED_FIFO below the loops: above every normal process (the video, a
     # browser on the same machine), preempted by the pose stream and the servo
     assert loop > f.sensing_realtime_priority == PRIORITY["sensing"].fifo > 0
+    assert f.sensing_priority == PRIORITY["sensing"]
+    # never at or above the loop's: none with the loop at the normal policy, below a low one
+    assert FollowerConfig(link=LinkConfig(realtime_priority=0)).sensing_priority.fifo == 0
+    assert FollowerConfig(link=LinkConfig(realtime_priority=3)).sensing_priority.fifo == 2
     assert f.video.process_nice == PRIORITY["video_us"].nice
     assert 0 <= f.sensing_nice < f.video.process_nice < PRIORITY["video_pov"].nice
 

@@ -73,8 +73,12 @@ class FollowerConfig(ConfigModel):
 
     @property
     def sensing_priority(self) -> Priority:
-        """The sensing process's scheduling (:func:`humantele.runtime.child.set_priority`)."""
-        return Priority(fifo=self.sensing_realtime_priority, nice=self.sensing_nice)
+        """The sensing process's scheduling (:func:`humantele.runtime.child.set_priority`):
+        always below the loop's (the pose stream first), so none when the loop runs at the
+        normal policy (``[follower.link] realtime_priority = 0``)."""
+        loop = self.link.realtime_priority
+        fifo = min(self.sensing_realtime_priority, loop - 1) if loop > 0 else 0
+        return Priority(fifo=max(0, fifo), nice=self.sensing_nice)
 
     @model_validator(mode="after")
     def _tracker_before_video(self) -> FollowerConfig:
