@@ -1,6 +1,7 @@
 """Helpers of the media tests: small sim sources, a follower link with video, waiting."""
 
 import asyncio
+import contextlib
 import time
 
 from humantele.media.config import FollowerVideoConfig
@@ -43,3 +44,15 @@ def video_follower(url: str, room: str, token: str, config=None, scene=None, rec
         media=lambda pc, role: sender.attach(pc),
     )
     return link, sender
+
+
+async def close_video_link(follower, expert, tx, rx, tasks) -> None:
+    """End a test's video link: both peers, the sender (its close may block: a thread) and
+    the receiver, then the link tasks (each given 5 s)."""
+    await follower.close()
+    await expert.close()
+    await asyncio.to_thread(tx.close)
+    await rx.close()
+    for t in tasks:
+        with contextlib.suppress(BaseException):
+            await asyncio.wait_for(t, 5)

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from media_helpers import small_video_config, until, video_follower
+from media_helpers import close_video_link, small_video_config, until, video_follower
 
 from humantele.media.config import ExpertVideoConfig
 from humantele.media.receiver import VideoReceiver
@@ -76,13 +76,7 @@ async def test_both_tracks_arrive_with_counter_and_capture_time(server, codec):
             assert tx_stats[name]["encoder"]["restarts"] >= 1
             assert rx_stats[name]["jitter"]["frames"] >= rx.stats_by_track[name].frames
     finally:
-        await follower.close()
-        await expert.close()
-        tx.close()
-        await rx.close()
-        for t in tasks:
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(t, 5)
+        await close_video_link(follower, expert, tx, rx, tasks)
 
 
 async def _spawn_follower(url: str, room: str) -> asyncio.subprocess.Process:
@@ -197,13 +191,7 @@ async def test_us_image_follows_the_probe_through_the_video_process(server):
         assert on > 20.0 and off < 0.5 * on, (on, off)
     finally:
         tasks[2].cancel()
-        await follower.close()
-        await expert.close()
-        await asyncio.to_thread(tx.close)
-        await rx.close()
-        for t in tasks:
-            with contextlib.suppress(BaseException):
-                await asyncio.wait_for(t, 5)
+        await close_video_link(follower, expert, tx, rx, tasks)
 
 
 async def test_a_listener_gets_each_decoded_frame_with_the_encoded_frame_it_came_from(server):
@@ -243,10 +231,4 @@ async def test_a_listener_gets_each_decoded_frame_with_the_encoded_frame_it_came
             assert np.array_equal(a, b), f.seq
     finally:
         rx.listeners["us"].clear()
-        await follower.close()
-        await expert.close()
-        tx.close()
-        await rx.close()
-        for t in tasks:
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(t, 5)
+        await close_video_link(follower, expert, tx, rx, tasks)

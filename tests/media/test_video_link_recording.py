@@ -2,11 +2,10 @@
 loopback: what the tap records is what aiortc decoded, frame for frame."""
 
 import asyncio
-import contextlib
 
 import av
 import pytest
-from media_helpers import until, video_follower
+from media_helpers import close_video_link, until, video_follower
 from test_video_link import TOKEN, expert_with_video, server  # noqa: F401 - the fixture
 
 from humantele.media.jitter import KEYFRAME_TESTS
@@ -25,13 +24,7 @@ async def test_the_recorded_frames_are_the_ones_aiortc_decoded(server, codec):  
         await expert.wait_state("connected", timeout=30)
         await until(lambda: all(rx.stats_by_track[n].frames >= 20 for n in ("us", "pov")), 30)
     finally:
-        await follower.close()
-        await expert.close()
-        tx.close()
-        await rx.close()
-        for t in tasks:
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(t, 5)
+        await close_video_link(follower, expert, tx, rx, tasks)
     stats = rx.stats()
     for name in ("us", "pov"):
         frames = [(t, p) for topic, t, p in recorded if topic == f"/expert/{name}_video"]
