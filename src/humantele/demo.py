@@ -376,7 +376,6 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
         )
         for role, cmd in plan.cmds.items()
     }
-    failed, window, t0 = "", CountWindow(), time.monotonic()
     try:
         failed, window, t0 = await supervise(plan, daemons, args.duration, stop, status_to)
     finally:

@@ -78,7 +78,7 @@ class FollowerConfig(ConfigModel):
         normal policy (``[follower.link] realtime_priority = 0``)."""
         loop = self.link.realtime_priority
         fifo = min(self.sensing_realtime_priority, loop - 1) if loop > 0 else 0
-        return Priority(fifo=max(0, fifo), nice=self.sensing_nice)
+        return Priority(fifo=fifo, nice=self.sensing_nice)
 
     @model_validator(mode="after")
     def _tracker_before_video(self) -> FollowerConfig:
