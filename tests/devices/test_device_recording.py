@@ -576,9 +576,11 @@ loop = true
                     continue
                 if msg.get("type") == "probe" and msg.get("tracking") == "tracked":
                     probes.append(msg)
-        for _ in range(100):  # the video child reports its modules once it runs
+        for _ in range(300):  # each child reports its modules once it runs (the stats file
+            # is written now and then: the one read may predate the sensing child's report)
             figures = json.loads(stats.read_text())
-            if figures.get("simulator_modules", {}).get("video") is not None:
+            mods = figures.get("simulator_modules", {})
+            if mods.get("video") is not None and mods.get("sensing") is not None:
                 break
             await asyncio.sleep(0.1)
     finally:

@@ -215,6 +215,7 @@ def test_the_watch_says_re_register_when_the_two_poses_drift_apart(tmp_path):
     c.reg.on_page_message({"type": "registration", "action": "hello", "headset": "other"})
     look(12, rig)  # the offset calibrated from the first 5, then watched
     assert c.reg.counts["offset_calibrated"] == 1
+    assert c.reg.counts["viewer_compared"] == 12 - 5 + 1  # the 5th pair calibrates, compared
     assert c.last["headset"] == ID and c.last["watch"] == "ok" and c.last["drift_mm"] < 2.0
     moved = Pose(rig.position + [0.05, 0, 0], rig.quaternion)  # the XR space jumped 5 cm
     look(6, moved)

@@ -646,6 +646,7 @@ class HeadsetRegistration:
         dp, da = predicted.distance_to(T_world_rig)
         window = self.drift[m.headset]
         window.append((dp, da))
+        self.counts["viewer_compared"] += 1
         if len(window) < window.maxlen:
             return
         mm = 1000.0 * float(np.median([w[0] for w in window]))
