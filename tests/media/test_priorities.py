@@ -16,6 +16,7 @@ from humantele.media.config import DegradeConfig, FollowerVideoConfig
 from humantele.media.policy import DegradationPolicy, Health
 from humantele.runtime.child import PRIORITY, child_priority
 from humantele.transport import LinkConfig
+from sched_privilege import fifo_allowed
 
 GOOD = Health(us_delivery=1.0, loss=0.0, late_ticks_per_s=0.0, tracker_ratio=1.0)
 CPU_SHORT = Health(us_delivery=1.0, loss=0.0, late_ticks_per_s=0.0, tracker_ratio=0.6)
@@ -83,15 +84,6 @@ def _thread_nices(pid: int) -> list[int]:
     return out
 
 
-def _fifo_allowed() -> bool:
-    """Whether this process may take SCHED_FIFO (root, or an rtprio limit), as a child would."""
-    import subprocess
-    import sys
-
-    code = "import os; os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))"
-    return subprocess.run([sys.executable, "-c", code], capture_output=True).returncode == 0
-
-
 async def _until(cond, timeout_s: float = 120.0) -> None:
     end = time.monotonic() + timeout_s
     while not cond():
@@ -124,7 +116,7 @@ async def test_the_spawned_children_run_in_that_order(tmp_path):
         vpid = video.process.pid
         nice_s = base + config.sensing_nice
         nice_us = base + video.config.process_nice
-        fifo = _fifo_allowed()
+        fifo = fifo_allowed()
         want = ("fifo", base) if fifo else ("other", nice_s)
         await _until(lambda: child_priority(sensing.pid) == want)
         if fifo:

@@ -19,8 +19,10 @@ from humantele.recording import Recorder
 from humantele.runtime.pacing import daemon_ticks
 from humantele.runtime.process import (
     ignore_stop_signals,
+    lift_threads,
     on_stop_signals,
     realtime_loop_thread,
+    thread_priority_for,
 )
 from humantele.runtime.session import (
     ClockSyncLog,
@@ -55,6 +57,8 @@ class Daemon:
         self.clock_log = ClockSyncLog(f"/{self.role}/clock_sync")
         self._last_report = -math.inf
         self.loop_priority = "off"  # the event loop thread's scheduling (start_run sets it)
+        self.thread_priority = 0  # SCHED_FIFO of the process's other threads (0: normal)
+        self.threads_lifted = 0  # threads moved to it so far (lift_threads)
         self.link_ended_early: asyncio.Task | None = None  # the link's task, if it ended the run
         self.step_errors = 0  # steps run by guarded() that failed
 
@@ -74,6 +78,8 @@ class Daemon:
             "dropped_total": sum(link.counters.dropped.values()),
             "cpu_percent": self.cpu.overall(),
             "loop_priority": self.loop_priority,
+            "thread_priority": f"fifo {self.thread_priority}" if self.thread_priority else "off",
+            "threads_lifted": self.threads_lifted,
             "recording": recorder_stats(self.rec),
         }
 
@@ -95,7 +101,9 @@ class Daemon:
             rec.write(topic, t, payload)
 
     def write_stats(self) -> None:
-        """Hand the current stats to the stats file's writer thread (every 0.5 s)."""
+        """Hand the current stats to the stats file's writer thread (every 0.5 s); the
+        threads started since the last call go to :attr:`thread_priority`."""
+        self.threads_lifted += lift_threads(self.thread_priority)
         self.stats_out.write(self.stats())
 
     def stop(self) -> None:
@@ -195,6 +203,8 @@ def run_daemon_process(daemon: Daemon, duration_s: float | None) -> int:
     if daemon.loop_priority.startswith("refused"):
         log.warning("%s: event loop at normal priority (SCHED_FIFO %s)", daemon.role,
                     daemon.loop_priority)  # fmt: skip
+    elif daemon.loop_priority.startswith("fifo"):  # its threads just below it (GIL)
+        daemon.thread_priority = thread_priority_for(daemon.config.link.realtime_priority)
     try:
         return asyncio.run(daemon.run(duration_s))
     finally:

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -50,3 +52,44 @@ def realtime_loop_thread(priority: int) -> str:
     except (OSError, AttributeError) as exc:
         return f"refused: {exc}"
     return f"fifo {priority}"
+
+
+def thread_priority_for(loop_priority: int) -> int:
+    """The SCHED_FIFO priority of a daemon's other threads: 1, the lowest real-time one
+    (below the sensing process and the loop), when the loop runs real-time above it; else
+    0 (they stay at the normal policy)."""
+    return 1 if loop_priority > 1 else 0
+
+
+def lift_threads(priority: int) -> int:
+    """Run this process's other threads at SCHED_FIFO ``priority`` (called now and then: the
+    threads aiortc and the daemon start later are found at the next call); returns how many
+    were lifted now. Only threads at the normal policy and the process's own nice: one lowered
+    on purpose (the OpenIGTLink render pool) stays where it is.
+
+    Why: a daemon's threads (aiortc's VP8 encoders and decoders, the executor's) share the
+    interpreter lock with the loop that carries the pose stream. At the normal policy a
+    browser or a build preempted a thread while it held the lock, and the real-time loop then
+    waited for it to be scheduled again: priority inversion through the GIL. The follower's
+    pose age p99 with one core busy and the console open was 2.7-4.0 ms; with its threads at
+    FIFO 1, 1.1-1.2 ms (docs/benchmarks.md, "console_busy")."""
+    if priority <= 0:
+        return 0
+    me, lifted = threading.get_native_id(), 0
+    with contextlib.suppress(OSError):
+        base = os.getpriority(os.PRIO_PROCESS, 0)
+        for name in os.listdir("/proc/self/task"):
+            tid = int(name)
+            if tid in (me, os.getpid()):
+                continue
+            try:
+                if os.sched_getscheduler(tid) != os.SCHED_OTHER:
+                    continue
+                if os.getpriority(os.PRIO_PROCESS, tid) != base:
+                    continue
+                policy = os.SCHED_FIFO | os.SCHED_RESET_ON_FORK
+                os.sched_setscheduler(tid, policy, os.sched_param(priority))
+            except OSError:  # gone meanwhile, or refused (no privilege: stays normal)
+                continue
+            lifted += 1
+    return lifted
