@@ -58,6 +58,13 @@ def sensing_main(
         return
     # After starting at the daemon's priority: a niced start can starve for long.
     got = set_priority(priority)
+    # OpenCV's worker threads, started while the sensing was built (before the priority),
+    # run at the normal policy: a frame's filter split over them waited on a worker that a
+    # normal process (a browser, a build) had preempted. One thread: the whole frame runs at
+    # this process's priority.
+    import cv2
+
+    cv2.setNumThreads(1)
     if "refused" in got:
         log.warning("sensing: %s", got)
     try:
