@@ -4,6 +4,7 @@ exception, and the last request wins."""
 
 from __future__ import annotations
 
+import os
 import random
 import threading
 import time
@@ -12,6 +13,7 @@ import numpy as np
 import pytest
 
 from humantele.expert.console.frames import ProcessFrames, SourceFrames
+from humantele.runtime.child import PRIORITY, child_priority
 from humantele.video.base import VideoFrame, VideoSource
 from humantele.video.scene import DemoScene
 from humantele.video.sim_ultrasound import SimUltrasoundConfig
@@ -92,6 +94,16 @@ def test_source_frames_survive_pages_opening_and_closing_fast():
 def test_process_frames_stop_from_two_threads_and_a_start_between():
     frames = ProcessFrames({"us": SimUltrasoundConfig(width=160, height=120, fps=10)}, DemoScene())
     try:
+        frames.start()  # the shared child helper's: named, at the US video's nice, rendering
+        pid, base = frames._proc.pid, os.getpriority(os.PRIO_PROCESS, 0)  # noqa: SLF001
+        want = ("other", base + PRIORITY["video_us"].nice)
+        deadline = time.monotonic() + 120
+        while (frames.latest("us") is None or child_priority(pid) != want) and (
+            time.monotonic() < deadline
+        ):
+            time.sleep(0.05)
+        assert child_priority(pid) == want and frames.latest("us") is not None
+        assert open(f"/proc/{pid}/comm").read().strip() == "humantele-csim"
         for _ in range(3):
             frames.start()
             proc = frames._proc  # noqa: SLF001

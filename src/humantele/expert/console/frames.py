@@ -22,12 +22,12 @@ from __future__ import annotations
 import contextlib
 import logging
 import multiprocessing as mp
-import os
 import queue
 import threading
 from collections.abc import Mapping
 from typing import Any, Protocol
 
+from humantele.runtime.child import PRIORITY, set_priority, spawn, stop_process
 from humantele.video.base import VideoFrame, VideoSource, VideoSourceError
 
 log = logging.getLogger(__name__)
@@ -210,13 +210,7 @@ class ProcessFrames(_OnDemand, _Subscribers):
     def _start_locked(self) -> None:
         ctx = mp.get_context("spawn")
         stop, scene_q, out_q = ctx.Event(), ctx.Queue(maxsize=2), ctx.Queue(maxsize=4)
-        proc = ctx.Process(
-            target=_render_child,
-            args=(self.configs, scene_q, out_q, stop),
-            name="humantele-console-sim",
-            daemon=True,
-        )
-        proc.start()
+        proc = spawn(_render_child, (self.configs, scene_q, out_q, stop), name="humantele-csim")
         self._stop, self._scene_q, self._out_q, self._proc = stop, scene_q, out_q, proc
         self._threads = [
             threading.Thread(target=self._feed, args=(stop, scene_q), name="console-scene",
@@ -232,10 +226,7 @@ class ProcessFrames(_OnDemand, _Subscribers):
         self._stop.set()
         for t in threads:
             t.join(timeout)
-        proc.join(timeout)
-        if proc.is_alive():
-            proc.kill()
-            proc.join(timeout)
+        stop_process(proc, timeout_s=timeout, term=False)  # (it ignores SIGTERM)
         for q in (self._scene_q, self._out_q):
             q.cancel_join_thread()
             q.close()
@@ -272,12 +263,13 @@ class ProcessFrames(_OnDemand, _Subscribers):
 
 
 def _render_child(configs: Mapping[str, Any], scene_q: Any, out_q: Any, stop: Any) -> None:
-    """The child process: one thread per track renders the latest scene and sends frames."""
+    """The child process (ended with its daemon: ``spawn`` watches the parent): one thread
+    per track renders the latest scene and sends frames, at the US video's priority."""
     from humantele.video.sources import make_video_source
 
+    set_priority(PRIORITY["video_us"])
     latest: list[Any] = [None]
     lock = threading.Lock()
-    parent = os.getppid()
 
     def scene() -> Any:
         with lock:
@@ -291,7 +283,7 @@ def _render_child(configs: Mapping[str, Any], scene_q: Any, out_q: Any, stop: An
         source = make_video_source(config, scene)
         try:
             source.open()
-            while not stop.is_set() and os.getppid() == parent:  # ends with its daemon
+            while not stop.is_set():
                 f = source.read()
                 if f is None:
                     continue
