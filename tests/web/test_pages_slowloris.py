@@ -29,7 +29,7 @@ HEADER_TIMEOUT_S = 3.0
 # at any time (the feed: that many of each of "tls" and "tcp").
 CONSOLE_SOCKETS = int(os.environ.get("HUMANTELE_LORIS_CONSOLE", "300"))
 FEED_SOCKETS = int(os.environ.get("HUMANTELE_LORIS_FEED", "150"))
-ATTACK_S = 20.0
+ATTACK_S = 20.0  # (10 s: the feed, full, evicted every socket before its header deadline)
 
 
 async def attacker(port: int, n: int, mode: str, sources: int) -> asyncio.subprocess.Process:
@@ -154,8 +154,8 @@ async def test_pages_hold_against_slow_loris_with_few_descriptors(session, tmp_p
     figures["rss_after_mb"] = {"expert": rss_mb(expert.pid), "follower": rss_mb(follower.pid)}
     figures["pose_age_p99_ms"] = f.get("pose_age_p99_ms")
     figures["servo_overruns"] = e.get("servo_overruns")
-    assert e["console"]["connections"]["closed:handshake_timeout"] > 0
-    assert f["feed"]["connections"]["closed:handshake_timeout"] > 0
+    assert e["console"]["connections"].get("closed:handshake_timeout", 0) > 0, figures
+    assert f["feed"]["connections"].get("closed:handshake_timeout", 0) > 0, figures
     codes = {role: await session.terminate(role, timeout=30) for role in ("expert", "follower")}
     logs = "".join(p.read_text(errors="replace") for p in tmp_path.glob("*.log"))
     figures["tracebacks"] = logs.count("Traceback")
