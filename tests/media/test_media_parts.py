@@ -103,7 +103,8 @@ def _orphaned_video_child(stop) -> None:
     from humantele.runtime.child import watch_parent
 
     th.Thread(target=lambda: th.Event().wait()).start()  # not a daemon thread
-    watch_parent(os.getppid() + 1_000_000, stop.set).join()  # not our parent: the follower is gone
+    gone = os.getppid() + 1_000_000  # not our parent: the follower is gone
+    watch_parent(gone, stop.set, grace_s=0.3).join()
 
 
 def test_a_video_process_whose_follower_is_gone_ends_itself():
@@ -113,7 +114,7 @@ def test_a_video_process_whose_follower_is_gone_ends_itself():
     stop = ctx.Event()
     p = ctx.Process(target=_orphaned_video_child, args=(stop,))
     p.start()
-    p.join(60.0)  # a hang guard: it ends about 3.5 s after it starts
+    p.join(60.0)  # a hang guard: it ends about 0.3 s after it starts
     try:
         assert p.exitcode == 0 and stop.is_set()
     finally:
