@@ -37,23 +37,44 @@ def descendants(pid: int) -> set[int]:
     return out
 
 
+def _resource_tracker(pid: int) -> bool:
+    """Whether ``pid`` is a multiprocessing resource tracker: it ends by itself once the
+    process it serves is gone, after unlinking the shared memory that process left."""
+    try:
+        return b"multiprocessing.resource_tracker" in Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return False
+
+
 def kill_descendants(pid: int | None = None) -> int:
-    """SIGKILL every descendant of ``pid`` (this process) and the process groups they lead or
-    belong to, except this process's own group; how many processes were found."""
+    """SIGKILL every descendant of ``pid`` (this process) and every member of the process
+    groups they lead or belong to (except this process's own group), but the resource
+    trackers (killed, they leave the killed processes' shared memory in /dev/shm); how many
+    processes were found."""
     me = os.getpid() if pid is None else pid
-    found = descendants(me)
     own_group = os.getpgid(me)
-    groups = set()
-    for p in found:
-        with contextlib.suppress(OSError):
-            groups.add(os.getpgid(p))
-    for g in groups - {own_group}:
-        with contextlib.suppress(OSError):
-            os.killpg(g, signal.SIGKILL)
-    for p in found:
-        with contextlib.suppress(OSError):
-            os.kill(p, signal.SIGKILL)
-    return len(found)
+    first: set[int] | None = None
+    for _ in range(3):  # again: one may have forked between the scan and its kill
+        found = descendants(me)
+        first = found if first is None else first
+        groups = set()
+        for p in found:
+            with contextlib.suppress(OSError):
+                groups.add(os.getpgid(p))
+        groups.discard(own_group)
+        members = set(found)
+        for d in Path("/proc").iterdir():
+            if d.name.isdigit():
+                with contextlib.suppress(OSError):
+                    if os.getpgid(int(d.name)) in groups:
+                        members.add(int(d.name))
+        victims = {p for p in members - {me} if not _resource_tracker(p)}
+        if not victims:
+            break
+        for p in victims:
+            with contextlib.suppress(OSError):
+                os.kill(p, signal.SIGKILL)
+    return len(first or ())
 
 
 def _on_stop_signal(signum: int, frame: object) -> None:

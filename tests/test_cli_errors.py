@@ -102,6 +102,15 @@ def test_signal_port_in_use_and_unknown_host():
     _one_clear_line(r.stderr)
 
 
+def test_a_bad_console_key_is_refused_before_the_servo_starts():
+    r = subprocess.run([*CMD, "expert", "--duration", "5"], capture_output=True, text=True,
+                       timeout=90, env=_env(HUMANTELE_CONSOLE_KEY="short"))  # fmt: skip
+    assert r.returncode == 2
+    assert "$HUMANTELE_CONSOLE_KEY: at least 16 printable ASCII characters" in r.stderr
+    assert "leaked shared_memory" not in r.stderr  # (the servo's, left to the tracker)
+    _one_clear_line(r.stderr)
+
+
 @pytest.mark.e2e  # starts a daemon (the fast lane leaves it out)
 def test_follower_feed_port_in_use(tmp_path):
     with _busy_port() as s:

@@ -22,12 +22,20 @@ import os, subprocess, sys, time
 from pathlib import Path
 
 def test_starts_a_group_and_hangs():
-    # A leader in its own session (as a fixture's Chromium or demo) with a grandchild.
-    p = subprocess.Popen([sys.executable, "-c",
-        "import subprocess, sys, time; subprocess.Popen([sys.executable, '-c', "
-        "'import time; time.sleep(600)']); time.sleep(600)"], start_new_session=True)
+    # A leader in its own session (as a fixture's Chromium or demo) with a grandchild, and
+    # shared memory (as a daemon's video or servo) that its resource tracker would unlink.
+    p = subprocess.Popen([sys.executable, "-c", LEADER], start_new_session=True)
     Path(os.environ["PIDFILE"]).write_text(str(p.pid))
     time.sleep(600)
+
+LEADER = '''
+import os, subprocess, sys, time
+from multiprocessing import shared_memory
+subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"])
+shm = shared_memory.SharedMemory(create=True, size=4096)
+open(os.environ["SHMFILE"], "w").write(shm.name)
+time.sleep(600)
+'''
 """
 
 
@@ -43,8 +51,8 @@ def alive(pid: int) -> bool:
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
 def test_stopping_pytest_kills_what_its_tests_started(tmp_path, sig):
     (tmp_path / "test_hang.py").write_text(TEST)
-    pidfile = tmp_path / "pid"
-    env = {**os.environ, "PIDFILE": str(pidfile)}
+    pidfile, shmfile = tmp_path / "pid", tmp_path / "shm"
+    env = {**os.environ, "PIDFILE": str(pidfile), "SHMFILE": str(shmfile)}
     env["PYTHONPATH"] = os.pathsep.join([str(HERE), env.get("PYTHONPATH", "")])
     pytest_proc = subprocess.Popen(
         [sys.executable, "-m", "pytest", "-q", "-p", "procgroups", "-p", "no:cacheprovider",
@@ -55,7 +63,7 @@ def test_stopping_pytest_kills_what_its_tests_started(tmp_path, sig):
     try:
         t_end = time.monotonic() + 120
         started: set[int] = set()
-        while len(started) < 2:  # the leader and its grandchild
+        while len(started) < 3 or not shmfile.exists():  # leader, grandchild, tracker
             assert pytest_proc.poll() is None, pytest_proc.stdout.read().decode()
             assert time.monotonic() < t_end, "the test's processes never started"
             if pidfile.exists():
@@ -69,6 +77,8 @@ def test_stopping_pytest_kills_what_its_tests_started(tmp_path, sig):
         while any(alive(p) for p in started) and time.monotonic() < t_end:
             time.sleep(0.1)
         assert not [p for p in started if alive(p)], "left running after pytest stopped"
+        # the leader's resource tracker was left to unlink what the killed leader made
+        assert not Path("/dev/shm", shmfile.read_text()).exists()
     finally:
         for p in descendants(pytest_proc.pid) | started:
             try:

@@ -119,9 +119,27 @@ def test_a_real_scanner_s_scale_goes_to_the_expert_after_each_hello(tmp_path):
 
     card = {"backend": "opencv", "pixel_spacing_mm": [0.2, 0.25], "depth_origin_row": 96.0}
     d = make(tmp_path, video={"enabled": True, "us": card})
-    d.on_control(Hello(role="expert"))
-    (scale,) = [m for m in d.link.controls if isinstance(m, UsScale)]
-    assert scale.pixel_spacing_mm == (0.2, 0.25) and scale.depth_origin_row == 96.0
     sim = make(tmp_path / "sim", video={"enabled": True})  # the sim's: the demo tells the expert
-    sim.on_control(Hello(role="expert"))
-    assert not [m for m in sim.link.controls if isinstance(m, UsScale)]
+    try:
+        d.on_control(Hello(role="expert"))
+        (scale,) = [m for m in d.link.controls if isinstance(m, UsScale)]
+        assert scale.pixel_spacing_mm == (0.2, 0.25) and scale.depth_origin_row == 96.0
+        sim.on_control(Hello(role="expert"))
+        assert not [m for m in sim.link.controls if isinstance(m, UsScale)]
+    finally:  # their video's shared memory (made with the daemon, never run here)
+        d.video.close()
+        sim.video.close()
+
+
+async def test_a_start_that_cannot_record_frees_the_video_s_shared_memory(tmp_path):
+    """The video's shared memory is made with the daemon; a run that stops at its start (the
+    recording refused) frees it, not the resource tracker at exit (or no one, if killed)."""
+    from pathlib import Path
+
+    existing = tmp_path / "s.mcap"
+    existing.write_bytes(b"an earlier session")
+    d = make(tmp_path, video={"enabled": True}, session={"record": str(existing)})
+    shm = [Path("/dev/shm", c.shm.name) for c in d.video.process.captures.values()]
+    assert all(p.exists() for p in shm)
+    assert await d.run(1.0) == 2
+    assert not any(p.exists() for p in shm)

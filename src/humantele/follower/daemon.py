@@ -310,6 +310,7 @@ class FollowerDaemon(Daemon):
 
     async def run(self, duration_s: float | None = None) -> int:
         if not self.start_run():
+            await self.stop_children(None)  # (the video's shared memory, made at __init__)
             return 2
         self.cal.record_model()  # a saved calibration's model
         # The video sources open beside the session (the video process takes a few seconds
@@ -370,8 +371,9 @@ class FollowerDaemon(Daemon):
     async def stop_children(self, video_task: asyncio.Task | None) -> None:
         """Stop the video process (its open, if still waiting, then returns) and the sensing
         process."""
-        if video_task is not None:
+        if self.video is not None:  # (also never started: its shared memory goes)
             await asyncio.to_thread(self.video.close)
+        if video_task is not None:
             with contextlib.suppress(BaseException):
                 await asyncio.wait_for(video_task, 5.0)
             await self.video.settle()  # a restart of the video process in flight

@@ -31,6 +31,7 @@ from humantele.recording import Recorder
 from humantele.video.scene import SceneSnapshot, look_at
 from humantele.video.sim_pov import SimPovConfig
 from humantele.video.sim_ultrasound import SimUltrasoundConfig
+from humantele.web.credential import key_from_env
 from humantele.wire import UsScale
 
 log = logging.getLogger(__name__)
@@ -191,6 +192,8 @@ class DaemonConsole:
         self.server: Any = None  # the ConsoleServer while served (tests may put a stand-in)
         self.local: ProcessFrames | None = None  # sim video sources, stopped at the end
         self.us_scale: tuple[tuple[float, float], float] | None = None  # the follower's
+        if cfg.enabled:  # a bad $HUMANTELE_CONSOLE_KEY refused now, before the servo starts
+            key_from_env()
 
     def on_us_scale(self, msg: UsScale) -> None:
         """The follower's scanner scale: the console's calipers and depth scale take it,
