@@ -92,6 +92,37 @@ def test_each_scan_gives_an_mp4_and_a_foxglove_file_that_play(files, tmp_path, c
     assert pose["frame_id"] == "patient" and set(pose["pose"]["orientation"]) == set("xyzw")
 
 
+def test_foxglove_times_are_unix_times_with_the_recording_s_clock_offset(tmp_path):
+    """A recording that says where its clock sits in Unix time (as the recorder writes
+    ``clock_unix_offset_s``): the file shows the session's date, its messages in the same
+    order and spacing as on the expert's clock, and says so in its metadata."""
+    offset = 1_795_000_000.25  # 2026-11
+    (tmp_path / "rec").mkdir()
+    (tmp_path / "plain").mkdir()
+    files = session_with_video(tmp_path / "rec", n_scans=1, duration_s=5.0,
+                               metadata={"clock_unix_offset_s": f"{offset:.6f}"})  # fmt: skip
+    plain = session_with_video(tmp_path / "plain", n_scans=1, duration_s=5.0)
+    runs = {}
+    for name, f in (("unix", files), ("plain", plain)):
+        out = tmp_path / name
+        assert main(["export", *map(str, f), "--out", str(out), "--jobs", "1"]) == 0
+        runs[name] = out / "vid01_scan1.mcap"
+    unix, expert = read_mcap(runs["unix"]), read_mcap(runs["plain"])
+    assert set(unix) == set(expert)
+    for topic in unix:
+        got = [t for _, t, _ in unix[topic]]
+        want = [t + round(offset * 1e9) for _, t, _ in expert[topic]]
+        assert len(got) == len(want) > 0
+        assert max(abs(a - b) for a, b in zip(got, want, strict=True)) <= 1000  # 1 us
+    stamp = json.loads(unix["/us/video"][0][2])["timestamp"]
+    plain_stamp = json.loads(expert["/us/video"][0][2])["timestamp"]
+    assert stamp["sec"] - plain_stamp["sec"] in (offset // 1, offset // 1 + 1)
+    with open(runs["unix"], "rb") as f:
+        (md,) = [m for m in make_reader(f).iter_metadata() if m.name == "humantele.export"]
+    assert md.metadata["clock_unix_offset_s"] == f"{offset:.6f}"
+    assert md.metadata["clock"].startswith("Unix time")
+
+
 def test_scan_and_clip_window_and_two_workers(files, tmp_path, capsys):
     out = tmp_path / "out"
     code = main(["export", *map(str, files), "--out", str(out), "--scan", "2",

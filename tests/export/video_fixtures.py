@@ -42,12 +42,16 @@ def vp8_frames(n: int, gop: int = 10) -> list[tuple[bytes, bool]]:
     return out
 
 
-def write_video(path: Path, session_id: str, t0: float, n: int, streams=("us",)) -> list:
+def write_video(
+    path: Path, session_id: str, t0: float, n: int, streams=("us",), metadata=None
+) -> list:
     """An expert file of ``session_id`` with ``n`` frames per stream from expert time ``t0``
     (capture times 30 ms before arrival; the first two frames without one, as before the
-    receiver's anchor) and a force sample with each. Returns the frames."""
+    receiver's anchor) and a force sample with each; ``metadata``: more session fields.
+    Returns the frames."""
     frames = vp8_frames(n)
-    log = McapLog(path, {"role": "expert", "session_id": session_id}, fsync=False)
+    md = {"role": "expert", "session_id": session_id, **(metadata or {})}
+    log = McapLog(path, md, fsync=False)
     for i, (data, key) in enumerate(frames):
         t = t0 + i / FPS
         for name in streams:
@@ -63,11 +67,14 @@ def write_video(path: Path, session_id: str, t0: float, n: int, streams=("us",))
     return frames
 
 
-def session_with_video(tmp: Path, n_scans: int = 2, duration_s: float = 9.0, **kw) -> list[Path]:
-    """A synthetic session's file and its video file (frames through the whole session)."""
+def session_with_video(
+    tmp: Path, n_scans: int = 2, duration_s: float = 9.0, metadata=None, **kw
+) -> list[Path]:
+    """A synthetic session's file and its video file (frames through the whole session;
+    ``metadata``: more fields of the video file's session)."""
     cfg = SyntheticSession(duration_s=duration_s, n_scans=n_scans, expert_rate_hz=200.0,
                            session_id="vid01", **kw)  # fmt: skip
     a, b = tmp / "session.mcap", tmp / "video.expert.mcap"
     write_synthetic(a, cfg)
-    write_video(b, "vid01", T0_EXPERT, int(duration_s * FPS))
+    write_video(b, "vid01", T0_EXPERT, int(duration_s * FPS), metadata=metadata)
     return [a, b]

@@ -42,6 +42,9 @@ def test_round_trip_keeps_values_ids_and_packs_high_rate_samples(tmp_path):
     assert r.complete and r.problem is None
     assert r.session["follower_id"] == "F03" and r.session["sonographer_id"] == "S1"
     assert r.session["session_id"] == "abc" and r.session["role"] == "demo"
+    # the daemons' clock (monotonic) to Unix time, for tools that show dates (the export)
+    unix_now = time.monotonic() + float(r.session["clock_unix_offset_s"])
+    assert abs(unix_now - time.time()) < 1.0
     t = r.times("/expert/pose")
     np.testing.assert_allclose(t, np.arange(1500) * 1e-3, atol=1e-6)
     pos = np.array(r.column("/expert/pose", "position").tolist())

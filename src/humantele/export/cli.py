@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from humantele.config import ConfigError
-from humantele.export.mcapfile import ScanMcap
+from humantele.export.mcapfile import ScanMcap, clock_metadata
 from humantele.export.source import ExportSession, load
 from humantele.export.video import (
     EncodedFrame,
@@ -255,7 +255,7 @@ def run(args: argparse.Namespace) -> int:
     written = 0
     for es, iv, lo, hi in scans:
         base = f"{es.session_id}_scan{iv.scan}"
-        doc = ScanMcap()
+        doc = ScanMcap(es.unix_offset_s or 0.0)
         for name in STREAMS:
             r = by_name.get(f"{base}_{name}")
             if r is None:
@@ -294,7 +294,7 @@ def run(args: argparse.Namespace) -> int:
                 "scan": str(iv.scan),
                 "clip_start_s": f"{lo:.6f}",
                 "clip_stop_s": f"{hi:.6f}",
-                "clock": "expert daemon clock (s); log time = that in ns",
+                **clock_metadata(es.unix_offset_s),
             },
         )
         print(f"{path}: {n} messages (video, poses, force) for Foxglove")

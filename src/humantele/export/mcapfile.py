@@ -1,8 +1,10 @@
 """The Foxglove file of one scan: the ultrasound and POV as ``foxglove.CompressedVideo``
 (H.264, Annex B, one message per frame, SPS/PPS with each keyframe), the expert's virtual
 probe and the tracked real probe as ``foxglove.PoseInFrame`` (frame ``patient``), and both
-forces, all JSON and all on the expert's clock (log time = expert clock in ns), so Foxglove
-plays the video in time with the poses and force.
+forces, all JSON and all on the expert's clock, so Foxglove plays the video in time with the
+poses and force. Log times and ``timestamp`` s are that clock moved to Unix time by the
+recording's ``clock_unix_offset_s`` (Foxglove shows the session's date and time; a recording
+without it: the clock as it is, near 1970); the force messages' ``t`` stays the expert's.
 """
 
 from __future__ import annotations
@@ -71,22 +73,34 @@ def _ns(t: float) -> int:
     return max(0, int(round(t * 1e9)))
 
 
+def clock_metadata(unix_offset_s: float | None) -> dict[str, str]:
+    """What the file's times are, for its metadata."""
+    if unix_offset_s is None:
+        return {"clock": "expert daemon clock (s); log time = that in ns"}
+    return {
+        "clock": "Unix time: expert daemon clock (s) + clock_unix_offset_s; log time in ns",
+        "clock_unix_offset_s": f"{unix_offset_s:.6f}",
+    }
+
+
 class ScanMcap:
     """Collects a scan's messages, then :meth:`write` sorts them by time into one file."""
 
-    def __init__(self) -> None:
+    def __init__(self, unix_offset_s: float = 0.0) -> None:
+        self.offset = unix_offset_s  # added to the expert's clock (s) for times shown
         self._msgs: list[tuple[int, str, bytes]] = []
         self._schemas: dict[str, tuple[str, dict[str, Any]]] = {}
 
     def _add(self, topic: str, schema: str, js: dict[str, Any], t: float, msg: dict) -> None:
         self._schemas.setdefault(topic, (schema, js))
-        self._msgs.append((_ns(t), topic, json.dumps(msg, separators=(",", ":")).encode()))
+        data = json.dumps(msg, separators=(",", ":")).encode()
+        self._msgs.append((_ns(t + self.offset), topic, data))
 
     def video(self, stream: str, frames: list[tuple[float, bytes, bool]]) -> None:
         """H.264 frames ``(t, Annex B bytes, keyframe)`` of ``stream`` ('us' or 'pov')."""
         for t, data, _key in frames:
             msg = {
-                "timestamp": _stamp(t),
+                "timestamp": _stamp(t + self.offset),
                 "frame_id": stream,
                 "data": base64.b64encode(data).decode("ascii"),
                 "format": "h264",
@@ -98,7 +112,7 @@ class ScanMcap:
         sel = (track.t >= start) & (track.t <= stop)
         for t, p, q in zip(track.t[sel], track.position[sel], track.quaternion[sel], strict=True):
             msg = {
-                "timestamp": _stamp(float(t)),
+                "timestamp": _stamp(float(t) + self.offset),
                 "frame_id": "patient",
                 "pose": {
                     "position": dict(zip("xyz", map(float, p), strict=True)),

@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import base64
 import binascii
+import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -50,6 +52,7 @@ class ExportSession:
     video: dict[str, VideoStream]
     force: dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]]
     problems: list[str] = field(default_factory=list)
+    unix_offset_s: float | None = None  # expert clock + this = Unix time (s); None: unknown
 
     @property
     def session_id(self) -> str:
@@ -159,5 +162,19 @@ def load(paths: Iterable[str | Path]) -> tuple[list[ExportSession], list[str]]:
                 t = session.clock.to_expert(t)
             order = np.argsort(t, kind="stable")
             force[topic] = (t[order], f[order].astype(float))
-        out.append(ExportSession(session, video, force))
+        offset = _unix_offset([r for r in recs if r.session.get("role") == "expert"])
+        out.append(ExportSession(session, video, force, unix_offset_s=offset))
     return out, problems
+
+
+def _unix_offset(expert: list[Any]) -> float | None:
+    """The expert recording's ``clock_unix_offset_s`` (its clock to Unix time, s), or None
+    (an older recording, or a value that is not a finite number)."""
+    for rec in expert:
+        try:
+            value = float(rec.session.get("clock_unix_offset_s", "nan"))
+        except ValueError:
+            continue
+        if math.isfinite(value):
+            return value
+    return None

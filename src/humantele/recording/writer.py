@@ -225,7 +225,10 @@ def _session_metadata(
         "session_id": session_id or uuid.uuid4().hex[:12],
         "created_utc": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "software": f"humantele {version}",
-        "time": "t fields: seconds on the recording daemon's clock; see */clock_sync",
+        "time": "t fields: seconds on the recording daemon's clock (CLOCK_MONOTONIC); "
+        "t + clock_unix_offset_s is Unix time; see */clock_sync for the other daemon's",
+        # the wall clock at the start (a tool's time axis: Foxglove's), not for the analysis
+        "clock_unix_offset_s": f"{time.time() - time.monotonic():.6f}",
     }
     if follower_id is not None:
         md["follower_id"] = check_participant_id(follower_id, "follower_id")
