@@ -65,14 +65,14 @@ def lift_threads(priority: int) -> int:
     """Run this process's other threads at SCHED_FIFO ``priority`` (called now and then: the
     threads aiortc and the daemon start later are found at the next call); returns how many
     were lifted now. Only threads at the normal policy and the process's own nice: one lowered
-    on purpose (the OpenIGTLink render pool) stays where it is.
+    on purpose (``runtime.child.set_thread_nice``) stays where it is.
 
     Why: a daemon's threads (aiortc's VP8 encoders and decoders, the executor's) share the
     interpreter lock with the loop that carries the pose stream. At the normal policy a
     browser or a build preempted a thread while it held the lock, and the real-time loop then
     waited for it to be scheduled again: priority inversion through the GIL. The follower's
     pose age p99 with one core busy and the console open was 2.7-4.0 ms; with its threads at
-    FIFO 1, 1.1-1.2 ms (docs/benchmarks.md, "console_busy")."""
+    FIFO 1, 1.1-1.5 ms (docs/benchmarks.md, "console_busy")."""
     if priority <= 0:
         return 0
     me, lifted = threading.get_native_id(), 0
