@@ -121,6 +121,14 @@ def test_foxglove_times_are_unix_times_with_the_recording_s_clock_offset(tmp_pat
         (md,) = [m for m in make_reader(f).iter_metadata() if m.name == "humantele.export"]
     assert md.metadata["clock_unix_offset_s"] == f"{offset:.6f}"
     assert md.metadata["clock"].startswith("Unix time")
+    # a value that is not a finite number: the expert's clock as it is, said so
+    for bad in ("soon", "nan", "inf"):
+        (tmp_path / bad).mkdir()
+        f = session_with_video(tmp_path / bad, n_scans=1, duration_s=5.0,
+                               metadata={"clock_unix_offset_s": bad})  # fmt: skip
+        assert main(["export", *map(str, f), "--out", str(tmp_path / bad / "out")]) == 0
+        doc = read_mcap(tmp_path / bad / "out" / "vid01_scan1.mcap")
+        assert [t for _, t, _ in doc["/us/video"]] == [t for _, t, _ in expert["/us/video"]]
 
 
 def test_scan_and_clip_window_and_two_workers(files, tmp_path, capsys):
