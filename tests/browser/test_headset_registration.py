@@ -45,6 +45,8 @@ def test_known_transform_recovered_within_2_mm_and_1_degree(run):
     targets = np.array(run.data["targets_xr"])
     work = np.vstack([targets, targets + [0, -0.3, 0], targets.mean(axis=0)])
     gaps = np.linalg.norm(got.apply(work) - truth.apply(work), axis=1) * 1000.0
+    print(f"registration over the work area: max {gaps.max():.2f} mm, angle "
+          f"{math.degrees(da):.3f} deg")  # fmt: skip
     assert gaps.max() < 2.0, gaps
     done = run.data["done"]
     assert done["headline"] == "Headset registered" and "residual" in done["detail"]
