@@ -156,6 +156,7 @@ async def test_headset_page_counts_tls_handshakes_and_closes_stalled_ones(tmp_pa
             feed.publish("link", {"state": "disconnected"})
             assert (await next_json(ws, "link"))["state"] == "disconnected"
         c = feed.connections
+        assert c["closed:handshake_timeout"] >= 1  # the admitted ones, at the deadline
         assert c["closed:handshake_timeout"] + c["closed:evicted"] >= 12
         await until("the server to forget them all", lambda: guard.open_connections == 0)
         await silent.close()

@@ -29,7 +29,7 @@ HEADER_TIMEOUT_S = 3.0
 # at any time (the feed: that many of each of "tls" and "tcp").
 CONSOLE_SOCKETS = int(os.environ.get("HUMANTELE_LORIS_CONSOLE", "300"))
 FEED_SOCKETS = int(os.environ.get("HUMANTELE_LORIS_FEED", "150"))
-ATTACK_S = 20.0  # (10 s: the feed, full, evicted every socket before its header deadline)
+ATTACK_S = 20.0
 
 
 async def attacker(port: int, n: int, mode: str, sources: int) -> asyncio.subprocess.Process:
@@ -154,8 +154,12 @@ async def test_pages_hold_against_slow_loris_with_few_descriptors(session, tmp_p
     figures["rss_after_mb"] = {"expert": rss_mb(expert.pid), "follower": rss_mb(follower.pid)}
     figures["pose_age_p99_ms"] = f.get("pose_age_p99_ms")
     figures["servo_overruns"] = e.get("servo_overruns")
-    assert e["console"]["connections"].get("closed:handshake_timeout", 0) > 0, figures
-    assert f["feed"]["connections"].get("closed:handshake_timeout", 0) > 0, figures
+    # Closed by the daemons: at the header deadline, or evicted for a newer one when the
+    # descriptors ran short. Which of the two depends on how fast the waves come (the full
+    # feed evicted every socket before its deadline in some runs): test_page_guard.py pins
+    # the deadline itself, page by page.
+    for c in (e["console"]["connections"], f["feed"]["connections"]):
+        assert c.get("closed:handshake_timeout", 0) + c.get("closed:evicted", 0) > 0, figures
     codes = {role: await session.terminate(role, timeout=30) for role in ("expert", "follower")}
     logs = "".join(p.read_text(errors="replace") for p in tmp_path.glob("*.log"))
     figures["tracebacks"] = logs.count("Traceback")
