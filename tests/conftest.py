@@ -2,7 +2,8 @@
 puts a conftest's folder there), so tests import the daemons' doubles from
 ``daemon_doubles``.
 
-The suite runs on two pytest-xdist workers (``-n 2 --dist loadgroup``, pyproject.toml). Tests
+The suite runs on two pytest-xdist workers (``-n auto --dist loadgroup``, pyproject.toml, and
+:func:`pytest_xdist_auto_num_workers`; the fast lane on three). Tests
 that run real processes for seconds (the daemons, the servo, the demo, coturn, a browser) must
 not all run at once on a 2-core machine, or they starve each other's real-time loops: the
 ones on the host's network go to one worker, one after the other (the xdist group
@@ -17,10 +18,25 @@ Ctrl-C, SIGTERM or SIGHUP (``procgroups``): stopping pytest leaves no daemon or 
 In the xdist controller (whose children are the workers) each worker does it for itself.
 """
 
+import sys
+from pathlib import Path
+
 import pytest
 from hypothesis import settings
 
 from procgroups import pytest_configure, pytest_unconfigure  # noqa: F401 - the hooks
+
+# Where PYTHONDONTWRITEBYTECODE is set (this machine's images set it), pytest rewrote every
+# test module's asserts again on each run, in each worker: 2.1 of the 3.6 s a worker spends
+# collecting. Its rewritten modules are cached in its own cache folder instead, never beside
+# the sources (the variable's intent); the daemons and children the tests start still write
+# nothing.
+if sys.dont_write_bytecode:
+    sys.pycache_prefix = str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "pycache")
+    sys.dont_write_bytecode = False
+
+FAST_LANE_WORKERS = 3  # -m "not e2e": its tests wait on timers and sockets a third of the time
+SUITE_WORKERS = 2  # with the e2e tests: their real-time loops need the two cores
 
 PROCESS_FIXTURES = {"session", "demo_run", "browser_scenario"}
 
@@ -37,3 +53,11 @@ def pytest_collection_modifyitems(items):
             netns = "browser_scenario" in item.fixturenames
             item.add_marker(pytest.mark.xdist_group("processes-netns" if netns else "processes"))
             item.add_marker(pytest.mark.e2e)  # the fast lane, -m "not e2e", leaves them out
+
+
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
+    """``-n auto`` (pyproject.toml's addopts): three workers for the fast lane, two for a run
+    with the e2e tests (their slow ones run one at a time in two xdist groups, beside the
+    rest). An explicit ``-n N`` wins."""
+    fast = "not e2e" in (config.getoption("markexpr") or "")
+    return FAST_LANE_WORKERS if fast else SUITE_WORKERS
