@@ -2,13 +2,14 @@
 a killed child restarted, a refused config reported, nothing left running."""
 
 import asyncio
+import multiprocessing as mp
 import os
 import signal
 
 import numpy as np
 
 from humantele.follower.daemon import FollowerConfig, FollowerDaemon
-from humantele.follower.sensing_process import SensingProcess
+from humantele.follower.sensing_process import RESTART_FIRST_S, SensingProcess
 from humantele.follower.sim_human import probe_down_quat
 from humantele.follower.sim_world import SimWorld
 from humantele.geometry import Pose
@@ -66,6 +67,46 @@ async def test_the_child_measures_frames_restarts_when_killed_and_stops_cleanly(
     except ProcessLookupError:
         alive = False
     assert not alive
+
+
+async def test_a_child_that_keeps_dying_is_replaced_after_its_back_off_then_given_up():
+    """The replacement starts no sooner than the back-off; with ``max_restarts=1`` the second
+    death in a row is the last: failed (the daemon measures in a thread), nothing running."""
+    proc = SensingProcess(FollowerConfig(), None, lambda *r: None, max_restarts=1)
+    proc.start()
+    loop = asyncio.get_running_loop()
+    try:
+        await _until(lambda: proc.ready)
+        t_kill = loop.time()
+        os.kill(proc.pid, signal.SIGKILL)
+        await _until(lambda: proc.restarter.due_at is not None)
+        assert proc.running and not proc.ready and not proc.submit(1, None)  # being replaced
+        await _until(lambda: proc.restarts == 1)
+        assert loop.time() - t_kill >= RESTART_FIRST_S
+        await _until(lambda: proc.ready)
+        os.kill(proc.pid, signal.SIGKILL)
+        await _until(lambda: proc.failed)
+        await asyncio.sleep(2 * RESTART_FIRST_S)  # past the next back-off: nothing started
+        assert proc.restarts == 1 and not proc.running and not _sensing_children()
+    finally:
+        proc.close()
+
+
+async def test_a_close_during_the_back_off_starts_no_replacement():
+    proc = SensingProcess(FollowerConfig(), None, lambda *r: None)
+    proc.start()
+    try:
+        await _until(lambda: proc.ready)
+        os.kill(proc.pid, signal.SIGKILL)
+        await _until(lambda: proc.restarter.due_at is not None)
+    finally:
+        proc.close()
+    await asyncio.sleep(2 * RESTART_FIRST_S)  # past the replacement's due time
+    assert proc.restarts == 0 and not proc.running and not _sensing_children()
+
+
+def _sensing_children() -> list:
+    return [c for c in mp.active_children() if c.name == "humantele-sensing"]
 
 
 async def test_a_config_the_child_refuses_is_reported_once_and_not_restarted():

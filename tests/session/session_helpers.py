@@ -23,6 +23,7 @@ from humantele.recording import read_recording
 from humantele.signaling.server import SignalConfig, SignalingServer
 
 # The daemons' page credentials in these tests (the daemons take them from the environment).
+DEMO_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "demo.toml"  # with video
 PAIRING_CODE = "24681357"
 CONSOLE_KEY = "test-console-key-" + secrets.token_urlsafe(8)
 
@@ -192,7 +193,8 @@ def descendants(pid: int) -> set[int]:
 
 @dataclass
 class DemoRun:
-    """One ``humantele demo --json --record`` run, ended by a terminal's Ctrl-C (SIGINT to its
+    """One ``humantele demo --config configs/demo.toml --json --record`` run (with the video
+    tracks, recorded), ended by a terminal's Ctrl-C (SIGINT to its
     process group: the demo, both daemons and the servo at once) once it has recorded a scan
     long enough to analyse: what the tests of that run check. (The supervision test ends its
     demo with SIGTERM to the demo alone.)"""
@@ -241,15 +243,16 @@ def _read_lines(stream, lines: list[str]) -> None:
 
 @pytest.fixture(scope="session")
 def demo_run(tmp_path_factory) -> DemoRun:
-    """The demo run shared by the tests that check one run: it ends on its condition (scan 1
-    recorded, after the calibration, for ``SCAN_S`` with ``SCAN_POSES`` tracked probe poses),
-    not after a fixed duration."""
+    """The demo run shared by the tests that check one run (the command, its recording and
+    the analysis, the video's export): it ends on its condition (scan 1 recorded, after the
+    calibration, for ``SCAN_S`` with ``SCAN_POSES`` tracked probe poses), not after a fixed
+    duration."""
     tmp = tmp_path_factory.mktemp("demo")
     env = dict(os.environ)
     env.pop("HUMANTELE_TOKEN", None)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "humantele", "demo", "--duration", "120", "--json",
-         "--record", str(tmp / "demo.mcap")],
+        [sys.executable, "-m", "humantele", "demo", "--config", str(DEMO_CONFIG),
+         "--duration", "120", "--json", "--record", str(tmp / "demo.mcap")],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, start_new_session=True,
     )  # fmt: skip
     watchdog = threading.Timer(180.0, os.killpg, (proc.pid, signal.SIGKILL))  # never hang

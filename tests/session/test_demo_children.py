@@ -60,7 +60,7 @@ def _victim(demo: int, comm: str) -> int | None:
 TRACKS = {"humantele-video": "video", "humantele-sensi": "sensing", "humantele-servo": "servo"}
 SAID = {  # the owner's log line on noticing the kill
     "video": "video process exited with code -9; restarting it in 1 s",
-    "sensing": "the sensing process exited (code -9); restarting it",
+    "sensing": "sensing process exited with code -9; restarting it in 0.5 s",
     "servo": "servo process exited with code -9; restarting it in 2 s",
 }
 
@@ -170,8 +170,8 @@ def test_each_killed_child_comes_back_in_turn_and_ctrl_c_exits_0():
 def test_ctrl_c_while_the_killed_children_restart_exits_0():
     """One demo: the three children SIGKILLed at once; Ctrl-C once the video's and the
     servo's are being replaced (a status line says so, or the new process is there: the
-    video's comes after a 1 s back-off, between two status lines; the sensing process is
-    restarted at once and is still starting): exit 0, nothing left running."""
+    video's comes after a 1 s back-off, between two status lines; the sensing process's
+    after 0.5 s, and it is still starting): exit 0, nothing left running."""
     demo = Demo()
     try:
         killed = {"humantele-video": demo.kill_when_measuring("humantele-video")}

@@ -13,10 +13,14 @@ loop's wake-up latency with sensing beside it in a thread and in a process.
 real devices), ``(job, Measurement, seconds)`` out. The daemon's loop reads the
 answers with ``add_reader`` (never blocks on the child). One frame at most is in flight: the
 caller skips frames while :attr:`busy`, as it did with the thread. A child that dies is
-restarted (``max_restarts``, then :attr:`failed` and the caller falls back to its thread); a
-child that cannot build its sensing (a bad config) reports why and is not restarted. The child
-is started by :func:`humantele.runtime.child.spawn` (SIGINT and SIGTERM ignored: the daemon
-stops it; it ends when the daemon is gone, and when the pipe closes). Once started it runs at
+restarted by a :class:`~humantele.runtime.child.Restarter`, as the video and servo processes
+are: after ``RESTART_FIRST_S``, doubled per death up to ``RESTART_MAX_S``, reset by a child
+that stayed up 30 s; after ``max_restarts`` deaths in a row, :attr:`failed` and the caller
+falls back to its thread. (The pipe's end says at once that the child died, so the restart
+is timed on the loop, not found on a tick.) A child that cannot build its sensing (a bad
+config) reports why and is not restarted. The child is started by
+:func:`humantele.runtime.child.spawn` (SIGINT and SIGTERM ignored: the daemon stops it; it
+ends when the daemon is gone, and when the pipe closes). Once started it runs at
 SCHED_FIFO 5 (``sensing_realtime_priority``, :data:`~humantele.runtime.child.PRIORITY`):
 below the servo (80) and the daemons' loops (10), which preempt it, and above every normal
 process: the video process (nice 5, its POV thread 8), and a browser or a build on the same
@@ -36,10 +40,21 @@ from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
-from humantele.runtime.child import PRIORITY, Priority, set_priority, spawn, stop_process
+from humantele.runtime.child import (
+    PRIORITY,
+    Priority,
+    Restarter,
+    set_priority,
+    spawn,
+    stop_process,
+)
 from humantele.runtime.stats import process_cpu_percent
 
 log = logging.getLogger(__name__)
+
+RESTART_FIRST_S = 0.5  # a dead sensing process's replacement starts this soon (s): the
+# tracker's pose is stale until it measures (the video's is 1 s, the servo's 2 s)
+RESTART_MAX_S = 8.0  # the back-off's cap (s): 0.5, 1, 2, 4, 8 for the five tries
 
 OnResult = Callable[[int, Any, float], None]  # (job, Measurement, seconds measuring)
 
@@ -107,9 +122,11 @@ class SensingProcess:
         self.sensing_config = sensing_config
         self.on_result = on_result
         self.on_error = on_error
-        self.max_restarts = max_restarts
         self.priority = priority
-        self.restarts = 0
+        self.restarter = Restarter("sensing", self._restart, RESTART_FIRST_S, RESTART_MAX_S,
+                                   max_restarts=max_restarts)  # fmt: skip
+        self._restart_at: asyncio.TimerHandle | None = None
+        self._closed = False
         self.child_errors = 0  # sensing faults the child counted (all children so far)
         self._errors_before = 0
         self.ready = False
@@ -124,7 +141,19 @@ class SensingProcess:
 
     @property
     def running(self) -> bool:
-        return self._proc is not None and not self.failed
+        """A child is running or being replaced (not failed, not closed)."""
+        return (
+            not self.failed
+            and not self._closed
+            and (
+                self._proc is not None or self._restart_at is not None or self.restarter.restarting
+            )
+        )
+
+    @property
+    def restarts(self) -> int:
+        """Replacements started so far."""
+        return self.restarter.restarts
 
     def start(self, loop: asyncio.AbstractEventLoop | None = None) -> None:
         self._loop = loop or asyncio.get_running_loop()
@@ -184,6 +213,7 @@ class SensingProcess:
         kind = msg[0]
         if kind == "result":
             self.busy = False
+            self.restarter.check(self._loop.time(), True)  # up: a long run resets the back-off
             self.child_errors = self._errors_before + msg[4]
             self.on_result(msg[1], msg[2], msg[3])
         elif kind == "ready":
@@ -199,17 +229,24 @@ class SensingProcess:
         proc = self._proc
         self._drop_child()  # reaped: its exit code is known
         code = proc.exitcode if proc is not None else None
-        if self.restarts >= self.max_restarts:
+        loop = self._loop
+        assert loop is not None
+        self.restarter.check(loop.time(), False, code)  # logs it, schedules the replacement
+        if self.restarter.gave_up:
             self.failed = True
-            log.error(
-                "follower: the sensing process exited (code %s) %d times; measuring in a thread",
-                code,
-                self.restarts + 1,
-            )
-            return
-        self.restarts += 1
-        log.warning("follower: the sensing process exited (code %s); restarting it", code)
-        self._spawn()
+            log.error("follower: the sensing process keeps exiting; measuring in a thread")
+        elif self.restarter.due_at is not None:
+            self._restart_at = loop.call_at(self.restarter.due_at, self._restart_due)
+
+    def _restart_due(self) -> None:
+        self._restart_at = None
+        if self._loop is not None and not self._closed:
+            self.restarter.check(self._loop.time(), False)  # due: starts the replacement
+
+    async def _restart(self) -> None:
+        """The :class:`Restarter`'s ``start_new``: spawn the replacement (it says when ready)."""
+        if not self._closed:
+            self._spawn()
 
     def _drop_child(self) -> None:
         """Forget the child: stop reading its pipe, close it, reap the process."""
@@ -224,7 +261,12 @@ class SensingProcess:
         stop_process(proc, timeout_s=1.0, term=False)
 
     def close(self, timeout_s: float = 3.0) -> None:
-        """Ask the child to stop (the frame being measured ends first), then reap it."""
+        """Ask the child to stop (the frame being measured ends first), then reap it; no
+        replacement after this."""
+        self._closed = self.restarter.closed = True
+        if self._restart_at is not None:
+            self._restart_at.cancel()
+            self._restart_at = None
         conn, proc = self._conn, self._proc
         self._conn, self._proc = None, None
         if conn is not None:

@@ -283,7 +283,7 @@ class Restarter:
                 log.error("%s; not restarted again (%d tries)", self.down, self.attempts)
                 return
             self.due_at = now + self.delay()
-            log.error("%s; restarting it in %.0f s", self.down, self.delay())
+            log.error("%s; restarting it in %g s", self.down, self.delay())
             return
         if now >= self.due_at:
             self.task = asyncio.ensure_future(self._start())

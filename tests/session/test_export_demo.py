@@ -7,7 +7,6 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import av
 import pytest
@@ -18,20 +17,13 @@ from humantele.export.source import load
 from humantele.export.video import first_decodable
 from humantele.video.fidelity import psnr
 
-ROOT = Path(__file__).resolve().parents[2]
 
-
-@pytest.mark.e2e
 @pytest.mark.slow
-def test_demo_video_recorded_at_full_rate_exports_the_frames_the_expert_decoded(tmp_path):
+def test_demo_video_recorded_at_full_rate_exports_the_frames_the_expert_decoded(demo_run, tmp_path):
+    """The shared demo run (session_helpers.demo_run: configs/demo.toml, recorded)."""
+    assert demo_run.returncode == 0, demo_run.err[-3000:]
     env = {k: v for k, v in os.environ.items() if k != "HUMANTELE_TOKEN"}
-    demo = subprocess.run(
-        [sys.executable, "-m", "humantele", "demo", "--config", str(ROOT / "configs/demo.toml"),
-         "--duration", "25", "--json", "--record", str(tmp_path / "d.mcap")],
-        capture_output=True, text=True, env=env, cwd=ROOT, timeout=180,
-    )  # fmt: skip
-    assert demo.returncode == 0, demo.stderr[-3000:]
-    files = [tmp_path / "d.expert.mcap", tmp_path / "d.follower.mcap"]
+    files = list(demo_run.recordings)
     sessions, problems = load(files)
     assert problems == []
     (es,) = sessions
