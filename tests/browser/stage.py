@@ -47,6 +47,12 @@ CHROMIUM_ARGS = [
 # composites on the emulated one, so WebGL frames are not read back to a software compositor
 # (that added ~90 ms from a pose's receipt to the page's draw).
 SOFTWARE_COMPOSITING = ["--disable-gpu-compositing"]
+# The pages' windows (CSS px): the sonographer's screen; a headset browser's window, smaller:
+# its WebGL scene is rendered (antialiased) and composited in SwiftShader on the CPU, which at
+# 1280 x 800 took 1.4 cores (30 CPU-s in a 21 s scenario), 19 CPU-s at this size, starving
+# the daemons of the tests running beside it. (scenarios/pages_bench.py keeps 1280 x 800.)
+CONSOLE_WINDOW = (1280, 800)
+HEADSET_WINDOW = (960, 600)
 # Meta's emulator as a Quest 3, installed before any page script runs.
 IWER_INSTALL = (  # the device kept as window.xrDevice: a scenario may move the headset
     "globalThis.xrDevice = new IWER.XRDevice(IWER.metaQuest3);"
@@ -101,16 +107,19 @@ class Ctx:
         self,
         url: str,
         iwer: bool = False,
-        width: int = 1280,
-        height: int = 800,
+        width: int | None = None,
+        height: int | None = None,
         init_script: str = "",
         headset: bool = False,
     ) -> Page:
         """A new page (its own context) at ``url``; with ``iwer``, the WebXR emulator;
         ``init_script``: JavaScript run before the page's own (e.g. its storage);
-        ``headset`` (implied by ``iwer``): in the headset's browser (GPU compositing)."""
+        ``headset`` (implied by ``iwer``): in the headset's browser (GPU compositing);
+        ``width`` x ``height`` (CSS px): by default the window of the browser it opens in."""
         assert self.browser is not None
         browser = self.browser
+        default_w, default_h = HEADSET_WINDOW if headset or iwer else CONSOLE_WINDOW
+        width, height = width or default_w, height or default_h
         if headset or iwer:
             if self._headset_browser is None:
                 self._headset_browser = await self._launch([])

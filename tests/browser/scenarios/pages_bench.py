@@ -133,7 +133,7 @@ async def designs_phase(ctx, demo, seconds: float, designs, rounds: int) -> list
 
 
 async def headset_phase(ctx, demo, seconds: float) -> dict:
-    page = await ctx.page(page_url(demo.stats("follower")), headset=True)
+    page = await ctx.page(page_url(demo.stats("follower")), headset=True, width=1280, height=800)
     await ctx.until(page, LIVE, 90)
     fr0 = await page.evaluate("headset.frames")
     w0 = Window(demo)
