@@ -51,8 +51,12 @@ async def test_the_child_measures_frames_restarts_when_killed_and_stops_cleanly(
         dp, _ = m.T_world_tip.distance_to(truth.T_world_tip)
         assert dp < 3e-3  # measured through the pipeline in the child, not the truth copied
         assert dp > 0.0
+        t_kill = asyncio.get_running_loop().time()
         os.kill(first_pid, signal.SIGKILL)
+        await _until(lambda: proc.restarter.due_at is not None)  # its back-off
+        assert proc.running and not proc.ready and not proc.submit(3, None)  # being replaced
         await _until(lambda: proc.restarts == 1 and proc.ready)
+        assert asyncio.get_running_loop().time() - t_kill >= RESTART_FIRST_S
         assert proc.pid != first_pid and not proc.failed
         assert proc.submit(3, (0.2, world.truth(0.2)))
         await _until(lambda: len(results) == 2)
@@ -69,25 +73,18 @@ async def test_the_child_measures_frames_restarts_when_killed_and_stops_cleanly(
     assert not alive
 
 
-async def test_a_child_that_keeps_dying_is_replaced_after_its_back_off_then_given_up():
-    """The replacement starts no sooner than the back-off; with ``max_restarts=1`` the second
-    death in a row is the last: failed (the daemon measures in a thread), nothing running."""
-    proc = SensingProcess(FollowerConfig(), None, lambda *r: None, max_restarts=1)
+async def test_a_child_that_dies_too_often_is_given_up_and_the_daemon_measures_in_a_thread():
+    """With ``max_restarts=0`` the first death is one too many: failed (the daemon measures in
+    a thread), no replacement started."""
+    proc = SensingProcess(FollowerConfig(), None, lambda *r: None, max_restarts=0)
     proc.start()
-    loop = asyncio.get_running_loop()
     try:
-        await _until(lambda: proc.ready)
-        t_kill = loop.time()
-        os.kill(proc.pid, signal.SIGKILL)
-        await _until(lambda: proc.restarter.due_at is not None)
-        assert proc.running and not proc.ready and not proc.submit(1, None)  # being replaced
-        await _until(lambda: proc.restarts == 1)
-        assert loop.time() - t_kill >= RESTART_FIRST_S
         await _until(lambda: proc.ready)
         os.kill(proc.pid, signal.SIGKILL)
         await _until(lambda: proc.failed)
-        await asyncio.sleep(2 * RESTART_FIRST_S)  # past the next back-off: nothing started
-        assert proc.restarts == 1 and not proc.running and not _sensing_children()
+        await asyncio.sleep(2 * RESTART_FIRST_S)  # past a back-off: nothing started
+        assert proc.restarts == 0 and not proc.running and not _sensing_children()
+        assert not proc.submit(1, None)
     finally:
         proc.close()
 
