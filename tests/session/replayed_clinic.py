@@ -43,6 +43,8 @@ class Recording:
     dir: Path
     truth: dict[float, Pose]
     rigs: dict[float, Pose]
+    records: list[AhatRecord] | None = None  # the AHAT frames, when not saved to ahat.npz
+    calibration: Hl2ssAhatCalibration | None = None
 
 
 def device_time(k: int) -> float:
@@ -83,8 +85,11 @@ def calibration_presses(world: SimWorld, hover_s: float = 2.0) -> tuple[Callable
 
 
 def make_recording(out: Path, seconds: float, targets: Callable[[float], Pose],
-                   world: SimWorld) -> Recording:  # fmt: skip
-    """Record ``seconds`` of the sim clinic with its novice moving to ``targets(t)``."""
+                   world: SimWorld, save_ahat: bool = True) -> Recording:  # fmt: skip
+    """Record ``seconds`` of the sim clinic with its novice moving to ``targets(t)``. Without
+    ``save_ahat`` the AHAT frames stay in memory (``records``): deflating them into ahat.npz
+    (1 MB a frame of noise) takes 7 s for 10 s of frames, for a caller that serves them from
+    memory anyway."""
     tool = load_tool("probe_default")
     camera = SimFrameSource(SimFrameConfig(seed=5), tool)
     board = SimForceSensor(SimForceConfig())
@@ -105,7 +110,8 @@ def make_recording(out: Path, seconds: float, targets: Callable[[float], Pose],
             r = board.read(len(reports) / HID_RATE_HZ)
             reports.append(encode_report(len(reports), int(r.t * 1e6), r.a, r.b, r.temperature_c))
     calibration = Hl2ssAhatCalibration.pinhole(camera.intrinsics, T_RIG_CAMERA)
-    save_records(out / "ahat.npz", records, calibration)
+    if save_ahat:
+        save_records(out / "ahat.npz", records, calibration)
     calibration.save(out / "ahat_calibration.json")
     (out / "board.hex").write_text("\n".join(r.hex() for r in reports) + "\n")
     calibrate_sim(SimForceSensor(SimForceConfig())).save(out / "board_calibration.json")
@@ -117,7 +123,9 @@ def make_recording(out: Path, seconds: float, targets: Callable[[float], Pose],
             cv2.circle(img, (w // 2 + k, h // 2), 30, (200, 200, 200), -1)
             video.write(img)
         video.release()
-    return Recording(out, truth, rigs)
+    if save_ahat:
+        return Recording(out, truth, rigs)
+    return Recording(out, truth, rigs, records, calibration)
 
 
 def fake_libhd(tmp_path: Path) -> str:

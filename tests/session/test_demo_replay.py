@@ -20,7 +20,7 @@ from session_helpers import read_json
 
 from humantele.devices import record as record_cmd
 from humantele.follower.sim_world import SimWorld
-from humantele.tracking.hl2ss_replay import Hl2ssReplayServer, load_records
+from humantele.tracking.hl2ss_replay import Hl2ssReplayServer
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -30,8 +30,8 @@ def record_clinic(tmp_path, monkeypatch):
     kept in it)."""
     world = SimWorld()
     targets, end = calibration_presses(world, hover_s=1.0)
-    rec = make_recording(tmp_path, end + 2.0, targets, world)
-    records, cal = load_records(rec.dir / "ahat.npz")
+    rec = make_recording(tmp_path, end + 2.0, targets, world, save_ahat=False)
+    records, cal = rec.records, rec.calibration
     for name, value in replay_env(rec.dir).items():
         monkeypatch.setenv(name, value)
     monkeypatch.syspath_prepend(replay_env(rec.dir)["PYTHONPATH"].split(":")[0])
