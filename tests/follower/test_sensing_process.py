@@ -10,6 +10,7 @@ import numpy as np
 
 from humantele.follower.daemon import FollowerConfig, FollowerDaemon
 from humantele.follower.sensing_process import RESTART_FIRST_S, SensingProcess
+from humantele.follower.sensing_worker import SensingWorker
 from humantele.follower.sim_human import probe_down_quat
 from humantele.follower.sim_world import SimWorld
 from humantele.geometry import Pose
@@ -55,7 +56,9 @@ async def test_the_child_measures_frames_restarts_when_killed_and_stops_cleanly(
         os.kill(first_pid, signal.SIGKILL)
         await _until(lambda: proc.restarter.due_at is not None)  # its back-off
         assert proc.running and not proc.ready and not proc.submit(3, None)  # being replaced
+        assert _state_of(proc) == "restarting (1)"  # as the status line shows it
         await _until(lambda: proc.restarts == 1 and proc.ready)
+        assert _state_of(proc) == "running"
         assert asyncio.get_running_loop().time() - t_kill >= RESTART_FIRST_S
         assert proc.pid != first_pid and not proc.failed
         assert proc.submit(3, (0.2, world.truth(0.2)))
@@ -100,6 +103,13 @@ async def test_a_close_during_the_back_off_starts_no_replacement():
         proc.close()
     await asyncio.sleep(2 * RESTART_FIRST_S)  # past the replacement's due time
     assert proc.restarts == 0 and not proc.running and not _sensing_children()
+
+
+def _state_of(proc: SensingProcess) -> str:
+    """The follower's sensing state (its stats' ``sensing_state``) with ``proc`` measuring."""
+    worker = SensingWorker(FollowerConfig(), None, lambda *a: None, lambda r: None)
+    worker.proc = proc
+    return worker.state()
 
 
 def _sensing_children() -> list:

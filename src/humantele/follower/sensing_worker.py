@@ -195,8 +195,9 @@ class SensingWorker:
             return "thread"
         if proc.failed:
             return f"failed: {proc.error or 'exited too often; measuring in a thread'}"
-        if not proc.ready:
-            return f"restarting ({proc.restarts})" if proc.restarts else "starting"
+        if not proc.ready:  # the replacement under way counts from the death (its back-off)
+            n = proc.restarts + (1 if proc.restarter.down else 0)
+            return f"restarting ({n})" if n else "starting"
         return "running"
 
     def close(self) -> None:
