@@ -105,6 +105,37 @@ async def test_a_close_during_the_back_off_starts_no_replacement():
     assert proc.restarts == 0 and not proc.running and not _sensing_children()
 
 
+async def test_a_replacement_that_cannot_start_is_tried_again_after_a_longer_wait(
+    monkeypatch, caplog
+):
+    """The first replacement's spawn fails (the system refused a process): said, and tried
+    again after the doubled back-off, which starts it."""
+    import humantele.follower.sensing_process as sp
+
+    monkeypatch.setattr(sp, "RESTART_FIRST_S", 0.05)
+    spawns, real_spawn = [], sp.spawn
+
+    def spawn_refused_once(*args, **kwargs):
+        spawns.append(asyncio.get_running_loop().time())
+        if len(spawns) == 2:  # the first replacement
+            raise OSError(11, "Resource temporarily unavailable")
+        return real_spawn(*args, **kwargs)
+
+    proc = SensingProcess(FollowerConfig(), None, lambda *r: None)
+    monkeypatch.setattr(sp, "spawn", spawn_refused_once)
+    proc.start()
+    try:
+        await _until(lambda: proc.ready)
+        t_kill = asyncio.get_running_loop().time()
+        os.kill(proc.pid, signal.SIGKILL)
+        await _until(lambda: proc.restarts == 1 and proc.ready)
+        assert len(spawns) == 3 and not proc.failed
+        assert spawns[2] - spawns[1] >= 2 * 0.05 and spawns[1] - t_kill >= 0.05
+        assert "Resource temporarily unavailable" in caplog.text
+    finally:
+        proc.close()
+
+
 def _state_of(proc: SensingProcess) -> str:
     """The follower's sensing state (its stats' ``sensing_state``) with ``proc`` measuring."""
     worker = SensingWorker(FollowerConfig(), None, lambda *a: None, lambda r: None)

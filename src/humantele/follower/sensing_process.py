@@ -142,13 +142,8 @@ class SensingProcess:
     @property
     def running(self) -> bool:
         """A child is running or being replaced (not failed, not closed)."""
-        return (
-            not self.failed
-            and not self._closed
-            and (
-                self._proc is not None or self._restart_at is not None or self.restarter.restarting
-            )
-        )
+        replacing = bool(self.restarter.down)  # from its death to its replacement's start
+        return not self.failed and not self._closed and (self._proc is not None or replacing)
 
     @property
     def restarts(self) -> int:
@@ -229,9 +224,14 @@ class SensingProcess:
         proc = self._proc
         self._drop_child()  # reaped: its exit code is known
         code = proc.exitcode if proc is not None else None
+        self._schedule(code)
+
+    def _schedule(self, code: int | None = None) -> None:
+        """After a death (its exit ``code``) or a replacement that could not start: the
+        :class:`Restarter` logs it and sets the next try, timed on the loop; or it gives up."""
         loop = self._loop
         assert loop is not None
-        self.restarter.check(loop.time(), False, code)  # logs it, schedules the replacement
+        self.restarter.check(loop.time(), False, code)
         if self.restarter.gave_up:
             self.failed = True
             log.error("follower: the sensing process keeps exiting; measuring in a thread")
@@ -240,8 +240,15 @@ class SensingProcess:
 
     def _restart_due(self) -> None:
         self._restart_at = None
-        if self._loop is not None and not self._closed:
-            self.restarter.check(self._loop.time(), False)  # due: starts the replacement
+        if self._loop is None or self._closed:
+            return
+        self.restarter.check(self._loop.time(), False)  # due: starts the replacement
+        if self.restarter.task is not None:
+            self.restarter.task.add_done_callback(self._restart_done)
+
+    def _restart_done(self, _task: asyncio.Future) -> None:
+        if not self._closed and not self.failed and self._proc is None:  # it could not start
+            self._schedule()
 
     async def _restart(self) -> None:
         """The :class:`Restarter`'s ``start_new``: spawn the replacement (it says when ready)."""
