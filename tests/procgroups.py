@@ -37,7 +37,7 @@ def descendants(pid: int) -> set[int]:
     return out
 
 
-def _resource_tracker(pid: int) -> bool:
+def resource_tracker(pid: int) -> bool:
     """Whether ``pid`` is a multiprocessing resource tracker: it ends by itself once the
     process it serves is gone, after unlinking the shared memory that process left."""
     try:
@@ -68,7 +68,7 @@ def kill_descendants(pid: int | None = None) -> int:
                 with contextlib.suppress(OSError):
                     if os.getpgid(int(d.name)) in groups:
                         members.add(int(d.name))
-        victims = {p for p in members - {me} if not _resource_tracker(p)}
+        victims = {p for p in members - {me} if not resource_tracker(p)}
         if not victims:
             break
         for p in victims:

@@ -27,7 +27,7 @@ from typing import Any
 from playwright.async_api import Browser, BrowserContext, Page, async_playwright
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent / "session"))
+sys.path[:0] = [str(HERE.parent / "session"), str(HERE.parent)]  # its helpers, and tests/'s
 
 from netns import chromium_path  # noqa: E402
 from session_helpers import CONSOLE_KEY, PAIRING_CODE, Session, read_json  # noqa: E402

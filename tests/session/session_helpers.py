@@ -21,9 +21,10 @@ from humantele.follower.calibration import CALIBRATION_FILE, build_calibration
 from humantele.follower.sim_human import SimPatient
 from humantele.recording import read_recording
 from humantele.signaling.server import SignalConfig, SignalingServer
+from procgroups import resource_tracker
 
-# The daemons' page credentials in these tests (the daemons take them from the environment).
 DEMO_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "demo.toml"  # with video
+# The daemons' page credentials in these tests (the daemons take them from the environment).
 PAIRING_CODE = "24681357"
 CONSOLE_KEY = "test-console-key-" + secrets.token_urlsafe(8)
 
@@ -149,14 +150,24 @@ class Session:
         )
 
     async def close(self) -> None:
-        """Kill what is still running, the daemons' children (servo, sensing, video) too."""
+        """Kill what is still running, the daemons' children (servo, sensing, video) too, but
+        not their resource trackers: those unlink the shared memory the killed processes left
+        (killed too, they left the servo's blocks in /dev/shm), and are waited for (5 s)."""
+        trackers = set()
         for proc in self.procs.values():
             if proc.returncode is None:
                 for child in descendants(proc.pid):
+                    if resource_tracker(child):
+                        trackers.add(child)
+                        continue
                     with contextlib.suppress(OSError):
                         os.kill(child, signal.SIGKILL)
                 proc.kill()
                 await proc.wait()
+        for _ in range(50):
+            if not any(pid_alive(p) for p in trackers):
+                break
+            await asyncio.sleep(0.1)
         await self.server.stop()
 
 
