@@ -21,7 +21,7 @@ from humantele.follower.calibration import CALIBRATION_FILE, build_calibration
 from humantele.follower.sim_human import SimPatient
 from humantele.recording import read_recording
 from humantele.signaling.server import SignalConfig, SignalingServer
-from procgroups import resource_tracker
+from procgroups import descendants, resource_tracker
 
 DEMO_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "demo.toml"  # with video
 # The daemons' page credentials in these tests (the daemons take them from the environment).
@@ -181,25 +181,6 @@ async def session(tmp_path):
         yield s
     finally:
         await s.close()
-
-
-def descendants(pid: int) -> set[int]:
-    """All live descendants of ``pid`` (from /proc)."""
-    children: dict[int, list[int]] = {}
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                continue
-            children.setdefault(ppid, []).append(int(d.name))
-    out, todo = set(), [pid]
-    while todo:
-        for c in children.get(todo.pop(), []):
-            if c not in out:
-                out.add(c)
-                todo.append(c)
-    return out
 
 
 @dataclass
