@@ -136,6 +136,25 @@ async def test_a_replacement_that_cannot_start_is_tried_again_after_a_longer_wai
         proc.close()
 
 
+async def test_a_back_off_timer_that_fires_early_still_starts_the_replacement(monkeypatch):
+    """asyncio may run a timer up to its clock's resolution early; the due time is then taken
+    as reached (here the timer is run 5 s early, by hand)."""
+    import humantele.follower.sensing_process as sp
+
+    monkeypatch.setattr(sp, "RESTART_FIRST_S", 5.0)
+    proc = SensingProcess(FollowerConfig(), None, lambda *r: None)
+    proc.start()
+    try:
+        await _until(lambda: proc.ready)
+        os.kill(proc.pid, signal.SIGKILL)
+        await _until(lambda: proc.restarter.due_at is not None)
+        proc._restart_at.cancel()  # noqa: SLF001 - the loop's timer, run early instead
+        proc._restart_due()  # noqa: SLF001
+        await _until(lambda: proc.restarts == 1, timeout=4.0)
+    finally:
+        proc.close()
+
+
 def _state_of(proc: SensingProcess) -> str:
     """The follower's sensing state (its stats' ``sensing_state``) with ``proc`` measuring."""
     worker = SensingWorker(FollowerConfig(), None, lambda *a: None, lambda r: None)

@@ -242,7 +242,11 @@ class SensingProcess:
         self._restart_at = None
         if self._loop is None or self._closed:
             return
-        self.restarter.check(self._loop.time(), False)  # due: starts the replacement
+        # due: starts the replacement (asyncio may run a timer up to its clock's resolution
+        # early, which the Restarter would take for "not yet", and nothing would call again)
+        due = self.restarter.due_at
+        now = self._loop.time() if due is None else max(self._loop.time(), due)
+        self.restarter.check(now, False)
         if self.restarter.task is not None:
             self.restarter.task.add_done_callback(self._restart_done)
 
