@@ -55,7 +55,9 @@ class ServoConfig(ConfigModel):
     velocity_cutoff_hz: float = Field(100.0, gt=0.0, le=2000.0)
     realtime_priority: int = Field(80, ge=0, le=99, description="SCHED_FIFO priority; 0 = off")
     cpu_affinity: list[int] | None = None
-    spin_s: float = Field(0.0002, ge=0.0, le=0.001)
+    spin_s: float = Field(
+        0.0002, ge=0.0, le=0.001, description="s, the most spun before a tick (SpinBudget)"
+    )
     allow_unstable_gains: bool = False
 
     @model_validator(mode="after")
