@@ -23,7 +23,8 @@ from humantele.recording import read_recording
 from humantele.signaling.server import SignalConfig, SignalingServer
 from procgroups import descendants, resource_tracker
 
-DEMO_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "demo.toml"  # with video
+ROOT = Path(__file__).resolve().parents[2]
+DEMO_CONFIG = ROOT / "configs" / "demo.toml"  # with video
 # The daemons' page credentials in these tests (the daemons take them from the environment).
 PAIRING_CODE = "24681357"
 CONSOLE_KEY = "test-console-key-" + secrets.token_urlsafe(8)
@@ -181,6 +182,46 @@ async def session(tmp_path):
         yield s
     finally:
         await s.close()
+
+
+class DemoLines:
+    """``humantele demo ARGS`` in its own session (process group), read status line by status
+    line (stderr, every 2 s with ``--json``); every process of the demo's is kept in
+    :attr:`seen`, to check none is left."""
+
+    def __init__(self, *args: str, timeout_s: float = 600.0) -> None:
+        env = dict(os.environ)
+        env.pop("HUMANTELE_TOKEN", None)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "humantele", "demo", *args],
+            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+            start_new_session=True,
+        )  # fmt: skip
+        self.lines: list[str] = []
+        self.seen: set[int] = set()
+        self.t_end = time.monotonic() + timeout_s  # generous: a loaded 2-core machine is slow
+
+    def line(self) -> str:
+        """The next status line (fails the test at the timeout or if the demo ended)."""
+        assert time.monotonic() < self.t_end, "timed out:\n" + "".join(self.lines[-10:])
+        line = self.proc.stderr.readline()
+        assert line, "demo ended early:\n" + "".join(self.lines[-10:])
+        self.lines.append(line)
+        self.seen |= descendants(self.proc.pid)
+        return line
+
+    def left_running(self, wait_s: float = 10.0) -> list[int]:
+        """The demo's processes still running after up to ``wait_s``."""
+        end = time.monotonic() + wait_s
+        while any(pid_alive(p) for p in self.seen) and time.monotonic() < end:
+            time.sleep(0.1)
+        return [p for p in self.seen if pid_alive(p)]
+
+    def kill(self) -> None:
+        """SIGKILL the whole group if the demo still runs."""
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.communicate()
 
 
 @dataclass

@@ -9,24 +9,14 @@ import os
 import re
 import shutil
 import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
-from session_helpers import descendants, pid_alive
+from session_helpers import DemoLines, descendants, pid_alive
 
 from humantele.demo_status import poses_flowing
 
-ROOT = Path(__file__).resolve().parents[2]
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
-
-
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env.pop("HUMANTELE_TOKEN", None)
-    return env
 
 
 def _children(parent: int) -> dict[int, tuple[str, str]]:
@@ -71,27 +61,11 @@ def _down(track: str, line: str) -> bool:
     return down or (track == "servo" and "servo - Hz" in line)  # no rate: not running
 
 
-class Demo:
+class Demo(DemoLines):
     """``humantele demo --json --keep`` with video, read status line by status line."""
 
     def __init__(self) -> None:
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "humantele", "demo", "--config", "configs/demo.toml",
-             "--duration", "900", "--json", "--keep"],
-            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(),
-            start_new_session=True,
-        )  # fmt: skip
-        self.lines: list[str] = []
-        self.seen: set[int] = set()  # every process of the demo's, to check none is left
-        self.t_end = time.monotonic() + 600.0  # generous: a loaded 2-core machine is slow
-
-    def line(self) -> str:
-        assert time.monotonic() < self.t_end, "timed out:\n" + "".join(self.lines[-10:])
-        line = self.proc.stderr.readline()
-        assert line, "demo ended early:\n" + "".join(self.lines[-10:])
-        self.lines.append(line)
-        self.seen |= descendants(self.proc.pid)
-        return line
+        super().__init__("--config", "configs/demo.toml", "--duration", "900", "--json", "--keep")
 
     def kill_when_measuring(self, comm: str) -> int:
         """SIGKILL ``comm`` once poses flow and the sensing measures (its time without
@@ -112,9 +86,7 @@ class Demo:
             os.killpg(self.proc.pid, signal.SIGINT)
             out, err = self.proc.communicate(timeout=120)
         finally:
-            if self.proc.poll() is None:
-                os.killpg(self.proc.pid, signal.SIGKILL)
-                self.proc.communicate()
+            self.kill()
         text = "".join(self.lines) + err
         assert self.proc.returncode == 0, text[-4000:]
         summary = json.loads(out.strip().splitlines()[-1])
@@ -124,17 +96,11 @@ class Demo:
         logs = {r: (self.run_dir / f"{r}.log").read_text() for r in ("expert", "follower")}
         for log in logs.values():
             assert "leaked" not in log and "Traceback" not in log, log[-3000:]
-        for _ in range(100):
-            if not any(pid_alive(p) for p in self.seen):
-                break
-            time.sleep(0.1)
-        assert not [p for p in self.seen if pid_alive(p)]
+        assert not self.left_running()
         return summary, text, logs
 
     def close(self) -> None:
-        if self.proc.poll() is None:
-            os.killpg(self.proc.pid, signal.SIGKILL)
-            self.proc.communicate()
+        self.kill()
         if getattr(self, "run_dir", None):
             shutil.rmtree(self.run_dir, ignore_errors=True)
 
@@ -143,10 +109,13 @@ def _log_of(logs: dict[str, str], track: str) -> str:
     return logs["expert" if track == "servo" else "follower"]
 
 
-def test_each_killed_child_comes_back_in_turn_and_ctrl_c_exits_0():
-    """One demo: the video process, then the sensing process, then the servo SIGKILLed, each
-    once the one before is back: each restarted once (the new one running through two
-    status lines with poses flowing), said in its daemon's log; the sensing's gap counted."""
+def test_killed_children_come_back_in_turn_then_ctrl_c_while_all_three_restart_exits_0():
+    """One demo. First the video process, then the sensing process, then the servo SIGKILLed,
+    each once the one before is back: each restarted (the new one running through two status
+    lines with poses flowing), said in its daemon's log; the sensing's gap counted. Then the
+    three SIGKILLed at once, and Ctrl-C once the video's and the servo's are being replaced (a
+    status line says so, or the new process is there; their back-offs have doubled): exit 0,
+    nothing left running, each death said in its daemon's log."""
     demo = Demo()
     try:
         for comm, track in TRACKS.items():
@@ -157,23 +126,6 @@ def test_each_killed_child_comes_back_in_turn_and_ctrl_c_exits_0():
                 current = _victim(demo.proc.pid, comm)
                 back = current not in (None, killed) and not _down(track, line)
                 good = good + 1 if back and poses_flowing(line) else 0
-        summary, _, logs = demo.ctrl_c()
-    finally:
-        demo.close()
-    for track in TRACKS.values():
-        assert summary["children"][track]["restarts"] == 1, summary["children"]
-        assert SAID[track] in _log_of(logs, track), _log_of(logs, track)[-3000:]
-    assert summary["children"]["sensing"]["measurement_gaps"] >= 1
-    assert summary["children"]["sensing"]["measurement_gap_s"] > 0.5
-
-
-def test_ctrl_c_while_the_killed_children_restart_exits_0():
-    """One demo: the three children SIGKILLed at once; Ctrl-C once the video's and the
-    servo's are being replaced (a status line says so, or the new process is there: the
-    video's comes after a 1 s back-off, between two status lines; the sensing process's
-    after 0.5 s, and it is still starting): exit 0, nothing left running."""
-    demo = Demo()
-    try:
         killed = {"humantele-video": demo.kill_when_measuring("humantele-video")}
         for comm in ("humantele-sensi", "humantele-servo"):
             killed[comm] = _victim(demo.proc.pid, comm)
@@ -186,8 +138,13 @@ def test_ctrl_c_while_the_killed_children_restart_exits_0():
                 new = _victim(demo.proc.pid, comm) not in (None, killed[comm])
                 if new or _down(TRACKS[comm], line):
                     replacing.add(comm)
-        _, _, logs = demo.ctrl_c()
+        summary, _, logs = demo.ctrl_c()
     finally:
         demo.close()
     for track in TRACKS.values():
-        assert SAID[track] in _log_of(logs, track), _log_of(logs, track)[-3000:]
+        log = _log_of(logs, track)
+        assert SAID[track] in log, log[-3000:]  # the first death: the first back-off
+        assert log.count(f"{track} process exited with code -9") == 2, log[-3000:]
+        assert summary["children"][track]["restarts"] in (1, 2), summary["children"]
+    assert summary["children"]["sensing"]["measurement_gaps"] >= 1
+    assert summary["children"]["sensing"]["measurement_gap_s"] > 0.5

@@ -6,12 +6,10 @@ import json
 import os
 import signal
 import socket
-import subprocess
-import sys
 import time
 
 import pytest
-from session_helpers import descendants, pid_alive
+from session_helpers import DemoLines, descendants
 
 from humantele.demo_report import CountWindow
 from humantele.demo_status import poses_flowing
@@ -93,41 +91,28 @@ def _child(parent: int, word: str) -> int | None:
 
 @pytest.mark.slow
 def test_sigkill_of_the_follower_during_a_demo_it_comes_back_and_poses_flow_again():
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "humantele", "demo", "--duration", "400", "--json"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(),
-        start_new_session=True,
-    )  # fmt: skip
-    lines: list[str] = []
-    seen: set[int] = set()  # the demo's descendants while it ran
+    demo = DemoLines("--duration", "400", "--json", timeout_s=300.0)
     killed = None
     try:
-        t_end = time.monotonic() + 300.0  # generous: a loaded 2-core machine starts slowly
-        while time.monotonic() < t_end:
-            line = proc.stderr.readline()
-            assert line, "demo ended early:\n" + "".join(lines[-10:])
-            lines.append(line)
-            seen |= descendants(proc.pid)
+        while True:
+            line = demo.line()
             flowing = poses_flowing(line)
             if killed is None and flowing:
-                killed = _child(proc.pid, "follower")
+                killed = _child(demo.proc.pid, "follower")
                 assert killed is not None
                 os.kill(killed, signal.SIGKILL)
                 continue
             if killed is not None and flowing and "follower rejoined (restart 1)" in line:
                 break
-        else:
-            pytest.fail("the follower did not rejoin:\n" + "".join(lines[-10:]))
-        new = _child(proc.pid, "follower")
+        new = _child(demo.proc.pid, "follower")
         assert new is not None and new != killed
-        seen |= descendants(proc.pid)
-        proc.send_signal(signal.SIGTERM)  # to the demo alone (Ctrl-C: test_demo_command.py)
-        out, err = proc.communicate(timeout=60)
+        demo.seen |= descendants(demo.proc.pid)
+        demo.proc.send_signal(signal.SIGTERM)  # to the demo alone (Ctrl-C: test_demo_command.py)
+        out, err = demo.proc.communicate(timeout=60)
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-    assert any("follower restarted (1), starting" in ln for ln in lines)
-    assert proc.returncode == 0, err[-3000:]
+        demo.kill()
+    assert any("follower restarted (1), starting" in ln for ln in demo.lines)
+    assert demo.proc.returncode == 0, err[-3000:]
     s = json.loads(out.strip().splitlines()[-1])
     assert s["restarts"] == {"expert": 0, "follower": 1}
     assert s["restart_exit_codes"]["follower"] == [-9]
@@ -137,12 +122,8 @@ def test_sigkill_of_the_follower_during_a_demo_it_comes_back_and_poses_flow_agai
     assert 0 < s["poses_received"] <= s["poses_sent"]
     assert s["states_received"] <= s["states_sent"]
     # SIGTERM left no process: the daemons (both followers), the servo, their children.
-    assert len(seen) >= 4, seen
-    for _ in range(50):
-        if not any(pid_alive(p) for p in seen):
-            break
-        time.sleep(0.1)
-    assert not [p for p in seen if pid_alive(p)]
+    assert len(demo.seen) >= 4, demo.seen
+    assert not demo.left_running(5.0)
 
 
 def test_count_window_starts_at_the_restart_not_at_the_new_process_first_stats():
