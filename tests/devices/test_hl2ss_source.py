@@ -9,6 +9,7 @@ import struct
 import subprocess
 import sys
 import threading
+import zipfile
 
 import numpy as np
 import pytest
@@ -295,16 +296,20 @@ def test_devices_check_reads_an_hl2ss_headset(tmp_path, capsys):
     assert AHAT_PIXELS == 512 * 512
 
 
-def test_records_file_round_trip(tmp_path):
+@pytest.mark.parametrize("compress", [True, False])
+def test_records_file_round_trip(tmp_path, compress):
     frames = sim_frames(3)
     recs = [record(f, k, None if k == 1 else rig_pose(k)) for k, f in enumerate(frames)]
     path = tmp_path / "ahat.npz"
-    save_records(path, recs, calibration(frames))
+    save_records(path, recs, calibration(frames), compress=compress)
     back, cal = load_records(path)
     assert cal.T_rig_camera().distance_to(T_RIG_CAMERA)[0] < 1e-6
     assert [r.timestamp for r in back] == [r.timestamp for r in recs]
     assert back[1].T_world_rig is None and back[2].T_world_rig.distance_to(rig_pose(2))[0] < 1e-6
     assert np.array_equal(back[2].ab, recs[2].ab)
+    assert np.array_equal(back[0].depth_mm, recs[0].depth_mm)
+    stored = {i.compress_type for i in zipfile.ZipFile(path).infolist()}
+    assert stored == {zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED}
     (tmp_path / "bad.npz").write_bytes(b"not a zip")
     with pytest.raises(ValueError, match="bad.npz"):
         load_records(tmp_path / "bad.npz")

@@ -86,10 +86,10 @@ def calibration_presses(world: SimWorld, hover_s: float = 2.0) -> tuple[Callable
 
 def make_recording(out: Path, seconds: float, targets: Callable[[float], Pose],
                    world: SimWorld, save_ahat: bool = True) -> Recording:  # fmt: skip
-    """Record ``seconds`` of the sim clinic with its novice moving to ``targets(t)``. Without
-    ``save_ahat`` the AHAT frames stay in memory (``records``): deflating them into ahat.npz
-    (1 MB a frame of noise) takes 7 s for 10 s of frames, for a caller that serves them from
-    memory anyway."""
+    """Record ``seconds`` of the sim clinic with its novice moving to ``targets(t)``. The AHAT
+    frames go to ahat.npz uncompressed (1 MB a frame of noise: deflating 15 s of them took 11
+    s, and the replay server 4 s to read them back); without ``save_ahat`` they stay in memory
+    (``records``), for a caller that serves them itself."""
     tool = load_tool("probe_default")
     camera = SimFrameSource(SimFrameConfig(seed=5), tool)
     board = SimForceSensor(SimForceConfig())
@@ -111,7 +111,7 @@ def make_recording(out: Path, seconds: float, targets: Callable[[float], Pose],
             reports.append(encode_report(len(reports), int(r.t * 1e6), r.a, r.b, r.temperature_c))
     calibration = Hl2ssAhatCalibration.pinhole(camera.intrinsics, T_RIG_CAMERA)
     if save_ahat:
-        save_records(out / "ahat.npz", records, calibration)
+        save_records(out / "ahat.npz", records, calibration, compress=False)
     calibration.save(out / "ahat_calibration.json")
     (out / "board.hex").write_text("\n".join(r.hex() for r in reports) + "\n")
     calibrate_sim(SimForceSensor(SimForceConfig())).save(out / "board_calibration.json")

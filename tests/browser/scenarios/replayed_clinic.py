@@ -185,4 +185,5 @@ async def run(ctx) -> dict:
     finally:
         server.kill()
         server.communicate(timeout=10)
+        (rec.dir / "ahat.npz").unlink()  # 0.7 GB of frames, stored uncompressed: not kept
     return data
