@@ -18,6 +18,7 @@ Ctrl-C, SIGTERM or SIGHUP (``procgroups``): stopping pytest leaves no daemon or 
 In the xdist controller (whose children are the workers) each worker does it for itself.
 """
 
+import os
 import sys
 from pathlib import Path
 
@@ -27,13 +28,17 @@ from hypothesis import settings
 from procgroups import pytest_configure, pytest_unconfigure  # noqa: F401 - the hooks
 
 # Where PYTHONDONTWRITEBYTECODE is set (this machine's images set it), pytest rewrote every
-# test module's asserts again on each run, in each worker: 2.1 of the 3.6 s a worker spends
-# collecting. Its rewritten modules are cached in its own cache folder instead, never beside
-# the sources (the variable's intent); the daemons and children the tests start still write
-# nothing.
+# test module's asserts again on each run, in each worker (2.1 of the 3.6 s a worker spends
+# collecting), and each daemon and child the tests start compiled every module it imported
+# again (0.1-0.2 CPU-s a process, some 300 processes in a whole run). Their bytecode is cached
+# in pytest's cache folder instead, never beside the sources (the variable's intent): here
+# through sys.pycache_prefix, in the processes the tests start (xdist's workers included)
+# through the environment they inherit.
 if sys.dont_write_bytecode:
     sys.pycache_prefix = str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "pycache")
     sys.dont_write_bytecode = False
+    os.environ["PYTHONPYCACHEPREFIX"] = sys.pycache_prefix
+    os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 
 FAST_LANE_WORKERS = 3  # -m "not e2e": its tests wait on timers and sockets a third of the time
 SUITE_WORKERS = 2  # with the e2e tests: their real-time loops need the two cores
