@@ -92,13 +92,18 @@ async def test_a_child_that_dies_too_often_is_given_up_and_the_daemon_measures_i
         proc.close()
 
 
+async def _killed_into_its_back_off(proc: SensingProcess) -> None:
+    """Start ``proc``, SIGKILL its child once it is ready; back once the replacement is timed."""
+    proc.start()
+    await _until(lambda: proc.ready)
+    os.kill(proc.pid, signal.SIGKILL)
+    await _until(lambda: proc.restarter.due_at is not None)
+
+
 async def test_a_close_during_the_back_off_starts_no_replacement():
     proc = SensingProcess(FollowerConfig(), None, lambda *r: None)
-    proc.start()
     try:
-        await _until(lambda: proc.ready)
-        os.kill(proc.pid, signal.SIGKILL)
-        await _until(lambda: proc.restarter.due_at is not None)
+        await _killed_into_its_back_off(proc)
     finally:
         proc.close()
     await asyncio.sleep(2 * RESTART_FIRST_S)  # past the replacement's due time
@@ -143,11 +148,8 @@ async def test_a_back_off_timer_that_fires_early_still_starts_the_replacement(mo
 
     monkeypatch.setattr(sp, "RESTART_FIRST_S", 5.0)
     proc = SensingProcess(FollowerConfig(), None, lambda *r: None)
-    proc.start()
     try:
-        await _until(lambda: proc.ready)
-        os.kill(proc.pid, signal.SIGKILL)
-        await _until(lambda: proc.restarter.due_at is not None)
+        await _killed_into_its_back_off(proc)
         proc._restart_at.cancel()  # noqa: SLF001 - the loop's timer, run early instead
         proc._restart_due()  # noqa: SLF001
         await _until(lambda: proc.restarts == 1, timeout=4.0)
