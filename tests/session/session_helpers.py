@@ -184,6 +184,23 @@ async def session(tmp_path):
         await s.close()
 
 
+def children(parent: int) -> dict[int, tuple[str, str]]:
+    """Live (not zombie) children of ``parent``: pid -> (comm, command line)."""
+    out = {}
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            stat = Path(f"/proc/{d}/stat").read_text()
+            comm = Path(f"/proc/{d}/comm").read_text().strip()
+            cmd = Path(f"/proc/{d}/cmdline").read_text().replace("\0", " ")
+        except OSError:
+            continue
+        if int(stat.rsplit(")", 1)[1].split()[1]) == parent and pid_alive(int(d)):
+            out[int(d)] = (comm, cmd)
+    return out
+
+
 class DemoLines:
     """``humantele demo ARGS`` in its own session (process group), read status line by status
     line (stderr, every 2 s with ``--json``); every process of the demo's is kept in
@@ -209,6 +226,11 @@ class DemoLines:
         self.lines.append(line)
         self.seen |= descendants(self.proc.pid)
         return line
+
+    def daemon(self, role: str) -> int | None:
+        """The running ``humantele <role>`` daemon of the demo's (None: none now)."""
+        found = children(self.proc.pid).items()
+        return next((p for p, (_, cmd) in found if f" {role} " in cmd), None)
 
     def left_running(self, wait_s: float = 10.0) -> list[int]:
         """The demo's processes still running after up to ``wait_s``."""

@@ -12,39 +12,20 @@ import signal
 from pathlib import Path
 
 import pytest
-from session_helpers import DemoLines, descendants, pid_alive
+from session_helpers import DemoLines, children, descendants
 
 from humantele.demo_status import poses_flowing
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
 
-def _children(parent: int) -> dict[int, tuple[str, str]]:
-    """Live children of ``parent``: pid -> (comm, cmdline)."""
-    out = {}
-    for d in os.listdir("/proc"):
-        if not d.isdigit():
-            continue
-        try:
-            stat = Path(f"/proc/{d}/stat").read_text()
-            comm = Path(f"/proc/{d}/comm").read_text().strip()
-            cmd = Path(f"/proc/{d}/cmdline").read_text().replace("\0", " ")
-        except OSError:
-            continue
-        if int(stat.rsplit(")", 1)[1].split()[1]) == parent and pid_alive(int(d)):
-            out[int(d)] = (comm, cmd)
-    return out
-
-
-def _daemon(demo: int, role: str) -> int | None:
-    return next((p for p, (_, cmd) in _children(demo).items() if f" {role} " in cmd), None)
-
-
-def _victim(demo: int, comm: str) -> int | None:
-    d = _daemon(demo, "expert" if comm == "humantele-servo" else "follower")
+def _victim(demo: DemoLines, comm: str) -> int | None:
+    """The demo's child process ``comm`` (the servo's under the expert, the others under the
+    follower)."""
+    d = demo.daemon("expert" if comm == "humantele-servo" else "follower")
     if d is None:
         return None
-    return next((p for p, (c, _) in _children(d).items() if c == comm), None)
+    return next((p for p, (c, _) in children(d).items() if c == comm), None)
 
 
 TRACKS = {"humantele-video": "video", "humantele-sensi": "sensing", "humantele-servo": "servo"}
@@ -73,7 +54,7 @@ class Demo(DemoLines):
         while True:
             line = self.line()
             if poses_flowing(line) and "starting the tracker" not in line:
-                victim = _victim(self.proc.pid, comm)
+                victim = _victim(self, comm)
                 if victim is not None:
                     os.kill(victim, signal.SIGKILL)
                     return victim
@@ -123,19 +104,19 @@ def test_killed_children_come_back_in_turn_then_ctrl_c_while_all_three_restart_e
             good = 0
             while good < 2:  # two status lines with the new one running
                 line = demo.line()
-                current = _victim(demo.proc.pid, comm)
+                current = _victim(demo, comm)
                 back = current not in (None, killed) and not _down(track, line)
                 good = good + 1 if back and poses_flowing(line) else 0
         killed = {"humantele-video": demo.kill_when_measuring("humantele-video")}
         for comm in ("humantele-sensi", "humantele-servo"):
-            killed[comm] = _victim(demo.proc.pid, comm)
+            killed[comm] = _victim(demo, comm)
             assert killed[comm] is not None, "".join(demo.lines[-5:])
             os.kill(killed[comm], signal.SIGKILL)
         replacing: set[str] = set()
         while not {"humantele-video", "humantele-servo"} <= replacing:
             line = demo.line()
             for comm in ("humantele-video", "humantele-servo"):
-                new = _victim(demo.proc.pid, comm) not in (None, killed[comm])
+                new = _victim(demo, comm) not in (None, killed[comm])
                 if new or _down(TRACKS[comm], line):
                     replacing.add(comm)
         summary, _, logs = demo.ctrl_c()

@@ -75,20 +75,6 @@ def test_count_window_takes_both_ends_from_the_rejoin():
     assert f2["poses_received"] <= e2["poses_sent"] and e2["states_received"] <= f2["states_sent"]
 
 
-def _child(parent: int, word: str) -> int | None:
-    for d in os.listdir("/proc"):
-        if not d.isdigit():
-            continue
-        try:
-            cmd = open(f"/proc/{d}/cmdline").read().split("\0")
-            ppid = int(open(f"/proc/{d}/stat").read().rsplit(")", 1)[1].split()[1])
-        except (OSError, ValueError, IndexError):
-            continue
-        if ppid == parent and word in cmd:
-            return int(d)
-    return None
-
-
 @pytest.mark.slow
 def test_sigkill_of_the_follower_during_a_demo_it_comes_back_and_poses_flow_again():
     demo = DemoLines("--duration", "400", "--json", timeout_s=300.0)
@@ -98,13 +84,13 @@ def test_sigkill_of_the_follower_during_a_demo_it_comes_back_and_poses_flow_agai
             line = demo.line()
             flowing = poses_flowing(line)
             if killed is None and flowing:
-                killed = _child(demo.proc.pid, "follower")
+                killed = demo.daemon("follower")
                 assert killed is not None
                 os.kill(killed, signal.SIGKILL)
                 continue
             if killed is not None and flowing and "follower rejoined (restart 1)" in line:
                 break
-        new = _child(demo.proc.pid, "follower")
+        new = demo.daemon("follower")
         assert new is not None and new != killed
         demo.seen |= descendants(demo.proc.pid)
         demo.proc.send_signal(signal.SIGTERM)  # to the demo alone (Ctrl-C: test_demo_command.py)
