@@ -1,6 +1,8 @@
 """The servo's spin before each deadline follows what the sleep's overshoot needs
 (:class:`humantele.haptics.servo_child.SpinBudget`)."""
 
+import time
+
 import numpy as np
 
 from humantele.haptics.servo_child import SpinBudget
@@ -39,3 +41,14 @@ def test_spin_climbs_within_tens_of_ms_when_wakeups_get_later_and_stays_within_i
     none = SpinBudget(0.0)
     none.overshoot(1e-3)
     assert none.spin_s == 0.0
+
+
+def test_wait_until_returns_at_the_deadline_and_learns_from_its_sleep():
+    b = SpinBudget(200e-6)
+    deadline = time.monotonic() + 0.005
+    b.wait_until(deadline)
+    assert time.monotonic() >= deadline
+    assert b.quantile_s != 200e-6  # the sleep's lateness was taken in, up or down
+    late = SpinBudget(200e-6)
+    late.wait_until(time.monotonic() - 1.0)  # past: no sleep, nothing learnt
+    assert late.quantile_s == 200e-6

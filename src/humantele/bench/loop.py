@@ -61,13 +61,7 @@ def _bare_loop(config_json: str, seconds: float, conn) -> None:
     gc.disable()
     next_t = clock() + period
     for i in range(n):
-        wake_t = next_t - spin.spin_s
-        delay = wake_t - clock()
-        if delay > 0.0:
-            time.sleep(delay)
-            spin.overshoot(clock() - wake_t)
-        while clock() < next_t:
-            pass
+        spin.wait_until(next_t)
         stamps[i] = clock()
         next_t = max(next_t + period, stamps[i])  # restart the schedule after a stall
     gc.enable()

@@ -108,6 +108,18 @@ class SpinBudget:
         self.quantile_s = max(0.0, q + (self.up if late_s > q else -self.down))
         self.spin_s = min(self.max_s, max(self.min_s, self.quantile_s + self.margin_s))
 
+    def wait_until(self, deadline: float) -> None:
+        """Sleep until ``spin_s`` before ``deadline`` (``time.monotonic()``, s), learn how late
+        the sleep woke, then spin to the deadline."""
+        clock = time.monotonic
+        wake_t = deadline - self.spin_s
+        delay = wake_t - clock()
+        if delay > 0.0:
+            time.sleep(delay)
+            self.overshoot(clock() - wake_t)
+        while clock() < deadline:
+            pass
+
 
 class PeriodTiming:
     """Period statistics with O(1) work per tick (1 us histogram bins)."""
@@ -262,14 +274,7 @@ def _run(config, device, cmd, out, st, stop, parent_pid, realtime) -> None:
                 timing.add(now)
                 flags = 0  # lateness against the device's tick is the renderer's stale check
             else:
-                # Wait for the deadline: sleep, then spin the last stretch.
-                wake_t = next_t - spin.spin_s
-                delay = wake_t - clock()
-                if delay > 0.0:
-                    time.sleep(delay)
-                    spin.overshoot(clock() - wake_t)
-                while clock() < next_t:
-                    pass
+                spin.wait_until(next_t)  # sleep, then spin the last stretch
                 now = clock()
                 timing.add(now)
                 flags = FAULT_LATE if now - next_t > config.late_after_s else 0
