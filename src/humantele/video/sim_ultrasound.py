@@ -55,7 +55,8 @@ STEP = 2  # the image is computed at every STEP-th column, then stretched
 PSF_SAMPLES, PSF_BEAMS = 1.1, 1.1  # point spread on the beam grid (samples, beams)
 LATERAL_BLUR_PX = 2.0
 SPECKLE_GAMMA = 0.6  # of the half-width image: the beam's width
-NOISE_BANK = 4  # precomputed electronic-noise images, one picked at random per frame
+NOISE_BANK = 4  # precomputed electronic-noise images, one picked at random per frame (never
+# the last frame's: electronic noise is never the same twice)
 CONTACT_RAMP_M = 0.002
 MID_GREY = 95.0  # display level of soft tissue (echo 1, speckle mean)
 DB_PER_NEPER = 20.0 / math.log(10.0)
@@ -101,6 +102,7 @@ class SimUltrasound(SimVideoSource):
             n = rng.standard_normal((*mask.shape, 2)).astype(np.float32)
             env = cv2.magnitude(n[..., 0], n[..., 1]) * (c.noise / math.sqrt(math.pi / 2.0))
             self._noise.append(env * mask)
+        self._noise_k = 0  # the last frame's noise image
         # Display: pixel = a * ln(amp) + b, with amp 1 at MID_GREY (+ gain).
         self._a = 255.0 / c.dynamic_range_db * DB_PER_NEPER
         self._b = MID_GREY + 255.0 / c.dynamic_range_db * c.gain_db
@@ -244,7 +246,7 @@ class SimUltrasound(SimVideoSource):
         env = cv2.pow(env, SPECKLE_GAMMA)
         amp = cv2.multiply(diffuse, env, scale=self._speckle_gain)
         amp += specular
-        amp += self._noise[int(self._rng.integers(NOISE_BANK))]
+        amp += self._next_noise()
         return self._display(amp)
 
     def _display(self, amp: np.ndarray) -> np.ndarray:
@@ -257,8 +259,13 @@ class SimUltrasound(SimVideoSource):
         gray[self._overlay_at] = self._overlay_val
         return cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
 
+    def _next_noise(self) -> np.ndarray:
+        """A noise image at random, another than the last frame's."""
+        self._noise_k = (self._noise_k + 1 + int(self._rng.integers(NOISE_BANK - 1))) % NOISE_BANK
+        return self._noise[self._noise_k]
+
     def _blank(self) -> Rendered:
-        amp = self._noise[int(self._rng.integers(NOISE_BANK))].copy()
+        amp = self._next_noise().copy()
         meta = {"quality": 0.0, "target": self.config.target, "coupling": 0.0, "force_n": 0.0}
         return self._display(amp), meta
 
