@@ -74,7 +74,6 @@ from humantele.cliargs import socket_error
 from humantele.config import ConfigModel
 from humantele.follower.registration import RegistrationMessage, ViewerPoseMessage
 from humantele.runtime.stats import percentile_ms
-from humantele.signaling.messages import is_loopback
 from humantele.web.connguard import GuardedPages
 from humantele.web.credential import (
     Credential,
@@ -84,6 +83,7 @@ from humantele.web.credential import (
     show_code,
 )
 from humantele.web.guard import MessageBudget
+from humantele.web.loopback import is_loopback
 from humantele.web.pagesocket import Access, PageClient, PageLimits, PageSockets, validated
 from humantele.web.static import add_page_files
 from humantele.web.tls import Certificate, HostName, ensure_certificate, local_hosts

@@ -8,7 +8,6 @@ logged or printed; compare it only with :func:`token_matches`.
 from __future__ import annotations
 
 import hmac
-import ipaddress
 import logging
 import os
 from typing import Annotated, Literal
@@ -22,6 +21,8 @@ from pydantic import (
     TypeAdapter,
     ValidationError,
 )
+
+from humantele.web.text import printable
 
 log = logging.getLogger(__name__)
 
@@ -133,15 +134,6 @@ def parse(adapter: TypeAdapter, text: str) -> BaseModel:
         raise ValueError(f"{loc}: {err['msg']}") from None
 
 
-def printable(text: str) -> str:
-    """``text`` with every non-printable character (newline, escape, bidi control, lone
-    surrogate...) written as its Python escape, so a client-supplied value stays on one log
-    line and shows what it is."""
-    if text.isprintable():
-        return text
-    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode() for c in text)
-
-
 def clip_utf8(text: str, max_bytes: int) -> str:
     """The longest prefix of ``text`` whose UTF-8 encoding fits in ``max_bytes`` (never cuts a
     character in two)."""
@@ -175,13 +167,3 @@ def resolve_token(configured: SecretStr | str | None) -> str:
 def token_matches(given: str, expected: str) -> bool:
     """Constant-time comparison of two tokens."""
     return hmac.compare_digest(given.encode("utf-8"), expected.encode("utf-8"))
-
-
-def is_loopback(host: str) -> bool:
-    """True for localhost and loopback addresses (where the development token is allowed)."""
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False

@@ -59,14 +59,14 @@ from humantele.signaling.messages import (
     PeerJoined,
     PeerLeft,
     clip_utf8,
-    is_loopback,
     parse,
-    printable,
     resolve_token,
     safe_reason,
     token_matches,
 )
 from humantele.signaling.turn import TurnConfig, TurnIssuer
+from humantele.web.loopback import is_loopback
+from humantele.web.text import printable
 
 log = logging.getLogger(__name__)
 

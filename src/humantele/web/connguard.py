@@ -37,7 +37,7 @@ from aiohttp import web
 from aiohttp.http_exceptions import HttpProcessingError
 from aiohttp.web import RequestHandler
 
-from humantele.signaling.messages import printable
+from humantele.web.text import printable
 
 ACCEPT_BACKLOG = 32
 """Listen backlog; asyncio also accepts up to this many connections at once, before the guard

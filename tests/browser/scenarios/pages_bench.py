@@ -1,7 +1,8 @@
 """The two pages' figures (issue 11 §4), from one ``humantele demo`` with the video tracks on
 (``configs/demo.toml``: the follower's sim ultrasound and POV over WebRTC), each page open in
 headless Chromium in turn for ``seconds``; the console once per video transport
-(``designs``, default all three: ``jpeg``, ``webcodecs``, ``webrtc``), interleaved over
+(``designs``, default both: ``webcodecs``, ``jpeg``; docs/console.md says why the WebRTC
+transport the earlier runs also measured was removed), interleaved over
 ``rounds`` rounds (default 2) in the same run, a fresh page each time (issue 19 §1):
 
 - the console: ultrasound glass to glass as the page shows it (the follower's capture time to
@@ -84,7 +85,7 @@ def _sum(pids) -> float:
     return sum(process_cpu_seconds(p) or 0.0 for p in pids)
 
 
-DESIGNS = ("webcodecs", "jpeg", "webrtc")  # the default first (the pages section takes it)
+DESIGNS = ("webcodecs", "jpeg")  # the default first (the pages section takes it)
 
 
 async def console_phase(ctx, demo, seconds: float, transport: str | None = None,
@@ -376,7 +377,7 @@ def plot_designs(summary: dict, filename: str = "console_video.png") -> str:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.6))
-    colours = {"webcodecs": "tab:green", "jpeg": "tab:red", "webrtc": "tab:blue"}
+    colours = {"webcodecs": "tab:green", "jpeg": "tab:red"}
     for ax, t in zip(axes, ("us", "pov"), strict=True):
         for name, d in summary.items():
             x, p50, p95 = d[t]["drawn_fps"], d[t]["p50_ms"], d[t]["p95_ms"]

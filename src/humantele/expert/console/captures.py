@@ -1,6 +1,10 @@
 """Captured frames on disk: the JPEG the sonographer saw and a JSON side file with its pose,
 and, when asked, a clip of the cine's last seconds (``....mp4``, H.264) beside them.
 
+:class:`Captures` is the console's Capture button: the rate cap and the disk budget, the
+files, the clip written off the loop, the session's list (:class:`SessionItems`) and the
+page's reads of the files (with the run's key).
+
 Files are named by the capture's wall-clock time (UTC) and frame number, never by anything
 about the patient: ``capture-20261123T101500Z-000123.jpg``, ``....json`` and ``....mp4``. A
 file that exists is never overwritten (a numbered suffix is added).
@@ -11,13 +15,32 @@ that the console page shows, so the sonographer reviews them before the session 
 
 from __future__ import annotations
 
+import asyncio
 import json
+import logging
 import os
 import time
+from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from aiohttp import web
+
+from humantele.expert.console.cine import CineBuffer, CineFrame
+from humantele.expert.console.config import ConsoleConfig
+from humantele.expert.console.messages import Capture
+from humantele.expert.console.protocol import clean, result
+from humantele.expert.console.session import ConsoleSession
+from humantele.web.credential import Credential, Verdict
+from humantele.web.guard import MessageBudget
+from humantele.web.pagesocket import PageClient, PageSockets
+
+log = logging.getLogger(__name__)
 MAX_ITEMS = 500  # the list the page is sent keeps the newest
+CAPTURE_BURST = 10  # captures at once before captures_per_minute applies
+CLIP_FINISH_S = 20.0  # at stop, a clip being written gets this long to finish
+POSE_FIELDS = ("position", "quaternion", "virtual_position", "virtual_quaternion")
 
 
 def save_capture(
@@ -73,3 +96,216 @@ class SessionItems:
 
     def clip_names(self) -> set[str]:
         return {i["clip"] for i in self._items if i.get("clip")}
+
+
+class Captures:
+    """The console's captures and the session's list. ``record(event, payload)``: onto
+    ``/expert/console`` when the session records; ``key``: the run's key (the files' reads)."""
+
+    def __init__(
+        self,
+        config: ConsoleConfig,
+        cine: CineBuffer,
+        session: ConsoleSession,
+        pages: PageSockets,
+        refused: Counter[str],
+        events: Counter[str],
+        record: Callable[[str, dict[str, Any]], None],
+        key: str,
+    ) -> None:
+        self.config = config
+        self.cine = cine
+        self.session = session
+        self.pages = pages
+        self.refused = refused
+        self.events = events
+        self.record = record
+        self.budget = MessageBudget(config.captures_per_minute / 60.0, CAPTURE_BURST)
+        self.bytes: int | None = None  # in captures_dir, counted at the first capture
+        self.saved: list[str] = []
+        self.items = SessionItems()  # captures and measurements, listed on the page
+        self.clips_writing = 0
+        self._clips: set[asyncio.Task] = set()  # clips being written
+        self._file_key = Credential(key, throttle=False)  # the captured files' reads
+
+    @property
+    def refused_count(self) -> int:
+        return self.refused["capture_rate"] + self.refused["capture_disk"]
+
+    async def finish(self) -> None:
+        """At stop: a clip being written is finished (and recorded), not cut short."""
+        if self._clips:
+            await asyncio.wait(list(self._clips), timeout=CLIP_FINISH_S)
+
+    async def capture(self, client: PageClient, f: CineFrame, base: dict, m: Capture) -> None:
+        """Capture frame ``f``, once it is a JPEG (made in a thread, off the loop)."""
+        if f.jpeg is None:
+            try:
+                await asyncio.to_thread(f.image_jpeg)
+            except ValueError as exc:
+                self.refused["capture_failed"] += 1
+                result(client, "capture", False, f"not saved: {exc}", id=m.id)
+                return
+        self._capture(client, f, base, m)
+
+    def _refusal(self, directory: Path, size: int) -> str | None:
+        """Why a capture of ``size`` bytes is refused now (counted), or None."""
+        if self.bytes is None:
+            self.bytes = _dir_bytes(directory)
+        budget = self.config.captures_max_mb * 1e6
+        if self.bytes + size > budget:
+            self.refused["capture_disk"] += 1
+            return (
+                f"not saved: the captures folder holds {self.bytes / 1e6:.0f} MB of its "
+                f"{self.config.captures_max_mb:g} MB budget (captures_max_mb); move some away"
+            )
+        if not self.budget.take():
+            self.refused["capture_rate"] += 1
+            return (
+                f"not saved: more than {self.config.captures_per_minute:g} captures a minute "
+                "(captures_per_minute); wait a moment"
+            )
+        return None
+
+    def _clip_frames(self, f: CineFrame, seconds: float) -> list[CineFrame]:
+        """The cine's frames of the ``seconds`` up to ``f`` (oldest first)."""
+        out = []
+        for seq, t in self.cine.index():
+            if seq <= f.seq and f.t_capture - t <= seconds:
+                g = self.cine.get(seq)
+                if g is not None:
+                    out.append(g)
+        return out
+
+    def _capture(self, client: PageClient, f: CineFrame, base: dict[str, Any], m: Capture) -> None:
+        directory = Path(self.config.captures_dir).expanduser()
+        assert f.jpeg is not None
+        clip_s = min(m.clip_s, self.config.clip_seconds)
+        clip = self._clip_frames(f, clip_s) if clip_s > 0 else []
+        clip = clip if len(clip) >= 2 else []
+        # The clip's size is bounded by its frames' JPEGs (its H.264 is smaller; a frame not
+        # yet a JPEG counts as the still's size): the budget holds it.
+        size = len(f.jpeg) + 1024 + sum(len(g.jpeg or f.jpeg) for g in clip)
+        refusal = self._refusal(directory, size)
+        if refusal is not None:
+            n = self.refused_count
+            result(client, "capture", False, f"{refusal} ({n} refused this run)", id=m.id)
+            return
+        pose = self.session.pose_at(f.t_capture)
+        info: dict[str, Any] = {
+            "seq": f.seq,
+            "t_capture_s": f.t_capture,
+            "pixel_spacing_mm": f.pixel_spacing_mm,
+            "width": f.width,
+            "height": f.height,
+            "frame": "T_patient_probe: patient frame, m; quaternion (x, y, z, w)",
+            "pose": pose,
+        }
+        rec = self.session.recorder
+        if rec is not None:
+            info["session_id"] = rec.metadata.get("session_id")
+        try:
+            path = save_capture(directory, f.seq, f.jpeg, clean(info), len(clip))
+        except OSError as exc:
+            self.refused["capture_failed"] += 1
+            log.error("console: capture not saved: %s", exc)
+            result(client, "capture", False, f"not saved: {exc.strerror or exc}", id=m.id)
+            return
+        self.events["capture"] += 1
+        self.saved.append(str(path))
+        self.bytes = (self.bytes or 0) + _file_bytes(path)
+        payload = {**base, "file": path.name}
+        if pose is not None:
+            payload.update({k: v for k, v in pose.items() if k in POSE_FIELDS})
+        self.record("capture", payload)
+        if rec is not None and hasattr(rec, "attach"):
+            rec.attach(path.name, "image/jpeg", f.jpeg, f.t_capture)
+        item = self.add_item("capture", f, file=path.name, clip=None, clip_pending=bool(clip))
+        detail = path.name + (f" and a {clip_s:g} s clip (writing)" if clip else "")
+        result(client, "capture", True, detail, seq=f.seq, file=str(path), id=m.id)
+        if clip:
+            task = asyncio.create_task(self._write_clip(client, path, clip, item, m.id))
+            self._clips.add(task)
+            task.add_done_callback(self._clips.discard)
+
+    async def _write_clip(
+        self, client: PageClient, still: Path, frames: list[CineFrame], item: dict,
+        cmd_id: int | None,
+    ) -> None:  # fmt: skip
+        """The clip beside the still ``still`` (off the loop: ~6 ms a frame); the item and
+        the page told when it is there, or why not."""
+        from humantele.export.clip import write_clip
+
+        path = clip_path(still)
+        self.clips_writing += 1
+        try:
+            info = await asyncio.to_thread(  # (frames not yet JPEGs are made there too)
+                lambda: write_clip([(g.t_capture, g.image_jpeg()) for g in frames], path)
+            )
+        except (OSError, ValueError) as exc:
+            self.refused["clip_failed"] += 1
+            log.error("console: clip %s not written: %s", path.name, exc)
+            item["clip_error"] = str(exc)[:200]
+            result(client, "clip", False, f"clip not saved: {exc}", id=cmd_id)
+        else:
+            self.events["clip"] += 1
+            self.bytes = (self.bytes or 0) + _size(path)
+            item.update(clip=path.name, clip_s=round(info.duration_s, 2), clip_frames=info.frames)
+            self.record("clip", {"file": path.name, "still": still.name, "frames": info.frames,
+                                 "duration_s": info.duration_s})  # fmt: skip
+            result(client, "clip", True, f"{path.name} ({info.duration_s:.1f} s, "
+                   f"{info.frames} frames)", file=str(path), id=cmd_id)  # fmt: skip
+        finally:
+            self.clips_writing -= 1
+            item["clip_pending"] = False
+        self.pages.post("items", self.items_message())
+
+    def add_item(self, kind: str, f: CineFrame, **fields: Any) -> dict[str, Any]:
+        """One more capture or measurement in the session's list (the page is sent it)."""
+        item = self.items.add(kind, f.seq, f.t_capture, **fields)
+        self.pages.post("items", self.items_message())
+        return item
+
+    def items_message(self) -> str:
+        return json.dumps(clean({"type": "items", "items": self.items.list()}))
+
+    async def serve_file(self, request: web.Request) -> web.StreamResponse:
+        """A still or clip captured this run, for the page's list (with the run's key)."""
+        verdict = self._file_key.check(request.query.get("key"), request.remote or "?")
+        name = request.match_info["name"]
+        known = {Path(c).name for c in self.saved} | self.items.clip_names()
+        if verdict is not Verdict.OK:
+            self.refused["unauthorized"] += 1
+            raise web.HTTPUnauthorized(text="this console's key is missing or wrong\n")
+        if name not in known:
+            raise web.HTTPNotFound()
+        path = Path(self.config.captures_dir).expanduser() / name
+        if not path.is_file():
+            raise web.HTTPNotFound()
+        return web.FileResponse(path, headers={"Cache-Control": "no-store"})
+
+
+def _file_bytes(jpeg: Path) -> int:
+    """Bytes of a capture on disk: its JPEG and its JSON side file."""
+    total = 0
+    for p in (jpeg, jpeg.with_suffix(".json")):
+        try:
+            total += p.stat().st_size
+        except OSError:
+            pass
+    return total
+
+
+def _size(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0
+
+
+def _dir_bytes(directory: Path) -> int:
+    """Bytes of the capture files already in ``directory`` (0 if there is none)."""
+    try:
+        return sum(p.stat().st_size for p in directory.iterdir() if p.name.startswith("capture-"))
+    except OSError:
+        return 0

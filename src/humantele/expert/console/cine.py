@@ -17,6 +17,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from humantele.expert.console.jpeg import frame_jpeg
+from humantele.expert.console.tracks import depth0, spacing
+
 
 @dataclass(slots=True)
 class CineFrame:
@@ -111,3 +114,13 @@ class CineBuffer:
 
     def resume(self) -> None:
         self.frozen = False
+
+
+def cine_frame(frame: Any, jpeg: bytes | None, quality: int) -> CineFrame:
+    """The cine entry of a video frame: its ``jpeg`` (the JPEG path), or (None) the decoded
+    frame itself, made a JPEG at ``quality`` when first asked."""
+    return CineFrame(
+        frame.seq, frame.t_capture, jpeg, frame.width, frame.height, spacing(frame),
+        depth0(frame), raw=None if jpeg is not None else frame,
+        to_jpeg=lambda f: frame_jpeg(f, quality),
+    )  # fmt: skip

@@ -23,9 +23,10 @@ from typing import Any
 
 import numpy as np
 
+from humantele.expert.console.config import ConsoleConfig
 from humantele.expert.console.expert_view import ExpertView
 from humantele.expert.console.frames import FrameProvider, ProcessFrames, ReceivedFrames
-from humantele.expert.console.server import ConsoleConfig, ConsoleServer
+from humantele.expert.console.server import ConsoleServer
 from humantele.geometry import Pose
 from humantele.recording import Recorder
 from humantele.video.scene import SceneSnapshot, look_at

@@ -24,8 +24,7 @@ From the page (:data:`PageMessage`; anything else is refused and counted)
     (start/stop), ``clutch`` (on/off), ``freeze`` (on/off), ``cine`` (send frame ``seq`` of
     the frozen loop), ``caliper`` (two points on a frame, image px), ``annotation`` (a text
     at a point of a frame), ``capture`` (save a frame with its pose, and a clip of the cine
-    before it), ``keyframe`` (the page's decoder of a track needs one), ``rtc_answer`` (the
-    page's SDP answer to the expert's ``rtc_offer``, the WebRTC transport). Clicks may carry
+    before it), ``keyframe`` (the page's decoder of a track needs one). Clicks may carry
     an ``id``, returned in their ``result``. Points are image pixels (x right, y down, from
     the top-left corner of the image the header describes).
 """
@@ -46,9 +45,8 @@ FLAG_KEYFRAME = 4
 FLAG_H264 = 8
 _HEADER = struct.Struct("<BBBBIdffHHf")
 HEADER_SIZE = _HEADER.size  # 32
-MAX_PAGE_MESSAGE = 16384  # bytes: the longest is a WebRTC SDP answer (~3 kB), then an
-# annotation (text up to 200 characters)
-MAX_SDP = 12000
+MAX_PAGE_MESSAGE = 16384  # bytes: the longest, an annotation (text up to 200 characters), is far
+# under it
 
 
 def frame_header(
@@ -184,13 +182,6 @@ class KeyframeRequest(_Msg):
     track: Literal["us", "pov"]
 
 
-class RtcAnswer(_Msg):
-    """The page's SDP answer to the expert's ``rtc_offer`` (the WebRTC transport)."""
-
-    type: Literal["rtc_answer"]
-    sdp: str = Field(max_length=MAX_SDP)
-
-
 PageMessage = Annotated[
     Drawn
     | Ping
@@ -201,8 +192,7 @@ PageMessage = Annotated[
     | Caliper
     | Annotation
     | Capture
-    | KeyframeRequest
-    | RtcAnswer,
+    | KeyframeRequest,
     Field(discriminator="type"),
 ]
 PAGE_MESSAGE = TypeAdapter(PageMessage)

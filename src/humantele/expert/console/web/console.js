@@ -1,9 +1,8 @@
 // The sonographer's console: the ultrasound image large, the follower's view, the force,
 // the session at a glance. One WebSocket to the expert daemon (same origin, /ws): binary
 // messages are video frames (32-byte header + JPEG, or + the encoded frame as the expert
-// received it, which WebCodecs decodes here: the hello's "transport"; with "webrtc" the
-// pictures come over a WebRTC connection instead), text messages JSON (see the daemon's
-// humantele.expert.console.messages). Nothing stale is shown as live: each panel greys out
+// received it, which WebCodecs decodes here: the hello's "transport"), text messages JSON
+// (see the daemon's humantele.expert.console.messages). Nothing stale is shown as live: each panel greys out
 // when its data is older than the daemon's stale_after_ms (ages from capture and state times
 // mapped onto this page's clock by the heartbeat, status.js); a daemon slow to answer is
 // "slow (N ms)" while its socket is open, lost only when it closes; every click says what
@@ -78,7 +77,7 @@ function connect() {
     return;
   }
   const scheme = location.protocol === "https:" ? "wss" : "ws";
-  // ?transport=jpeg|webcodecs|webrtc in the page's address asks the daemon for that one (A/B)
+  // ?transport=jpeg|webcodecs in the page's address asks the daemon for that one (A/B)
   const asked = new URLSearchParams(location.search).get("transport");
   const extra = asked ? `&transport=${encodeURIComponent(asked)}` : "";
   const ws = new WebSocket(`${scheme}://${location.host}/ws?key=${encodeURIComponent(key)}${extra}`);
@@ -112,7 +111,6 @@ function onText(m) {
   else if (m.type === "hello") onHello(m);
   else if (m.type === "cine") onCineIndex(m);
   else if (m.type === "result") onResult(m);
-  else if (m.type === "rtc_offer") onRtcOffer(m);
 }
 
 function onHello(m) {
@@ -189,7 +187,6 @@ function resetVideo() {
     if (decoders[t] && decoders[t].state !== "closed") decoders[t].close();
     decoders[t] = null; needKey[t] = true; headers[t].clear();
   }
-  if (rtc.pc) { rtc.pc.close(); rtc.pc = null; }
 }
 
 function restart(track, why) {
@@ -252,52 +249,6 @@ function onDecoded(track, frame) {
   }
 }
 
-// --- WebRTC: the page a receiver of the expert's forwarded tracks ----------------------------
-
-const rtc = { pc: null, videos: {} };
-
-async function onRtcOffer(m) {
-  if (rtc.pc) rtc.pc.close();
-  const pc = new RTCPeerConnection({ iceServers: [] });
-  rtc.pc = pc;
-  pc.ontrack = (ev) => {
-    const track = TRACKS[pc.getTransceivers().indexOf(ev.transceiver)];
-    // (its own stream: aiortc puts both tracks in one, whose video element plays the first)
-    if (track) watchVideo(track, new MediaStream([ev.track]));
-  };
-  await pc.setRemoteDescription({ type: "offer", sdp: m.sdp });
-  await pc.setLocalDescription(await pc.createAnswer());
-  if (pc.iceGatheringState !== "complete") {  // the daemon takes no trickled candidates
-    await new Promise((ok) => {
-      pc.addEventListener("icegatheringstatechange", () => { if (pc.iceGatheringState === "complete") ok(); });
-      setTimeout(ok, 2000);
-    });
-  }
-  send({ type: "rtc_answer", sdp: pc.localDescription.sdp });
-}
-
-function watchVideo(track, stream) {
-  let video = rtc.videos[track];
-  if (!video) {
-    video = document.createElement("video");
-    video.muted = true; video.autoplay = true; video.playsInline = true;
-    video.className = "rtc-source"; // played off screen; drawn into the track's canvas
-    document.body.appendChild(video);
-    rtc.videos[track] = video;
-  }
-  video.srcObject = stream;
-  video.play().catch(() => {});
-  const step = (now, meta) => {
-    const v = app.state && app.state.video ? app.state.video[track] : null;
-    const h = { track, seq: null, width: meta.width, height: meta.height, cine: false,
-                spacing: (v && v.spacing) || [0, 0], depth0: v && v.depth0 != null ? v.depth0 : NaN,
-                rx: performance.now() };
-    if (!(track === "us" && app.frozen)) draw(h, video);
-    video.requestVideoFrameCallback(step);
-  };
-  video.requestVideoFrameCallback(step);
-}
-
 function draw(h, bitmap) {
   const canvas = $(h.track);
   if (canvas.width !== h.width || canvas.height !== h.height) {
@@ -316,7 +267,6 @@ function draw(h, bitmap) {
     const counter = readCounter(g);
     app.counters[h.track] = counter;
     setHidden($(`${h.track}-counter`), counter === null);
-    if (h.seq === null) h.seq = counter; // WebRTC: the frame is known by its counter only
     app.lastFrame[h.track] = { ...h, at: t0 };
     if (h.seq !== null) {
       send({ type: "drawn", track: h.track, seq: h.seq, counter, draw_to_send_ms: performance.now() - t0 });
