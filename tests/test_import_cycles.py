@@ -1,4 +1,6 @@
-"""No import circles among humantele's modules (issue 22 §1), so the cuts stay cut.
+"""No import circles among humantele's modules (issue 22 §1), so the cuts stay cut; and
+every import points down the layers of docs/architecture.md, "Packages and their layers"
+(issue 33), read from the ``layers`` block there.
 
 The imports are read from the sources with :mod:`ast` (nothing is imported). Every import
 counts, wherever it is written:
@@ -27,6 +29,7 @@ import pytest
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 PACKAGE = "humantele"
+ARCHITECTURE = Path(__file__).resolve().parents[1] / "docs" / "architecture.md"
 
 
 @dataclass(frozen=True)
@@ -232,6 +235,55 @@ def test_the_finder_finds_circles_of_each_kind(tmp_path: Path) -> None:
     assert import_cycles(import_edges(tmp_path, "pkg")) == []
 
 
+def read_layers(text: str) -> list[list[str]]:
+    """The ``layers`` block of docs/architecture.md: its lines' packages, top line first
+    (each line ``label: pkg pkg ...``)."""
+    block = text.split("```layers\n", 1)[1].split("```", 1)[0]
+    return [line.split(":", 1)[1].split() for line in block.splitlines() if line.strip()]
+
+
+def package_of(module: str) -> str:
+    """``humantele.media.sender`` -> ``media``; ``humantele.demo`` -> ``demo``."""
+    return module.split(".")[1] if module.count(".") else module
+
+
+def layer_violations(edges: list[Edge], layers: list[list[str]]) -> list[str]:
+    """Imports between packages that do not point to a lower line of ``layers``."""
+    level = {p: len(layers) - i for i, line in enumerate(layers) for p in line}
+    out = []
+    for e in sorted(set(edges), key=lambda e: (e.source, e.target, e.line)):
+        a, b = package_of(e.source), package_of(e.target)
+        if a == b or e.target == PACKAGE or e.source == PACKAGE:
+            continue
+        if level.get(a) is None or level.get(b) is None or level[b] >= level[a]:
+            out.append(f"{e.source}:{e.line} -> {e.target} ({e.kind}): {a} -> {b}")
+    return out
+
+
+def test_imports_point_down_the_layers() -> None:
+    """Every package is on one line of the layers, and imports only packages below it."""
+    layers = read_layers(ARCHITECTURE.read_text(encoding="utf-8"))
+    listed = [p for line in layers for p in line]
+    assert len(listed) == len(set(listed)), "a package is on two lines of the layers"
+    packages = {package_of(m) for m in module_names(SRC, PACKAGE) if m != PACKAGE}
+    assert packages == set(listed), (
+        f"not in the layers: {sorted(packages - set(listed))}; "
+        f"no such package: {sorted(set(listed) - packages)}"
+    )
+    bad = layer_violations(import_edges(), layers)
+    assert not bad, "imports that point up or sideways:\n" + "\n".join(bad)
+
+
+def test_the_layer_check_finds_an_upward_import() -> None:
+    """An import of a package on a higher line, or on the same line, is reported; one of a
+    lower line is not."""
+    layers = [["top"], ["mid", "side"], ["low"]]
+    edge = lambda a, b: Edge(f"humantele.{a}.x", f"humantele.{b}.y", "function", 1)  # noqa: E731
+    assert layer_violations([edge("top", "mid"), edge("mid", "low")], layers) == []
+    assert len(layer_violations([edge("low", "top")], layers)) == 1
+    assert len(layer_violations([edge("mid", "side")], layers)) == 1
+
+
 # What a module must not load, as the cuts left it: the video process's module (and its
 # capture types) no aiortc, aiohttp or the sender; the console's hook not the daemon; the sim
 # clinic (which the sensing child loads) not the sensing pipeline.
@@ -258,3 +310,5 @@ def test_a_module_loads_only_what_it_needs(module: str) -> None:
 if __name__ == "__main__":
     all_edges = import_edges()
     print(describe(import_cycles(all_edges), all_edges))
+    bad = layer_violations(all_edges, read_layers(ARCHITECTURE.read_text(encoding="utf-8")))
+    print("\n".join(bad) or "every import points down the layers")

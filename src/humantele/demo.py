@@ -170,7 +170,7 @@ def replay_follower_config(recording: str, run_dir: Path) -> str:
     replayed through the real backends: tracker, force board and, if recorded, video.
     ConfigError (exit code 2) for a file that is not a device recording."""
     from humantele.config import ConfigError
-    from humantele.devices.replay_file import DeviceRecordingError, open_recording
+    from humantele.recording.device_file import DeviceRecordingError, open_recording
 
     path = Path(recording).resolve()
     try:
@@ -356,7 +356,8 @@ async def supervise(
 
 
 async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
-    """Run the demo (plan, supervise, report); returns the exit code."""
+    """Run the demo: :func:`plan_demo`, the signaling server, :func:`supervise` the daemons,
+    stop them, :func:`conclude` (the report); returns the exit code."""
     from humantele.signaling.server import SignalConfig, SignalingServer
 
     plan = plan_demo(args)
@@ -385,6 +386,22 @@ async def run_demo(args: argparse.Namespace, out=sys.stdout) -> int:
         await server.stop()
         if status_to.isatty():
             print(file=status_to)
+    return conclude(plan, daemons, codes, failed, window, t0, args, out)
+
+
+def conclude(
+    plan: DemoPlan,
+    daemons: dict[str, SupervisedDaemon],
+    codes: dict[str, int],
+    failed: str,
+    window: CountWindow,
+    t0: float,
+    args: argparse.Namespace,
+    out: Any,
+) -> int:
+    """The demo's report (the daemons stopped with exit ``codes``; ``failed``: why it
+    failed, or ''): the summary from their last stats, printed (and as JSON with
+    ``--json``); the run directory removed unless kept or failed. The exit code."""
     e, f = read_stats(plan.stats["expert"]) or {}, read_stats(plan.stats["follower"]) or {}
     e, f = window.adjusted({"expert": e, "follower": f})
     summary = summarize(e, f, time.monotonic() - t0, codes)

@@ -26,13 +26,6 @@ import numpy as np
 import pytest
 
 from humantele.devices import record as record_cmd
-from humantele.devices.replay_file import (
-    AHAT_CALIBRATION,
-    AHAT_FRAME,
-    HID_REPORT,
-    VIDEO,
-    DeviceRecording,
-)
 from humantele.follower.sensing import ProbeSensing, SensingConfig
 from humantele.follower.sensing_devices import real_sensing_devices
 from humantele.forcesense.base import ForceSensorUnavailable
@@ -41,6 +34,13 @@ from humantele.forcesense.hid import encode_report
 from humantele.forcesense.replay import ReplayForceConfig, ReplayForceSensor
 from humantele.forcesense.sim import SimForceConfig, SimForceSensor
 from humantele.geometry import Pose, quat_from_axis_angle
+from humantele.recording.device_file import (
+    AHAT_CALIBRATION,
+    AHAT_FRAME,
+    HID_REPORT,
+    VIDEO,
+    DeviceRecording,
+)
 from humantele.recording.writer import McapLog
 from humantele.tracking.frames import FrameSourceUnavailable
 from humantele.tracking.hl2ss_calibration import Hl2ssAhatCalibration

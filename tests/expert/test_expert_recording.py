@@ -12,6 +12,7 @@ import pytest
 
 from daemon_doubles import Clock, LinkDouble, ServoDouble
 from humantele.config import ConfigError
+from humantele.daemons.session import SessionConfig
 from humantele.expert.cli import configs_from_args
 from humantele.expert.config import ExpertConfig, servo_config_for
 from humantele.expert.daemon import ExpertDaemon
@@ -20,7 +21,6 @@ from humantele.expert.scans import ScanScriptConfig
 from humantele.haptics.ellipsoid import Ellipsoid
 from humantele.haptics.servo_config import ServoConfig
 from humantele.recording import Recorder, RecorderConfig, read_recording
-from humantele.runtime.session import SessionConfig
 from humantele.transport.clocksync import SyncSample
 from humantele.wire import EllipsoidModel, EllipsoidParams, Scan
 

@@ -1,4 +1,4 @@
-"""`python -m humantele.recording.video_cost`: replays recorded frames through the recorder
+"""`python -m humantele.export.video_cost`: replays recorded frames through the recorder
 and reports CPU and MB per minute (the figure is not asserted: a busy machine; its parts are)."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import json
 import pytest
 from video_fixtures import write_video
 
-from humantele.recording.video_cost import main
+from humantele.export.video_cost import main
 
 
 def test_it_reports_the_cost_of_the_recorded_frames(tmp_path, capsys):

@@ -7,7 +7,7 @@ import asyncio
 import types
 
 from humantele.cliargs import EXIT_FAILED, EXIT_OK
-from humantele.runtime.daemon import Daemon
+from humantele.daemons.common import Daemon
 from humantele.signaling.client import SignalingClient
 from humantele.transport import LinkConfig, PeerLink
 
@@ -31,7 +31,7 @@ class _Link:
 
 
 class _Daemon(Daemon):
-    """The daemons' run() shape (runtime.daemon): ticks until stopped or the link ends."""
+    """The daemons' run() shape (daemons.common): ticks until stopped or the link ends."""
 
     role = "test"
 

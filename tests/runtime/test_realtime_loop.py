@@ -101,6 +101,53 @@ def test_the_daemon_s_other_threads_are_lifted_just_above_normal_processes():
     assert (r["first"], r["again"], r["off"]) == (1, 0, 0)
 
 
+LIFTER = """
+import json, os, threading, time
+from humantele.runtime.process import ThreadLifter
+
+go, tids = threading.Event(), {}
+
+def worker():
+    tids["worker"] = threading.get_native_id()
+    go.wait()
+
+t = threading.Thread(target=worker)
+t.start()
+while not tids:
+    time.sleep(0.001)
+lifter = ThreadLifter(1, every_s=0.05)
+lifter.start()
+deadline = time.monotonic() + 30
+while lifter.lifted < 1 and time.monotonic() < deadline:
+    time.sleep(0.01)
+tids["lifter"] = lifter._thread.native_id
+state = {n: os.sched_getscheduler(x) & ~os.SCHED_RESET_ON_FORK for n, x in tids.items()}
+state["main"] = os.sched_getscheduler(0)
+lifter.stop()
+go.set()
+t.join()
+print(json.dumps({"lifted": lifter.lifted, "state": state, "alive": lifter._thread.is_alive()}))
+"""
+
+
+def test_the_lifter_lifts_new_threads_off_the_loop():
+    """:class:`ThreadLifter` lifts, on its own thread, a thread started before it; the loop's
+    thread (here the main one) and the lifter stay normal; ``stop`` ends it."""
+    from humantele.runtime.process import ThreadLifter
+
+    idle = ThreadLifter(0)  # no priority: no thread
+    idle.start()
+    assert idle._thread is None
+    if not fifo_allowed():
+        pytest.skip("no privilege for SCHED_FIFO here")
+    out = subprocess.run([sys.executable, "-c", LIFTER], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    r = json.loads(out.stdout)
+    assert r["lifted"] == 1 and not r["alive"]
+    assert r["state"] == {"worker": os.SCHED_FIFO, "lifter": os.SCHED_OTHER,
+                          "main": os.SCHED_OTHER}  # fmt: skip
+
+
 def test_the_threads_sit_below_the_sensing_and_none_without_a_realtime_loop():
     from humantele.follower.config import FollowerConfig
     from humantele.runtime.process import thread_priority_for

@@ -2,7 +2,7 @@
 
 Opens the devices the follower's configuration names (``[sensing.camera]``: ``hl2ss``;
 ``[sensing.force.sensor]``: ``hid``; ``[follower.video.us|pov]``: any real video source) and
-writes what they deliver into one MCAP (:mod:`humantele.devices.replay_file`): the AHAT frames
+writes what they deliver into one MCAP (:mod:`humantele.recording.device_file`): the AHAT frames
 as hl2ss sent them (raw depth and AB images, hl2ss timestamp, sensor ticks, the rig pose
 matrix) and the AHAT calibration once; every HID report as read, before parsing, with its
 receive time; the video frames as JPEG at the source's rate, with their capture time. One
@@ -35,7 +35,7 @@ from typing import Any, TextIO
 
 import cv2
 
-from humantele.devices.replay_file import (
+from humantele.recording.device_file import (
     AHAT_CALIBRATION,
     AHAT_FRAME,
     HID_REPORT,

@@ -7,15 +7,15 @@ import argparse
 
 from humantele.cliargs import port
 from humantele.config import load_config, validate_config
-from humantele.expert.config import ExpertConfig, servo_config_for
-from humantele.expert.daemon import ExpertDaemon
-from humantele.haptics.servo_config import ServoConfig
-from humantele.runtime.daemon import (
+from humantele.daemons.common import (
     add_daemon_arguments,
     daemon_overrides,
     run_daemon_process,
     setup_logging,
 )
+from humantele.expert.config import ExpertConfig, servo_config_for
+from humantele.expert.daemon import ExpertDaemon
+from humantele.haptics.servo_config import ServoConfig
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

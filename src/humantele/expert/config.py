@@ -6,6 +6,7 @@ from __future__ import annotations
 from pydantic import Field
 
 from humantele.config import ConfigError, ConfigModel, validate_config
+from humantele.daemons.session import SessionConfig
 from humantele.expert.console import ConsoleConfig
 from humantele.expert.mapping import MappingConfig
 from humantele.expert.scans import ScanScriptConfig
@@ -13,7 +14,6 @@ from humantele.haptics.servo_config import ServoConfig
 from humantele.interop.igtl import IgtlConfig
 from humantele.media.config import ExpertVideoConfig
 from humantele.recording import RecorderConfig
-from humantele.runtime.session import SessionConfig
 from humantele.transport import LinkConfig
 
 

@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from humantele.cliargs import EXIT_FAILED
+from humantele.daemons.common import Daemon
 from humantele.expert.config import ExpertConfig, servo_config_for
 from humantele.expert.console.expert_view import PoseHistory, calibration_display
 from humantele.expert.console.hook import DaemonConsole
@@ -55,7 +56,6 @@ from humantele.haptics.servo_layout import ServoError
 from humantele.haptics.supervisor import SupervisedServo
 from humantele.interop.sessions import ExpertIgtl
 from humantele.media.receiver import VideoReceiver
-from humantele.runtime.daemon import Daemon
 from humantele.transport import PeerLink
 from humantele.wire import (
     CalibrationProgress,

@@ -7,15 +7,15 @@ import argparse
 
 from humantele.cliargs import port
 from humantele.config import load_config, validate_config
-from humantele.follower.config import FollowerConfig
-from humantele.follower.daemon import FollowerDaemon
-from humantele.follower.sensing import SensingConfig
-from humantele.runtime.daemon import (
+from humantele.daemons.common import (
     add_daemon_arguments,
     daemon_overrides,
     run_daemon_process,
     setup_logging,
 )
+from humantele.follower.config import FollowerConfig
+from humantele.follower.daemon import FollowerDaemon
+from humantele.follower.sensing import SensingConfig
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -29,6 +29,7 @@ from pydantic import Field
 
 from humantele.config import ConfigModel
 from humantele.geometry import Pose
+from humantele.runtime.simulator import SIMULATOR_MODULES, simulator_modules  # noqa: F401 (kept here)
 
 
 class SimPatientConfig(ConfigModel):
@@ -80,21 +81,6 @@ class SimHeadConfig(ConfigModel):
 
     height_m: float = Field(0.42, gt=0.1, le=1.0, description="camera above the probe tip")
     follow_time_constant_s: float = Field(0.6, gt=0, le=10)
-
-
-SIMULATOR_MODULES = frozenset({  # the simulated world and its devices' renderers
-    "humantele.follower.sim_clinic", "humantele.follower.sim_world", "humantele.follower.sim_human",
-    "humantele.tracking.sim", "humantele.forcesense.sim", "humantele.video.scene",
-    "humantele.video.simsource", "humantele.video.sim_ultrasound", "humantele.video.sim_pov",
-    "humantele.video.phantom", "humantele.video.speckle",
-})  # fmt: skip
-
-
-def simulator_modules() -> list[str]:
-    """The simulator's modules loaded in this process (none in a real clinic's follower)."""
-    import sys
-
-    return sorted(SIMULATOR_MODULES.intersection(sys.modules))
 
 
 class SimClinicConfig(ConfigModel):

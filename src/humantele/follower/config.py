@@ -8,6 +8,7 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from humantele.config import ConfigModel
+from humantele.daemons.session import SessionConfig
 from humantele.follower.calibration import CalibrationConfig
 from humantele.follower.clinic import ClinicConfig, SimClinicConfig
 from humantele.follower.feed import FeedConfig
@@ -16,7 +17,6 @@ from humantele.interop.igtl import IgtlConfig
 from humantele.media.config import FollowerVideoConfig
 from humantele.recording import RecorderConfig
 from humantele.runtime.child import PRIORITY, Priority
-from humantele.runtime.session import SessionConfig
 from humantele.transport import LinkConfig
 
 DEFAULT_STATE_DIR = "~/.local/state/humantele/follower"

@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from humantele.cliargs import EXIT_FAILED
+from humantele.daemons.common import Daemon
 from humantele.follower.calibration import Calibration
 from humantele.follower.calibration_session import CalibrationSession
 from humantele.follower.clinic import Guide, simulator_modules
@@ -50,7 +51,6 @@ from humantele.follower.to_expert import ExpertStream
 from humantele.follower.virtual_probe import VirtualProbe
 from humantele.interop.sessions import FollowerIgtl
 from humantele.media.sender import VideoSender
-from humantele.runtime.daemon import Daemon
 from humantele.transport import PeerLink
 from humantele.video.base import VideoSourceUnavailable
 from humantele.wire import CalibrationProgress, ControlMessage, Hello, PoseMessage, Scan

@@ -90,7 +90,7 @@ def real_sensing_devices(config: SensingConfig, tool: ToolDefinition) -> Sensing
 
 def _recorded_force_calibration(recording: str) -> ForceCalibration:
     """The board's calibration a device recording kept (``humantele devices record``)."""
-    from humantele.devices.replay_file import open_recording
+    from humantele.recording.device_file import open_recording
 
     text = open_recording(recording).info.get("force_calibration")
     if not text:

@@ -2,7 +2,7 @@
 HID reader.
 
 Reads ``/force/hid_report`` of a file written by ``humantele devices record``
-(:mod:`humantele.devices.replay_file`). :class:`ReplayForceSensor` is a
+(:mod:`humantele.recording.device_file`). :class:`ReplayForceSensor` is a
 :class:`~humantele.forcesense.hid.HidForceSensor` whose device hands out the recorded reports
 (the bytes as the board sent them) at their recorded receive times (relative to ``open``), so
 the board's own parser (id, version, CRC, pairs, flags; drops counted by reason) and the
@@ -23,15 +23,15 @@ from typing import Literal
 from pydantic import Field
 
 from humantele.config import ConfigModel
-from humantele.devices.replay_file import (
+from humantele.forcesense.base import ForceSensorUnavailable
+from humantele.forcesense.hid import HidForceConfig, HidForceSensor
+from humantele.recording.device_file import (
     HID_REPORT,
     DeviceRecording,
     DeviceRecordingError,
     Sample,
     open_recording,
 )
-from humantele.forcesense.base import ForceSensorUnavailable
-from humantele.forcesense.hid import HidForceConfig, HidForceSensor
 
 
 class ReplayForceConfig(ConfigModel):

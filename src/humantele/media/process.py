@@ -184,7 +184,7 @@ def _child(
             return
         send(("opened", name, None))
         caps.append(cap)
-    from humantele.follower.clinic import simulator_modules
+    from humantele.runtime.simulator import simulator_modules
 
     send(("simulator", simulator_modules()))
     for cap in caps:

@@ -1,6 +1,8 @@
 """Session recordings in MCAP: schemas, a non-blocking recorder, a crash-tolerant reader.
 
 Daemons use :class:`Recorder`; analysis uses :func:`read_recording`. See docs/analysis.md.
+:mod:`.device_file` is the device recording file (``humantele devices record``) and its
+reader, which the replay backends of tracking, forcesense and video read.
 """
 
 from humantele.recording.reader import Recording, RecordingReadError, read_recording

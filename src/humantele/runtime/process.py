@@ -93,3 +93,35 @@ def lift_threads(priority: int) -> int:
                 continue
             lifted += 1
     return lifted
+
+
+class ThreadLifter:
+    """:func:`lift_threads` every ``every_s`` on its own thread (``humantele-lift``), not on
+    the event loop (a scan of ``/proc/self/task`` and a few system calls a thread, which the
+    loop carrying the pose stream need not wait for). ``lifted`` counts the threads lifted so
+    far. The lifter itself stays at the normal policy. ``priority`` 0: nothing is started."""
+
+    def __init__(self, priority: int, every_s: float = 0.5) -> None:
+        self.priority = priority
+        self.every_s = every_s
+        self.lifted = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        """Start lifting (once; no-op at priority 0)."""
+        if self.priority <= 0 or self._thread is not None:
+            return
+        self._thread = threading.Thread(target=self._run, name="humantele-lift", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            self.lifted += lift_threads(self.priority)
+            if self._stop.wait(self.every_s):
+                return
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)

@@ -271,7 +271,7 @@ class McapTurn:
     ``on_problem(message)`` is called when a reading stops at it."""
 
     def __init__(self, path: str | Path, on_problem: Callable[[str], None] | None = None):
-        from humantele.devices.replay_file import (
+        from humantele.recording.device_file import (
             AHAT_CALIBRATION,
             AHAT_FRAME,
             DeviceRecording,
@@ -297,7 +297,7 @@ class McapTurn:
         return self._rec.problem
 
     def __iter__(self) -> Iterator[AhatRecord]:
-        from humantele.devices.replay_file import AHAT_CALIBRATION
+        from humantele.recording.device_file import AHAT_CALIBRATION
 
         n = 0
         for s in self._rec.samples(self._topics):

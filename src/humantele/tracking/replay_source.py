@@ -1,7 +1,7 @@
 """The ``replay`` tracker backend: AHAT frames from a device recording, as the headset sent them.
 
 Reads ``/ahat/frame`` (and the calibration, ``/ahat/calibration``) of a file written by
-``humantele devices record`` (:mod:`humantele.devices.replay_file`) and gives the frames the
+``humantele devices record`` (:mod:`humantele.recording.device_file`) and gives the frames the
 ``hl2ss`` backend would have given: the raw images undistorted with the recorded calibration,
 ``T_world_rig`` from the recorded rig pose (hl2ss's row-vector matrix, converted by
 :func:`~humantele.tracking.hl2ss_protocol.pose_from_hl2ss`), ``T_world_camera = T_world_rig @
@@ -29,7 +29,8 @@ import numpy as np
 from pydantic import Field
 
 from humantele.config import ConfigModel
-from humantele.devices.replay_file import (
+from humantele.geometry import Pose
+from humantele.recording.device_file import (
     AHAT_CALIBRATION,
     AHAT_FRAME,
     DeviceRecording,
@@ -37,7 +38,6 @@ from humantele.devices.replay_file import (
     Sample,
     open_recording,
 )
-from humantele.geometry import Pose
 from humantele.tracking.camera import CameraIntrinsics
 from humantele.tracking.frames import FrameSource, FrameSourceUnavailable, TrackingFrame
 from humantele.tracking.hl2ss_calibration import Hl2ssAhatCalibration

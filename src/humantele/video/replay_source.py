@@ -1,7 +1,7 @@
 """The ``replay`` video backend: a device recording's US or POV frames.
 
 Reads ``/video/us`` or ``/video/pov`` (``track``) of a file written by ``humantele devices
-record`` (:mod:`humantele.devices.replay_file`): JPEG frames with their capture times. ``read``
+record`` (:mod:`humantele.recording.device_file`): JPEG frames with their capture times. ``read``
 blocks until the frame's recorded time (relative to the first ``read``), as a capture card
 does, and gives it decoded (BGR) with ``t_capture`` the time it was given (this process's
 ``time.monotonic``), the recorded ``pixel_spacing_mm``/``depth_origin_row`` unless the config
@@ -25,7 +25,7 @@ import numpy as np
 from pydantic import Field
 
 from humantele.config import ConfigModel
-from humantele.devices.replay_file import (
+from humantele.recording.device_file import (
     VIDEO,
     DeviceRecording,
     DeviceRecordingError,

@@ -4,7 +4,7 @@ receiver's recording callback and a :class:`~humantele.recording.Recorder` (writ
 zstd chunks, fsync every 0.2 s, as the daemon records), and reports the CPU (% of one core,
 this process, all threads) against the same replay without the frames, and MB per minute.
 
-``python -m humantele.recording.video_cost RECORDING.expert.mcap [--seconds S]``
+``python -m humantele.export.video_cost RECORDING.expert.mcap [--seconds S]``
 """
 
 from __future__ import annotations

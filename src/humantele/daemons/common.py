@@ -15,22 +15,22 @@ from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 from humantele.cliargs import EXIT_FAILED, EXIT_OK, EXIT_REFUSED, duration_s, log_level
-from humantele.recording import Recorder
-from humantele.runtime.pacing import daemon_ticks
-from humantele.runtime.process import (
-    ignore_stop_signals,
-    lift_threads,
-    on_stop_signals,
-    realtime_loop_thread,
-    thread_priority_for,
-)
-from humantele.runtime.session import (
+from humantele.daemons.session import (
     ClockSyncLog,
     add_session_arguments,
     close_daemon_recording,
     open_daemon_recording,
     recorder_stats,
     session_overrides,
+)
+from humantele.recording import Recorder
+from humantele.runtime.pacing import daemon_ticks
+from humantele.runtime.process import (
+    ThreadLifter,
+    ignore_stop_signals,
+    on_stop_signals,
+    realtime_loop_thread,
+    thread_priority_for,
 )
 from humantele.runtime.stats import CpuMeter, StatsFile
 from humantele.transport.link import link_refusal
@@ -40,7 +40,7 @@ log = logging.getLogger(__name__)
 
 class Daemon:
     """The runtime of one daemon (``role`` 'expert' or 'follower'). ``config`` has the
-    ``session`` (:class:`~humantele.runtime.session.SessionConfig`) and ``recording``
+    ``session`` (:class:`~humantele.daemons.session.SessionConfig`) and ``recording``
     sections; ``stats_file``: where :meth:`stats` is written every 0.5 s and at the end."""
 
     role = "daemon"
@@ -58,7 +58,7 @@ class Daemon:
         self._last_report = -math.inf
         self.loop_priority = "off"  # the event loop thread's scheduling (start_run sets it)
         self.thread_priority = 0  # SCHED_FIFO of the process's other threads (0: normal)
-        self.threads_lifted = 0  # threads moved to it so far (lift_threads)
+        self.lifter: ThreadLifter | None = None  # lifts the other threads (off the loop)
         self.link_ended_early: asyncio.Task | None = None  # the link's task, if it ended the run
         self.step_errors = 0  # steps run by guarded() that failed
 
@@ -79,7 +79,7 @@ class Daemon:
             "cpu_percent": self.cpu.overall(),
             "loop_priority": self.loop_priority,
             "thread_priority": f"fifo {self.thread_priority}" if self.thread_priority else "off",
-            "threads_lifted": self.threads_lifted,
+            "threads_lifted": self.lifter.lifted if self.lifter is not None else 0,
             "recording": recorder_stats(self.rec),
         }
 
@@ -101,9 +101,12 @@ class Daemon:
             rec.write(topic, t, payload)
 
     def write_stats(self) -> None:
-        """Hand the current stats to the stats file's writer thread (every 0.5 s); the
-        threads started since the last call go to :attr:`thread_priority`."""
-        self.threads_lifted += lift_threads(self.thread_priority)
+        """Hand the current stats to the stats file's writer thread (every 0.5 s). The first
+        call starts the lifter: every 0.5 s, on its own thread, the threads started since go
+        to :attr:`thread_priority`."""
+        if self.lifter is None:
+            self.lifter = ThreadLifter(self.thread_priority)
+            self.lifter.start()
         self.stats_out.write(self.stats())
 
     def stop(self) -> None:
@@ -184,6 +187,8 @@ class Daemon:
     def finish_run(self) -> None:
         """The end of :meth:`run`: the recording closed, the final stats written."""
         self.close_recording()
+        if self.lifter is not None:
+            self.lifter.stop()
         self.stats_out.close(self.stats())
 
 
