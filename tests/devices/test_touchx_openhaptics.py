@@ -8,6 +8,7 @@ from the test (``fake_tick``), so these tests do not depend on the machine's spe
 import ctypes
 import logging
 import math
+import os
 import threading
 import time
 from types import SimpleNamespace
@@ -342,6 +343,82 @@ def test_real_scheduler_thread_runs_the_callback_and_io_stays_in_it(fake_hd):
     assert t["callbacks"] == n and t["period_p50_us"] > 0 and t["duration_p50_us"] > 0
 
 
+def _fifo_allowed() -> bool:
+    """Whether this machine lets a thread take SCHED_FIFO (tried in a throwaway thread)."""
+    ok = []
+
+    def attempt():
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+        except OSError:
+            return
+        ok.append(True)
+
+    t = threading.Thread(target=attempt)
+    t.start()
+    t.join(30.0)
+    return bool(ok)
+
+
+def _open_from_fifo_thread(dev, prio):
+    """``dev.open()`` called from a thread at SCHED_FIFO ``prio`` where allowed (as the servo
+    process's main thread is when it opens the device)."""
+    errors = []
+
+    def run():
+        try:
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+            except OSError:
+                pass
+            dev.open()
+        except BaseException as exc:  # noqa: BLE001 - re-raised below
+            errors.append(exc)
+
+    t = threading.Thread(target=run)
+    t.start()
+    t.join(30.0)
+    if errors:
+        raise errors[0]
+
+
+def _wait_ticks(dev, n):
+    deadline = time.monotonic() + 30.0
+    while dev.ticks < n and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert dev.ticks >= n, "the fake HD servo thread did not tick"
+
+
+def test_hd_servo_thread_starts_normal_and_its_callback_makes_it_fifo(fake_hd):
+    """The fake's scheduler thread starts at normal priority even when the thread that starts
+    it is SCHED_FIFO (as OpenHaptics' may: the driver makes it); the backend's first callback
+    gives it SCHED_FIFO at ``thread_priority``, read back from the thread itself. Where the
+    machine refuses SCHED_FIFO the thread stays normal and the backend says so."""
+    path, fake = fake_hd
+    fifo = _fifo_allowed()
+    fake.fake_reset(0)  # threaded scheduler
+    dev = TouchX(TouchXConfig(library=path))  # thread_priority 0: the thread is left alone
+    _open_from_fifo_thread(dev, 3)
+    _wait_ticks(dev, 5)
+    assert fake.fake_thread_policy() == 0  # SCHED_OTHER: not inherited from the FIFO opener
+    assert dev.thread_fifo == 0 and dev.thread_policy == "normal priority"
+    dev.close()
+    assert fake.fake_thread_policy() == -1
+
+    fake.fake_reset(0)
+    dev = TouchX(TouchXConfig(library=path))
+    dev.thread_priority = 7
+    _open_from_fifo_thread(dev, 3)
+    _wait_ticks(dev, 5)
+    if fifo:
+        assert fake.fake_thread_policy() == 1007  # SCHED_FIFO 7, asked from inside the thread
+        assert dev.thread_fifo == 7 and dev.thread_policy == "SCHED_FIFO 7"
+    else:
+        assert fake.fake_thread_policy() == 0
+        assert dev.thread_fifo == 0 and "SCHED_FIFO 7 refused" in dev.thread_policy
+    dev.close()
+
+
 def test_continuous_force_is_queried_and_sustained_force_settles_at_it(fake_hd):
     """A brief peak passes; a sustained press is brought down to the device's continuous rating
     (queried: HD_NOMINAL_MAX_CONTINUOUS_FORCE) smoothly, so the motors never warm up."""
@@ -522,7 +599,9 @@ def test_servo_process_runs_on_the_touchx_backend(fake_hd_path, tmp_path, monkey
 
     (tmp_path / "3DSystems" / "config").mkdir(parents=True)
     monkeypatch.setenv("GTDD_HOME", str(tmp_path / "3DSystems"))
-    cfg = ServoConfig(device=TouchXConfig(library=fake_hd_path), realtime_priority=0)
+    # SCHED_FIFO 1 where allowed: the device's HD servo thread must end up there too
+    cfg = ServoConfig(device=TouchXConfig(library=fake_hd_path), realtime_priority=1)
+    fifo = _fifo_allowed()
     with ServoProcess(cfg) as sp:
         deadline = time.monotonic() + 30.0
         while time.monotonic() < deadline:
@@ -532,6 +611,11 @@ def test_servo_process_runs_on_the_touchx_backend(fake_hd_path, tmp_path, monkey
             time.sleep(0.01)
         assert s is not None and s.tick > 300
         assert np.allclose(s.T_device_stylus.position, 0.0)  # the fake's stylus at the origin
+        deadline = time.monotonic() + 30.0  # the statistics are written 4 times a second
+        while sp.stats().ticks < 300 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert sp.realtime == fifo
+        assert sp.stats().device_thread_fifo == (1 if fifo else 0)
     assert sp.returncode == 0 and sp.stats().ticks > 300  # the final statistics
 
 

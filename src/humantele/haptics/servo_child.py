@@ -210,6 +210,13 @@ def servo_main(config_json: str, names: tuple[str, str, str], parent_pid: int, c
     try:
         config = ServoConfig.model_validate_json(config_json)
         device = make_device(config.device)
+        # Real-time before the device opens: a thread the device starts (the Touch X's HD
+        # servo thread) inherits the policy and the CPUs where its library lets it; the Touch
+        # X backend also sets its thread's policy from inside (TouchX.thread_priority), since
+        # OpenHaptics' driver may not let it inherit.
+        realtime = try_realtime(config)
+        if hasattr(device, "thread_priority"):
+            device.thread_priority = config.realtime_priority
         # Collect and freeze what the imports made before the device's own servo thread starts:
         # a full collection holds the GIL for tens of ms, during which a device callback that
         # needs it (the Touch X's) would miss its slot. _run's collection is then short.
@@ -221,7 +228,6 @@ def servo_main(config_json: str, names: tuple[str, str, str], parent_pid: int, c
         for b in (cmd, out, st):
             b.close()
         return
-    realtime = try_realtime(config)
     conn.send(("ready", {"realtime": realtime, "pid": os.getpid()}))
     try:
         _run(config, device, cmd, out, st, stop, parent_pid, realtime)
@@ -315,7 +321,7 @@ def _run(config, device, cmd, out, st, stop, parent_pid, realtime) -> None:
             sample[S_QD : S_QD + 4] = q_dev
             out.write(sample)
             if now >= next_stats:
-                st.write(_stats_row(timing, r, realtime))
+                st.write(_stats_row(timing, r, realtime, device))
                 next_stats = now + 0.25
             # Next deadline; after a long stall restart the schedule instead of bursting.
             next_t += period
@@ -324,7 +330,7 @@ def _run(config, device, cmd, out, st, stop, parent_pid, realtime) -> None:
     finally:
         gc.enable()
         sys.setswitchinterval(switch)
-        st.write(_stats_row(timing, r, realtime))
+        st.write(_stats_row(timing, r, realtime, device))
 
 
 def apply_commands(r: ForceRenderer, c: np.ndarray, now: float) -> None:
@@ -360,7 +366,9 @@ def apply_commands(r: ForceRenderer, c: np.ndarray, now: float) -> None:
         r.refuse(f"configuration refused: {type(exc).__name__}: {exc}")
 
 
-def _stats_row(timing: PeriodTiming, r: ForceRenderer, realtime: bool) -> list[float]:
+def _stats_row(
+    timing: PeriodTiming, r: ForceRenderer, realtime: bool, device: object = None
+) -> list[float]:
     c = r.counts
     vals = {
         "ticks": timing.ticks,
@@ -381,5 +389,6 @@ def _stats_row(timing: PeriodTiming, r: ForceRenderer, realtime: bool) -> list[f
         "realtime": float(realtime),
         "models_refused": c["refused"],
         "tick_errors": c["tick_errors"],
+        "device_thread_fifo": getattr(device, "thread_fifo", -1),
     }
     return [float(vals[k]) for k in STAT_FIELDS]

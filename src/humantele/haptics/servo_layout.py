@@ -60,6 +60,9 @@ class ServoStats:
     realtime: bool
     models_refused: int = 0  # models/registrations refused on arrival (the last good kept)
     tick_errors: int = 0  # ticks that raised (force zeroed, the model dropped)
+    # the SCHED_FIFO priority of the device's own servo thread (the Touch X's HD scheduler
+    # thread; 0: normal priority; -1: the device has no thread of its own)
+    device_thread_fifo: int = -1
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)

@@ -66,6 +66,7 @@ import ctypes
 import ctypes.util
 import logging
 import math
+import os
 import threading
 import time
 from typing import Literal
@@ -150,7 +151,10 @@ class TouchX(HapticDevice):
     the sustained limit (N); ``limit_n``: the limit of the last tick (N); ``warm_motors``: force
     ramped off until the motors cool; ``temperature``: the hottest motor (0 room .. 1 overheat,
     None if the device gives none); ``timing``: the callback's period and duration;
-    ``model``/``serial``: what the device says it is.
+    ``model``/``serial``: what the device says it is; ``thread_priority``: the SCHED_FIFO
+    priority the HD servo thread is given from inside its first callback (0: left as it is; set
+    before ``open``); ``thread_fifo``: the priority it then has (0: normal), read back there;
+    ``thread_policy``: the same in words.
     """
 
     name = "touchx"
@@ -171,6 +175,10 @@ class TouchX(HapticDevice):
         self.temperature: float | None = None
         self.timing = CallbackTiming()
         self.model = self.serial = ""
+        self.thread_priority = 0
+        self.thread_fifo = 0
+        self.thread_policy = "not started"
+        self._thread_setup = False  # the next tick sets its thread's policy (a new thread)
         self._lib: HDLibrary | None = None
         self._hhd: int | None = None
         self._handle: int | None = None
@@ -223,6 +231,7 @@ class TouchX(HapticDevice):
             self._raise_if_error("setting the scheduler rate")
             self._handle = lib.hdScheduleAsynchronous(self._cb, None, HD_MAX_SCHEDULER_PRIORITY)
             self._raise_if_error("scheduling the servo callback")
+            self._thread_setup = True
             lib.hdStartScheduler()
             self._raise_if_error("starting the HD scheduler")
         except DeviceError:
@@ -367,6 +376,8 @@ class TouchX(HapticDevice):
         lib, hhd = self._lib, self._hhd
         if lib is None or hhd is None:
             return HD_CALLBACK_DONE
+        if self._thread_setup:
+            self._setup_thread()
         t = time.monotonic()
         self.timing.enter(t)
         now = self.ticks * self._dt  # servo time (s): ramps and waits count ticks
@@ -403,6 +414,29 @@ class TouchX(HapticDevice):
             self._cv.notify_all()
         self.timing.done(lib.hdGetSchedulerTimeStamp())
         return HD_CALLBACK_CONTINUE
+
+    def _setup_thread(self) -> None:
+        """Give the HD servo thread (the caller: the first tick) SCHED_FIFO at
+        ``thread_priority`` and read its policy back. OpenHaptics starts the thread in the Touch
+        driver (``startServoLoop``), whose policy the caller cannot see or set beforehand: a
+        SCHED_FIFO set earlier on another thread reaches it only if the driver lets it inherit.
+        On Linux ``sched_setscheduler(0, ...)`` acts on the calling thread alone."""
+        self._thread_setup = False
+        prio, refused = self.thread_priority, ""
+        if prio > 0:
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+            except (OSError, AttributeError, ValueError) as exc:
+                refused = f" (SCHED_FIFO {prio} refused: {exc})"
+        try:
+            policy, got = os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+        except (OSError, AttributeError):
+            policy, got = -1, 0
+        fifo = policy == getattr(os, "SCHED_FIFO", 1)
+        self.thread_fifo = got if fifo else 0
+        self.thread_policy = f"SCHED_FIFO {got}" if fifo else f"normal priority{refused}"
+        if prio > 0 and not fifo:
+            self._say("touchx: the HD servo thread runs at %s", self.thread_policy)
 
     def _limited(self, cmd: Vec3, calibrated: bool, now: float) -> Vec3:
         """The force to write this tick (N): ``cmd`` within the adaptive clamp and the ramp;
