@@ -26,6 +26,11 @@
  *   PTHREAD_EXPLICIT_SCHED and SCHED_OTHER, at normal priority whatever the policy of the
  *   thread that called hdStartScheduler; only the callback, from inside the thread, can raise
  *   it. fake_thread_policy() reads the thread's policy back.
+ * - unplugging (fake_unplug): the servo loop loses the device: every tick raises HD_COMM_ERROR
+ *   and the motors are off; hdInitDevice fails with HD_COMM_ERROR while it is unplugged. A
+ *   replugged device (fake_replug) comes back only through a new hdInitDevice: the session that
+ *   saw it go keeps raising HD_COMM_ERROR (a stale handle) until the device is disabled and
+ *   initialised again.
  * - the 3D Systems Touch driver (libPhantomIOLib42) needs GTDD_HOME: without it hdInitDevice
  *   prints the driver's "Config directory not set correctly." and fails (HD_COMM_ERROR: a
  *   guess; users report only that the Touch is then not found, jhu-cisst-external/
@@ -81,6 +86,8 @@ static double reset_pose[3] = {0.0, -65.0, -90.0};  /* mm, where the links are o
 static long enc_reset_running, updates;
 static unsigned int err_queue[16]; static int err_internal[16]; static volatile int nerr;
 static unsigned int init_error;
+static int unplugged, session_lost;  /* the device is gone; this handle saw it go */
+static long inits;
 static int require_gtdd = 1;
 static long fail_at_tick = -1; static unsigned int fail_code;
 static long watchdog_ns = 1000000;
@@ -110,7 +117,9 @@ unsigned int hdInitDevice(const char *name) {
         return 0xFFFFFFFF;
     }
     if (init_error) { push_error(init_error, -3); return 0xFFFFFFFF; }
-    inited = 1; return 1;
+    if (unplugged) { push_error(0x0302, -4); return 0xFFFFFFFF; }
+    if (inited) { push_error(0x0301, 0); return 0xFFFFFFFF; }  /* HD_DEVICE_ALREADY_INITIATED */
+    inited = 1; session_lost = 0; inits++; return 1;
 }
 void hdDisableDevice(unsigned int h) { inited = 0; enabled = 0; }
 void hdMakeCurrentDevice(unsigned int h) {}
@@ -167,6 +176,7 @@ void hdSetDoublev(unsigned int what, const double *v) {
         push_error(0x0201, 0);
         s = (clamping && isfinite(m)) ? nominal_max_force / m : 0.0;
     }
+    if (session_lost) s = 0.0;  /* nothing reaches a device that is gone */
     for (int i = 0; i < 3; i++) force[i] = v[i] * s;
     m *= s;
     if (m * m > max_force_seen) max_force_seen = m * m;
@@ -191,6 +201,8 @@ void hdSetSchedulerRate(unsigned long r) {
     rate = r;
 }
 unsigned long hdScheduleAsynchronous(HDSchedulerCallback cb, void *data, unsigned short prio) {
+    for (int i = 0; i < ncb; i++)  /* a slot freed by hdUnschedule or HD_CALLBACK_DONE */
+        if (!cbs[i]) { cbs[i] = cb; cb_data[i] = data; cb_prio[i] = prio; return i + 1; }
     if (ncb >= MAXCB) { push_error(0x0501, 0); return 0; }
     cbs[ncb] = cb; cb_data[ncb] = data; cb_prio[ncb] = prio; return (unsigned long)(++ncb);
 }
@@ -233,6 +245,7 @@ static void one_tick(void) {
     }
     last_tick_start = tick_start;
     if (fail_at_tick >= 0 && ticks == fail_at_tick) push_error(fail_code, 7);
+    if (session_lost) { push_error(0x0302, -5); memset(force, 0, sizeof force); }
     calibration_step();
     for (int i = 0; i < ncb; i++)
         if (cbs[i] && cbs[i](cb_data[i]) == 0) cbs[i] = 0;  /* HD_CALLBACK_DONE */
@@ -286,7 +299,7 @@ void hdStopScheduler(void) {
 void fake_reset(int manual_mode) {
     running = 0; ncb = 0; ticks = frames = force_writes = frame_violations = thread_violations = 0;
     manual = manual_mode; inited = enabled = in_frame = clamping = ramping = 0; nerr = 0;
-    init_error = 0; require_gtdd = 1;
+    init_error = 0; require_gtdd = 1; unplugged = session_lost = 0; inits = 0;
     fail_at_tick = -1; max_force_seen = 0; nominal_max_force = 7.9; nominal_continuous = 1.75;
     temperature = 0.0; tau_s = 10.0; warm = 0;
     warm_events = exceeded_events = watchdog_trips = last_warm_tick = 0;
@@ -328,6 +341,8 @@ long fake_thread_policy(void) {
     return (long)policy * 1000 + sp.sched_priority;
 }
 void fake_fail_init(unsigned int code) { init_error = code; }
+void fake_unplug(void) { unplugged = 1; if (inited) session_lost = 1; }
+void fake_replug(void) { unplugged = 0; }
 void fake_fail_at_tick(long tick, unsigned int code) { fail_at_tick = tick; fail_code = code; }
 double fake_force(int i) { return force[i]; }
 double fake_max_force_seen(void) { return max_force_seen; }  /* squared magnitude, N^2 */
@@ -343,6 +358,8 @@ long fake_counter(int which) {
         case 11: return exceeded_events; case 12: return watchdog_trips;
         case 13: return enc_reset_running; case 14: return updates;
         case 15: return clamping * 10 + ramping; case 16: return warm;
+        case 17: return inits;
+        case 18: { long n = 0; for (int i = 0; i < ncb; i++) n += cbs[i] != 0; return n; }
     }
     return -1;
 }

@@ -26,6 +26,7 @@ from humantele.haptics.servo_config import ServoConfig
 
 TICKS, FRAMES, WRITES, FRAME_VIOL, THREAD_VIOL, RATE, PRIO, STATE, UPD_STYLE, CAL = range(10)
 WARM_EVENTS, EXCEEDED, WATCHDOG, ENC_RESET_RUNNING, UPDATES, SAFETY_CAPS, WARM = range(10, 17)
+INITS, CALLBACKS = 17, 18
 OK, NEEDS_UPDATE, NEEDS_MANUAL = 0x5000, 0x5001, 0x5002
 ENCODER_RESET, AUTO, INKWELL = 1, 2, 4
 
@@ -240,13 +241,13 @@ def test_reset_encoders_command_line(fake_hd, monkeypatch, capsys):
 @pytest.mark.parametrize(
     ("code", "words"),
     [
-        (0x0302, "HD_COMM_ERROR.*USB cable"),
-        (0x0304, "HD_TIMER_ERROR.*time slice"),
         (0x0201, "HD_EXCEEDED_MAX_FORCE"),
         (0x0300, "HD_DEVICE_FAULT.*power-cycle"),
     ],
 )
 def test_hd_errors_become_clear_device_errors_and_zero_the_force(fake_hd, code, words):
+    """Errors that are not scheduler errors (hduIsSchedulerError): reported once, force
+    dropped, the callback goes on (scheduler errors: the test after this one)."""
     path, fake = fake_hd
     dev = TouchX(TouchXConfig(library=path))
     dev.open()
@@ -265,6 +266,110 @@ def test_hd_errors_become_clear_device_errors_and_zero_the_force(fake_hd, code, 
     fake.fake_tick(1)
     assert forces(fake) == [0.0, 0.0, 1.0]
     dev.close()
+
+
+class Clock:
+    """A clock the test moves (s)."""
+
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+@pytest.mark.parametrize(
+    ("code", "words"),
+    [(0x0302, "HD_COMM_ERROR.*USB cable"), (0x0304, "HD_TIMER_ERROR.*time slice")],
+)
+def test_a_scheduler_error_stops_the_callback_and_the_device_is_reinitialised(
+    fake_hd, code, words, caplog
+):
+    """A scheduler error (HD_COMM_ERROR, HD_TIMER_ERROR: OpenHaptics' hduIsSchedulerError):
+    that tick writes zero force and the callback stops (HD_CALLBACK_DONE, as
+    HelloHapticDevice.c); the loop's next read releases the device and says it is lost; after
+    the back-off it is initialised again and the force ramps back."""
+    path, fake = fake_hd
+    clock = Clock()
+    dev = TouchX(TouchXConfig(library=path, reopen_first_s=0.5, ramp_s=0.005))
+    dev._clock = clock
+    dev.open()
+    dev.command_force((0.0, 0.0, 1.5))
+    fake.fake_tick(3)
+    assert forces(fake) == [0.0, 0.0, 1.5]
+    fake.fake_fail_at_tick(3, code)
+    fake.fake_tick(1)
+    assert forces(fake) == [0.0, 0.0, 0.0]  # the tick that saw it wrote zero
+    assert fake.fake_counter(CALLBACKS) == 0  # and stopped the callback
+    with caplog.at_level(logging.WARNING):
+        with pytest.raises(DeviceError, match=words + ".*re-initialising: attempt 0, next in 0.5"):
+            dev.read()
+        assert fake.fake_counter(STATE) == 0  # released: scheduler stopped, device disabled
+        assert dev.lost is not None
+        with pytest.raises(DeviceError, match="lost"):
+            dev.command_force((0.0, 0.0, 1.0))
+        assert dev.wait_tick(dev.ticks, 0.01) == dev.ticks  # waits, never spins the loop
+        clock.t += 0.4
+        with pytest.raises(DeviceError, match="next in 0.1"):
+            dev.read()  # not yet
+        assert fake.fake_counter(INITS) == 1
+        clock.t += 0.1
+        with pytest.raises(DeviceError, match="no servo tick yet"):
+            dev.read()  # re-initialised: a new session, no tick of it yet
+    assert fake.fake_counter(INITS) == 2 and fake.fake_counter(STATE) == 111
+    assert dev.lost is None and dev.reinits == 1 and fake.fake_counter(CALLBACKS) == 1
+    assert "device lost" in caplog.text and "re-initialised" in caplog.text
+    dev.command_force((0.0, 0.0, 1.5))
+    f = ramp_up(fake, 10)
+    assert f[0] < 0.5 and f[-1] == pytest.approx(1.5)  # ramps back over ramp_s (5 ticks)
+    assert np.all(np.diff(f) >= -1e-12)
+    dev.read()
+    dev.close()
+
+
+def test_an_unplugged_device_is_reinitialised_with_backoff_once_replugged(fake_hd, caplog):
+    """Unplugged: every tick raises HD_COMM_ERROR and hdInitDevice fails while it is out; the
+    backend waits 0.5, 1, 2, 2 s between attempts (reopen_max_s 2), and the replugged device,
+    which only a new hdInitDevice brings back, is re-initialised at the next attempt."""
+    path, fake = fake_hd
+    clock = Clock()
+    dev = TouchX(TouchXConfig(library=path, reopen_first_s=0.5, reopen_max_s=2.0))
+    dev._clock = clock
+    dev.open()
+    dev.command_force((0.0, 1.0, 0.0))
+    fake.fake_tick(2)
+    fake.fake_unplug()
+    fake.fake_tick(1)
+    assert forces(fake) == [0.0, 0.0, 0.0] and fake.fake_counter(CALLBACKS) == 0
+    with caplog.at_level(logging.WARNING):
+        with pytest.raises(DeviceError, match="HD_COMM_ERROR.*next in 0.5"):
+            dev.read()
+        for wait, attempt, next_s in ((0.5, 1, 1.0), (1.0, 2, 2.0), (2.0, 3, 2.0)):
+            clock.t += wait
+            with pytest.raises(DeviceError, match=f"attempt {attempt}, next in {next_s}"):
+                dev.read()
+        assert "re-initialising failed (attempt 1)" in caplog.text
+        fake.fake_replug()
+        clock.t += 1.0
+        with pytest.raises(DeviceError, match="attempt 3, next in 1.0"):
+            dev.read()  # back-off not over: no attempt
+        clock.t += 1.0
+        with pytest.raises(DeviceError, match="no servo tick yet"):
+            dev.read()
+    assert dev.reinits == 1 and dev.lost is None and fake.fake_counter(INITS) == 2
+    fake.fake_tick(1)
+    dev.read()
+    fake.fake_unplug()  # and again: lost again, found again
+    fake.fake_tick(1)
+    with pytest.raises(DeviceError, match="lost"):
+        dev.read()
+    fake.fake_replug()
+    clock.t += 0.5  # the back-off starts over at reopen_first_s
+    with pytest.raises(DeviceError, match="no servo tick yet"):
+        dev.read()
+    assert dev.reinits == 2
+    dev.close()
+    assert dev.lost is None and fake.fake_counter(STATE) == 0
 
 
 @pytest.mark.parametrize(

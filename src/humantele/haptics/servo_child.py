@@ -435,6 +435,8 @@ def _stats_row(
         "models_refused": c["refused"],
         "tick_errors": c["tick_errors"],
         "device_thread_fifo": getattr(device, "thread_fifo", -1),
+        "device_lost": int(getattr(device, "lost", None) is not None),
+        "device_reinits": getattr(device, "reinits", 0),
         "overruns_work": causes.work,
         "overruns_wake": causes.wake,
         "overruns_other": causes.other,

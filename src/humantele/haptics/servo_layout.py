@@ -63,6 +63,10 @@ class ServoStats:
     # the SCHED_FIFO priority of the device's own servo thread (the Touch X's HD scheduler
     # thread; 0: normal priority; -1: the device has no thread of its own)
     device_thread_fifo: int = -1
+    # the device lost (a scheduler error: unplugged, its servo loop stalled) and being
+    # re-initialised with back-off (1), or not (0); the re-initialisations so far
+    device_lost: int = 0
+    device_reinits: int = 0
     # why the overruns ran long (haptics.loop_counts.LongPeriods): the tick before worked over
     # T/2, the sleep woke over T/2 late, or neither; the longest tick's work (us); the spin
     # before each deadline now (us); the loop thread's page faults and involuntary context
