@@ -23,7 +23,7 @@ class LongPeriods:
 
     def __init__(self, period: float) -> None:
         self.period = period
-        self.over = 1.5 * period
+        self.over_us = 1.5e6 * period  # as PeriodTiming counts its overruns, to the bit
         self.half = 0.5 * period
         self.work = self.wake = self.other = 0
         self.work_max_s = 0.0  # the longest tick's work (s)
@@ -33,7 +33,7 @@ class LongPeriods:
         in it woke ``late_s`` after the time it asked for (0: no sleep)."""
         if work_s > self.work_max_s:
             self.work_max_s = work_s
-        if period_s > self.over:
+        if period_s * 1e6 > self.over_us:
             if work_s > self.half:
                 self.work += 1
             elif late_s > self.half:
