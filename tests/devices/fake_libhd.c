@@ -30,7 +30,9 @@
  *   and the motors are off; hdInitDevice fails with HD_COMM_ERROR while it is unplugged. A
  *   replugged device (fake_replug) comes back only through a new hdInitDevice: the session that
  *   saw it go keeps raising HD_COMM_ERROR (a stale handle) until the device is disabled and
- *   initialised again.
+ *   initialised again. A test in another process unplugs it by creating the file named by
+ *   the environment variable FAKE_HD_UNPLUG_FILE (checked every 10 ticks and by hdInitDevice)
+ *   and replugs it by removing the file; FAKE_HD_WATCHDOG_US sets the watchdog (0: off).
  * - the 3D Systems Touch driver (libPhantomIOLib42) needs GTDD_HOME: without it hdInitDevice
  *   prints the driver's "Config directory not set correctly." and fails (HD_COMM_ERROR: a
  *   guess; users report only that the Touch is then not found, jhu-cisst-external/
@@ -110,7 +112,21 @@ static void hist_add(long *h, double us) {
 }
 static void set_uncalibrated_offset(void) { memcpy(offset, cal_offset, sizeof offset); }
 
+static int unplug_file_says = -1;  /* what the unplug file said last (-1: no file named) */
+static void check_unplug_file(void) {
+    const char *f = getenv("FAKE_HD_UNPLUG_FILE");
+    if (!f) return;
+    int out = access(f, F_OK) == 0;
+    if (out != unplug_file_says) {
+        unplug_file_says = out;
+        if (out) { unplugged = 1; if (inited) session_lost = 1; } else unplugged = 0;
+    }
+}
+
 unsigned int hdInitDevice(const char *name) {
+    const char *w = getenv("FAKE_HD_WATCHDOG_US");  /* a test in another process sets it */
+    if (w) watchdog_ns = atol(w) * 1000L;
+    check_unplug_file();
     if (require_gtdd && !getenv("GTDD_HOME")) {
         fprintf(stderr, "Config directory not set correctly.: No such file or directory\n");
         push_error(0x0302, -1);
@@ -245,6 +261,7 @@ static void one_tick(void) {
     }
     last_tick_start = tick_start;
     if (fail_at_tick >= 0 && ticks == fail_at_tick) push_error(fail_code, 7);
+    if (ticks % 10 == 0) check_unplug_file();
     if (session_lost) { push_error(0x0302, -5); memset(force, 0, sizeof force); }
     calibration_step();
     for (int i = 0; i < ncb; i++)
@@ -300,6 +317,7 @@ void fake_reset(int manual_mode) {
     running = 0; ncb = 0; ticks = frames = force_writes = frame_violations = thread_violations = 0;
     manual = manual_mode; inited = enabled = in_frame = clamping = ramping = 0; nerr = 0;
     init_error = 0; require_gtdd = 1; unplugged = session_lost = 0; inits = 0;
+    unplug_file_says = -1;
     fail_at_tick = -1; max_force_seen = 0; nominal_max_force = 7.9; nominal_continuous = 1.75;
     temperature = 0.0; tau_s = 10.0; warm = 0;
     warm_events = exceeded_events = watchdog_trips = last_warm_tick = 0;

@@ -704,6 +704,7 @@ def test_servo_process_runs_on_the_touchx_backend(fake_hd_path, tmp_path, monkey
 
     (tmp_path / "3DSystems" / "config").mkdir(parents=True)
     monkeypatch.setenv("GTDD_HOME", str(tmp_path / "3DSystems"))
+    monkeypatch.setenv("FAKE_HD_WATCHDOG_US", "0")  # a busy test machine's stall is no defect
     # SCHED_FIFO 1 where allowed: the device's HD servo thread must end up there too
     cfg = ServoConfig(device=TouchXConfig(library=fake_hd_path), realtime_priority=1)
     fifo = _fifo_allowed()
@@ -722,6 +723,48 @@ def test_servo_process_runs_on_the_touchx_backend(fake_hd_path, tmp_path, monkey
         assert sp.realtime == fifo
         assert sp.stats().device_thread_fifo == (1 if fifo else 0)
     assert sp.returncode == 0 and sp.stats().ticks > 300  # the final statistics
+
+
+def test_the_servo_says_the_device_is_lost_and_runs_again_after_a_replug(
+    fake_hd_path, tmp_path, monkeypatch
+):
+    """The whole servo process on the fake libHD, unplugged and replugged from this process
+    (the fake watches a file): the servo's state says the device is lost and being
+    re-initialised, no force reaches it, and once replugged it is initialised again in the same
+    process (no restart) and runs."""
+    from humantele.haptics.supervisor import SupervisedServo
+
+    def wait_for(pred, timeout):
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if v := pred():
+                return v
+            time.sleep(0.01)
+        raise AssertionError("condition not reached in time")
+
+    (tmp_path / "3DSystems" / "config").mkdir(parents=True)
+    monkeypatch.setenv("GTDD_HOME", str(tmp_path / "3DSystems"))
+    monkeypatch.setenv("FAKE_HD_WATCHDOG_US", "0")
+    unplugged = tmp_path / "unplugged"
+    monkeypatch.setenv("FAKE_HD_UNPLUG_FILE", str(unplugged))
+    device = TouchXConfig(library=fake_hd_path, reopen_first_s=0.05, reopen_max_s=0.2)
+    # stale only after 0.5 s: a busy test machine's late tick is no fault here
+    sup = SupervisedServo(ServoConfig(device=device, realtime_priority=0, stale_after_s=0.5))
+    sup.start()
+    try:
+        wait_for(lambda: (x := sup.latest()) and x.tick > 100, 30.0)
+        assert "device" not in sup.state(sup.latest()) and sup.stats().device_lost == 0
+        unplugged.touch()
+        state = wait_for(lambda: "device lost" in (st := sup.state(sup.latest())) and st, 30.0)
+        assert state.startswith("fault: ") and "re-initialising" in state
+        assert sup.latest().force_device == (0.0, 0.0, 0.0)
+        assert wait_for(lambda: sup.stats().device_lost == 1, 30.0)
+        unplugged.unlink()
+        wait_for(lambda: (st := sup.stats()).device_reinits >= 1 and not st.device_lost, 30.0)
+        wait_for(lambda: (x := sup.latest()) and "device" not in sup.state(x), 30.0)
+        assert sup.alive and sup.restarts == 0  # the same process, never restarted
+    finally:
+        sup.stop_now()
 
 
 def test_a_failing_tick_closes_its_frame_with_zero_force(fake_hd):
