@@ -1,6 +1,8 @@
 """The servo process: the 1 kHz loop on the device, fed and read through shared memory.
 
-It asks for SCHED_FIFO and a CPU (falls back, logged once, when refused). A device with its own
+It asks for SCHED_FIFO and a CPU before it opens the device (falls back, logged once, when
+refused), so a thread the device starts can inherit them; the Touch X's HD servo thread also
+sets its own policy from inside (``TouchX.thread_priority``). A device with its own
 servo clock (``wait_tick``: the Touch X, whose OpenHaptics scheduler calls a Python callback at
 1 kHz) drives the loop: it blocks in ``wait_tick`` (the GIL free, so the device's callback,
 which needs the GIL, never waits on this thread) and renders right after each device tick; the
