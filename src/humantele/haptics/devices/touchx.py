@@ -188,6 +188,7 @@ class TouchX(HapticDevice):
         self._backoff = self.config.reopen_first_s
         self._clock = time.monotonic  # the back-off's clock (s); tests drive it
         self._thread_setup = False  # the next tick sets its thread's policy (a new thread)
+        self._stop_cb = False  # a scheduler error in this session: the callback stops
         self._lib: HDLibrary | None = None
         self._hhd: int | None = None
         self._handle: int | None = None
@@ -218,9 +219,14 @@ class TouchX(HapticDevice):
     def open(self) -> None:
         lib = load_hd_library(self.config.library)
         name = self.config.device_name.encode() if self.config.device_name else None
+        for _ in range(64):  # errors left from a session before (a lost device's last ticks)
+            if lib.hdGetError().errorCode == HD_SUCCESS:
+                break
         hhd = lib.hdInitDevice(name)
         err = lib.hdGetError()
         if hhd == HD_INVALID_HANDLE or err.errorCode != HD_SUCCESS:
+            if hhd != HD_INVALID_HANDLE:  # opened, yet an error: release it, or it stays held
+                lib.hdDisableDevice(hhd)
             who = repr(self.config.device_name) if self.config.device_name else "the default"
             gtdd = gtdd_home_problem()
             raise DeviceError(
@@ -246,6 +252,7 @@ class TouchX(HapticDevice):
             self._handle = lib.hdScheduleAsynchronous(self._cb, None, HD_MAX_SCHEDULER_PRIORITY)
             self._raise_if_error("scheduling the servo callback")
             self._thread_setup = True
+            self._stop_cb = False
             lib.hdStartScheduler()
             self._raise_if_error("starting the HD scheduler")
         except DeviceError:
@@ -304,7 +311,9 @@ class TouchX(HapticDevice):
             self._handle = None
         if hhd is not None:
             lib.hdDisableDevice(hhd)
-        lib.hdGetError()
+        for _ in range(64):  # nothing of this session is left for the next
+            if lib.hdGetError().errorCode == HD_SUCCESS:
+                break
         self._lib = self._hhd = None
         with self._cv:
             self._cv.notify_all()
@@ -456,7 +465,7 @@ class TouchX(HapticDevice):
         if errors:
             self._handle_errors(errors, now)
         with self._lock:
-            cmd = self._force if self._error is None and self.lost is None else (0.0, 0.0, 0.0)
+            cmd = self._force if self._error is None and not self._stop_cb else (0.0, 0.0, 0.0)
         out = self._out
         out[0], out[1], out[2] = self._limited(cmd, cal == HD_CALIBRATION_OK, now)
         lib.hdSetDoublev(HD_CURRENT_FORCE, out)
@@ -477,7 +486,7 @@ class TouchX(HapticDevice):
             self._cv.notify_all()
         self.timing.done(lib.hdGetSchedulerTimeStamp())
         # A scheduler error: stop, as OpenHaptics' examples do; read() re-initialises.
-        return HD_CALLBACK_CONTINUE if self.lost is None else HD_CALLBACK_DONE
+        return HD_CALLBACK_DONE if self._stop_cb else HD_CALLBACK_CONTINUE
 
     def _setup_thread(self) -> None:
         """Give the HD servo thread (the caller: the first tick) SCHED_FIFO at
@@ -573,8 +582,10 @@ class TouchX(HapticDevice):
                 self.errors += 1
                 self._error = describe_hd_error(code, internal)
                 self._force = (0.0, 0.0, 0.0)
-                if code in HD_SCHEDULER_ERRORS and self.lost is None:
-                    self.lost = self._error
+                if code in HD_SCHEDULER_ERRORS:
+                    self._stop_cb = True
+                    if self.lost is None:
+                        self.lost = self._error
 
     def _warm(self, now: float) -> None:
         if not self.warm_motors:
