@@ -61,6 +61,7 @@ def fake_hd(fake_hd_path, tmp_path, monkeypatch):
     fake.fake_timing_over.argtypes = [ctypes.c_int, ctypes.c_double]
     fake.fake_timing_over.restype = ctypes.c_long
     fake.fake_counter.restype = ctypes.c_long
+    fake.fake_thread_policy.restype = ctypes.c_long
     fake.fake_set_nominal_max_force.argtypes = [ctypes.c_double]
     fake.fake_set_nominal_continuous_force.argtypes = [ctypes.c_double]
     fake.fake_set_thermal.argtypes = [ctypes.c_double, ctypes.c_double]

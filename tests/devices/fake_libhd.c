@@ -19,6 +19,20 @@
  * - scheduler watchdog: a tick whose callbacks run longer than watchdog_us gives
  *   HD_TIMER_ERROR ("unable to maintain the servo loop timer") and the force is cut for that
  *   tick; hdGetSchedulerTimeStamp() is the time since the tick began.
+ * - the scheduler thread: OpenHaptics' libHD starts its servo loop through the Touch driver
+ *   (startServoLoop in libPHANToMIO / libPhantomIOLib42, closed source: libHD 3.0 calls no
+ *   pthread or sched function itself), so whether it inherits its creator's SCHED_FIFO is not
+ *   known. The fake takes the case that needs the caller to act: its thread is created with
+ *   PTHREAD_EXPLICIT_SCHED and SCHED_OTHER, at normal priority whatever the policy of the
+ *   thread that called hdStartScheduler; only the callback, from inside the thread, can raise
+ *   it. fake_thread_policy() reads the thread's policy back.
+ * - unplugging (fake_unplug): the servo loop loses the device: every tick raises HD_COMM_ERROR
+ *   and the motors are off; hdInitDevice fails with HD_COMM_ERROR while it is unplugged. A
+ *   replugged device (fake_replug) comes back only through a new hdInitDevice: the session that
+ *   saw it go keeps raising HD_COMM_ERROR (a stale handle) until the device is disabled and
+ *   initialised again. A test in another process unplugs it by creating the file named by
+ *   the environment variable FAKE_HD_UNPLUG_FILE (checked every 10 ticks and by hdInitDevice)
+ *   and replugs it by removing the file; FAKE_HD_WATCHDOG_US sets the watchdog (0: off).
  * - the 3D Systems Touch driver (libPhantomIOLib42) needs GTDD_HOME: without it hdInitDevice
  *   prints the driver's "Config directory not set correctly." and fails (HD_COMM_ERROR: a
  *   guess; users report only that the Touch is then not found, jhu-cisst-external/
@@ -32,7 +46,9 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/syscall.h>
 #include <time.h>
+#include <unistd.h>
 
 typedef struct { unsigned int errorCode; int internalErrorCode; unsigned int hHD; } HDErrorInfo;
 typedef unsigned int (*HDSchedulerCallback)(void *);
@@ -53,6 +69,7 @@ static int ncb;
 static volatile int running, manual, inited, enabled, in_frame, clamping, ramping;
 static pthread_t thread, servo_thread;
 static int have_servo_thread;
+static volatile long servo_tid;  /* the scheduler thread's kernel id (0: not yet) */
 static unsigned long rate = 1000;  /* OpenHaptics' default too */
 static volatile long ticks, frames, force_writes, frame_violations, thread_violations;
 static double T[16] = {1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1};  /* true pose, column-major, mm */
@@ -71,10 +88,11 @@ static double reset_pose[3] = {0.0, -65.0, -90.0};  /* mm, where the links are o
 static long enc_reset_running, updates;
 static unsigned int err_queue[16]; static int err_internal[16]; static volatile int nerr;
 static unsigned int init_error;
+static int unplugged, session_lost;  /* the device is gone; this handle saw it go */
+static long inits;
 static int require_gtdd = 1;
 static long fail_at_tick = -1; static unsigned int fail_code;
 static long watchdog_ns = 1000000;
-static int rt_prio;  /* SCHED_FIFO priority of the scheduler thread (0: normal) */
 static struct timespec tick_start, last_tick_start;
 static long period_hist[NBINS], dur_hist[NBINS], nperiods, ndurs;
 static double dur_max_us, period_max_us;
@@ -94,14 +112,30 @@ static void hist_add(long *h, double us) {
 }
 static void set_uncalibrated_offset(void) { memcpy(offset, cal_offset, sizeof offset); }
 
+static int unplug_file_says = -1;  /* what the unplug file said last (-1: no file named) */
+static void check_unplug_file(void) {
+    const char *f = getenv("FAKE_HD_UNPLUG_FILE");
+    if (!f) return;
+    int out = access(f, F_OK) == 0;
+    if (out != unplug_file_says) {
+        unplug_file_says = out;
+        if (out) { unplugged = 1; if (inited) session_lost = 1; } else unplugged = 0;
+    }
+}
+
 unsigned int hdInitDevice(const char *name) {
+    const char *w = getenv("FAKE_HD_WATCHDOG_US");  /* a test in another process sets it */
+    if (w) watchdog_ns = atol(w) * 1000L;
+    check_unplug_file();
     if (require_gtdd && !getenv("GTDD_HOME")) {
         fprintf(stderr, "Config directory not set correctly.: No such file or directory\n");
         push_error(0x0302, -1);
         return 0xFFFFFFFF;
     }
     if (init_error) { push_error(init_error, -3); return 0xFFFFFFFF; }
-    inited = 1; return 1;
+    if (unplugged) { push_error(0x0302, -4); return 0xFFFFFFFF; }
+    if (inited) { push_error(0x0301, 0); return 0xFFFFFFFF; }  /* HD_DEVICE_ALREADY_INITIATED */
+    inited = 1; session_lost = 0; inits++; return 1;
 }
 void hdDisableDevice(unsigned int h) { inited = 0; enabled = 0; }
 void hdMakeCurrentDevice(unsigned int h) {}
@@ -158,6 +192,7 @@ void hdSetDoublev(unsigned int what, const double *v) {
         push_error(0x0201, 0);
         s = (clamping && isfinite(m)) ? nominal_max_force / m : 0.0;
     }
+    if (session_lost) s = 0.0;  /* nothing reaches a device that is gone */
     for (int i = 0; i < 3; i++) force[i] = v[i] * s;
     m *= s;
     if (m * m > max_force_seen) max_force_seen = m * m;
@@ -182,6 +217,8 @@ void hdSetSchedulerRate(unsigned long r) {
     rate = r;
 }
 unsigned long hdScheduleAsynchronous(HDSchedulerCallback cb, void *data, unsigned short prio) {
+    for (int i = 0; i < ncb; i++)  /* a slot freed by hdUnschedule or HD_CALLBACK_DONE */
+        if (!cbs[i]) { cbs[i] = cb; cb_data[i] = data; cb_prio[i] = prio; return i + 1; }
     if (ncb >= MAXCB) { push_error(0x0501, 0); return 0; }
     cbs[ncb] = cb; cb_data[ncb] = data; cb_prio[ncb] = prio; return (unsigned long)(++ncb);
 }
@@ -224,6 +261,8 @@ static void one_tick(void) {
     }
     last_tick_start = tick_start;
     if (fail_at_tick >= 0 && ticks == fail_at_tick) push_error(fail_code, 7);
+    if (ticks % 10 == 0) check_unplug_file();
+    if (session_lost) { push_error(0x0302, -5); memset(force, 0, sizeof force); }
     calibration_step();
     for (int i = 0; i < ncb; i++)
         if (cbs[i] && cbs[i](cb_data[i]) == 0) cbs[i] = 0;  /* HD_CALLBACK_DONE */
@@ -240,6 +279,7 @@ static void one_tick(void) {
     ticks++;
 }
 static void *servo_main(void *arg) {
+    servo_tid = (long)syscall(SYS_gettid);
     struct timespec next; clock_gettime(CLOCK_MONOTONIC, &next);
     long period_ns = 1000000000L / (long)rate;
     while (running) {
@@ -254,18 +294,21 @@ void hdStartScheduler(void) {
     if (running) return;
     running = 1;
     if (!manual) {
-        pthread_create(&thread, 0, servo_main, 0);
+        pthread_attr_t attr;  /* normal priority, not inherited: see the top of the file */
+        struct sched_param sp = {.sched_priority = 0};
+        pthread_attr_init(&attr);
+        pthread_attr_setinheritsched(&attr, PTHREAD_EXPLICIT_SCHED);
+        pthread_attr_setschedpolicy(&attr, SCHED_OTHER);
+        pthread_attr_setschedparam(&attr, &sp);
+        pthread_create(&thread, &attr, servo_main, 0);
+        pthread_attr_destroy(&attr);
         servo_thread = thread; have_servo_thread = 1;
-        if (rt_prio > 0) {
-            struct sched_param sp = {.sched_priority = rt_prio};
-            pthread_setschedparam(thread, SCHED_FIFO, &sp);  /* refused: stays normal */
-        }
     }
 }
 void hdStopScheduler(void) {
     if (!running) return;
     running = 0;
-    if (have_servo_thread) { pthread_join(thread, 0); have_servo_thread = 0; }
+    if (have_servo_thread) { pthread_join(thread, 0); have_servo_thread = 0; servo_tid = 0; }
     memset(force, 0, sizeof force);  /* the motors are off once the servo loop stops */
 }
 
@@ -273,7 +316,8 @@ void hdStopScheduler(void) {
 void fake_reset(int manual_mode) {
     running = 0; ncb = 0; ticks = frames = force_writes = frame_violations = thread_violations = 0;
     manual = manual_mode; inited = enabled = in_frame = clamping = ramping = 0; nerr = 0;
-    init_error = 0; require_gtdd = 1; rt_prio = 0;
+    init_error = 0; require_gtdd = 1; unplugged = session_lost = 0; inits = 0;
+    unplug_file_says = -1;
     fail_at_tick = -1; max_force_seen = 0; nominal_max_force = 7.9; nominal_continuous = 1.75;
     temperature = 0.0; tau_s = 10.0; warm = 0;
     warm_events = exceeded_events = watchdog_trips = last_warm_tick = 0;
@@ -302,8 +346,21 @@ void fake_set_nominal_continuous_force(double f) { nominal_continuous = f; }
 void fake_set_thermal(double tau, double temp) { tau_s = tau; temperature = temp; }
 void fake_set_watchdog_us(long us) { watchdog_ns = us * 1000L; }
 void fake_require_gtdd_home(int on) { require_gtdd = on; }
-void fake_set_realtime(int prio) { rt_prio = prio; }
+/* The scheduler thread's policy * 1000 + its priority (SCHED_OTHER 0, SCHED_FIFO 1001..1099),
+ * as the kernel has it (glibc's pthread_getschedparam would give the creation attributes it
+ * cached, not a change the thread made with sched_setscheduler); -1 with no scheduler thread
+ * (or before it ran). */
+long fake_thread_policy(void) {
+    struct sched_param sp;
+    long tid = servo_tid;
+    if (!have_servo_thread || tid == 0) return -1;
+    int policy = sched_getscheduler((pid_t)tid);
+    if (policy < 0 || sched_getparam((pid_t)tid, &sp) != 0) return -1;
+    return (long)policy * 1000 + sp.sched_priority;
+}
 void fake_fail_init(unsigned int code) { init_error = code; }
+void fake_unplug(void) { unplugged = 1; if (inited) session_lost = 1; }
+void fake_replug(void) { unplugged = 0; }
 void fake_fail_at_tick(long tick, unsigned int code) { fail_at_tick = tick; fail_code = code; }
 double fake_force(int i) { return force[i]; }
 double fake_max_force_seen(void) { return max_force_seen; }  /* squared magnitude, N^2 */
@@ -319,6 +376,8 @@ long fake_counter(int which) {
         case 11: return exceeded_events; case 12: return watchdog_trips;
         case 13: return enc_reset_running; case 14: return updates;
         case 15: return clamping * 10 + ramping; case 16: return warm;
+        case 17: return inits;
+        case 18: { long n = 0; for (int i = 0; i < ncb; i++) n += cbs[i] != 0; return n; }
     }
     return -1;
 }

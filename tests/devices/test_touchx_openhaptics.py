@@ -8,6 +8,7 @@ from the test (``fake_tick``), so these tests do not depend on the machine's spe
 import ctypes
 import logging
 import math
+import os
 import threading
 import time
 from types import SimpleNamespace
@@ -25,6 +26,7 @@ from humantele.haptics.servo_config import ServoConfig
 
 TICKS, FRAMES, WRITES, FRAME_VIOL, THREAD_VIOL, RATE, PRIO, STATE, UPD_STYLE, CAL = range(10)
 WARM_EVENTS, EXCEEDED, WATCHDOG, ENC_RESET_RUNNING, UPDATES, SAFETY_CAPS, WARM = range(10, 17)
+INITS, CALLBACKS = 17, 18
 OK, NEEDS_UPDATE, NEEDS_MANUAL = 0x5000, 0x5001, 0x5002
 ENCODER_RESET, AUTO, INKWELL = 1, 2, 4
 
@@ -239,13 +241,13 @@ def test_reset_encoders_command_line(fake_hd, monkeypatch, capsys):
 @pytest.mark.parametrize(
     ("code", "words"),
     [
-        (0x0302, "HD_COMM_ERROR.*USB cable"),
-        (0x0304, "HD_TIMER_ERROR.*time slice"),
         (0x0201, "HD_EXCEEDED_MAX_FORCE"),
         (0x0300, "HD_DEVICE_FAULT.*power-cycle"),
     ],
 )
 def test_hd_errors_become_clear_device_errors_and_zero_the_force(fake_hd, code, words):
+    """Errors that are not scheduler errors (hduIsSchedulerError): reported once, force
+    dropped, the callback goes on (scheduler errors: the test after this one)."""
     path, fake = fake_hd
     dev = TouchX(TouchXConfig(library=path))
     dev.open()
@@ -264,6 +266,118 @@ def test_hd_errors_become_clear_device_errors_and_zero_the_force(fake_hd, code, 
     fake.fake_tick(1)
     assert forces(fake) == [0.0, 0.0, 1.0]
     dev.close()
+
+
+class Clock:
+    """A clock the test moves (s)."""
+
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+@pytest.mark.parametrize(
+    ("code", "words"),
+    [(0x0302, "HD_COMM_ERROR.*USB cable"), (0x0304, "HD_TIMER_ERROR.*time slice")],
+)
+def test_a_scheduler_error_stops_the_callback_and_the_device_is_reinitialised(
+    fake_hd, code, words, caplog
+):
+    """A scheduler error (HD_COMM_ERROR, HD_TIMER_ERROR: OpenHaptics' hduIsSchedulerError):
+    that tick writes zero force and the callback stops (HD_CALLBACK_DONE, as
+    HelloHapticDevice.c); the loop's next read releases the device and says it is lost; after
+    the back-off it is initialised again and the force ramps back."""
+    path, fake = fake_hd
+    clock = Clock()
+    dev = TouchX(TouchXConfig(library=path, reopen_first_s=0.5, ramp_s=0.005))
+    dev._clock = clock
+    dev.open()
+    dev.command_force((0.0, 0.0, 1.5))
+    fake.fake_tick(3)
+    assert forces(fake) == [0.0, 0.0, 1.5]
+    fake.fake_fail_at_tick(3, code)
+    fake.fake_tick(1)
+    assert forces(fake) == [0.0, 0.0, 0.0]  # the tick that saw it wrote zero
+    assert fake.fake_counter(CALLBACKS) == 0  # and stopped the callback
+    with caplog.at_level(logging.WARNING):
+        with pytest.raises(DeviceError, match=words + ".*re-initialising: attempt 0, next in 0.5"):
+            dev.read()
+        assert fake.fake_counter(STATE) == 0  # released: scheduler stopped, device disabled
+        assert dev.lost is not None
+        with pytest.raises(DeviceError, match="lost"):
+            dev.command_force((0.0, 0.0, 1.0))
+        assert dev.wait_tick(dev.ticks, 0.01) == dev.ticks  # waits, never spins the loop
+        clock.t += 0.4
+        with pytest.raises(DeviceError, match="next in 0.1"):
+            dev.read()  # not yet
+        assert fake.fake_counter(INITS) == 1
+        clock.t += 0.1
+        reopen = dev.open
+
+        def open_and_tick():  # the new scheduler ticks before the loop hears it is back
+            reopen()
+            fake.fake_tick(1)
+
+        dev.open = open_and_tick
+        dev.read()  # re-initialised; that tick's state
+        dev.open = reopen
+    assert fake.fake_counter(INITS) == 2 and fake.fake_counter(STATE) == 111
+    assert dev.lost is None and dev.reinits == 1 and fake.fake_counter(CALLBACKS) == 1
+    assert "device lost" in caplog.text and "re-initialised" in caplog.text
+    dev.command_force((0.0, 0.0, 1.5))
+    f = ramp_up(fake, 10)
+    assert f[0] < 0.75 and f[-1] == pytest.approx(1.5)  # ramps back over ramp_s (5 ticks)
+    assert np.all(np.diff(f) >= -1e-12)
+    dev.read()
+    dev.close()
+
+
+def test_an_unplugged_device_is_reinitialised_with_backoff_once_replugged(fake_hd, caplog):
+    """Unplugged: every tick raises HD_COMM_ERROR and hdInitDevice fails while it is out; the
+    backend waits 0.5, 1, 2, 2 s between attempts (reopen_max_s 2), and the replugged device,
+    which only a new hdInitDevice brings back, is re-initialised at the next attempt."""
+    path, fake = fake_hd
+    clock = Clock()
+    dev = TouchX(TouchXConfig(library=path, reopen_first_s=0.5, reopen_max_s=2.0))
+    dev._clock = clock
+    dev.open()
+    dev.command_force((0.0, 1.0, 0.0))
+    fake.fake_tick(2)
+    fake.fake_unplug()
+    fake.fake_tick(1)
+    assert forces(fake) == [0.0, 0.0, 0.0] and fake.fake_counter(CALLBACKS) == 0
+    fake.fake_tick(5)  # the scheduler ticks on until released: its errors pile up unread
+    with caplog.at_level(logging.WARNING):
+        with pytest.raises(DeviceError, match="HD_COMM_ERROR.*next in 0.5"):
+            dev.read()
+        for wait, attempt, next_s in ((0.5, 1, 1.0), (1.0, 2, 2.0), (2.0, 3, 2.0)):
+            clock.t += wait
+            with pytest.raises(DeviceError, match=f"attempt {attempt}, next in {next_s}"):
+                dev.read()
+        assert "re-initialising failed (attempt 1)" in caplog.text
+        fake.fake_replug()
+        clock.t += 1.0
+        with pytest.raises(DeviceError, match="attempt 3, next in 1.0"):
+            dev.read()  # back-off not over: no attempt
+        clock.t += 1.0
+        with pytest.raises(DeviceError, match="no servo tick yet"):
+            dev.read()
+    assert dev.reinits == 1 and dev.lost is None and fake.fake_counter(INITS) == 2
+    fake.fake_tick(1)
+    dev.read()
+    fake.fake_unplug()  # and again: lost again, found again
+    fake.fake_tick(1)
+    with pytest.raises(DeviceError, match="lost"):
+        dev.read()
+    fake.fake_replug()
+    clock.t += 0.5  # the back-off starts over at reopen_first_s
+    with pytest.raises(DeviceError, match="no servo tick yet"):
+        dev.read()
+    assert dev.reinits == 2
+    dev.close()
+    assert dev.lost is None and fake.fake_counter(STATE) == 0
 
 
 @pytest.mark.parametrize(
@@ -340,6 +454,82 @@ def test_real_scheduler_thread_runs_the_callback_and_io_stays_in_it(fake_hd):
     assert fake.fake_counter(RATE) == 1000
     t = dev.timing.summary()  # the callback's own period and duration were measured
     assert t["callbacks"] == n and t["period_p50_us"] > 0 and t["duration_p50_us"] > 0
+
+
+def _fifo_allowed() -> bool:
+    """Whether this machine lets a thread take SCHED_FIFO (tried in a throwaway thread)."""
+    ok = []
+
+    def attempt():
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+        except OSError:
+            return
+        ok.append(True)
+
+    t = threading.Thread(target=attempt)
+    t.start()
+    t.join(30.0)
+    return bool(ok)
+
+
+def _open_from_fifo_thread(dev, prio):
+    """``dev.open()`` called from a thread at SCHED_FIFO ``prio`` where allowed (as the servo
+    process's main thread is when it opens the device)."""
+    errors = []
+
+    def run():
+        try:
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+            except OSError:
+                pass
+            dev.open()
+        except BaseException as exc:  # noqa: BLE001 - re-raised below
+            errors.append(exc)
+
+    t = threading.Thread(target=run)
+    t.start()
+    t.join(30.0)
+    if errors:
+        raise errors[0]
+
+
+def _wait_ticks(dev, n):
+    deadline = time.monotonic() + 30.0
+    while dev.ticks < n and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert dev.ticks >= n, "the fake HD servo thread did not tick"
+
+
+def test_hd_servo_thread_starts_normal_and_its_callback_makes_it_fifo(fake_hd):
+    """The fake's scheduler thread starts at normal priority even when the thread that starts
+    it is SCHED_FIFO (as OpenHaptics' may: the driver makes it); the backend's first callback
+    gives it SCHED_FIFO at ``thread_priority``, read back from the thread itself. Where the
+    machine refuses SCHED_FIFO the thread stays normal and the backend says so."""
+    path, fake = fake_hd
+    fifo = _fifo_allowed()
+    fake.fake_reset(0)  # threaded scheduler
+    dev = TouchX(TouchXConfig(library=path))  # thread_priority 0: the thread is left alone
+    _open_from_fifo_thread(dev, 3)
+    _wait_ticks(dev, 5)
+    assert fake.fake_thread_policy() == 0  # SCHED_OTHER: not inherited from the FIFO opener
+    assert dev.thread_fifo == 0 and dev.thread_policy == "normal priority"
+    dev.close()
+    assert fake.fake_thread_policy() == -1
+
+    fake.fake_reset(0)
+    dev = TouchX(TouchXConfig(library=path))
+    dev.thread_priority = 7
+    _open_from_fifo_thread(dev, 3)
+    _wait_ticks(dev, 5)
+    if fifo:
+        assert fake.fake_thread_policy() == 1007  # SCHED_FIFO 7, asked from inside the thread
+        assert dev.thread_fifo == 7 and dev.thread_policy == "SCHED_FIFO 7"
+    else:
+        assert fake.fake_thread_policy() == 0
+        assert dev.thread_fifo == 0 and "SCHED_FIFO 7 refused" in dev.thread_policy
+    dev.close()
 
 
 def test_continuous_force_is_queried_and_sustained_force_settles_at_it(fake_hd):
@@ -522,7 +712,10 @@ def test_servo_process_runs_on_the_touchx_backend(fake_hd_path, tmp_path, monkey
 
     (tmp_path / "3DSystems" / "config").mkdir(parents=True)
     monkeypatch.setenv("GTDD_HOME", str(tmp_path / "3DSystems"))
-    cfg = ServoConfig(device=TouchXConfig(library=fake_hd_path), realtime_priority=0)
+    monkeypatch.setenv("FAKE_HD_WATCHDOG_US", "0")  # a busy test machine's stall is no defect
+    # SCHED_FIFO 1 where allowed: the device's HD servo thread must end up there too
+    cfg = ServoConfig(device=TouchXConfig(library=fake_hd_path), realtime_priority=1)
+    fifo = _fifo_allowed()
     with ServoProcess(cfg) as sp:
         deadline = time.monotonic() + 30.0
         while time.monotonic() < deadline:
@@ -532,7 +725,56 @@ def test_servo_process_runs_on_the_touchx_backend(fake_hd_path, tmp_path, monkey
             time.sleep(0.01)
         assert s is not None and s.tick > 300
         assert np.allclose(s.T_device_stylus.position, 0.0)  # the fake's stylus at the origin
+        deadline = time.monotonic() + 30.0  # the statistics are written 4 times a second
+        while sp.stats().ticks < 300 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert sp.realtime == fifo
+        assert sp.stats().device_thread_fifo == (1 if fifo else 0)
     assert sp.returncode == 0 and sp.stats().ticks > 300  # the final statistics
+
+
+def test_the_servo_says_the_device_is_lost_and_runs_again_after_a_replug(
+    fake_hd_path, tmp_path, monkeypatch
+):
+    """The whole servo process on the fake libHD, unplugged and replugged from this process
+    (the fake watches a file): the servo's state says the device is lost and being
+    re-initialised, no force reaches it, and once replugged it is initialised again in the same
+    process (no restart) and runs."""
+    from humantele.haptics.supervisor import SupervisedServo
+
+    def wait_for(pred, timeout):
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if v := pred():
+                return v
+            time.sleep(0.01)
+        raise AssertionError("condition not reached in time")
+
+    (tmp_path / "3DSystems" / "config").mkdir(parents=True)
+    monkeypatch.setenv("GTDD_HOME", str(tmp_path / "3DSystems"))
+    monkeypatch.setenv("FAKE_HD_WATCHDOG_US", "0")
+    unplugged = tmp_path / "unplugged"
+    monkeypatch.setenv("FAKE_HD_UNPLUG_FILE", str(unplugged))
+    device = TouchXConfig(library=fake_hd_path, reopen_first_s=0.05, reopen_max_s=0.2)
+    # stale only after 0.5 s: a busy test machine's late tick is no fault here
+    sup = SupervisedServo(ServoConfig(device=device, realtime_priority=0, stale_after_s=0.5))
+    sup.start()
+    try:
+        wait_for(lambda: (x := sup.latest()) and x.tick > 100, 30.0)
+        assert "device" not in sup.state(sup.latest()) and sup.stats().device_lost == 0
+        unplugged.touch()
+        state = wait_for(lambda: "device lost" in (st := sup.state(sup.latest())) and st, 30.0)
+        assert state.startswith("fault: ") and "re-initialising" in state
+        assert sup.latest().force_device == (0.0, 0.0, 0.0)
+        assert wait_for(lambda: sup.stats().device_lost == 1, 30.0)
+        unplugged.unlink()
+        wait_for(lambda: (st := sup.stats()).device_reinits >= 1 and not st.device_lost, 30.0)
+        # running again: the device ticks (no stale fault) and the callback was not stopped by
+        # the error of the session before
+        wait_for(lambda: (x := sup.latest()) and sup.state(x) == "running", 30.0)
+        assert sup.alive and sup.restarts == 0  # the same process, never restarted
+    finally:
+        sup.stop_now()
 
 
 def test_a_failing_tick_closes_its_frame_with_zero_force(fake_hd):

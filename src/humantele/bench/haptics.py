@@ -54,6 +54,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--callback-realtime", type=int, default=0, metavar="PRIO",
                         help="--callback rows again with SCHED_FIFO PRIO (0: not)")  # fmt: skip
+    parser.add_argument(
+        "--callback-fifo-only",
+        action="store_true",
+        help="with --callback-realtime: only the device-loop rows, idle and one core busy, "
+        "callback thread normal (before) and SCHED_FIFO (now)",
+    )
 
 
 def scene_points(
@@ -267,7 +273,8 @@ def run_callback(args: argparse.Namespace) -> int:
               "in [0, 99]")  # fmt: skip
         return 2
     try:
-        rows = hc.measure(args.callback_seconds, args.callback_realtime)
+        rows = hc.measure(args.callback_seconds, args.callback_realtime,
+                          getattr(args, "callback_fifo_only", False))  # fmt: skip
     except (RuntimeError, OSError, subprocess.CalledProcessError) as exc:
         print(f"humantele bench haptics --callback: cannot build the fake libHD: {exc}")
         return 1
@@ -276,7 +283,14 @@ def run_callback(args: argparse.Namespace) -> int:
     if not args.no_write:
         write_section(
             "haptics-callback",
-            hc.section(rows, args.callback_seconds, table, machine_line(), args.callback_realtime),
+            hc.section(
+                rows,
+                args.callback_seconds,
+                table,
+                machine_line(),
+                args.callback_realtime,
+                getattr(args, "callback_fifo_only", False),
+            ),
         )
     if args.json:
         print(json.dumps(rows))

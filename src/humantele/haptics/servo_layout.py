@@ -60,6 +60,26 @@ class ServoStats:
     realtime: bool
     models_refused: int = 0  # models/registrations refused on arrival (the last good kept)
     tick_errors: int = 0  # ticks that raised (force zeroed, the model dropped)
+    # the SCHED_FIFO priority of the device's own servo thread (the Touch X's HD scheduler
+    # thread; 0: normal priority; -1: the device has no thread of its own)
+    device_thread_fifo: int = -1
+    # the device lost (a scheduler error: unplugged, its servo loop stalled) and being
+    # re-initialised with back-off (1), or not (0); the re-initialisations so far
+    device_lost: int = 0
+    device_reinits: int = 0
+    # why the overruns ran long (haptics.loop_counts.LongPeriods): the tick before worked over
+    # T/2, the sleep woke over T/2 late, or neither; the longest tick's work (us); the spin
+    # before each deadline now (us); the loop thread's page faults and involuntary context
+    # switches and the process's garbage collections while the loop ran
+    overruns_work: int = 0
+    overruns_wake: int = 0
+    overruns_other: int = 0
+    work_max_us: float = 0.0
+    spin_us: float = 0.0
+    minor_faults: int = 0
+    major_faults: int = 0
+    involuntary_switches: int = 0
+    gc_collections: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)

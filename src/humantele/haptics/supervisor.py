@@ -20,7 +20,7 @@ from humantele.geometry import Pose
 from humantele.haptics.ellipsoid import Ellipsoid
 from humantele.haptics.servo import ServoProcess
 from humantele.haptics.servo_config import ServoConfig
-from humantele.haptics.servo_layout import ServoSample, ServoStats
+from humantele.haptics.servo_layout import ServoError, ServoSample, ServoStats
 from humantele.runtime.child import Restarter
 from humantele.runtime.stats import process_cpu_percent
 
@@ -127,14 +127,20 @@ class SupervisedServo:
             new.set_registration(*self._registration)
 
     def state(self, latest: ServoSample | None) -> str:
-        """``running``, ``fault: <names>`` (force zeroed by the loop), ``down: <reason>``,
+        """``running``, ``fault: <names>`` (force zeroed by the loop; with "device lost,
+        re-initialising" while the device is lost and being initialised again with back-off,
+        see :meth:`humantele.haptics.devices.touchx.TouchX._recover`), ``down: <reason>``,
         ``starting``, or ``stopped`` (by the daemon, at its end)."""
         if self.stopped and not self.down:
             return "stopped"
         if self.down or not self.process.alive:
             return f"down: {self.down or 'servo process not running'}"
         if latest is not None and latest.fault:
-            return f"fault: {latest.fault}"
+            try:
+                lost = self.process.stats().device_lost
+            except ServoError:
+                lost = 0
+            return f"fault: {latest.fault}" + ("; device lost, re-initialising" if lost else "")
         return "running" if latest is not None else "starting"
 
     def cpu_percent(self) -> float | None:

@@ -66,6 +66,7 @@ import ctypes
 import ctypes.util
 import logging
 import math
+import os
 import threading
 import time
 from typing import Literal
@@ -103,6 +104,7 @@ from humantele.haptics.devices.touchx_hd import (  # noqa: F401 - re-exported
     HD_NOMINAL_MAX_CONTINUOUS_FORCE,
     HD_NOMINAL_MAX_FORCE,
     HD_OUTPUT_DOF,
+    HD_SCHEDULER_ERRORS,
     HD_SUCCESS,
     HD_WARM_MOTORS,
     SERVO_RATE_HZ,
@@ -137,8 +139,10 @@ class TouchXConfig(ConfigModel):
     spec: DeviceSpec = DeviceSpec()
     thermal_time_constant_s: float = Field(1.0, gt=0.0, le=600.0)
     ramp_s: float = Field(1.0, ge=0.0, le=10.0)
-    warm_ramp_s: float = Field(1.0, gt=0.0, le=10.0)
+    warm_ramp_s: float = Field(0.2, gt=0.0, le=10.0)
     warm_cooldown_s: float = Field(60.0, ge=0.0, le=3600.0)
+    reopen_first_s: float = Field(0.5, ge=0.0, le=60.0)
+    reopen_max_s: float = Field(8.0, ge=0.0, le=600.0)
 
 
 class TouchX(HapticDevice):
@@ -150,7 +154,10 @@ class TouchX(HapticDevice):
     the sustained limit (N); ``limit_n``: the limit of the last tick (N); ``warm_motors``: force
     ramped off until the motors cool; ``temperature``: the hottest motor (0 room .. 1 overheat,
     None if the device gives none); ``timing``: the callback's period and duration;
-    ``model``/``serial``: what the device says it is.
+    ``model``/``serial``: what the device says it is; ``thread_priority``: the SCHED_FIFO
+    priority the HD servo thread is given from inside its first callback (0: left as it is; set
+    before ``open``); ``thread_fifo``: the priority it then has (0: normal), read back there;
+    ``thread_policy``: the same in words.
     """
 
     name = "touchx"
@@ -171,6 +178,17 @@ class TouchX(HapticDevice):
         self.temperature: float | None = None
         self.timing = CallbackTiming()
         self.model = self.serial = ""
+        self.thread_priority = 0
+        self.thread_fifo = 0
+        self.thread_policy = "not started"
+        self.lost: str | None = None  # why the device was lost (a scheduler error), or None
+        self.reinits = 0  # times the device was re-initialised after it was lost
+        self.reopen_attempts = 0  # attempts since it was lost
+        self._lost_at = self._next_try = 0.0
+        self._backoff = self.config.reopen_first_s
+        self._clock = time.monotonic  # the back-off's clock (s); tests drive it
+        self._thread_setup = False  # the next tick sets its thread's policy (a new thread)
+        self._stop_cb = False  # a scheduler error in this session: the callback stops
         self._lib: HDLibrary | None = None
         self._hhd: int | None = None
         self._handle: int | None = None
@@ -201,9 +219,14 @@ class TouchX(HapticDevice):
     def open(self) -> None:
         lib = load_hd_library(self.config.library)
         name = self.config.device_name.encode() if self.config.device_name else None
+        for _ in range(64):  # errors left from a session before (a lost device's last ticks)
+            if lib.hdGetError().errorCode == HD_SUCCESS:
+                break
         hhd = lib.hdInitDevice(name)
         err = lib.hdGetError()
         if hhd == HD_INVALID_HANDLE or err.errorCode != HD_SUCCESS:
+            if hhd != HD_INVALID_HANDLE:  # opened, yet an error: release it, or it stays held
+                lib.hdDisableDevice(hhd)
             who = repr(self.config.device_name) if self.config.device_name else "the default"
             gtdd = gtdd_home_problem()
             raise DeviceError(
@@ -212,6 +235,11 @@ class TouchX(HapticDevice):
                 + (f"{gtdd}." if gtdd else "is the Touch X connected and set up (Touch_Setup)?")
             )
         self._lib, self._hhd = lib, hhd
+        with self._lock:
+            self._state, self._error, self._force = None, None, (0.0, 0.0, 0.0)
+        if self.ticks:  # re-initialised: the force ramps back, calibration is read anew
+            self._scale = 0.0
+            self.calibration = "unknown"
         try:
             self._read_properties()
             lib.hdEnable(HD_FORCE_OUTPUT)
@@ -223,6 +251,8 @@ class TouchX(HapticDevice):
             self._raise_if_error("setting the scheduler rate")
             self._handle = lib.hdScheduleAsynchronous(self._cb, None, HD_MAX_SCHEDULER_PRIORITY)
             self._raise_if_error("scheduling the servo callback")
+            self._thread_setup = True
+            self._stop_cb = False
             lib.hdStartScheduler()
             self._raise_if_error("starting the HD scheduler")
         except DeviceError:
@@ -260,7 +290,10 @@ class TouchX(HapticDevice):
 
     def close(self) -> None:
         """Zero the force, stop the scheduler, release the device; safe to call twice."""
+        self.lost = None
         if self._lib is None:
+            with self._cv:
+                self._cv.notify_all()
             return
         with self._lock:
             self._force = (0.0, 0.0, 0.0)
@@ -278,14 +311,19 @@ class TouchX(HapticDevice):
             self._handle = None
         if hhd is not None:
             lib.hdDisableDevice(hhd)
-        lib.hdGetError()
+        for _ in range(64):  # nothing of this session is left for the next
+            if lib.hdGetError().errorCode == HD_SUCCESS:
+                break
         self._lib = self._hhd = None
         with self._cv:
             self._cv.notify_all()
 
     # ------------------------------------------------------------------ servo loop side
     def read(self) -> DeviceState:
-        """The newest servo tick's stylus state; DeviceError for an HD error since last read."""
+        """The newest servo tick's stylus state; DeviceError for an HD error since last read,
+        and while the device is lost (:meth:`_recover` re-initialises it with back-off)."""
+        if self.lost is not None:
+            self._recover()
         if self._lib is None:
             raise DeviceError("touchx: device is not open")
         with self._lock:
@@ -302,19 +340,62 @@ class TouchX(HapticDevice):
     def wait_tick(self, after: int, timeout: float) -> int:
         """Block until a servo tick later than tick number ``after`` has run, at most
         ``timeout`` s; returns the newest tick number. The wait holds no GIL, so the HD servo
-        thread's callback is never kept waiting by the caller."""
+        thread's callback is never kept waiting by the caller. While the device is lost it
+        waits the whole ``timeout`` (the loop never spins)."""
         with self._cv:
-            if self.ticks <= after and self._lib is not None:
+            if self.ticks <= after and (self._lib is not None or self.lost is not None):
                 self._cv.wait(timeout)
             return self.ticks
 
     def command_force(self, force: Vec3) -> None:
         """Set the force the next servo tick writes (N, device frame; clamped, zero if NaN)."""
-        if self._lib is None:
-            raise DeviceError("touchx: device is not open")
+        if self._lib is None or self.lost is not None:
+            raise DeviceError(f"touchx: device {'lost' if self.lost else 'is not open'}")
         safe = _safe_force(force, self.force_limit_n)
         with self._lock:
             self._force = safe
+
+    # ------------------------------------------------------------------ a lost device
+    def _recover(self) -> None:
+        """The device was lost (a scheduler error stopped the callback, see
+        :meth:`_handle_errors`): release it once, then re-initialise it (:meth:`open`: a new
+        hdInitDevice, as a replugged device needs) when the back-off says, waiting
+        ``reopen_first_s`` first and doubling up to ``reopen_max_s``. Raises DeviceError saying
+        so until it is back; the force then ramps back over ``ramp_s``. Servo loop thread."""
+        reason = self.lost
+        now = self._clock()
+        if self._lib is not None:  # first call since it was lost: release the session
+            self._release()
+            self._flush_messages()
+            self._lost_at = now
+            self._backoff = self.config.reopen_first_s
+            self._next_try = now + self._backoff
+            log.warning("touchx: device lost: %s; the servo callback stopped and the device is "
+                        "released (force off); re-initialising in %.1f s", reason,
+                        self._backoff)  # fmt: skip
+        if now >= self._next_try:
+            self.reopen_attempts += 1
+            try:
+                self.open()
+            except DeviceError as exc:
+                self._backoff = min(max(2.0 * self._backoff, 1e-3), self.config.reopen_max_s)
+                self._next_try = now + self._backoff
+                if self.reopen_attempts <= 3 or self.reopen_attempts % 10 == 0:
+                    log.warning("touchx: re-initialising failed (attempt %d): %s; next in %.1f s",
+                                self.reopen_attempts, exc, self._backoff)  # fmt: skip
+            else:
+                log.warning("touchx: device re-initialised after %.1f s (%d attempts); force "
+                            "ramps back over %.1f s", now - self._lost_at, self.reopen_attempts,
+                            self.config.ramp_s)  # fmt: skip
+                self.reinits += 1
+                self.reopen_attempts = 0
+                with self._lock:
+                    self.lost = None
+                return
+        raise DeviceError(
+            f"touchx: device lost ({reason}); re-initialising: attempt {self.reopen_attempts}, "
+            f"next in {max(0.0, self._next_try - now):.1f} s"
+        )
 
     def _say(self, msg: str, *args: object) -> None:
         """Queue a warning from the HD servo thread (no I/O in the callback); ``read`` logs it."""
@@ -367,6 +448,8 @@ class TouchX(HapticDevice):
         lib, hhd = self._lib, self._hhd
         if lib is None or hhd is None:
             return HD_CALLBACK_DONE
+        if self._thread_setup:
+            self._setup_thread()
         t = time.monotonic()
         self.timing.enter(t)
         now = self.ticks * self._dt  # servo time (s): ramps and waits count ticks
@@ -382,7 +465,7 @@ class TouchX(HapticDevice):
         if errors:
             self._handle_errors(errors, now)
         with self._lock:
-            cmd = self._force if self._error is None else (0.0, 0.0, 0.0)
+            cmd = self._force if self._error is None and not self._stop_cb else (0.0, 0.0, 0.0)
         out = self._out
         out[0], out[1], out[2] = self._limited(cmd, cal == HD_CALIBRATION_OK, now)
         lib.hdSetDoublev(HD_CURRENT_FORCE, out)
@@ -402,7 +485,31 @@ class TouchX(HapticDevice):
             self._state = state
             self._cv.notify_all()
         self.timing.done(lib.hdGetSchedulerTimeStamp())
-        return HD_CALLBACK_CONTINUE
+        # A scheduler error: stop, as OpenHaptics' examples do; read() re-initialises.
+        return HD_CALLBACK_DONE if self._stop_cb else HD_CALLBACK_CONTINUE
+
+    def _setup_thread(self) -> None:
+        """Give the HD servo thread (the caller: the first tick) SCHED_FIFO at
+        ``thread_priority`` and read its policy back. OpenHaptics starts the thread in the Touch
+        driver (``startServoLoop``), whose policy the caller cannot see or set beforehand: a
+        SCHED_FIFO set earlier on another thread reaches it only if the driver lets it inherit.
+        On Linux ``sched_setscheduler(0, ...)`` acts on the calling thread alone."""
+        self._thread_setup = False
+        prio, refused = self.thread_priority, ""
+        if prio > 0:
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+            except (OSError, AttributeError, ValueError) as exc:
+                refused = f" (SCHED_FIFO {prio} refused: {exc})"
+        try:
+            policy, got = os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+        except (OSError, AttributeError):
+            policy, got = -1, 0
+        fifo = policy == getattr(os, "SCHED_FIFO", 1)
+        self.thread_fifo = got if fifo else 0
+        self.thread_policy = f"SCHED_FIFO {got}" if fifo else f"normal priority{refused}"
+        if prio > 0 and not fifo:
+            self._say("touchx: the HD servo thread runs at %s", self.thread_policy)
 
     def _limited(self, cmd: Vec3, calibrated: bool, now: float) -> Vec3:
         """The force to write this tick (N): ``cmd`` within the adaptive clamp and the ramp;
@@ -462,8 +569,11 @@ class TouchX(HapticDevice):
         return (fx, fy, fz)
 
     def _handle_errors(self, errors: list[tuple[int, int]], now: float) -> None:
-        """HD_WARM_MOTORS ramps the force off (:meth:`_warm`); any other error is reported by
-        the next ``read`` and drops the commanded force."""
+        """HD_WARM_MOTORS ramps the force off (:meth:`_warm`); a scheduler error
+        (``HD_SCHEDULER_ERRORS``: OpenHaptics' ``hduIsSchedulerError``) marks the device lost:
+        this tick writes zero force and the callback stops (``HD_CALLBACK_DONE``, as
+        HelloHapticDevice.c), :meth:`read` re-initialises it; any other error is reported by the
+        next ``read`` and drops the commanded force."""
         for code, internal in errors:
             if code == HD_WARM_MOTORS:
                 self._warm(now)
@@ -472,6 +582,10 @@ class TouchX(HapticDevice):
                 self.errors += 1
                 self._error = describe_hd_error(code, internal)
                 self._force = (0.0, 0.0, 0.0)
+                if code in HD_SCHEDULER_ERRORS:
+                    self._stop_cb = True
+                    if self.lost is None:
+                        self.lost = self._error
 
     def _warm(self, now: float) -> None:
         if not self.warm_motors:

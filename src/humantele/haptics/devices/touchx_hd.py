@@ -50,6 +50,11 @@ TEMP_DOWN_RATE, TEMP_UP_RATE = 0.999, 1.001
 # The thermal budget's hot / cool thresholds, as fractions of the continuous force squared.
 BUDGET_ON, BUDGET_OFF = 0.5, 0.25
 CALIBRATION_UPDATE_EVERY_S = 0.1
+# hduIsSchedulerError (OpenHaptics' hduError.cpp): errors "that would prevent proper operation
+# of the servo loop": HD_COMM_ERROR, HD_COMM_CONFIG_ERROR, HD_TIMER_ERROR, HD_INVALID_PRIORITY,
+# HD_SCHEDULER_FULL. Its examples stop the callback on them (HelloHapticDevice.c) and quit,
+# "since the user likely unplugged the device" (ErrorHandling.c).
+HD_SCHEDULER_ERRORS = frozenset({0x0302, 0x0303, 0x0304, 0x0500, 0x0501})
 
 CALIBRATION_NAMES = {
     HD_CALIBRATION_OK: "ok",
