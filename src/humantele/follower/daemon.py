@@ -243,7 +243,7 @@ class FollowerDaemon(Daemon):
         self.measurements += 1
         self.tracking_lost += m.T_world_tip is None
         self.last_force_n = float(np.linalg.norm(m.force_world))
-        if self.calibrating:
+        if self.calibrating and not m.force_stale:  # a stale force is never taken as fresh
             tip = None if m.T_world_tip is None else m.T_world_tip.position
             self.cal.update(frame.t, tip, self.last_force_n)
         elif frame.target is not None and self.following_since is not None:

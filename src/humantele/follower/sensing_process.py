@@ -56,6 +56,8 @@ RESTART_FIRST_S = 0.5  # a dead sensing process's replacement starts this soon (
 # tracker's pose is stale until it measures (the video's is 1 s, the servo's 2 s)
 RESTART_MAX_S = 8.0  # the back-off's cap (s): 0.5, 1, 2, 4, 8 for the five tries
 
+STATS_PERIOD_S = 0.25  # the child sends its devices' counters this often (s)
+
 OnResult = Callable[[int, Any, float], None]  # (job, Measurement, seconds measuring)
 
 
@@ -86,6 +88,7 @@ def sensing_main(
         from humantele.follower.clinic import simulator_modules
 
         conn.send(("ready", os.getpid(), simulator_modules()))
+        stats_due = 0.0
         while True:
             try:
                 msg = conn.recv()
@@ -96,7 +99,11 @@ def sensing_main(
             job, (t, world) = msg
             t0 = time.perf_counter()
             m = sensing.measure(t, world)  # catches the pipeline's own faults
-            conn.send(("result", job, m, time.perf_counter() - t0, sensing.errors))
+            seconds = time.perf_counter() - t0
+            stats = None  # the devices' counters, a few times a second
+            if time.monotonic() >= stats_due:
+                stats, stats_due = sensing.device_stats(), time.monotonic() + STATS_PERIOD_S
+            conn.send(("result", job, m, seconds, sensing.errors, stats))
     except (BrokenPipeError, OSError):
         pass
     finally:
@@ -135,6 +142,7 @@ class SensingProcess:
         self.error: str | None = None
         self.pid: int | None = None
         self.simulator_modules: list[str] | None = None  # loaded in the child (once ready)
+        self.device_stats: dict | None = None  # the child's devices' counters (latest)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._proc: mp.process.BaseProcess | None = None
         self._conn: Connection | None = None
@@ -210,6 +218,8 @@ class SensingProcess:
             self.busy = False
             self.restarter.check(self._loop.time(), True)  # up: a long run resets the back-off
             self.child_errors = self._errors_before + msg[4]
+            if msg[5] is not None:
+                self.device_stats = msg[5]
             self.on_result(msg[1], msg[2], msg[3])
         elif kind == "ready":
             self.ready, self.pid, self.simulator_modules = True, msg[1], msg[2]
