@@ -88,6 +88,7 @@ class ProbeSensing:
         self._R_world_probe = np.eye(3)
         self.no_camera_pose = 0  # frames the device gave without the camera's pose
         self.no_frame = 0  # reads that gave no frame (counted by the source, by reason)
+        self.frames_tracked = 0  # frames the tracker measured (with a camera pose)
         self.force_stale = 0  # measurements whose force was stale
         try:  # the devices last: a bad setting above fails before any hardware is touched
             self.source.open()
@@ -117,6 +118,7 @@ class ProbeSensing:
                 self.no_camera_pose += 1
             else:
                 self.T_world_camera = camera
+                self.frames_tracked += 1
                 res = self.tracker.process(frame)
                 status, residual = res.status, res.residual_m
                 if res.T_camera_probe is not None:
@@ -155,7 +157,7 @@ class ProbeSensing:
         camera = cam() if callable(cam) else {"dropped": dict(getattr(self.source, "dropped",
                                                                         {}))}  # fmt: skip
         camera["stalled"] = bool(getattr(self.source, "stalled", False))
-        return {"camera": camera, "no_frame": self.no_frame,
+        return {"camera": camera, "no_frame": self.no_frame, "frames": self.frames_tracked,
                 "no_camera_pose": self.no_camera_pose, "force_stale": self.force_stale,
                 "force": self.force.stats()}  # fmt: skip
 

@@ -55,6 +55,8 @@ log = logging.getLogger(__name__)
 RESTART_FIRST_S = 0.5  # a dead sensing process's replacement starts this soon (s): the
 # tracker's pose is stale until it measures (the video's is 1 s, the servo's 2 s)
 RESTART_MAX_S = 8.0  # the back-off's cap (s): 0.5, 1, 2, 4, 8 for the five tries
+HUNG_S = 5.0  # a frame in the child this long without an answer: the child is hung, killed
+# and restarted (every device read is bounded, by about a second: hl2ss read_timeout_s)
 
 STATS_PERIOD_S = 0.25  # the child sends its devices' counters this often (s)
 
@@ -124,8 +126,15 @@ class SensingProcess:
         on_error: Callable[[str], None] | None = None,
         max_restarts: int = 5,
         priority: Priority = PRIORITY["sensing"],
+        hung_s: float = HUNG_S,
+        target: Callable[..., None] | None = None,
     ) -> None:
+        """``target``: the child's main (default :func:`sensing_main`; tests give others)."""
         self.config = config
+        self.hung_s = hung_s
+        self.target = target or sensing_main
+        self.hangs = 0  # children killed for not answering within hung_s
+        self._sent_at: float | None = None
         self.sensing_config = sensing_config
         self.on_result = on_result
         self.on_error = on_error
@@ -177,7 +186,7 @@ class SensingProcess:
 
     def _spawn(self) -> None:
         parent, child = mp.get_context("spawn").Pipe(duplex=True)
-        self._proc = spawn(sensing_main, (self.config, self.sensing_config, child, self.priority),
+        self._proc = spawn(self.target, (self.config, self.sensing_config, child, self.priority),
                            name="humantele-sensing")  # fmt: skip
         child.close()
         self._errors_before = self.child_errors
@@ -194,6 +203,8 @@ class SensingProcess:
 
     def submit(self, job: int, frame: Any) -> bool:
         """Send one frame to measure; False (nothing sent) if one is in flight or no child."""
+        if self.busy:
+            self.check_hung()
         if self.busy or not self.running or self._conn is None:
             return False
         try:
@@ -202,6 +213,28 @@ class SensingProcess:
             self._died()
             return False
         self.busy = True
+        self._sent_at = self._now()
+        return True
+
+    def _now(self) -> float:
+        return self._loop.time() if self._loop is not None else time.monotonic()
+
+    def check_hung(self) -> bool:
+        """A frame in the child for ``hung_s`` without an answer (a device read that does not
+        return, a deadlock): the child is killed and, as after any death, restarted by the
+        :class:`Restarter`. True if it was."""
+        if not self.busy or self._sent_at is None or self._proc is None:
+            return False
+        waited = self._now() - self._sent_at
+        if waited < self.hung_s:
+            return False
+        self.hangs += 1
+        self.restarter.down = f"sensing process hung (no answer in {waited:.1f} s)"
+        log.error("follower: the sensing process gave no answer in %.1f s: hung; killed and "
+                  "restarted", waited)  # fmt: skip
+        with contextlib.suppress(Exception):
+            self._proc.kill()
+        self._died()
         return True
 
     def _readable(self) -> None:
