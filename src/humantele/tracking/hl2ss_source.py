@@ -33,8 +33,8 @@ that does not close the socket; or a trickle) is a stall: counted (``stalls``,
 see this client leave before it accepts the next) and the stream reconnected, as after a lost
 connection, with back-off: the first try ``retry_s`` later, then doubled per failure up to
 ``retry_max_s``, back to ``retry_s`` after a frame. A reconnect is bounded by the read's
-deadline too. :attr:`stalled` is True from ``stall_s`` without a frame (connected or not) to
-the next frame: the follower says "headset stream stalled" meanwhile.
+deadline too. :attr:`stalled` is True from ``stall_s`` without a packet (connected or not) to
+the next packet: the follower says "headset stream stalled" meanwhile.
 """
 
 from __future__ import annotations
@@ -162,7 +162,8 @@ class Hl2ssFrameSource(FrameSource):
         self.stalls = 0
         self.reconnects = 0
         self._connections = 0
-        self._last_frame_at: float | None = None  # the clock's time of the last frame
+        self._last_packet_at: float | None = None  # the clock's time of the last whole packet
+        self._opened_at: float | None = None  # the first connection
         self._waiting_since = clock()  # the last packet, or the connection's start if later
 
     # --- opening --------------------------------------------------------------------------
@@ -217,6 +218,8 @@ class Hl2ssFrameSource(FrameSource):
             raise FrameSourceUnavailable(f"hl2ss: {c.host}:{c.port} left ({exc})") from exc
         if self._connections:
             self.reconnects += 1
+        else:
+            self._opened_at = self.clock()
         self._connections += 1
         self._sock, self._buf = sock, bytearray()
         self._waiting_since = self.clock()
@@ -241,9 +244,10 @@ class Hl2ssFrameSource(FrameSource):
 
     @property
     def stalled(self) -> bool:
-        """No frame for ``stall_s`` (connected or not), until the next frame."""
-        since = self._last_frame_at if self._last_frame_at is not None else self._waiting_since
-        return self.clock() - since >= self.config.stall_s
+        """No packet for ``stall_s`` (connected or not), until the next packet (False before
+        the first connection)."""
+        since = self._last_packet_at if self._last_packet_at is not None else self._opened_at
+        return since is not None and self.clock() - since >= self.config.stall_s
 
     def stats(self) -> dict:
         """Counters for the follower's stats: frames, losses and no-pose frames by reason,
@@ -294,7 +298,8 @@ class Hl2ssFrameSource(FrameSource):
         size = len(packet) - HEADER.size - pose_bytes
         ts = HEADER.unpack_from(packet, 0)[0]
         del self._buf[:end]
-        self._waiting_since = self.clock()  # a whole packet came: the link is not stalled
+        # a whole packet came: the link is not stalled
+        self._waiting_since = self._last_packet_at = self.clock()
         try:
             p = decode_ahat_payload(memoryview(packet)[HEADER.size : HEADER.size + size])
         except PacketError as exc:
@@ -310,7 +315,6 @@ class Hl2ssFrameSource(FrameSource):
             depth, ab = self.calibration.undistort(depth, ab)
         self.received += 1
         self._seq += 1
-        self._last_frame_at = self._waiting_since = self.clock()
         self._backoff_s = self.config.retry_s
         return TrackingFrame(
             t=time.monotonic() if t is None else t,
