@@ -65,6 +65,8 @@ def devices_summary(f: dict[str, Any]) -> dict[str, Any]:
     board = (dev.get("force") or {}).get("board") or {}
     return {
         "headset_stream_stalled": f.get("headset_stream_stalled"),
+        "frames_received": cam.get("received"),  # by the sensing process's camera
+        "frames_measured": dev.get("frames"),  # by its tracker
         "stream_stalls": cam.get("stalls"),
         "stream_reconnects": cam.get("reconnects"),
         "camera_dropped": cam.get("dropped"),

@@ -75,6 +75,12 @@ def sensing_main(
         with contextlib.suppress(OSError):
             conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
+    serve(sensing, conn, priority)
+
+
+def serve(sensing: Any, conn: Connection, priority: Priority = PRIORITY["sensing"]) -> None:
+    """The child's loop on a built :class:`~humantele.follower.sensing.Sensing`: its
+    priority, then each request measured and answered until the pipe closes; closed after."""
     # After starting at the daemon's priority: a niced start can starve for long.
     got = set_priority(priority)
     # OpenCV's worker threads, started while the sensing was built (before the priority),

@@ -134,7 +134,11 @@ class SensingWorker:
         sensing_config: SensingConfig | None,
         on_measured: OnMeasured,
         on_failed: Callable[[str], None],
+        target: Callable[..., None] | None = None,
     ) -> None:
+        """``target``: the sensing child's main (default the follower's; a bench gives its
+        own, on its own devices)."""
+        self.target = target
         self.config = config
         self.on_measured = on_measured
         self.on_failed = on_failed
@@ -164,7 +168,8 @@ class SensingWorker:
         if self.config.sensing_worker == "process" and self.sensing.unbuilt:
             self.proc = SensingProcess(self.config, self.sensing.sensing_config,
                                        self._measured_in_process, self._cannot_start,
-                                       priority=self.config.sensing_priority)  # fmt: skip
+                                       priority=self.config.sensing_priority,
+                                       target=self.target)  # fmt: skip
             self.proc.start()
 
     def measuring(self) -> bool:
