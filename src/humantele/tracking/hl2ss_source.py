@@ -33,7 +33,8 @@ that does not close the socket; or a trickle) is a stall: counted (``stalls``,
 see this client leave before it accepts the next) and the stream reconnected, as after a lost
 connection, with back-off: the first try ``retry_s`` later, then doubled per failure up to
 ``retry_max_s``, back to ``retry_s`` after a frame. A reconnect is bounded by the read's
-deadline too. :attr:`stalled` is True from ``stall_s`` without a packet (connected or not) to
+deadline too, and a read ends by the time its connection would count as stalled (the stall is
+found ``stall_s`` after the last packet, not up to a read later). :attr:`stalled` is True from ``stall_s`` without a packet (connected or not) to
 the next packet: the follower says "headset stream stalled" meanwhile.
 """
 
@@ -234,9 +235,9 @@ class Hl2ssFrameSource(FrameSource):
         assert self._sock is not None
         while len(self._buf) < n:
             left = deadline - time.monotonic()
-            if left <= 0:
+            if left <= 0 and not select.select([self._sock], [], [], 0)[0]:
                 raise TimeoutError("no complete packet by the read's deadline")
-            self._sock.settimeout(left)
+            self._sock.settimeout(max(left, 0.001))
             chunk = self._sock.recv(max(65536, n - len(self._buf)))
             if not chunk:
                 raise ConnectionError("closed by the headset")
@@ -270,6 +271,9 @@ class Hl2ssFrameSource(FrameSource):
                 self._count(self.dropped, "reconnect_failed")
                 self._back_off()
                 return None
+        # a read ends when the connection would be stalled, so the stall is found on time
+        to_stall = self._waiting_since + self.config.stall_s - self.clock()
+        deadline = min(deadline, time.monotonic() + max(0.0, to_stall))
         pose_bytes = POSE_BYTES if self.config.mode == MODE_FRAMES_POSE else 0
         try:
             self._fill(HEADER.size, deadline)
