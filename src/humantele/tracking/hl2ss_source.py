@@ -34,8 +34,9 @@ see this client leave before it accepts the next) and the stream reconnected, as
 connection, with back-off: the first try ``retry_s`` later, then doubled per failure up to
 ``retry_max_s``, back to ``retry_s`` after a frame. A reconnect is bounded by the read's
 deadline too, and a read ends by the time its connection would count as stalled (the stall is
-found ``stall_s`` after the last packet, not up to a read later). :attr:`stalled` is True from ``stall_s`` without a packet (connected or not) to
-the next packet: the follower says "headset stream stalled" meanwhile.
+found ``stall_s`` after the last packet, not up to a read later). :attr:`stalled` is True
+from ``stall_s`` without a packet (connected or not) to the next packet: the follower says
+"headset stream stalled" meanwhile.
 """
 
 from __future__ import annotations
