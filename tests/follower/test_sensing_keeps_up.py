@@ -205,3 +205,34 @@ def test_probe_sensing_counts_frames_without_camera_pose_by_reason():
         ps.close()
     assert stats["no_camera_pose"] == 3 and stats["frames"] == 0
     assert stats["camera"]["dropped"] == {} and unmeasured_frames(stats, 0)["no_pose"] == 3
+
+
+def test_the_daemon_tells_the_headset_page_and_the_log_as_devices_stall_and_return(caplog):
+    import numpy as np
+
+    from humantele.follower.daemon import FollowerDaemon
+    from humantele.follower.sensing import Measurement
+    from humantele.tracking.status import TrackingStatus
+
+    published = []
+    feed = SimpleNamespace(publish=lambda k, f: published.append((k, f)))
+    d = SimpleNamespace(device_state={"headset_stream_stalled": False, "force_stale": False},
+                        feed=feed)  # fmt: skip
+
+    def m(stalled: bool, stale: bool) -> Measurement:
+        return Measurement(TrackingStatus.LOST, None, np.zeros(3), False, None, None, None,
+                           stale, stalled)  # fmt: skip
+
+    caplog.set_level("INFO", logger="humantele.follower.daemon")
+    FollowerDaemon.device_changes(d, m(False, False))
+    assert published == []  # nothing changed
+    FollowerDaemon.device_changes(d, m(True, False))
+    FollowerDaemon.device_changes(d, m(True, False))  # once per change
+    FollowerDaemon.device_changes(d, m(False, True))
+    assert published == [
+        ("devices", {"headset_stream_stalled": True, "force_stale": False}),
+        ("devices", {"headset_stream_stalled": False, "force_stale": True}),
+    ]
+    text = caplog.text
+    assert text.count("headset stream stalled") == 1 and "headset stream back" in text
+    assert "force board stale" in text
