@@ -110,7 +110,7 @@ class ForceReader:
         stale = now - since > self.stale_s
         if stale and not self._was_stale:
             self.stale_spells += self._good_at is not None
-            self.contact.in_contact, self.contact._since = False, None
+            self.contact.reset()
         self._was_stale = stale
         return stale
 
