@@ -40,6 +40,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "session": ("humantele.bench.session", "pose stream over loopback WebRTC"),
     "tracking": ("humantele.bench.tracking", "IR marker tracking: time against pose error"),
     "sensing": ("humantele.bench.sensing", "follower loop latency with sensing: thread/process"),
+    "keepup": ("humantele.bench.keepup", "hl2ss frames the follower's sensing measures, loaded"),
     "analysis": ("humantele.bench.analysis", "analyze a 10-min session; recording CPU cost"),
     "video": ("humantele.bench.video", "video: sources (render cost) and link (glass to glass)"),
     "igtl": ("humantele.bench.igtl", "OpenIGTLink: added follower CPU, pose/image latency"),

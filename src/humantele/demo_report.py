@@ -51,7 +51,33 @@ def summarize(
         "recording": recording or None,
         "video": video_summary(e.get("video"), f.get("video")),
         "children": children_summary(e, f),
+        "sensing_devices": devices_summary(f),
         "exit_codes": codes,
+    }
+
+
+def devices_summary(f: dict[str, Any]) -> dict[str, Any]:
+    """The follower's devices at the end: the headset stream's stalls, reconnects and state,
+    the force board's unplugs, reopens and state, the tracker frames not measured by reason
+    (issue 30 §2)."""
+    dev = f.get("sensing_devices") or {}
+    cam = dev.get("camera") or {}
+    board = (dev.get("force") or {}).get("board") or {}
+    return {
+        "headset_stream_stalled": f.get("headset_stream_stalled"),
+        "frames_received": cam.get("received"),  # by the sensing process's camera
+        "frames_measured": dev.get("frames"),  # by its tracker
+        "stream_stalls": cam.get("stalls"),
+        "stream_reconnects": cam.get("reconnects"),
+        "camera_dropped": cam.get("dropped"),
+        "no_pose_reasons": cam.get("no_pose"),
+        "force_stale": f.get("force_stale"),
+        "force_stale_measurements": dev.get("force_stale"),
+        "force_board_unplugs": board.get("unplugs"),
+        "force_board_reopens": board.get("reopens"),
+        "unmeasured": f.get("unmeasured"),
+        "unmeasured_dominant": f.get("unmeasured_dominant"),
+        "sensing_hangs": f.get("sensing_hangs"),
     }
 
 

@@ -75,8 +75,29 @@ def status_line(e: dict[str, Any], f: dict[str, Any], elapsed: float) -> str:
         f"{num(f.get('alignment_deg_rms'), '.1f')} deg | "
         + servo_status(e)
         + children_status(f)
+        + devices_status(f)
         + recording_status(e, f)
     )
+
+
+UNMEASURED_SHORT = {"no_pose": "no camera pose", "no_frame": "no frame",
+                    "stale": "replaced unread", "skipped": "skipped under load"}  # fmt: skip
+
+
+def devices_status(f: dict[str, Any]) -> str:
+    """The follower's devices when one is not well: `` | headset stream stalled``, `` | force
+    board STALE``, and when most tracker frames went unmeasured lately, why: `` | tracker
+    frames 80% no camera pose`` (else '')."""
+    out = ""
+    if f.get("headset_stream_stalled"):
+        out += " | headset stream stalled"
+    if f.get("force_stale"):
+        out += " | force board STALE"
+    reason = f.get("unmeasured_dominant")
+    if reason:
+        share = f.get("unmeasured_share") or 0.0
+        out += f" | tracker frames {100 * share:.0f}% {UNMEASURED_SHORT.get(reason, reason)}"
+    return out
 
 
 def children_status(f: dict[str, Any]) -> str:

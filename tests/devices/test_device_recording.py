@@ -600,3 +600,27 @@ loop = true
     assert figures["simulator_modules"]["sensing"] == []
     assert figures["simulator_modules"]["video"] == [], figures["simulator_modules"]
     assert not killed, "the follower outlived its SIGTERM by 30 s"
+
+
+def test_a_pause_in_the_recording_does_not_hold_one_read(recorded):
+    """A read waits at most MAX_WAIT_S for a frame's recorded time (a recorded stall must not
+    hold the sensing process, which the follower would take as hung); the frame comes later."""
+    from humantele.tracking.replay_source import MAX_WAIT_S
+
+    now = [100.0]
+    slept = []
+
+    def sleep(dt: float) -> None:
+        slept.append(dt)
+        now[0] += dt
+
+    src = ReplayFrameSource(ReplayFrameConfig(file=str(recorded["file"])), lambda: now[0], sleep)
+    src.open()
+    first = src.read()
+    assert first is not None and first.device_time_s == pytest.approx(TS0 / 1e7)
+    now[0] -= 2.0  # the next frame is now 2 s and a frame period away: a pause
+    assert src.read() is None and src.read() is None  # each read waited MAX_WAIT_S
+    assert slept == [MAX_WAIT_S, MAX_WAIT_S] and src.dropped["timeout"] == 2
+    second = src.read()  # the frame it waited for, not one after it
+    assert second is not None and second.device_time_s == pytest.approx((TS0 + DTS) / 1e7)
+    src.close()

@@ -112,8 +112,12 @@ def check_haptic(config: Any, n: int) -> Check:
     return Check("haptic device", backend, ok, summary if ok else "non-finite states", figs)
 
 
-def check_tracker(config: Any, tool: str, n: int) -> Check:
-    """Open the tracker camera, read ``n`` frames, run the tracker on them."""
+def check_tracker(config: Any, tool: str, n: int, anchor: str = "device") -> Check:
+    """Open the tracker camera, read ``n`` frames, run the tracker on them. With
+    ``anchor = "device"`` (``[sensing] camera_anchor``: each frame places the camera, the
+    headset's rig pose with hl2ss) a real camera's stream in which no frame had the camera's
+    pose fails: the follower could place no probe with it (hl2ss: the headset not located,
+    or mode 0)."""
     from humantele.tracking.frames import FrameSourceUnavailable
     from humantele.tracking.pipeline import Tracker
     from humantele.tracking.sources import make_frame_source
@@ -149,6 +153,15 @@ def check_tracker(config: Any, tool: str, n: int) -> Check:
     summary = (f"{frames}/{n} frames {figs['size'][0]}x{figs['size'][1]}, IR max "
                f"{figs['ir_max']}, {depth}, probe tracked in {tracked}, camera pose in "
                f"{with_pose}")  # fmt: skip
+    no_pose = dict(getattr(src, "no_pose", {}) or {})
+    figs["no_pose"] = no_pose
+    if anchor == "device" and backend != "sim" and with_pose == 0:  # (the sim clinic places
+        # its simulated camera itself; its bare frame source carries no pose)
+        why = ", ".join(f"{k} {v}" for k, v in no_pose.items()) or "none given"
+        summary += (f": no frame carried the camera's pose ({why}), so no probe can be placed "
+                    "in the world; is the headset tracking its surroundings (hl2ss mode 1), or "
+                    'is the camera fixed ([sensing] camera_anchor = "fixed")?')  # fmt: skip
+        return Check("tracker camera", backend, False, summary, figs)
     return Check("tracker camera", backend, True, summary, figs)
 
 
@@ -223,7 +236,8 @@ def run_checks(args: argparse.Namespace) -> tuple[list[Check], dict[str, Any]]:
         checks.append(check_haptic(_expert_device(args.expert_config), n))
     sensing = _sensing(args.follower_config) if {"tracker", "force"} & only else None
     if "tracker" in only:
-        checks.append(check_tracker(sensing.camera, _tool(args.follower_config), n))
+        checks.append(check_tracker(sensing.camera, _tool(args.follower_config), n,
+                                    sensing.camera_anchor))  # fmt: skip
     if "force" in only:
         checks.append(check_force(sensing.force, n))
     system: dict[str, Any] = {}

@@ -118,6 +118,7 @@ class FollowerDaemon(Daemon):
         self.ticks = TickFigures(config.rate_hz)  # the main loop's ticks, how late
         self.tick_errors = 0
         self.tracking_lost = 0
+        self.device_state = {"headset_stream_stalled": False, "force_stale": False}
         # Scans (from the expert).
         self.scan: int | None = None
         self.scans_seen = 0
@@ -241,9 +242,10 @@ class FollowerDaemon(Daemon):
         """One tracker frame measured: calibration, alignment, the state stream, recording."""
         self.measurement = m
         self.measurements += 1
+        self.device_changes(m)
         self.tracking_lost += m.T_world_tip is None
         self.last_force_n = float(np.linalg.norm(m.force_world))
-        if self.calibrating:
+        if self.calibrating and not m.force_stale:  # a stale force is never taken as fresh
             tip = None if m.T_world_tip is None else m.T_world_tip.position
             self.cal.update(frame.t, tip, self.last_force_n)
         elif frame.target is not None and self.following_since is not None:
@@ -254,6 +256,21 @@ class FollowerDaemon(Daemon):
         self.record_measurement(frame.t, m)
         self.igtl.on_measurement(frame.t, self.calibration, m)
         self.registration.on_measurement(frame.t, m.T_world_tip, m.T_world_rig)
+
+    def device_changes(self, m: Measurement) -> None:
+        """The headset's stream stalled or back, the force board stale or back: logged, and
+        told to the headset page (``devices``) as it changes."""
+        now = {"headset_stream_stalled": bool(m.camera_stalled), "force_stale": bool(m.force_stale)}
+        if now == self.device_state:
+            return
+        words = {"headset_stream_stalled": ("headset stream stalled", "headset stream back"),
+                 "force_stale": ("force board stale (unplugged or silent): no force sent",
+                                 "force board back")}  # fmt: skip
+        for key, (bad, good) in words.items():
+            if now[key] != self.device_state[key]:
+                (log.warning if now[key] else log.info)("follower: %s", bad if now[key] else good)
+        self.device_state = now
+        self.feed.publish("devices", now)
 
     # --- recording ------------------------------------------------------------------------
 

@@ -39,7 +39,7 @@ from humantele.follower.sensing_devices import (
     SensingDevices,
     tip_transform,
 )
-from humantele.forcesense.contact import ContactDetector
+from humantele.forcesense.reader import ForceReader
 from humantele.geometry import Pose, matrix_to_quat
 from humantele.tracking.pipeline import Tracker
 from humantele.tracking.sim_config import SimFrameConfig
@@ -74,15 +74,22 @@ class ProbeSensing:
         self.source, self.sensor = devices.source, devices.sensor
         self.calibration = devices.calibration
         self.tracker = Tracker(self.tool, c.pipeline, c.filter)
-        self.contact = ContactDetector(c.force.contact)
+        # A real board is read at its own rate (a thread, started at the first measure: after
+        # the sensing process set its priority, which the thread inherits); the sim clinic's
+        # board shows the force of each frame's simulated world: read once per frame.
+        self.force = ForceReader(self.sensor, self.calibration, c.force.contact,
+                                 c.force.read_rate_hz, c.force.stale_s)  # fmt: skip
+        self.contact = self.force.contact
+        self.force_threaded = devices.observe is None
         self.T_world_camera: Pose | None = None  # the last frame's camera
         self.fixed_camera: Pose | None = None
         if c.camera_anchor == "fixed":
             self.fixed_camera = Pose(c.camera_position_m, matrix_to_quat(_R_WORLD_CAMERA_DOWN))
         self._R_world_probe = np.eye(3)
-        self._force_probe = np.zeros(3)
-        self.bad_force = 0
         self.no_camera_pose = 0  # frames the device gave without the camera's pose
+        self.no_frame = 0  # reads that gave no frame (counted by the source, by reason)
+        self.frames_tracked = 0  # frames the tracker measured (with a camera pose)
+        self.force_stale = 0  # measurements whose force was stale
         try:  # the devices last: a bad setting above fails before any hardware is touched
             self.source.open()
             self.sensor.open()
@@ -95,7 +102,12 @@ class ProbeSensing:
         observe at this frame (ignored by real devices)."""
         if world is not None and self.devices.observe is not None:
             self.devices.observe(world)
+        if self.force_threaded and not self.force.running:
+            self.force.poll()  # the first reading in line, then the board's own rate
+            self.force.start()
         frame = self.source.read(t)
+        if frame is None:
+            self.no_frame += 1
         status = TrackingStatus.LOST
         pose_w = tip_w = rig = device_t = None
         residual = math.nan
@@ -106,36 +118,51 @@ class ProbeSensing:
                 self.no_camera_pose += 1
             else:
                 self.T_world_camera = camera
+                self.frames_tracked += 1
                 res = self.tracker.process(frame)
                 status, residual = res.status, res.residual_m
                 if res.T_camera_probe is not None:
                     pose_w = camera @ res.T_camera_probe
                     tip_w = pose_w.apply(self.tool.tip)
                     self._R_world_probe = pose_w.rotation_matrix
-        reading = self.sensor.read(t)
-        if reading is not None:
-            f = self.calibration.force(reading)
-            if np.all(np.isfinite(f)):
-                self._force_probe = f
-            else:
-                self.bad_force += 1
-        force_world = self._R_world_probe @ self._force_probe
-        event = self.contact.update(t, self._force_probe)
+        if not self.force_threaded:
+            self.force.poll(t)
+        force = self.force.sample()
+        self.force_stale += force.stale
+        force_world = self._R_world_probe @ force.force_probe
         return ProbeMeasurement(
             t=t,
             status=status,
             T_world_probe=pose_w,
             tip_world=tip_w,
             force_world=force_world,
-            force_probe=self._force_probe.copy(),
-            contact=self.contact.in_contact,
+            force_probe=force.force_probe,
+            contact=force.contact,
             residual_m=residual,
-            contact_event=event,
+            contact_event=force.event,
             T_world_rig=rig,
             device_time_s=device_t,
+            force_stale=force.stale,
+            camera_stalled=bool(getattr(self.source, "stalled", False)),
         )
 
+    @property
+    def bad_force(self) -> int:
+        """Force readings the calibration made non-finite (dropped)."""
+        return self.force.bad_force
+
+    def device_stats(self) -> dict:
+        """The devices' counters for the follower's stats (:func:`unmeasured` sums them)."""
+        cam = getattr(self.source, "stats", None)
+        camera = cam() if callable(cam) else {"dropped": dict(getattr(self.source, "dropped",
+                                                                        {}))}  # fmt: skip
+        camera["stalled"] = bool(getattr(self.source, "stalled", False))
+        return {"camera": camera, "no_frame": self.no_frame, "frames": self.frames_tracked,
+                "no_camera_pose": self.no_camera_pose, "force_stale": self.force_stale,
+                "force": self.force.stats()}  # fmt: skip
+
     def close(self) -> None:
+        self.force.stop()  # before the board is closed under it
         self.source.close()
         self.sensor.close()
 
@@ -148,7 +175,9 @@ class Measurement:
     """What the follower knows of its probe at one tracker frame (world frame, SI):
     ``force_tip`` is the force in the probe's tip frame (None when unknown); ``contact``
     comes from the force sensor; ``T_world_rig`` is the headset's pose, when the device
-    gave one."""
+    gave one. ``force_stale``: the board gave no good reading for ``stale_s`` (unplugged):
+    no force (zero, ``force_tip`` None) and no contact; ``camera_stalled``: the headset's
+    stream is stalled (no frame for its ``stall_s``)."""
 
     status: TrackingStatus
     T_world_tip: Pose | None
@@ -157,6 +186,8 @@ class Measurement:
     force_tip: NDArray[np.float64] | None = None
     T_world_rig: Pose | None = None
     device_time_s: float | None = None  # the tracker frame's time on the device's clock
+    force_stale: bool = False
+    camera_stalled: bool = False
 
 
 LOST = Measurement(TrackingStatus.LOST, None, np.zeros(3), False)
@@ -226,14 +257,29 @@ class Sensing:
             return LOST
         force = np.asarray(m.force_world, dtype=float)
         force_tip = self.T_tip_probe.rotate(np.asarray(m.force_probe, dtype=float))
-        if not (np.all(np.isfinite(force)) and np.all(np.isfinite(force_tip))):
+        stale = bool(getattr(m, "force_stale", False))
+        contact = bool(m.contact) and not stale
+        if stale or not (np.all(np.isfinite(force)) and np.all(np.isfinite(force_tip))):
             force, force_tip = np.zeros(3), None
         rig, device_t = getattr(m, "T_world_rig", None), getattr(m, "device_time_s", None)
+        stalled = bool(getattr(m, "camera_stalled", False))
+        tip = None
         if not status.has_pose or m.T_world_probe is None:
             status = TrackingStatus.LOST if status.has_pose else status  # lost or ambiguous
-            return Measurement(status, None, force, bool(m.contact), force_tip, rig, device_t)
-        tip = m.T_world_probe @ self.T_probe_tip
-        return Measurement(status, tip, force, bool(m.contact), force_tip, rig, device_t)
+        else:
+            tip = m.T_world_probe @ self.T_probe_tip
+        return Measurement(status, tip, force, contact, force_tip, rig, device_t, stale, stalled)
+
+    def device_stats(self) -> dict | None:
+        """The devices' counters (:meth:`ProbeSensing.device_stats`; None: not built, or a
+        pipeline without devices)."""
+        get = getattr(self.pipeline, "device_stats", None)
+        if not callable(get):
+            return None
+        try:
+            return get()
+        except Exception:  # noqa: BLE001 - stats must never stop the sensing
+            return None
 
     def close(self) -> None:
         if self.pipeline is not None:

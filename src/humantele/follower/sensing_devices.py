@@ -107,7 +107,9 @@ class ProbeMeasurement:
     (3,) N is the calibrated sensor force turned into the world frame with the last tracked
     orientation (identity before the first); ``force_probe`` the same in the probe frame;
     ``contact`` the detector state and ``contact_event`` "press"/"release" on this call;
-    ``T_world_rig``: the headset's pose the frame came with (None: none)."""
+    ``T_world_rig``: the headset's pose the frame came with (None: none); ``force_stale``:
+    no good force reading for ``[sensing.force] stale_s`` (the forces are the last known;
+    no contact); ``camera_stalled``: the tracker camera's stream is stalled (hl2ss)."""
 
     t: float
     status: TrackingStatus
@@ -120,6 +122,8 @@ class ProbeMeasurement:
     contact_event: ContactEvent | None = None
     T_world_rig: Pose | None = None
     device_time_s: float | None = None
+    force_stale: bool = False
+    camera_stalled: bool = False
 
 
 def tip_transform(tool: ToolDefinition | str) -> Pose:

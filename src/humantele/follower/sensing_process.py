@@ -55,6 +55,10 @@ log = logging.getLogger(__name__)
 RESTART_FIRST_S = 0.5  # a dead sensing process's replacement starts this soon (s): the
 # tracker's pose is stale until it measures (the video's is 1 s, the servo's 2 s)
 RESTART_MAX_S = 8.0  # the back-off's cap (s): 0.5, 1, 2, 4, 8 for the five tries
+HUNG_S = 5.0  # a frame in the child this long without an answer: the child is hung, killed
+# and restarted (every device read is bounded, by about a second: hl2ss read_timeout_s)
+
+STATS_PERIOD_S = 0.25  # the child sends its devices' counters this often (s)
 
 OnResult = Callable[[int, Any, float], None]  # (job, Measurement, seconds measuring)
 
@@ -71,6 +75,12 @@ def sensing_main(
         with contextlib.suppress(OSError):
             conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
+    serve(sensing, conn, priority)
+
+
+def serve(sensing: Any, conn: Connection, priority: Priority = PRIORITY["sensing"]) -> None:
+    """The child's loop on a built :class:`~humantele.follower.sensing.Sensing`: its
+    priority, then each request measured and answered until the pipe closes; closed after."""
     # After starting at the daemon's priority: a niced start can starve for long.
     got = set_priority(priority)
     # OpenCV's worker threads, started while the sensing was built (before the priority),
@@ -86,6 +96,7 @@ def sensing_main(
         from humantele.follower.clinic import simulator_modules
 
         conn.send(("ready", os.getpid(), simulator_modules()))
+        stats_due = 0.0
         while True:
             try:
                 msg = conn.recv()
@@ -96,7 +107,11 @@ def sensing_main(
             job, (t, world) = msg
             t0 = time.perf_counter()
             m = sensing.measure(t, world)  # catches the pipeline's own faults
-            conn.send(("result", job, m, time.perf_counter() - t0, sensing.errors))
+            seconds = time.perf_counter() - t0
+            stats = None  # the devices' counters, a few times a second
+            if time.monotonic() >= stats_due:
+                stats, stats_due = sensing.device_stats(), time.monotonic() + STATS_PERIOD_S
+            conn.send(("result", job, m, seconds, sensing.errors, stats))
     except (BrokenPipeError, OSError):
         pass
     finally:
@@ -117,8 +132,15 @@ class SensingProcess:
         on_error: Callable[[str], None] | None = None,
         max_restarts: int = 5,
         priority: Priority = PRIORITY["sensing"],
+        hung_s: float = HUNG_S,
+        target: Callable[..., None] | None = None,
     ) -> None:
+        """``target``: the child's main (default :func:`sensing_main`; tests give others)."""
         self.config = config
+        self.hung_s = hung_s
+        self.target = target or sensing_main
+        self.hangs = 0  # children killed for not answering within hung_s
+        self._sent_at: float | None = None
         self.sensing_config = sensing_config
         self.on_result = on_result
         self.on_error = on_error
@@ -135,6 +157,7 @@ class SensingProcess:
         self.error: str | None = None
         self.pid: int | None = None
         self.simulator_modules: list[str] | None = None  # loaded in the child (once ready)
+        self.device_stats: dict | None = None  # the child's devices' counters (latest)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._proc: mp.process.BaseProcess | None = None
         self._conn: Connection | None = None
@@ -169,7 +192,7 @@ class SensingProcess:
 
     def _spawn(self) -> None:
         parent, child = mp.get_context("spawn").Pipe(duplex=True)
-        self._proc = spawn(sensing_main, (self.config, self.sensing_config, child, self.priority),
+        self._proc = spawn(self.target, (self.config, self.sensing_config, child, self.priority),
                            name="humantele-sensing")  # fmt: skip
         child.close()
         self._errors_before = self.child_errors
@@ -186,6 +209,8 @@ class SensingProcess:
 
     def submit(self, job: int, frame: Any) -> bool:
         """Send one frame to measure; False (nothing sent) if one is in flight or no child."""
+        if self.busy:
+            self.check_hung()
         if self.busy or not self.running or self._conn is None:
             return False
         try:
@@ -194,6 +219,28 @@ class SensingProcess:
             self._died()
             return False
         self.busy = True
+        self._sent_at = self._now()
+        return True
+
+    def _now(self) -> float:
+        return self._loop.time() if self._loop is not None else time.monotonic()
+
+    def check_hung(self) -> bool:
+        """A frame in the child for ``hung_s`` without an answer (a device read that does not
+        return, a deadlock): the child is killed and, as after any death, restarted by the
+        :class:`Restarter`. True if it was."""
+        if not self.busy or self._sent_at is None or self._proc is None:
+            return False
+        waited = self._now() - self._sent_at
+        if waited < self.hung_s:
+            return False
+        self.hangs += 1
+        self.restarter.down = f"sensing process hung (no answer in {waited:.1f} s)"
+        log.error("follower: the sensing process gave no answer in %.1f s: hung; killed and "
+                  "restarted", waited)  # fmt: skip
+        with contextlib.suppress(Exception):
+            self._proc.kill()
+        self._died()
         return True
 
     def _readable(self) -> None:
@@ -210,6 +257,8 @@ class SensingProcess:
             self.busy = False
             self.restarter.check(self._loop.time(), True)  # up: a long run resets the back-off
             self.child_errors = self._errors_before + msg[4]
+            if msg[5] is not None:
+                self.device_stats = msg[5]
             self.on_result(msg[1], msg[2], msg[3])
         elif kind == "ready":
             self.ready, self.pid, self.simulator_modules = True, msg[1], msg[2]

@@ -41,6 +41,11 @@ class ContactDetector:
         self._since: float | None = None
         self.presses = 0
 
+    def reset(self) -> None:
+        """Forget the state (no contact, no hold under way): the force is unknown."""
+        self.in_contact = False
+        self._since = None
+
     def update(self, t: float, force: ArrayLike) -> ContactEvent | None:
         """Feed one force sample (N, any frame) at time t (s). Non-finite samples are ignored."""
         f = np.asarray(force, dtype=float)

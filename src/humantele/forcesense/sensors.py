@@ -35,6 +35,12 @@ class ForceSensorConfig(ConfigModel):
     sensor: ForceBackendConfig = Field(default_factory=SimForceConfig)
     calibration_file: str | None = None
     contact: ContactConfig = Field(default_factory=ContactConfig)
+    read_rate_hz: float = Field(
+        100.0, ge=5, le=2000, description="a real board is read at this rate, apart from "
+        "the camera (the board sends 100 Hz)")  # fmt: skip
+    stale_s: float = Field(
+        0.2, gt=0, le=5, description="no good reading for this long: the force is stale "
+        "(not sent, not used for contact or calibration)")  # fmt: skip
 
 
 def make_force_sensor(

@@ -21,9 +21,22 @@ A frame without a usable pose (mode 0; a pose of zeros: the headset was not loca
 finite; not rigid) is still returned, with ``T_world_camera``/``T_world_rig`` None, and
 counted in ``no_pose`` by reason. A packet that is not a RAW AHAT frame is dropped and counted
 in ``dropped`` ("size": its size fields disagree; "encoding": not RAW); bytes out of step
-(an impossible payload size) drop the connection ("out_of_step"); a lost connection is counted
-and retried on the next ``read`` (at most once per ``retry_s``). ``open`` failing is
+(an impossible payload size) drop the connection ("out_of_step"). ``open`` failing is
 :class:`FrameSourceUnavailable`.
+
+Stalls (issue 30 §2). One ``read`` takes at most ``read_timeout_s`` in all (a deadline for the
+whole call, not per receive: a server trickling a byte every 0.3 s held one read for 12.7 s
+when each receive had its own timeout); what came of a packet stays for the next read. A
+connection that gave no complete frame for ``stall_s`` (a Wi-Fi drop or a sleeping headset
+that does not close the socket; or a trickle) is a stall: counted (``stalls``,
+``dropped["stalled"]``), the socket closed (hl2ss serves one client per port: the app must
+see this client leave before it accepts the next) and the stream reconnected, as after a lost
+connection, with back-off: the first try ``retry_s`` later, then doubled per failure up to
+``retry_max_s``, back to ``retry_s`` after a frame. A reconnect is bounded by the read's
+deadline too, and a read ends by the time its connection would count as stalled (the stall is
+found ``stall_s`` after the last packet, not up to a read later). :attr:`stalled` is True
+from ``stall_s`` without a packet (connected or not) to the next packet: the follower says
+"headset stream stalled" meanwhile.
 """
 
 from __future__ import annotations
@@ -32,6 +45,7 @@ import contextlib
 import select
 import socket
 import time
+from collections.abc import Callable
 from typing import Literal
 
 import numpy as np
@@ -98,8 +112,11 @@ class Hl2ssFrameConfig(ConfigModel):
         "stale); false: every frame in order (replays read whole)",
     )
     connect_timeout_s: float = Field(3.0, gt=0, le=60)
-    read_timeout_s: float = Field(1.0, gt=0, le=60)
-    retry_s: float = Field(1.0, ge=0, le=60)
+    read_timeout_s: float = Field(1.0, gt=0, le=60, description="s one read takes at most")
+    stall_s: float = Field(2.0, gt=0, le=60, description="s without a complete frame on a "
+                           "connection: stalled, dropped and reconnected")  # fmt: skip
+    retry_s: float = Field(1.0, ge=0, le=60, description="first wait before a reconnect (s)")
+    retry_max_s: float = Field(4.0, ge=0, le=300, description="the back-off's cap (s)")
 
     @model_validator(mode="after")
     def _pose_needs_extrinsics(self) -> Hl2ssFrameConfig:
@@ -113,14 +130,20 @@ class Hl2ssFrameConfig(ConfigModel):
 
 class Hl2ssFrameSource(FrameSource):
     """AHAT frames from an hl2ss app. ``dropped`` counts unusable packets and losses by reason;
-    ``no_pose`` counts frames returned without a pose, by reason. Not thread-safe: one reader.
+    ``no_pose`` counts frames returned without a pose, by reason; ``stalls`` the stalls found
+    and ``reconnects`` the connections made after the first. Not thread-safe: one reader.
     ``last_pose`` is the last rig pose matrix as hl2ss sent it (row-vector, translation in
-    the last row); ``T_rig_camera`` the AHAT camera in the rig (None without calibration)."""
+    the last row); ``T_rig_camera`` the AHAT camera in the rig (None without calibration).
+    ``clock``: what stalls and back-off are timed on (s; tests drive it by hand); socket
+    deadlines are always on ``time.monotonic``."""
 
     name = "hl2ss AHAT"
 
-    def __init__(self, config: Hl2ssFrameConfig | None = None):
+    def __init__(
+        self, config: Hl2ssFrameConfig | None = None, clock: Callable[[], float] = time.monotonic
+    ):
         self.config = c = config or Hl2ssFrameConfig()
+        self.clock = clock
         self.intrinsics = c.intrinsics
         if (c.intrinsics.width, c.intrinsics.height) != (AHAT_WIDTH, AHAT_HEIGHT):
             raise ValueError("hl2ss: AHAT frames are 512 x 512; set intrinsics to that size")
@@ -137,6 +160,13 @@ class Hl2ssFrameSource(FrameSource):
         self._buf = bytearray()
         self._seq = 0
         self._next_retry = 0.0
+        self._backoff_s = c.retry_s
+        self.stalls = 0
+        self.reconnects = 0
+        self._connections = 0
+        self._last_packet_at: float | None = None  # the clock's time of the last whole packet
+        self._opened_at: float | None = None  # the first connection
+        self._waiting_since = clock()  # the last packet, or the connection's start if later
 
     # --- opening --------------------------------------------------------------------------
     def open(self) -> None:
@@ -170,57 +200,98 @@ class Hl2ssFrameSource(FrameSource):
         self.intrinsics = cal.intrinsics()
         self._undistort = not cal.is_identity_map()
 
-    def _connect(self) -> None:
+    def _connect(self, timeout_s: float | None = None) -> None:
+        """Connect and send the configuration, within ``timeout_s`` (default
+        ``connect_timeout_s``)."""
         c = self.config
+        timeout = c.connect_timeout_s if timeout_s is None else timeout_s
         try:
-            sock = socket.create_connection((c.host, c.port), timeout=c.connect_timeout_s)
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            sock.settimeout(c.read_timeout_s)
-            sock.sendall(ahat_configuration(c.mode, c.divisor, c.bitrate))
+            sock = socket.create_connection((c.host, c.port), timeout=timeout)
         except OSError as exc:
             raise FrameSourceUnavailable(
                 f"hl2ss: cannot reach the HoloLens 2 AHAT stream at {c.host}:{c.port} ({exc}); "
                 "is the hl2ss app running on the headset, and research mode enabled?"
             ) from exc
+        try:
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            sock.sendall(ahat_configuration(c.mode, c.divisor, c.bitrate))
+        except OSError as exc:
+            sock.close()
+            raise FrameSourceUnavailable(f"hl2ss: {c.host}:{c.port} left ({exc})") from exc
+        if self._connections:
+            self.reconnects += 1
+        else:
+            self._opened_at = self.clock()
+        self._connections += 1
         self._sock, self._buf = sock, bytearray()
+        self._waiting_since = self.clock()
 
     # --- reading --------------------------------------------------------------------------
     def _count(self, counter: dict[str, int], reason: str) -> None:
         counter[reason] = counter.get(reason, 0) + 1
 
-    def _fill(self, n: int) -> None:
-        """Receive until the buffer holds ``n`` bytes (a timeout leaves what came in it)."""
+    def _fill(self, n: int, deadline: float) -> None:
+        """Receive until the buffer holds ``n`` bytes; TimeoutError at ``deadline``
+        (``time.monotonic``), what came staying in the buffer."""
         assert self._sock is not None
         while len(self._buf) < n:
+            left = deadline - time.monotonic()
+            if left <= 0 and not select.select([self._sock], [], [], 0)[0]:
+                raise TimeoutError("no complete packet by the read's deadline")
+            self._sock.settimeout(max(left, 0.001))
             chunk = self._sock.recv(max(65536, n - len(self._buf)))
             if not chunk:
                 raise ConnectionError("closed by the headset")
             self._buf.extend(chunk)
 
+    @property
+    def stalled(self) -> bool:
+        """No packet for ``stall_s`` (connected or not), until the next packet (False before
+        the first connection)."""
+        since = self._last_packet_at if self._last_packet_at is not None else self._opened_at
+        return since is not None and self.clock() - since >= self.config.stall_s
+
+    def stats(self) -> dict:
+        """Counters for the follower's stats: frames, losses and no-pose frames by reason,
+        stalls, reconnects, and whether the stream is stalled now."""
+        return {"received": self.received, "dropped": dict(self.dropped),
+                "no_pose": dict(self.no_pose), "stalls": self.stalls,
+                "reconnects": self.reconnects, "stalled": self.stalled}  # fmt: skip
+
     def read(self, t: float | None = None) -> TrackingFrame | None:
         """The next AHAT frame (stamped ``t``, default its arrival on ``time.monotonic``), or
-        None when none could be had now (counted in ``dropped``)."""
+        None when none could be had by the read's deadline (``read_timeout_s``; counted in
+        ``dropped``)."""
+        deadline = time.monotonic() + self.config.read_timeout_s
         if self._sock is None:
-            if time.monotonic() < self._next_retry:
+            if self.clock() < self._next_retry:
                 return None
             try:
-                self._connect()
+                self._connect(min(self.config.connect_timeout_s, self.config.read_timeout_s))
             except FrameSourceUnavailable:
-                self._next_retry = time.monotonic() + self.config.retry_s
                 self._count(self.dropped, "reconnect_failed")
+                self._back_off()
                 return None
+        # a read ends when the connection would be stalled, so the stall is found on time
+        to_stall = self._waiting_since + self.config.stall_s - self.clock()
+        deadline = min(deadline, time.monotonic() + max(0.0, to_stall))
         pose_bytes = POSE_BYTES if self.config.mode == MODE_FRAMES_POSE else 0
         try:
-            self._fill(HEADER.size)
+            self._fill(HEADER.size, deadline)
             ts, size = HEADER.unpack_from(self._buf, 0)
             if not 16 <= size <= MAX_PAYLOAD_SIZE:  # not a header: the bytes are out of step
                 self._count(self.dropped, "out_of_step")
                 self._drop_connection()
                 return None
             end = HEADER.size + size + pose_bytes
-            self._fill(end)  # a timeout here keeps the partial packet for the next read
+            self._fill(end, deadline)  # a timeout here keeps the partial packet for the next read
         except TimeoutError:
-            self._count(self.dropped, "timeout")
+            if self.clock() - self._waiting_since >= self.config.stall_s:
+                self.stalls += 1  # no frame, no close: a stalled stream (or a trickle)
+                self._count(self.dropped, "stalled")
+                self._drop_connection()
+            else:
+                self._count(self.dropped, "timeout")
             return None
         except (ConnectionError, OSError):
             self._count(self.dropped, "disconnected")
@@ -232,6 +303,8 @@ class Hl2ssFrameSource(FrameSource):
         size = len(packet) - HEADER.size - pose_bytes
         ts = HEADER.unpack_from(packet, 0)[0]
         del self._buf[:end]
+        # a whole packet came: the link is not stalled
+        self._waiting_since = self._last_packet_at = self.clock()
         try:
             p = decode_ahat_payload(memoryview(packet)[HEADER.size : HEADER.size + size])
         except PacketError as exc:
@@ -247,6 +320,7 @@ class Hl2ssFrameSource(FrameSource):
             depth, ab = self.calibration.undistort(depth, ab)
         self.received += 1
         self._seq += 1
+        self._backoff_s = self.config.retry_s
         return TrackingFrame(
             t=time.monotonic() if t is None else t,
             ir=ab,
@@ -283,11 +357,21 @@ class Hl2ssFrameSource(FrameSource):
         return end
 
     def _drop_connection(self) -> None:
+        """Close the socket (the app then accepts the next client) and retry after back-off."""
         if self._sock is not None:
+            with contextlib.suppress(OSError):
+                self._sock.shutdown(socket.SHUT_RDWR)
             self._sock.close()
         self._sock = None
         self._buf = bytearray()
-        self._next_retry = time.monotonic() + self.config.retry_s
+        self._back_off()
+
+    def _back_off(self) -> None:
+        """The next connection try after the back-off, which doubles (up to ``retry_max_s``)
+        until a frame comes."""
+        self._next_retry = self.clock() + self._backoff_s
+        cap = max(self.config.retry_max_s, self.config.retry_s)
+        self._backoff_s = min(cap, max(self._backoff_s * 2.0, 0.0))
 
     def close(self) -> None:
         if self._sock is not None:

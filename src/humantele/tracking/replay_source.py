@@ -12,6 +12,9 @@ Pacing (``pace = true``): ``read`` blocks until the frame's recorded time (its h
 timestamp, 100 ns ticks, relative to the first frame and to the first ``read``), as the stream
 would. A reader that fell behind skips to the newest frame already due, the older ones counted
 in ``dropped["stale"]``, as the hl2ss backend does (``newest = false``: every frame in order).
+One ``read`` waits at most ``MAX_WAIT_S`` (a recording with a pause, e.g. a stalled stream,
+must not hold a read longer than the headset's would be held: the follower takes a sensing
+process that gives no answer for seconds as hung); the frame is then given by a later read.
 ``device_time_s`` is the frame's hl2ss timestamp in s. ``loop``: start again at the end; else
 ``read`` returns None (counted in ``dropped["end"]``).
 
@@ -46,6 +49,9 @@ from humantele.tracking.hl2ss_protocol import AHAT_HEIGHT, AHAT_WIDTH, frame_pos
 TICKS_PER_S = 1e7  # hl2ss timestamps: 100 ns
 
 
+MAX_WAIT_S = 1.0  # one read waits at most this long for a frame's recorded time (s)
+
+
 class ReplayFrameConfig(ConfigModel):
     """The ``replay`` tracker backend: a device recording's AHAT frames."""
 
@@ -78,6 +84,7 @@ class ReplayFrameSource(FrameSource):
         self.last_sensor_ticks: int | None = None
         self.problem: str | None = None
         self._clock, self._sleep = clock, sleep
+        self._held: Sample | None = None  # a frame a read stopped waiting for
         self._rec: DeviceRecording | None = None
         self._it: Iterator[Sample] | None = None
         self._next: Sample | None = None
@@ -140,11 +147,13 @@ class ReplayFrameSource(FrameSource):
             return None
         if self._next is None and self.config.loop:
             self._restart()
-        s = self._next
+        held, self._held = self._held, None
+        s = held or self._next
         if s is None:
             self.dropped["end"] = self.dropped.get("end", 0) + 1
             return None
-        self._next = self._advance()
+        if held is None:
+            self._next = self._advance()
         ts = int(s.fields.get("timestamp", 0))
         if self.config.pace:
             now = self._clock()
@@ -155,6 +164,11 @@ class ReplayFrameSource(FrameSource):
                 ts = int(s.fields.get("timestamp", 0))
                 self.dropped["stale"] = self.dropped.get("stale", 0) + 1
             wait = self._t0 + (ts - self._ts0) / TICKS_PER_S - now
+            if wait > MAX_WAIT_S:  # a pause in the recording: this read ends, the frame waits
+                self._sleep(MAX_WAIT_S)
+                self._held = s
+                self.dropped["timeout"] = self.dropped.get("timeout", 0) + 1
+                return None
             if wait > 0:
                 self._sleep(wait)
         return self._frame(s, ts, t)

@@ -51,6 +51,7 @@ const state = {
   probe: null,
   model: null,
   calibration: null,
+  devices: null, // the follower's devices: { headset_stream_stalled, force_stale }
   frozen: false,
   messages: 0,
   badMessages: 0,
@@ -167,6 +168,9 @@ function onMessage(msg) {
       break;
     case 'registration':
       registration.onFeed(msg);
+      break;
+    case 'devices':
+      state.devices = msg;
       break;
   }
 }
@@ -366,6 +370,15 @@ function update(nowMs) {
     }
     label.sprite.visible = true;
   }
+  const devices = state.devices || {};
+  if (devices.headset_stream_stalled) {
+    // no frames from the headset (Wi-Fi drop, headset asleep): the probe's last pose is old
+    view.headline = 'Headset stream stalled';
+    view.detail = 'The tracker gets no frames from the headset; reconnecting.';
+    ghost.group.visible = false;
+    arrow.group.visible = false;
+  }
+  if (devices.force_stale) view.force = 'no force (board?)';
   if (v) {
     label.sprite.position.copy(virtual.group.position);
     label.sprite.position.y += 0.2;
