@@ -4,9 +4,14 @@ hl2ss (github.com/jdibenes/hl2ss) runs a TCP server on the headset; the AHAT (sh
 depth + active brightness) stream is port 3804. The wire format and the matrix conventions
 are in :mod:`humantele.tracking.hl2ss_protocol` (checked against hl2ss's own sources).
 
-This backend asks for depth SAME + AB RAW (no H.26x/Zdepth decoding: no codec dependency, no
-compression artefacts on the marker blobs), with a bitrate > 0 (the app refuses 0 even for
-RAW) and, by default, mode 1: every frame carries the rig's pose in the app's world.
+This backend asks for depth SAME with AB RAW (1 MiB a frame, ~377 Mbit/s at 45 Hz) or AB
+H.264/H.265 at a chosen bitrate (``ab_profile``, ``bitrate``; decoded as hl2ss's own client
+does, :mod:`humantele.tracking.hl2ss_codec`), always with a bitrate > 0 (the app refuses 0
+even for RAW) and, by default, mode 1: every frame carries the rig's pose in the app's world.
+Depth ZDEPTH is refused (its decoder, hl2ss's pyzdepth, is not on PyPI). A link slower than
+the stream makes the app queue frames without bound (docs/hololens.md): a frame later than
+``max_backlog_s`` behind the connection's quickest drops the connection, which empties that
+queue (counted as "backlog"; :mod:`humantele.tracking.hl2ss_backlog`).
 
 Per frame (:class:`TrackingFrame`): ``T_world_rig`` = the rig pose (converted from hl2ss's
 row-vector matrix), ``T_world_camera = T_world_rig @ T_rig_camera`` with the AHAT extrinsics
@@ -35,26 +40,36 @@ import time
 from typing import Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from humantele.config import ConfigModel
 from humantele.geometry import Pose
 from humantele.tracking.camera import CameraIntrinsics
 from humantele.tracking.frames import FrameSource, FrameSourceUnavailable, TrackingFrame
+from humantele.tracking.hl2ss_backlog import BacklogMonitor
 from humantele.tracking.hl2ss_calibration import Hl2ssAhatCalibration, download_ahat_calibration
+from humantele.tracking.hl2ss_codec import (
+    PROFILE_NAMES,
+    AhatDecoder,
+    default_bitrate,
+    default_gop_size,
+)
 from humantele.tracking.hl2ss_protocol import (  # noqa: F401  (re-exported for callers)
     AHAT_HEIGHT,
     AHAT_PORT,
     AHAT_WIDTH,
     DEFAULT_RAW_BITRATE,
+    DEPTH_PROFILE_SAME,
+    GOP_SIZE_OPTION,
     HEADER,
     MAX_PAYLOAD_SIZE,
     MODE_FRAMES_POSE,
     POSE_BYTES,
+    VIDEO_PROFILE_RAW,
     RAW_PAYLOAD_SIZE,
     AhatConfiguration,
     PacketError,
-    decode_ahat_payload,
+    decode_ahat_payload,  # noqa: F401
     encode_ahat_packet,
     frame_poses,
     pose_from_hl2ss,
@@ -62,10 +77,15 @@ from humantele.tracking.hl2ss_protocol import (  # noqa: F401  (re-exported for 
 
 
 def ahat_configuration(mode: int = MODE_FRAMES_POSE, divisor: int = 1,
-                       bitrate: int = DEFAULT_RAW_BITRATE) -> bytes:  # fmt: skip
-    """The configuration bytes this client sends: depth SAME, AB RAW, default level, a bitrate
-    > 0 and hl2ss_lnm's default option (GOP size 1 for RAW)."""
-    return AhatConfiguration(mode=mode, divisor=divisor, bitrate=bitrate).pack()
+                       bitrate: int = DEFAULT_RAW_BITRATE, profile_ab: int = VIDEO_PROFILE_RAW,
+                       gop_size: int | None = None) -> bytes:  # fmt: skip
+    """The configuration bytes this client sends: depth SAME, the AB profile (RAW or H.26x),
+    default level, a bitrate > 0 and hl2ss_lnm's default option (GOP size: 1 for RAW, the
+    frame rate for H.26x)."""
+    gop = default_gop_size(profile_ab) if gop_size is None else gop_size
+    return AhatConfiguration(mode=mode, divisor=divisor, profile_z=DEPTH_PROFILE_SAME,
+                             profile_ab=profile_ab, bitrate=bitrate,
+                             options={GOP_SIZE_OPTION: gop}).pack()  # fmt: skip
 
 
 class Hl2ssFrameConfig(ConfigModel):
@@ -78,8 +98,22 @@ class Hl2ssFrameConfig(ConfigModel):
     mode: Literal[0, 1] = Field(1, description="1: packets carry the rig pose (the follower "
                                 "needs it); 0: frames only")  # fmt: skip
     divisor: int = Field(1, ge=1, le=255, description="send every n-th frame (45 Hz / n)")
-    bitrate: int = Field(DEFAULT_RAW_BITRATE, gt=0, le=0xFFFFFFFF,
-                         description="bit/s; the app refuses 0 even for RAW")  # fmt: skip
+    depth_profile: Literal["same", "zdepth"] = Field(
+        "same", description="same: depth in the AB stream's frame (RAW: as is; H.26x: 4 mm "
+        "steps); zdepth (lossless) is refused: its decoder is not on PyPI")  # fmt: skip
+    ab_profile: Literal["raw", "h264_base", "h264_main", "h264_high", "h265_main"] = Field(
+        "raw", description="raw: 1 MiB a frame, ~377 Mbit/s at 45 Hz; H.26x: lossy, at "
+        "`bitrate` (docs/hololens.md charts each)")  # fmt: skip
+    bitrate: int | None = Field(None, gt=0, le=0xFFFFFFFF,
+                                description="bit/s; None: hl2ss's default for the profile "
+                                "(H.264 37.7 Mbit/s, H.265 18.9, RAW 1.5 G)")  # fmt: skip
+    gop_size: int | None = Field(None, ge=1, le=0xFFFF,
+                                 description="H.26x frames per key frame; None: hl2ss's "
+                                 "default (45: one a second)")  # fmt: skip
+    max_backlog_s: float = Field(
+        0.25, gt=0, le=60, description="a frame this much later than the connection's "
+        "quickest (the headset queues what a slow link cannot carry) drops the connection, "
+        "which empties the queue")  # fmt: skip
     calibration_file: str | None = Field(
         None,
         description="JSON saved by `humantele devices hl2ss-calibration` (relative: "
@@ -100,6 +134,26 @@ class Hl2ssFrameConfig(ConfigModel):
     connect_timeout_s: float = Field(3.0, gt=0, le=60)
     read_timeout_s: float = Field(1.0, gt=0, le=60)
     retry_s: float = Field(1.0, ge=0, le=60)
+
+    @field_validator("depth_profile")
+    @classmethod
+    def _no_zdepth(cls, v: str) -> str:
+        if v == "zdepth":
+            raise ValueError(
+                "zdepth needs hl2ss's pyzdepth decoder, which is not on PyPI (it is built from "
+                "hl2ss's extensions/pyzdepth): use same, with ab_profile raw or H.26x"
+            )
+        return v
+
+    @property
+    def profile_ab(self) -> int:
+        """hl2ss's AB profile number (0-3 H.26x, 255 RAW)."""
+        return PROFILE_NAMES[self.ab_profile]
+
+    @property
+    def stream_bitrate(self) -> int:
+        """The bitrate asked for: ``bitrate`` or hl2ss_lnm's default for the profile."""
+        return self.bitrate or default_bitrate(self.profile_ab, self.divisor)
 
     @model_validator(mode="after")
     def _pose_needs_extrinsics(self) -> Hl2ssFrameConfig:
@@ -137,6 +191,8 @@ class Hl2ssFrameSource(FrameSource):
         self._buf = bytearray()
         self._seq = 0
         self._next_retry = 0.0
+        self._decoder = AhatDecoder(DEPTH_PROFILE_SAME, c.profile_ab)
+        self.backlog = BacklogMonitor(c.max_backlog_s)
 
     # --- opening --------------------------------------------------------------------------
     def open(self) -> None:
@@ -176,13 +232,15 @@ class Hl2ssFrameSource(FrameSource):
             sock = socket.create_connection((c.host, c.port), timeout=c.connect_timeout_s)
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             sock.settimeout(c.read_timeout_s)
-            sock.sendall(ahat_configuration(c.mode, c.divisor, c.bitrate))
+            sock.sendall(ahat_configuration(c.mode, c.divisor, c.stream_bitrate,
+                                            c.profile_ab, c.gop_size))  # fmt: skip
         except OSError as exc:
             raise FrameSourceUnavailable(
                 f"hl2ss: cannot reach the HoloLens 2 AHAT stream at {c.host}:{c.port} ({exc}); "
                 "is the hl2ss app running on the headset, and research mode enabled?"
             ) from exc
         self._sock, self._buf = sock, bytearray()
+        self._decoder = AhatDecoder(DEPTH_PROFILE_SAME, c.profile_ab)  # a new stream
 
     # --- reading --------------------------------------------------------------------------
     def _count(self, counter: dict[str, int], reason: str) -> None:
@@ -233,7 +291,7 @@ class Hl2ssFrameSource(FrameSource):
         ts = HEADER.unpack_from(packet, 0)[0]
         del self._buf[:end]
         try:
-            p = decode_ahat_payload(memoryview(packet)[HEADER.size : HEADER.size + size])
+            p = self._decoder.decode(memoryview(packet)[HEADER.size : HEADER.size + size])
         except PacketError as exc:
             self._count(self.dropped, exc.reason)
             return None
@@ -247,8 +305,13 @@ class Hl2ssFrameSource(FrameSource):
             depth, ab = self.calibration.undistort(depth, ab)
         self.received += 1
         self._seq += 1
+        arrival = time.monotonic()
+        if self.config.newest and self.backlog.late(ts * 1e-7, arrival):  # the headset queues: empty its queue
+            self._count(self.dropped, "backlog")
+            self._drop_connection()
+            self._next_retry = 0.0  # at once: the link is up, only the queue was long
         return TrackingFrame(
-            t=time.monotonic() if t is None else t,
+            t=arrival if t is None else t,
             ir=ab,
             depth_mm=depth,
             intrinsics=self.intrinsics,
@@ -277,6 +340,9 @@ class Hl2ssFrameSource(FrameSource):
             nxt = end + HEADER.size + size + pose_bytes
             if not 16 <= size <= MAX_PAYLOAD_SIZE or len(self._buf) < nxt:
                 break  # out of step (the next read says so) or not all there yet
+            if self._decoder.profile_ab != VIDEO_PROFILE_RAW:  # later frames refer to it
+                size_old = HEADER.unpack_from(self._buf, 0)[1]
+                self._decoder.skip(bytes(self._buf[HEADER.size : HEADER.size + size_old]))
             del self._buf[:end]
             self._count(self.dropped, "stale")
             end = nxt - end
