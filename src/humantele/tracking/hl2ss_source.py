@@ -65,11 +65,11 @@ from humantele.tracking.hl2ss_protocol import (  # noqa: F401  (re-exported for 
     MAX_PAYLOAD_SIZE,
     MODE_FRAMES_POSE,
     POSE_BYTES,
-    VIDEO_PROFILE_RAW,
     RAW_PAYLOAD_SIZE,
+    VIDEO_PROFILE_RAW,
     AhatConfiguration,
     PacketError,
-    decode_ahat_payload,  # noqa: F401
+    decode_ahat_payload,
     encode_ahat_packet,
     frame_poses,
     pose_from_hl2ss,
@@ -306,7 +306,8 @@ class Hl2ssFrameSource(FrameSource):
         self.received += 1
         self._seq += 1
         arrival = time.monotonic()
-        if self.config.newest and self.backlog.late(ts * 1e-7, arrival):  # the headset queues: empty its queue
+        # the headset queues what the link cannot carry: dropping the connection empties it
+        if self.config.newest and self.backlog.late(ts * 1e-7, arrival):
             self._count(self.dropped, "backlog")
             self._drop_connection()
             self._next_retry = 0.0  # at once: the link is up, only the queue was long
