@@ -36,6 +36,7 @@ from fractions import Fraction
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from humantele.tracking.camera import CameraIntrinsics
 from humantele.tracking.hl2ss_protocol import (
     AHAT_DEPTH_MASK,
     AHAT_FPS,
@@ -115,6 +116,18 @@ def yuv420p_to_zab(yuv: NDArray[np.uint8]) -> tuple[NDArray[np.uint16], NDArray[
     ab[:, 2::4] = v
     ab[:, 3::4] = v
     return depth, ab
+
+
+def unbias_h26x(depth_mm: NDArray[np.uint16], intrinsics: CameraIntrinsics,
+                undistorted: bool) -> tuple[NDArray[np.uint16], CameraIntrinsics]:  # fmt: skip
+    """What hl2ss's decode leaves biased, for the tracker: depth was truncated to 4 mm steps
+    (1.5 mm short on average: +2 mm here, valid pixels only), and each AB value of an even
+    column is repeated over the next, which moves the image 0.5 px right (the intrinsics'
+    ``cx`` + 0.5 here, unless the frame is ``undistorted``: then the AB map is shifted)."""
+    depth = np.where(depth_mm > 0, depth_mm + np.uint16(2), 0).astype(np.uint16)
+    if not undistorted:
+        intrinsics = intrinsics.model_copy(update={"cx": intrinsics.cx + 0.5})
+    return depth, intrinsics
 
 
 def _codec_name(profile_ab: int) -> str:

@@ -53,6 +53,7 @@ from humantele.tracking.hl2ss_codec import (
     AhatDecoder,
     default_bitrate,
     default_gop_size,
+    unbias_h26x,
 )
 from humantele.tracking.hl2ss_protocol import (  # noqa: F401  (re-exported for callers)
     AHAT_HEIGHT,
@@ -301,8 +302,12 @@ class Hl2ssFrameSource(FrameSource):
         matrix = self.last_pose if pose_bytes else None
         T_world_rig, T_world_camera = frame_poses(matrix, self.T_rig_camera, self.no_pose)
         depth, ab = p.depth_mm, p.ab
+        paired = self._decoder.profile_ab != VIDEO_PROFILE_RAW
+        intrinsics = self.intrinsics
+        if paired:  # hl2ss's decode, un-biased: see hl2ss_codec.unbias_h26x
+            depth, intrinsics = unbias_h26x(depth, intrinsics, self._undistort)
         if self._undistort and self.calibration is not None:
-            depth, ab = self.calibration.undistort(depth, ab)
+            depth, ab = self.calibration.undistort(depth, ab, 0.5 if paired else 0.0)
         self.received += 1
         self._seq += 1
         arrival = time.monotonic()
@@ -315,11 +320,12 @@ class Hl2ssFrameSource(FrameSource):
             t=arrival if t is None else t,
             ir=ab,
             depth_mm=depth,
-            intrinsics=self.intrinsics,
+            intrinsics=intrinsics,
             seq=self._seq,
             T_world_camera=T_world_camera,
             T_world_rig=T_world_rig,
             device_time_s=ts * 1e-7,  # hl2ss: 100 ns ticks
+            ab_paired=paired,
         )
 
     def _newest(self, end: int, pose_bytes: int) -> int:

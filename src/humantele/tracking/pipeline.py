@@ -13,7 +13,7 @@ then track only with every marker matched.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from pydantic import Field
@@ -52,6 +52,10 @@ class PipelineConfig(ConfigModel):
     max_ir_misfit: float = Field(
         0.06, gt=0, description="RMS IR misfit to the sphere model (x brightness): partly hidden"
     )
+    paired_max_ir_misfit: float = Field(
+        0.15, gt=0, description="max_ir_misfit for AB sampled at every other column, each "
+        "over two (hl2ss depth SAME + AB H.26x): the model draws no such pairs")  # fmt: skip
+    paired_shape_tolerance: float = Field(0.6, gt=0, description="shape_tolerance for those")
     min_range_m: float = Field(0.15, gt=0)
     max_range_m: float = Field(0.58, gt=0, description="farther markers are too small")
     unwrap: bool = True
@@ -122,6 +126,14 @@ class Tracker:
                 max_ir_misfit=c.max_ir_misfit,
             ),
         )
+        self.paired_params = replace(
+            self.blob_params,
+            sphere=replace(
+                self.blob_params.sphere,
+                max_ir_misfit=c.paired_max_ir_misfit,
+                shape_tolerance=c.paired_shape_tolerance,
+            ),  # fmt: skip
+        )
         self.match_params = MatchParams(
             distance_tol=c.distance_tol_mm / 1000.0,
             max_rms=c.max_rms_mm / 1000.0,
@@ -137,8 +149,9 @@ class Tracker:
     def process(self, frame: TrackingFrame) -> TrackingResult:
         """Track the tool in one frame."""
         c = self.config
+        params = self.paired_params if frame.ab_paired else self.blob_params
         blobs = detect_blobs(
-            frame.ir, frame.depth_mm, frame.intrinsics, self.tool.sphere_radius, self.blob_params
+            frame.ir, frame.depth_mm, frame.intrinsics, self.tool.sphere_radius, params
         )
         explain = None
         if c.verify_missing:
