@@ -59,7 +59,7 @@ class PipelineConfig(ConfigModel):
     min_range_m: float = Field(0.15, gt=0)
     max_range_m: float = Field(0.58, gt=0, description="farther markers are too small")
     unwrap: bool = True
-    depth_wrap_m: float = Field(1.0, gt=0.1)
+    depth_wrap_m: float = Field(1.055, gt=0.1, description="range ambiguity, m (hl2ss alias)")
     refine: bool = True
     lateral_sigma_px: float = Field(0.05, gt=0)
     range_sigma_mm: float = Field(0.8, gt=0)
