@@ -31,7 +31,9 @@ from humantele.tracking.hl2ss_replay import (
     sensor_frames,
 )
 from humantele.tracking.hl2ss_source import Hl2ssFrameConfig, Hl2ssFrameSource
+from humantele.tracking.pipeline import Tracker
 from humantele.tracking.sim import SimFrameConfig, SimFrameSource, default_sim_pose
+from humantele.tracking.tool import load_tool
 
 VENDOR = Path(__file__).parent / "vendor" / "hl2ss"
 
@@ -129,9 +131,15 @@ def test_client_reads_h264_from_the_replay_server_and_zdepth_is_refused(frames):
     assert cfg.options == {10: 45}  # hl2ss_lnm's GOP for H.26x: the frame rate
     assert any("Zdepth" in r for r in srv.refusals)
     assert all(g is not None for g in got) and not src.dropped
+    tracker, errs = Tracker(load_tool("probe_default")), []
     for g, f in zip(got, frames, strict=True):
         valid = (f.depth_mm > 0) & (f.depth_mm < 1024)
         assert np.median(np.abs(g.depth_mm.astype(int) - f.depth_mm)[valid]) <= 4
+        assert g.ab_paired and g.intrinsics.cx == f.intrinsics.cx + 0.5  # hl2ss's AB shift
+        r = tracker.process(g)  # the paired AB's shape check, the biases taken back
+        assert r.T_camera_probe is not None
+        errs.append(np.linalg.norm(r.T_camera_probe.position - f.T_camera_probe_true.position))
+    assert np.median(errs) < 1.5e-3
 
 
 def test_spells_capture_one_frame_in_nine_and_the_server_sends_those():
@@ -142,7 +150,8 @@ def test_spells_capture_one_frame_in_nine_and_the_server_sends_those():
     recs = [AhatRecord(k, d, a, k) for k in range(90)]
     with Hl2ssReplayServer([recs], rate_hz=45.0, spells=[(0.0, 1.0)]) as srv:
         c = Hl2ssFrameConfig(host="127.0.0.1", port=srv.port, mode=0, newest=False,
-                             download_calibration=False, read_timeout_s=5.0)  # fmt: skip
+                             download_calibration=False, read_timeout_s=5.0,
+                             ab_profile="raw")  # fmt: skip
         src = Hl2ssFrameSource(c)
         src.open()
         ticks = []
@@ -211,7 +220,7 @@ def test_a_queue_on_the_headset_drops_the_connection_and_age_stays_bounded(frame
         with TcpLinkRelay(("127.0.0.1", srv.port), LinkConfig(bandwidth_mbps=60.0)) as link:
             c = Hl2ssFrameConfig(host="127.0.0.1", port=link.port, mode=0, newest=True,
                                  download_calibration=False, read_timeout_s=5.0,
-                                 max_backlog_s=0.25, retry_s=0.0)  # fmt: skip
+                                 max_backlog_s=0.25, retry_s=0.0, ab_profile="raw")  # fmt: skip
             src = Hl2ssFrameSource(c)
             src.open()
             ages = []

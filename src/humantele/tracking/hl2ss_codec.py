@@ -220,7 +220,9 @@ class AhatEncoder:
         gop = config.options.get(GOP_SIZE_OPTION, default_gop_size(self.profile_ab))
         if self.profile_ab == H265_MAIN:
             c = av.CodecContext.create("libx265", "w")
-            params = f"log-level=error:bframes=0:keyint={max(1, gop)}:aud=1:repeat-headers=1"
+            kbps = max(1, config.bitrate // 1000)  # capped as x264's maxrate/bufsize below
+            params = (f"log-level=error:bframes=0:keyint={max(1, gop)}:aud=1:repeat-headers=1"
+                      f":vbv-maxrate={kbps}:vbv-bufsize={max(1, kbps // 2)}")  # fmt: skip
             c.options = {"preset": "ultrafast", "tune": "zerolatency", "x265-params": params}
         else:
             c = av.CodecContext.create("libx264", "w")

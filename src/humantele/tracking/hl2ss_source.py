@@ -103,8 +103,9 @@ class Hl2ssFrameConfig(ConfigModel):
         "same", description="same: depth in the AB stream's frame (RAW: as is; H.26x: 4 mm "
         "steps); zdepth (lossless) is refused: its decoder is not on PyPI")  # fmt: skip
     ab_profile: Literal["raw", "h264_base", "h264_main", "h264_high", "h265_main"] = Field(
-        "raw", description="raw: 1 MiB a frame, ~377 Mbit/s at 45 Hz; H.26x: lossy, at "
-        "`bitrate` (docs/hololens.md charts each)")  # fmt: skip
+        "h264_high", description="raw: 1 MiB a frame, ~377 Mbit/s at 45 Hz (needs a wired "
+        "link for 45 Hz); H.26x: lossy, at `bitrate` (docs/hololens.md: the chart that picked "
+        "H.264)")  # fmt: skip
     bitrate: int | None = Field(None, gt=0, le=0xFFFFFFFF,
                                 description="bit/s; None: hl2ss's default for the profile "
                                 "(H.264 37.7 Mbit/s, H.265 18.9, RAW 1.5 G)")  # fmt: skip

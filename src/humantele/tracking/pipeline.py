@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import Literal
 
 import numpy as np
 from pydantic import Field
@@ -58,6 +59,9 @@ class PipelineConfig(ConfigModel):
     paired_shape_tolerance: float = Field(0.6, gt=0, description="shape_tolerance for those")
     min_range_m: float = Field(0.15, gt=0)
     max_range_m: float = Field(0.58, gt=0, description="farther markers are too small")
+    range_mixing: Literal["linear", "phasor"] = Field(
+        "phasor", description="model depth: an edge pixel's sphere and background returns "
+        "summed as phasors (time of flight), or ranges mixed by brightness")  # fmt: skip
     unwrap: bool = True
     depth_wrap_m: float = Field(1.055, gt=0.1, description="range ambiguity, m (hl2ss alias)")
     refine: bool = True
@@ -124,6 +128,7 @@ class Tracker:
                 min_coverage=c.min_coverage,
                 shape_tolerance=c.shape_tolerance,
                 max_ir_misfit=c.max_ir_misfit,
+                phasor=c.range_mixing == "phasor",
             ),
         )
         self.paired_params = replace(
