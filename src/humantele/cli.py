@@ -39,6 +39,10 @@ BENCHES: dict[str, tuple[str, str]] = {
     "loop": ("humantele.bench.loop", "servo loop rate and jitter on the sim device"),
     "session": ("humantele.bench.session", "pose stream over loopback WebRTC"),
     "tracking": ("humantele.bench.tracking", "IR marker tracking: time against pose error"),
+    "hl2ss": (
+        "humantele.bench.hl2ss",
+        "hl2ss AHAT settings over a Wi-Fi link: rate, frame age, accuracy, CPU",
+    ),
     "sensing": ("humantele.bench.sensing", "follower loop latency with sensing: thread/process"),
     "keepup": ("humantele.bench.keepup", "hl2ss frames the follower's sensing measures, loaded"),
     "analysis": ("humantele.bench.analysis", "analyze a 10-min session; recording CPU cost"),

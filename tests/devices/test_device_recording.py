@@ -119,6 +119,7 @@ backend = "opencv"
 device = "{rec / "pov.avi"}"
 [sensing.camera]
 backend = "hl2ss"
+ab_profile = "raw"
 host = "127.0.0.1"
 port = {port}
 calibration_file = "{rec / "ahat_calibration.json"}"

@@ -73,6 +73,7 @@ def cfg(port: int, **kw) -> Hl2ssFrameConfig:
         "mode": 0,
         "download_calibration": False,
         "newest": False,
+        "ab_profile": "raw",
     }  # every frame in order (the follower's default skips to the newest)
     return Hl2ssFrameConfig(**{**base, **kw})
 
@@ -286,7 +287,7 @@ def test_devices_check_reads_an_hl2ss_headset(tmp_path, capsys):
                            rate_hz=45.0) as srv:  # fmt: skip
         conf = tmp_path / "follower.toml"
         conf.write_text(f'[sensing.camera]\nbackend = "hl2ss"\nhost = "127.0.0.1"\n'
-                        f"port = {srv.port}\n")  # fmt: skip
+                        f'port = {srv.port}\nab_profile = "raw"\n')  # fmt: skip
         code = main(["devices", "check", "--follower-config", str(conf), "--only", "tracker",
                      "--samples", "8"])  # fmt: skip
     text = capsys.readouterr().out

@@ -181,6 +181,7 @@ device = "{rec / "pov.avi"}"
 loop = true
 [sensing.camera]
 backend = "hl2ss"
+ab_profile = "raw"
 host = "127.0.0.1"
 port = {port}
 calibration_file = "{rec / "ahat_calibration.json"}"

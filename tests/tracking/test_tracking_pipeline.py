@@ -171,3 +171,19 @@ def test_without_depth_only_full_fits_are_trusted():
     for f in frames:
         f.depth_mm = None
     assert all(tr.process(f).status != "tracked" for f in frames)
+
+
+def test_depth_unwraps_at_the_ahat_alias_hl2ss_calibration_gives():
+    """hl2ss's mode-2 calibration says AHAT depth aliases at 1055 mm (stream_rm_zht.cpp):
+    the tracker's blob ranges, sphere fit and free-space check, and the simulator, use it."""
+    from humantele.tracking.blobs import BlobParams
+    from humantele.tracking.camera import CameraIntrinsics
+    from humantele.tracking.evidence import FreeSpaceCheck
+    from humantele.tracking.hl2ss_calibration import Hl2ssAhatCalibration
+
+    alias_m = Hl2ssAhatCalibration.pinhole(CameraIntrinsics(), Pose.identity()).alias / 1000.0
+    assert alias_m == 1.055
+    assert PipelineConfig().depth_wrap_m == BlobParams().depth_wrap_m == alias_m
+    assert SimFrameConfig().depth_wrap_m == alias_m
+    z = np.zeros((512, 512), np.uint16)
+    assert FreeSpaceCheck(z, CameraIntrinsics(), 0.0055).wrap == alias_m

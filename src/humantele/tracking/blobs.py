@@ -42,7 +42,7 @@ class BlobParams:
     min_range: float = 0.15  # blobs whose apparent size puts them nearer or farther are dropped
     max_range: float = 0.58  # (too small and dim beyond: depth mixes with the background)
     unwrap: bool = True
-    depth_wrap_m: float = 1.0
+    depth_wrap_m: float = 1.055  # AHAT range ambiguity (hl2ss mode-2 calibration: alias 1055)
     max_blobs: int = 24
     sphere: SphereFitParams = field(default_factory=SphereFitParams)
 

@@ -35,7 +35,7 @@ class FreeSpaceCheck:
         radius: float,
         margin_m: float = 0.01,
         min_valid: float = 0.3,
-        wrap_m: float = 1.0,
+        wrap_m: float = 1.055,
         min_range_m: float = 0.1,
     ):
         self.depth_mm = depth_mm

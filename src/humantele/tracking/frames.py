@@ -50,6 +50,7 @@ class TrackingFrame:
     device_time_s: float | None = None
     T_camera_probe_true: Pose | None = None
     visible_true: tuple[bool, ...] | None = None
+    ab_paired: bool = False  # AB sampled at even columns, each over two (hl2ss H.26x)
 
 
 class FrameSource(ABC):

@@ -124,13 +124,16 @@ class Hl2ssAhatCalibration:
         self.T_rig_camera()  # raises when the extrinsics are not rigid
 
     def undistort(
-        self, depth_mm: NDArray[np.uint16], ab: NDArray[np.uint16]
+        self, depth_mm: NDArray[np.uint16], ab: NDArray[np.uint16], ab_shift_px: float = 0.0
     ) -> tuple[NDArray[np.uint16], NDArray[np.uint16]]:
         """The raw images remapped to the pinhole image of :meth:`intrinsics` (depth nearest,
-        AB linear, as hl2ss's ``rm_depth_undistort``/``rm_ab_undistort``; outside: 0)."""
+        AB linear, as hl2ss's ``rm_depth_undistort``/``rm_ab_undistort``; outside: 0).
+        ``ab_shift_px``: AB content lies this far right of its pixels in the raw image (hl2ss
+        H.26x: 0.5, each even column's value repeated over two), taken back here."""
         d = cv2.remap(depth_mm, self.mapx, self.mapy, cv2.INTER_NEAREST,
                       borderMode=cv2.BORDER_CONSTANT, borderValue=0)  # fmt: skip
-        a = cv2.remap(ab, self.mapx, self.mapy, cv2.INTER_LINEAR,
+        mapx = self.mapx + np.float32(ab_shift_px) if ab_shift_px else self.mapx
+        a = cv2.remap(ab, mapx, self.mapy, cv2.INTER_LINEAR,
                       borderMode=cv2.BORDER_CONSTANT, borderValue=0)  # fmt: skip
         return d, a
 

@@ -2,21 +2,27 @@
 
 It reads each client's configuration as the app does (:func:`read_configuration`) and closes
 the socket where the app would (divisor 0, bitrate 0 even for RAW, unknown profiles, mode 3);
-it also closes on requests it cannot replay (a depth profile other than SAME or an AB profile
-other than RAW: the app would send encoded frames), recording why in ``refusals``. Mode 2
+it also closes on depth ZDEPTH (no Zdepth encoder here), recording why in ``refusals``. AB
+RAW frames are sent as they are, AB H.264/H.265 encoded per connection with libx264/libx265
+through PyAV (:class:`~humantele.tracking.hl2ss_codec.AhatEncoder`), as the app encodes. Mode 2
 sends the calibration (closes when it has none). Modes 0/1 send the packets of the next
 "turn" in hl2ss's own layout (:func:`encode_ahat_packet`): every ``divisor``-th record, with
 the rig pose in mode 1 (zeros for a record without one, as the app sends when the headset is
 not located).
 
 A turn is a list of items (or any iterable, iterated again for each client: :class:`McapTurn`
-reads a device recording lazily): an :class:`AhatRecord` (encoded for the client's mode), ``bytes``
+reads a device recording lazily): an :class:`AhatRecord` (encoded for the client's mode and
+profile), an :class:`EncodedFrame` (encoded ahead, sent at its own capture time), ``bytes``
 (sent as they are: corrupt packets for tests) or None (the server drops the connection there).
 Refused and calibration connections do not use up a turn; after the last turn, new clients
 are closed at once (``repeat=True``: every client gets the first turn again). ``rate_hz``
 paces the records as the headset would (None: as fast as the client reads);
 ``recorded_times=True`` paces them at their own timestamps instead (100 ns ticks, from the
-first record sent; a recording's real timing, gaps and jitter included).
+first record sent; a recording's real timing, gaps and jitter included). ``live=True``
+stamps each frame with its capture time on this machine's ``time.monotonic`` (100 ns ticks),
+as the headset stamps its own clock, so a client on the same machine knows each frame's age.
+``spells``: (start, end) s from the connection's start where the headset's hand tracker
+sees no hand and the AHAT camera runs at 5 Hz (:func:`sensor_frames`).
 
 In its own process, serving records saved with :func:`save_records` (``.npz``) or a device
 recording made by ``humantele devices record`` (``.mcap``: the frames and rig poses exactly as
@@ -50,8 +56,10 @@ from numpy.typing import NDArray
 
 from humantele.geometry import Pose
 from humantele.tracking.hl2ss_calibration import Hl2ssAhatCalibration
+from humantele.tracking.hl2ss_codec import AhatEncoder
 from humantele.tracking.hl2ss_protocol import (
     DEPTH_PROFILE_SAME,
+    HEADER,
     MODE_CALIBRATION,
     MODE_FRAMES_POSE,
     VIDEO_PROFILE_RAW,
@@ -77,18 +85,50 @@ class AhatRecord:
     T_world_rig: Pose | None = None
     pose_hl2ss: NDArray[np.float32] | None = None
 
+    def hl2ss_pose(self) -> NDArray[np.float32]:
+        """The rig pose as hl2ss sends it (zeros: not located)."""
+        if self.pose_hl2ss is not None:
+            return self.pose_hl2ss
+        return (np.zeros((4, 4), np.float32) if self.T_world_rig is None
+                else hl2ss_matrix_from_pose(self.T_world_rig))  # fmt: skip
+
     def packet(self, mode: int) -> bytes:
-        pose = None
-        if mode == MODE_FRAMES_POSE:
-            if self.pose_hl2ss is not None:
-                pose = self.pose_hl2ss
-            else:
-                pose = (np.zeros((4, 4), np.float32) if self.T_world_rig is None
-                        else hl2ss_matrix_from_pose(self.T_world_rig))  # fmt: skip
+        """The RAW packet of this record for a client in ``mode``."""
+        pose = self.hl2ss_pose() if mode == MODE_FRAMES_POSE else None
         return encode_ahat_packet(self.timestamp, self.depth_mm, self.ab, self.sensor_ticks, pose)
 
 
-TurnItem = AhatRecord | bytes | None
+@dataclass
+class EncodedFrame:
+    """A frame encoded ahead (:meth:`AhatEncoder.payload`): its payload, its capture time (s
+    from the connection's start), the AB profile it was encoded with and the rig pose as
+    hl2ss sends it (None: zeros, not located)."""
+
+    t_s: float
+    payload: bytes
+    profile_ab: int
+    pose_hl2ss: NDArray[np.float32] | None = None
+
+
+SPELL_RATE_HZ = 5.0  # the AHAT rate while the hand tracker sees no hand (hl2ss issue 162)
+
+
+def sensor_frames(seconds: float, spells: list[tuple[float, float]] = (),
+                  rate_hz: float = 45.0) -> list[tuple[int, float]]:  # fmt: skip
+    """(frame index at ``rate_hz``, capture time s) of the frames the headset captures in
+    ``seconds``: all of them, but only one in ``rate_hz / 5`` inside a spell (the hand
+    tracker's 5 Hz)."""
+    out = []
+    step = max(1, round(rate_hz / SPELL_RATE_HZ))
+    for k in range(int(seconds * rate_hz)):
+        t = k / rate_hz
+        if any(a <= t < b for a, b in spells) and k % step:
+            continue
+        out.append((k, t))
+    return out
+
+
+TurnItem = AhatRecord | EncodedFrame | bytes | None
 
 
 _AGAIN = object()  # between two rounds of a looped turn
@@ -108,12 +148,17 @@ class Hl2ssReplayServer:
         loop: bool = False,
         rate_hz: float | None = None,
         recorded_times: bool = False,
+        live: bool = False,
+        spells: list[tuple[float, float]] = (),
     ):
         self.turns = list(turns)
         self.repeat = repeat
         self.loop = loop  # within a connection: the turn again at its end, as a live headset
         self.rate_hz = rate_hz
         self.recorded_times = recorded_times
+        self.live = live
+        self.spells = list(spells)
+        self.sent = 0  # frames sent, all connections
         self.calibration = calibration
         self._calibration_bytes = None if calibration is None else calibration.to_bytes()
         self.configs: list[AhatConfiguration] = []  # accepted stream configurations
@@ -161,16 +206,17 @@ class Hl2ssReplayServer:
             conn.sendall(self._calibration_bytes)
             self.calibration_sent += 1
             return
-        if cfg.profile_z != DEPTH_PROFILE_SAME or cfg.profile_ab != VIDEO_PROFILE_RAW:
-            self.refusals.append(f"replay has RAW frames only (asked depth {cfg.profile_z}, "
-                                 f"AB {cfg.profile_ab})")  # fmt: skip
+        if cfg.profile_z != DEPTH_PROFILE_SAME:
+            self.refusals.append(f"no Zdepth encoder here (asked depth {cfg.profile_z})")
             return
         if not self.turns:
             self.refusals.append("no turn left")
             return
         self.configs.append(cfg)
         items = self.turns[0] if self.repeat else self.turns.pop(0)
+        encoder: AhatEncoder | None = None
         k = 0
+        step = max(1, round((self.rate_hz or 45.0) / SPELL_RATE_HZ))
         t0 = time.monotonic()
         ts0: int | None = None
         for item in self._items(items):
@@ -180,12 +226,26 @@ class Hl2ssReplayServer:
                 if self.recorded_times:
                     t0, ts0 = time.monotonic() + 1.0 / 45.0, None
                 continue
-            if isinstance(item, AhatRecord):
+            if isinstance(item, EncodedFrame):
+                if item.profile_ab != cfg.profile_ab:
+                    self.refusals.append(f"frames encoded as AB {item.profile_ab}, asked "
+                                         f"{cfg.profile_ab}")  # fmt: skip
+                    return
+                due = t0 + item.t_s
+                delay = due - time.monotonic()
+                if delay > 0 and self._stop.wait(delay):
+                    return
+                data = self._packet(due, item.payload, item.pose_hl2ss, cfg.mode)
+            elif isinstance(item, AhatRecord):
                 send = k % cfg.divisor == 0
                 k += 1
                 if not send:
                     continue
                 due = None
+                if self.rate_hz and self.spells:
+                    tk = (k - 1) / self.rate_hz
+                    if any(a <= tk < b for a, b in self.spells) and (k - 1) % step:
+                        continue  # the hand tracker's 5 Hz: not captured
                 if self.recorded_times:
                     ts0 = item.timestamp if ts0 is None else ts0
                     due = t0 + (item.timestamp - ts0) / 1e7
@@ -195,13 +255,21 @@ class Hl2ssReplayServer:
                     delay = due - time.monotonic()
                     if delay > 0 and self._stop.wait(delay):
                         return
-                data = item.packet(cfg.mode)
+                if encoder is None:
+                    encoder = AhatEncoder(cfg)
+                if cfg.profile_ab == VIDEO_PROFILE_RAW and not self.live:
+                    data = item.packet(cfg.mode)
+                else:
+                    payload = encoder.payload(item.depth_mm, item.ab, item.sensor_ticks)
+                    data = self._packet(due if self.live else None, payload,
+                                        item.hl2ss_pose(), cfg.mode, item.timestamp)  # fmt: skip
             else:
                 data = item
             try:
                 conn.sendall(data)
             except OSError:  # the client left before the last packet
                 return
+            self.sent += 1
         conn.settimeout(0.1)
         while not self._stop.is_set():  # keep it open until the client leaves
             try:
@@ -209,6 +277,17 @@ class Hl2ssReplayServer:
                     return
             except TimeoutError:
                 continue
+
+    def _packet(self, due: float | None, payload: bytes, pose: NDArray[np.float32] | None,
+                mode: int, timestamp: int = 0) -> bytes:  # fmt: skip
+        """A packet around ``payload``: stamped ``due`` (monotonic s) when live, else
+        ``timestamp``; the pose (zeros: not located) in mode 1."""
+        if self.live and due is not None:
+            timestamp = int(due * 1e7)
+        tail = b""
+        if mode == MODE_FRAMES_POSE:
+            tail = (np.zeros((4, 4), "<f4") if pose is None else np.asarray(pose, "<f4")).tobytes()
+        return HEADER.pack(timestamp, len(payload)) + payload + tail
 
     def _items(self, items: Iterable[TurnItem]) -> Iterator[TurnItem | object]:
         """The turn's items; with ``loop``, again and again (``_AGAIN`` between rounds)."""

@@ -4,9 +4,14 @@ hl2ss (github.com/jdibenes/hl2ss) runs a TCP server on the headset; the AHAT (sh
 depth + active brightness) stream is port 3804. The wire format and the matrix conventions
 are in :mod:`humantele.tracking.hl2ss_protocol` (checked against hl2ss's own sources).
 
-This backend asks for depth SAME + AB RAW (no H.26x/Zdepth decoding: no codec dependency, no
-compression artefacts on the marker blobs), with a bitrate > 0 (the app refuses 0 even for
-RAW) and, by default, mode 1: every frame carries the rig's pose in the app's world.
+This backend asks for depth SAME with AB RAW (1 MiB a frame, ~377 Mbit/s at 45 Hz) or AB
+H.264/H.265 at a chosen bitrate (``ab_profile``, ``bitrate``; decoded as hl2ss's own client
+does, :mod:`humantele.tracking.hl2ss_codec`), always with a bitrate > 0 (the app refuses 0
+even for RAW) and, by default, mode 1: every frame carries the rig's pose in the app's world.
+Depth ZDEPTH is refused (its decoder, hl2ss's pyzdepth, is not on PyPI). A link slower than
+the stream makes the app queue frames without bound (docs/hololens.md): a frame later than
+``max_backlog_s`` behind the connection's quickest drops the connection, which empties that
+queue (counted as "backlog"; :mod:`humantele.tracking.hl2ss_backlog`).
 
 Per frame (:class:`TrackingFrame`): ``T_world_rig`` = the rig pose (converted from hl2ss's
 row-vector matrix), ``T_world_camera = T_world_rig @ T_rig_camera`` with the AHAT extrinsics
@@ -49,23 +54,34 @@ from collections.abc import Callable
 from typing import Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from humantele.config import ConfigModel
 from humantele.geometry import Pose
 from humantele.tracking.camera import CameraIntrinsics
 from humantele.tracking.frames import FrameSource, FrameSourceUnavailable, TrackingFrame
+from humantele.tracking.hl2ss_backlog import BacklogMonitor
 from humantele.tracking.hl2ss_calibration import Hl2ssAhatCalibration, download_ahat_calibration
+from humantele.tracking.hl2ss_codec import (
+    PROFILE_NAMES,
+    AhatDecoder,
+    default_bitrate,
+    default_gop_size,
+    unbias_h26x,
+)
 from humantele.tracking.hl2ss_protocol import (  # noqa: F401  (re-exported for callers)
     AHAT_HEIGHT,
     AHAT_PORT,
     AHAT_WIDTH,
     DEFAULT_RAW_BITRATE,
+    DEPTH_PROFILE_SAME,
+    GOP_SIZE_OPTION,
     HEADER,
     MAX_PAYLOAD_SIZE,
     MODE_FRAMES_POSE,
     POSE_BYTES,
     RAW_PAYLOAD_SIZE,
+    VIDEO_PROFILE_RAW,
     AhatConfiguration,
     PacketError,
     decode_ahat_payload,
@@ -76,10 +92,15 @@ from humantele.tracking.hl2ss_protocol import (  # noqa: F401  (re-exported for 
 
 
 def ahat_configuration(mode: int = MODE_FRAMES_POSE, divisor: int = 1,
-                       bitrate: int = DEFAULT_RAW_BITRATE) -> bytes:  # fmt: skip
-    """The configuration bytes this client sends: depth SAME, AB RAW, default level, a bitrate
-    > 0 and hl2ss_lnm's default option (GOP size 1 for RAW)."""
-    return AhatConfiguration(mode=mode, divisor=divisor, bitrate=bitrate).pack()
+                       bitrate: int = DEFAULT_RAW_BITRATE, profile_ab: int = VIDEO_PROFILE_RAW,
+                       gop_size: int | None = None) -> bytes:  # fmt: skip
+    """The configuration bytes this client sends: depth SAME, the AB profile (RAW or H.26x),
+    default level, a bitrate > 0 and hl2ss_lnm's default option (GOP size: 1 for RAW, the
+    frame rate for H.26x)."""
+    gop = default_gop_size(profile_ab) if gop_size is None else gop_size
+    return AhatConfiguration(mode=mode, divisor=divisor, profile_z=DEPTH_PROFILE_SAME,
+                             profile_ab=profile_ab, bitrate=bitrate,
+                             options={GOP_SIZE_OPTION: gop}).pack()  # fmt: skip
 
 
 class Hl2ssFrameConfig(ConfigModel):
@@ -92,8 +113,23 @@ class Hl2ssFrameConfig(ConfigModel):
     mode: Literal[0, 1] = Field(1, description="1: packets carry the rig pose (the follower "
                                 "needs it); 0: frames only")  # fmt: skip
     divisor: int = Field(1, ge=1, le=255, description="send every n-th frame (45 Hz / n)")
-    bitrate: int = Field(DEFAULT_RAW_BITRATE, gt=0, le=0xFFFFFFFF,
-                         description="bit/s; the app refuses 0 even for RAW")  # fmt: skip
+    depth_profile: Literal["same", "zdepth"] = Field(
+        "same", description="same: depth in the AB stream's frame (RAW: as is; H.26x: 4 mm "
+        "steps); zdepth (lossless) is refused: its decoder is not on PyPI")  # fmt: skip
+    ab_profile: Literal["raw", "h264_base", "h264_main", "h264_high", "h265_main"] = Field(
+        "h264_high", description="raw: 1 MiB a frame, ~377 Mbit/s at 45 Hz (needs a wired "
+        "link for 45 Hz); H.26x: lossy, at `bitrate` (docs/hololens.md: the chart that picked "
+        "H.264)")  # fmt: skip
+    bitrate: int | None = Field(None, gt=0, le=0xFFFFFFFF,
+                                description="bit/s; None: hl2ss's default for the profile "
+                                "(H.264 37.7 Mbit/s, H.265 18.9, RAW 1.5 G)")  # fmt: skip
+    gop_size: int | None = Field(None, ge=1, le=0xFFFF,
+                                 description="H.26x frames per key frame; None: hl2ss's "
+                                 "default (45: one a second)")  # fmt: skip
+    max_backlog_s: float = Field(
+        0.25, gt=0, le=60, description="a frame this much later than the connection's "
+        "quickest (the headset queues what a slow link cannot carry) drops the connection, "
+        "which empties the queue")  # fmt: skip
     calibration_file: str | None = Field(
         None,
         description="JSON saved by `humantele devices hl2ss-calibration` (relative: "
@@ -117,6 +153,26 @@ class Hl2ssFrameConfig(ConfigModel):
                            "connection: stalled, dropped and reconnected")  # fmt: skip
     retry_s: float = Field(1.0, ge=0, le=60, description="first wait before a reconnect (s)")
     retry_max_s: float = Field(4.0, ge=0, le=300, description="the back-off's cap (s)")
+
+    @field_validator("depth_profile")
+    @classmethod
+    def _no_zdepth(cls, v: str) -> str:
+        if v == "zdepth":
+            raise ValueError(
+                "zdepth needs hl2ss's pyzdepth decoder, which is not on PyPI (it is built from "
+                "hl2ss's extensions/pyzdepth): use same, with ab_profile raw or H.26x"
+            )
+        return v
+
+    @property
+    def profile_ab(self) -> int:
+        """hl2ss's AB profile number (0-3 H.26x, 255 RAW)."""
+        return PROFILE_NAMES[self.ab_profile]
+
+    @property
+    def stream_bitrate(self) -> int:
+        """The bitrate asked for: ``bitrate`` or hl2ss_lnm's default for the profile."""
+        return self.bitrate or default_bitrate(self.profile_ab, self.divisor)
 
     @model_validator(mode="after")
     def _pose_needs_extrinsics(self) -> Hl2ssFrameConfig:
@@ -167,6 +223,8 @@ class Hl2ssFrameSource(FrameSource):
         self._last_packet_at: float | None = None  # the clock's time of the last whole packet
         self._opened_at: float | None = None  # the first connection
         self._waiting_since = clock()  # the last packet, or the connection's start if later
+        self._decoder = AhatDecoder(DEPTH_PROFILE_SAME, c.profile_ab)
+        self.backlog = BacklogMonitor(c.max_backlog_s)
 
     # --- opening --------------------------------------------------------------------------
     def open(self) -> None:
@@ -214,7 +272,8 @@ class Hl2ssFrameSource(FrameSource):
             ) from exc
         try:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            sock.sendall(ahat_configuration(c.mode, c.divisor, c.bitrate))
+            sock.sendall(ahat_configuration(c.mode, c.divisor, c.stream_bitrate,
+                                            c.profile_ab, c.gop_size))  # fmt: skip
         except OSError as exc:
             sock.close()
             raise FrameSourceUnavailable(f"hl2ss: {c.host}:{c.port} left ({exc})") from exc
@@ -225,6 +284,7 @@ class Hl2ssFrameSource(FrameSource):
         self._connections += 1
         self._sock, self._buf = sock, bytearray()
         self._waiting_since = self.clock()
+        self._decoder = AhatDecoder(DEPTH_PROFILE_SAME, c.profile_ab)  # a new stream
 
     # --- reading --------------------------------------------------------------------------
     def _count(self, counter: dict[str, int], reason: str) -> None:
@@ -306,7 +366,7 @@ class Hl2ssFrameSource(FrameSource):
         # a whole packet came: the link is not stalled
         self._waiting_since = self._last_packet_at = self.clock()
         try:
-            p = decode_ahat_payload(memoryview(packet)[HEADER.size : HEADER.size + size])
+            p = self._decoder.decode(memoryview(packet)[HEADER.size : HEADER.size + size])
         except PacketError as exc:
             self._count(self.dropped, exc.reason)
             return None
@@ -316,20 +376,31 @@ class Hl2ssFrameSource(FrameSource):
         matrix = self.last_pose if pose_bytes else None
         T_world_rig, T_world_camera = frame_poses(matrix, self.T_rig_camera, self.no_pose)
         depth, ab = p.depth_mm, p.ab
+        paired = self._decoder.profile_ab != VIDEO_PROFILE_RAW
+        intrinsics = self.intrinsics
+        if paired:  # hl2ss's decode, un-biased: see hl2ss_codec.unbias_h26x
+            depth, intrinsics = unbias_h26x(depth, intrinsics, self._undistort)
         if self._undistort and self.calibration is not None:
-            depth, ab = self.calibration.undistort(depth, ab)
+            depth, ab = self.calibration.undistort(depth, ab, 0.5 if paired else 0.0)
         self.received += 1
         self._seq += 1
         self._backoff_s = self.config.retry_s
+        arrival = time.monotonic()
+        # the headset queues what the link cannot carry: dropping the connection empties it
+        if self.config.newest and self.backlog.late(ts * 1e-7, arrival):
+            self._count(self.dropped, "backlog")
+            self._drop_connection()
+            self._next_retry = 0.0  # at once: the link is up, only the queue was long
         return TrackingFrame(
-            t=time.monotonic() if t is None else t,
+            t=arrival if t is None else t,
             ir=ab,
             depth_mm=depth,
-            intrinsics=self.intrinsics,
+            intrinsics=intrinsics,
             seq=self._seq,
             T_world_camera=T_world_camera,
             T_world_rig=T_world_rig,
             device_time_s=ts * 1e-7,  # hl2ss: 100 ns ticks
+            ab_paired=paired,
         )
 
     def _newest(self, end: int, pose_bytes: int) -> int:
@@ -351,6 +422,9 @@ class Hl2ssFrameSource(FrameSource):
             nxt = end + HEADER.size + size + pose_bytes
             if not 16 <= size <= MAX_PAYLOAD_SIZE or len(self._buf) < nxt:
                 break  # out of step (the next read says so) or not all there yet
+            if self._decoder.profile_ab != VIDEO_PROFILE_RAW:  # later frames refer to it
+                size_old = HEADER.unpack_from(self._buf, 0)[1]
+                self._decoder.skip(bytes(self._buf[HEADER.size : HEADER.size + size_old]))
             del self._buf[:end]
             self._count(self.dropped, "stale")
             end = nxt - end

@@ -13,7 +13,8 @@ then track only with every marker matched.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Literal
 
 import numpy as np
 from pydantic import Field
@@ -52,10 +53,17 @@ class PipelineConfig(ConfigModel):
     max_ir_misfit: float = Field(
         0.06, gt=0, description="RMS IR misfit to the sphere model (x brightness): partly hidden"
     )
+    paired_max_ir_misfit: float = Field(
+        0.15, gt=0, description="max_ir_misfit for AB sampled at every other column, each "
+        "over two (hl2ss depth SAME + AB H.26x): the model draws no such pairs")  # fmt: skip
+    paired_shape_tolerance: float = Field(0.6, gt=0, description="shape_tolerance for those")
     min_range_m: float = Field(0.15, gt=0)
     max_range_m: float = Field(0.58, gt=0, description="farther markers are too small")
+    range_mixing: Literal["linear", "phasor"] = Field(
+        "phasor", description="model depth: an edge pixel's sphere and background returns "
+        "summed as phasors (time of flight), or ranges mixed by brightness")  # fmt: skip
     unwrap: bool = True
-    depth_wrap_m: float = Field(1.0, gt=0.1)
+    depth_wrap_m: float = Field(1.055, gt=0.1, description="range ambiguity, m (hl2ss alias)")
     refine: bool = True
     lateral_sigma_px: float = Field(0.05, gt=0)
     range_sigma_mm: float = Field(0.8, gt=0)
@@ -120,7 +128,16 @@ class Tracker:
                 min_coverage=c.min_coverage,
                 shape_tolerance=c.shape_tolerance,
                 max_ir_misfit=c.max_ir_misfit,
+                phasor=c.range_mixing == "phasor",
             ),
+        )
+        self.paired_params = replace(
+            self.blob_params,
+            sphere=replace(
+                self.blob_params.sphere,
+                max_ir_misfit=c.paired_max_ir_misfit,
+                shape_tolerance=c.paired_shape_tolerance,
+            ),  # fmt: skip
         )
         self.match_params = MatchParams(
             distance_tol=c.distance_tol_mm / 1000.0,
@@ -137,8 +154,9 @@ class Tracker:
     def process(self, frame: TrackingFrame) -> TrackingResult:
         """Track the tool in one frame."""
         c = self.config
+        params = self.paired_params if frame.ab_paired else self.blob_params
         blobs = detect_blobs(
-            frame.ir, frame.depth_mm, frame.intrinsics, self.tool.sphere_radius, self.blob_params
+            frame.ir, frame.depth_mm, frame.intrinsics, self.tool.sphere_radius, params
         )
         explain = None
         if c.verify_missing:

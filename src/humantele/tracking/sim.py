@@ -200,7 +200,13 @@ class SimFrameSource(FrameSource):
         bg_i = self._bg_ir_true[y0:y1, x0:x1] * (1.0 - cover)
         bg_r = self._bg_range_true[y0:y1, x0:x1]
         tot = i_m + bg_i
-        r = (i_m * r_m + bg_i * bg_r) / np.maximum(tot, 1e-6)
+        if self.config.range_mixing == "phasor":  # a ToF pixel sums the returns' phasors
+            k = 2.0 * np.pi / self.config.depth_wrap_m
+            z = i_m * np.exp(1j * k * r_m) + bg_i * np.exp(1j * k * bg_r)
+            r = np.mod(np.angle(z), 2.0 * np.pi) / k
+            tot = np.abs(z)  # active brightness: the amplitude of the sum
+        else:
+            r = (i_m * r_m + bg_i * bg_r) / np.maximum(tot, 1e-6)
         i_n, d_n = self._noisy(tot.astype(np.float32), r.astype(np.float32), rng)
         lit = i_m > 0.05 * np.maximum(bg_i, 1.0)
         ir[y0:y1, x0:x1][lit] = i_n[lit]

@@ -33,7 +33,10 @@ class SimFrameConfig(ConfigModel):
     depth_noise_m: float = Field(0.002, ge=0, description="per-pixel range noise at 0.5 m")
     saturated_depth_noise_factor: float = Field(2.0, ge=1)
     saturated_invalid_fraction: float = Field(0.15, ge=0, le=1)
-    depth_wrap_m: float = Field(1.0, gt=0.1, description="ranges wrap modulo this")
+    depth_wrap_m: float = Field(1.055, gt=0.1, description="ranges wrap modulo this (AHAT)")
+    range_mixing: Literal["linear", "phasor"] = Field(
+        "phasor", description="a pixel seeing a marker's edge and the background: ranges "
+        "mixed by brightness, or phasors summed as a time-of-flight pixel does")  # fmt: skip
     background_depth_m: float = Field(0.55, gt=0.05)
     background_brightness: float = Field(250.0, ge=0)
     clutter_patches: int = Field(2, ge=0, le=50)

@@ -106,6 +106,7 @@ class SphereFitParams:
     shape_tolerance: float = 0.35
     max_ir_misfit: float = 0.06
     saturated_weight: float = 0.25  # ToF range of clipped pixels is noisier (x2 sd)
+    phasor: bool = False  # a pixel's sphere and background returns sum as phasors (ToF)
 
 
 @dataclass(frozen=True)
@@ -199,7 +200,15 @@ def fit_sphere_ranges(
 
     sel = fits & (c >= p.min_coverage) & (range_w > 0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        s_i = (range_w * pred_ir - bgi * bg_r) / bc + radius * g + 0.5 * s0[:, None, None] * theta2
+        if p.phasor and wrap_m:  # the sphere's phasor: the pixel's less the background's
+            k = 2.0 * np.pi / wrap_m
+            amp = np.where(sat, pred_ir, ir_w)  # AB is the sum's amplitude (clipped: model)
+            zs = amp * np.exp(1j * k * range_w) - bgi * np.exp(1j * k * bg_r)
+            r_s = np.angle(zs) / k
+            r_s = r_s + wrap_m * np.round((range_w - r_s) / wrap_m)  # near the measured
+        else:  # ranges mixed by brightness
+            r_s = (range_w * pred_ir - bgi * bg_r) / bc
+        s_i = r_s + radius * g + 0.5 * s0[:, None, None] * theta2
         w = (bc / pred_ir) ** 2 * c * c
     if p.saturated_weight != 1.0:
         w = np.where(sat, w * p.saturated_weight, w)
