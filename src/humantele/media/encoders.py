@@ -33,7 +33,7 @@ from aiortc.codecs import h264, vpx
 from aiortc.codecs.base import Encoder
 from aiortc.mediastreams import VIDEO_TIME_BASE, convert_timebase
 
-from humantele.media.config import BitrateConfig
+from humantele.media.config import MIN_KBPS, BitrateConfig
 
 RESTART_CHANGE = 0.1  # FFmpeg's encoder: reopen it when the target moved by more than this
 USE_LIBVPX = True  # VP8 on libvpx itself when it loads (humantele.media.vpx); tests switch
@@ -66,18 +66,37 @@ class _Limits:
     def _init_limits(self, limits: BitrateConfig) -> None:
         self.limits = limits
         self._target = limits.start_kbps * 1000
+        self.remb: int | None = None  # the expert's last estimate for this track (bit/s)
+        self.cap: int | None = None  # the link budget's share for this track (bit/s)
+        self.floor: int | None = None  # the floor at the track's level (bit/s), if lower
         self.restarts = 0  # encoder openings (the first included)
         self.keyframes_forced = 0  # keyframes asked for by the receiver (PLI/FIR)
 
     @property
     def target_bitrate(self) -> int:
-        """Target bit rate (bit/s); aiortc sets it on each REMB, clamped to the limits."""
+        """Target bit rate (bit/s); aiortc sets it on each REMB, clamped to the limits (and
+        to the link budget's share, :meth:`set_budget`)."""
         return self._target
 
     @target_bitrate.setter
     def target_bitrate(self, bitrate: int) -> None:
+        self.remb = int(bitrate)
+        self._retarget()
+
+    def set_budget(self, cap: int | None, floor: int | None = None) -> None:
+        """The link budget's share for this track (bit/s; None: no cap) and its floor at the
+        track's level (bit/s; None: the configured ``min_kbps``; never above it)."""
+        self.cap, self.floor = cap, floor
+        self._retarget()
+
+    def _retarget(self) -> None:
         lo, hi = self.limits.min_kbps * 1000, self.limits.max_kbps * 1000
-        self._target = max(lo, min(int(bitrate), hi))
+        if self.floor is not None:
+            lo = min(lo, max(MIN_KBPS * 1000, int(self.floor)))
+        want = self.remb if self.remb is not None else self._target
+        if self.cap is not None:
+            want = min(want, int(self.cap))
+        self._target = max(lo, min(int(want), hi))
 
     def _stale(self, codec: Any, width: int, height: int) -> bool:
         """The open encoder no longer fits: another size, or the target moved too far."""

@@ -1,0 +1,92 @@
+"""The link's budget spent in priority order (humantele.media.policy.split_budget and
+DegradationPolicy.apply_link): the US first and never below its floor, the POV's level from
+what is left (rate, size, bit rate, then off), the US rate only with the POV off; levels drop at
+once and come back one step per recover_s; the encoders take their share without reopening."""
+
+from __future__ import annotations
+
+import pytest
+
+from humantele.media.config import BitrateConfig, DegradeConfig
+from humantele.media.encoders import make_encoder
+from humantele.media.policy import (
+    POV_OFF,
+    US_RATES,
+    DegradationPolicy,
+    split_budget,
+)
+
+US_MIN, US_MAX, POV_MAX = 500.0, 2500.0, 2000.0
+
+
+def split(link, pov_level=0, us_level=0):
+    return split_budget(link, US_MIN, US_MAX, POV_MAX, pov_level, us_level)
+
+
+@pytest.mark.parametrize("link", [150, 300, 450, 600, 900, 1500, 2500, 3000, 5000, 9000])
+def test_the_us_always_gets_its_floor_and_never_less_than_the_pov(link):
+    b = split(link)
+    assert b.us_kbps >= b.us_floor_kbps == US_MIN * US_RATES[b.us_level]
+    assert b.us_kbps <= US_MAX and b.pov_kbps <= POV_MAX
+    assert b.us_kbps >= b.pov_kbps or b.us_kbps == US_MAX
+    if US_MIN <= link <= US_MAX + POV_MAX:
+        assert b.us_kbps + b.pov_kbps == pytest.approx(link)
+        assert b.us_level == 0  # the US rate is untouched while the link carries its floor
+
+
+def test_the_pov_gives_way_first_rate_then_size_then_bit_rate_then_off():
+    levels = [split(link).pov_level for link in (4000, 2100, 1500, 900, 600, 500)]
+    assert levels == [0, 0, 1, 2, 3, POV_OFF]  # non-decreasing as the link thins
+    assert split(3000).pov_kbps > split(1500).pov_kbps > split(600).pov_kbps > 0
+
+
+def test_the_us_rate_steps_down_only_with_the_pov_off():
+    for link in (450, 300, 100):
+        b = split(link)
+        assert b.pov_level == POV_OFF and b.us_level > 0
+    assert split(450).us_level == 1 and split(200).us_level == 2
+    assert split(200).us_kbps == US_MIN * US_RATES[2]  # the US's floor, whatever the link
+
+
+def test_a_level_comes_back_only_with_a_margin():
+    assert split(700).pov_level == 3  # 700 * 1/3 = 233 kbit/s left for the POV: level 3
+    assert split(1200, pov_level=3).pov_level == 2  # 400 left: enough for level 2 with margin
+    assert split(800).pov_level == 2  # 267 left: level 2 from above
+    assert split(800, pov_level=3).pov_level == 3  # but not enough to climb to it
+
+
+def test_link_levels_drop_at_once_and_climb_one_step_per_recover_s():
+    p = DegradationPolicy(DegradeConfig(recover_s=5.0))
+    assert p.apply_link(0.0, split(400)) and p.pov_off and p.us_rate_level == 1
+    assert p.pov_scale == 0.5 and p.us_rate_factor == 0.75
+    assert not p.apply_link(1.0, split(5000))  # a good second is not enough
+    assert p.apply_link(5.0, split(5000)) and p.us_rate_level == 0 and p.pov_off  # US first
+    assert p.apply_link(10.0, split(5000)) and p.pov_level == POV_OFF - 1
+    for t in (15.0, 20.0, 25.0, 30.0):
+        p.apply_link(t, split(5000))
+    assert p.pov_level == 0 and p.link_changes == 6
+
+
+def test_the_stepped_level_and_the_links_the_lower_picture_wins():
+    p = DegradationPolicy()
+    p.level = 2  # CPU contention stepped the POV down
+    p.apply_link(0.0, split(1500))  # the link alone allows level 1
+    assert p.pov_level == 2 and p.pov_scale == 0.5
+
+
+def test_disabled_degradation_ignores_the_link():
+    p = DegradationPolicy(DegradeConfig(enabled=False))
+    assert not p.apply_link(0.0, split(100)) and p.pov_level == 0
+
+
+def test_an_encoder_takes_its_share_and_floor_without_reopening():
+    enc = make_encoder("video/VP8", BitrateConfig(start_kbps=1000, min_kbps=500, max_kbps=2500))
+    enc.target_bitrate = 2_000_000  # REMB
+    enc.set_budget(1_200_000)  # the link's share is less: the share
+    assert enc.target_bitrate == 1_200_000 and enc.remb == 2_000_000
+    enc.set_budget(100_000, floor=250_000)  # below the floor of a halved US rate: the floor
+    assert enc.target_bitrate == 250_000
+    enc.set_budget(None)  # no budget: REMB within the configured limits again
+    assert enc.target_bitrate == 2_000_000
+    enc.target_bitrate = 10  # REMB nonsense: never below the floor
+    assert enc.target_bitrate == 500_000
