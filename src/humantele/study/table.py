@@ -330,33 +330,94 @@ def study_line() -> str:
     )
 
 
+AXES: dict[str, tuple[str, ...]] = {
+    "delay": ("delay_ms", "jitter_ms"),
+    "loss": ("loss_pct",),
+    "bandwidth": ("bandwidth_kbps",),
+}  # the impairments a condition sets; delay and its jitter are one axis
+
+
+def axes_set(s: dict[str, Any]) -> set[str]:
+    """The axes a condition impairs (a value other than 0)."""
+    return {a for a, keys in AXES.items() if any(s.get(k) for k in keys)}
+
+
+def _harsher(axis: str, s: dict[str, Any], than: dict[str, Any]) -> bool:
+    """Whether ``s`` impairs ``axis`` more than ``than`` does (a thinner cap is harsher)."""
+    if axis == "bandwidth":
+        b, t = s.get("bandwidth_kbps") or math.inf, than.get("bandwidth_kbps") or math.inf
+        return b < t
+    return any((s.get(k) or 0.0) > (than.get(k) or 0.0) for k in AXES[axis])
+
+
+def _harmless(summary: list[dict]) -> dict[str, list[dict]]:
+    """Per axis, the conditions impairing that axis alone with which the follower followed."""
+    return {a: [s for s in summary if axes_set(s) == {a} and s.get("follows")] for a in AXES}
+
+
+def counts_for(axis: str, s: dict[str, Any], harmless: dict[str, list[dict]]) -> bool:
+    """A condition tells about ``axis`` when it impairs it and each other impairment it sets
+    is no harsher than one the follower followed with on its own (so a loss series at the
+    750 km delay counts for loss; a satellite link of 300 ms, 1 % loss and 2000 kbit/s counts
+    for no axis unless 300 ms alone was shown harmless)."""
+    if axis not in axes_set(s):
+        return False
+    for other in axes_set(s) - {axis}:
+        if not any(not _harsher(other, s, ok) for ok in harmless[other]):
+            return False
+    return True
+
+
 def breaking_points(summary: list[dict]) -> dict[str, Any]:
-    """Where the follower stops following: the first delay (conditions without loss or a cap)
-    and the first loss at which it does not (None: not within the conditions run), and the
-    delay at which a straight line through the centered RMSE against delay crosses the bound
-    (None without a rising trend)."""
+    """Where the follower stops following, per axis, drawn only from conditions that tell
+    about that axis (:func:`counts_for`): the first delay, loss and bandwidth cap at which it
+    does not (None: not within those conditions), the harshest of each it still followed at,
+    the delay at which a straight line through the centered RMSE against delay crosses the
+    bound (delay-only conditions; None without a rising trend), and the conditions that
+    changed several things at once and tell about no axis (``combined``)."""
     ran = [s for s in summary if s.get("follows") is not None]
-    clean = sorted((s for s in ran if not s["loss_pct"] and not s["bandwidth_kbps"]),
-                   key=lambda s: s["delay_ms"])  # fmt: skip
-    lossy = sorted((s for s in ran if s["loss_pct"]), key=lambda s: (s["loss_pct"], s["delay_ms"]))
-    first_delay = next((s for s in clean if not s["follows"]), None)
-    first_loss = next((s for s in lossy if not s["follows"]), None)
+    harmless = _harmless(ran)
+    order = {
+        "delay": lambda s: (s["delay_ms"], s.get("jitter_ms") or 0.0),
+        "loss": lambda s: (s["loss_pct"], s["delay_ms"]),
+        "bandwidth": lambda s: (-(s["bandwidth_kbps"] or math.inf), s["delay_ms"]),
+    }
+    per = {a: sorted((s for s in ran if counts_for(a, s, harmless)), key=order[a]) for a in AXES}
+    first = {a: next((s for s in per[a] if not s["follows"]), None) for a in AXES}
     crossing = None
+    clean = sorted((s for s in ran if axes_set(s) <= {"delay"}), key=order["delay"])
     pts = [(s["delay_ms"], s["centered_position_rmse_mm"]) for s in clean
            if s.get("centered_position_rmse_mm") is not None]  # fmt: skip
     if len({x for x, _ in pts}) >= 3:
         slope, icpt = np.polyfit([x for x, _ in pts], [y for _, y in pts], 1)
         if slope > 0:
             crossing = float((BOUND["centered_position_rmse_mm"] - icpt) / slope)
+    told = {id(s) for a in AXES for s in per[a]}
+    combined = [s for s in ran if len(axes_set(s)) > 1 and id(s) not in told]
+    ok = {a: [s for s in per[a] if s["follows"]] for a in AXES}
     return {
-        "delay": first_delay, "loss": first_loss, "delay_crossing_ms": crossing,
-        "largest_delay_ms": clean[-1]["delay_ms"] if clean else None,
-        "largest_loss_pct": lossy[-1]["loss_pct"] if lossy else None,
+        "delay": first["delay"], "loss": first["loss"], "bandwidth": first["bandwidth"],
+        "delay_crossing_ms": crossing,
+        "largest_delay_ms": ok["delay"][-1]["delay_ms"] if ok["delay"] else None,
+        "largest_loss_pct": ok["loss"][-1]["loss_pct"] if ok["loss"] else None,
+        "thinnest_kbps": ok["bandwidth"][-1]["bandwidth_kbps"] if ok["bandwidth"] else None,
+        "combined": combined,
     }  # fmt: skip
 
 
+def _label(s: dict[str, Any]) -> str:
+    """``300 ms ± 30, 1 % loss, 2000 kbit/s``: what a condition sets."""
+    parts = [f"{s['delay_ms']:g} ms" + (f" ± {s['jitter_ms']:g}" if s.get("jitter_ms") else "")]
+    if s.get("loss_pct"):
+        parts.append(f"{s['loss_pct']:g} % loss")
+    if s.get("bandwidth_kbps"):
+        parts.append(f"{s['bandwidth_kbps']:g} kbit/s")
+    return ", ".join(parts)
+
+
 def breaking_text(b: dict[str, Any]) -> str:
-    """The breaking points in words."""
+    """The breaking points in words: per axis from the conditions that tell about it, then each
+    condition that changed several things at once, by name, with its measured cause."""
     lines = []
     if b["delay"] is not None:
         s = b["delay"]
@@ -378,6 +439,23 @@ def breaking_text(b: dict[str, Any]) -> str:
     elif b["largest_loss_pct"] is not None:
         lines.append(f"- loss: it still follows at the largest loss run, "
                      f"{b['largest_loss_pct']:g} % each way")  # fmt: skip
+    if b.get("bandwidth") is not None:
+        s = b["bandwidth"]
+        lines.append(f"- bandwidth: the follower stops following at {s['bandwidth_kbps']:g} "
+                     f"kbit/s ({s['name']}): {s['cause']}")  # fmt: skip
+    elif b.get("thinnest_kbps") is not None:
+        lines.append(f"- bandwidth: it still follows at the thinnest link run, "
+                     f"{b['thinnest_kbps']:g} kbit/s each way")  # fmt: skip
+    for s in b.get("combined", []):
+        what = " and ".join(sorted(axes_set(s)))
+        if s["follows"]:
+            verdict_text = "still follows" + (f" ({s['cause']})" if s.get("cause") else "")
+        else:
+            verdict_text = f"does not follow: {s['cause'] or 'cause not measured'}"
+        lines.append(
+            f"- {s['name']} ({_label(s)}) changes {what} at once, beyond what each was run "
+            f"alone: it {verdict_text}. It sets no single axis's break point."
+        )
     return "\n".join(lines)
 
 
