@@ -217,3 +217,38 @@ def test_an_axis_counts_conditions_whose_other_impairments_were_harmless_alone()
     text = table.breaking_text(b)
     assert "stops following at 300 kbit/s (cap300): pose staleness" in text
     assert "d400-l1 (400 ms ± 40, 1 % loss) changes delay and loss at once" in text
+
+
+def test_the_thin_link_chart_is_drawn_from_capped_conditions(tmp_path):
+    from humantele.study.charts import write_charts
+
+    summary = []
+    for loss in (0.0, 3.0, 10.0):
+        for kbps in (500.0, 1000.0, 1500.0, 3000.0):
+            s = _run(f"b{kbps:g}-l{loss:g}", 4.0, 1.5, loss=loss, kbps=kbps)
+            s.update(
+                us_live_pct=100.0 - loss * 3000.0 / kbps,
+                us_age_p95_ms=40.0 + loss * 10,
+                us_ssim=0.8 + kbps / 30000.0,
+                loss_pct=loss,
+                position_rmse_mm=30.0,
+            )
+            summary.append(
+                {
+                    **s,
+                    **{
+                        f"{k}_sd": None
+                        for k in (
+                            "us_live_pct",
+                            "us_age_p95_ms",
+                            "us_ssim",
+                            "position_rmse_mm",
+                            "centered_position_rmse_mm",
+                        )
+                    },
+                }
+            )
+    paths = write_charts(summary, tmp_path)
+    assert [p.name for p in paths][-1] == "study_us_thin_links.png"
+    assert paths[-1].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "study_us_thin_links.png" not in [p.name for p in write_charts(summary[:1], tmp_path)]

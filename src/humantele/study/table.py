@@ -15,7 +15,9 @@ Per scan (complete scans 1..N of each run; :mod:`humantele.analysis` does the al
   all is frozen throughout;
 - the pose stream at the follower: median one-way age (``/follower/latency`` pose_one_way)
   and the share of the scan the virtual probe was stale (pose_stale_s);
-- the sim ultrasound's known-answer image quality (0-1).
+- the sim ultrasound's known-answer image quality (0-1);
+- the US picture at the expert: the share of the scan it was live (not frozen) and its SSIM
+  against the frame the follower captured (:mod:`humantele.study.quality`).
 
 Per run: set-up time (s, expert clock): the first calibration landmark taken to the patient
 model at the expert (scan 1's start less ``start_after_model_s``) - the registration task the
@@ -54,6 +56,7 @@ FROZEN_BREAK_PCT = 50.0  # the expert's picture frozen this share of a scan
 BASELINE_FROZEN_PCT = 10.0  # an unimpaired link's picture frozen more: the machine is busy
 START_AFTER_MODEL_S = 2.0  # as humantele.study.session
 EXTRA_TOPICS = ("/expert/video_frame", "/follower/latency", "/follower/calibration")
+QUALITY_TOPICS = ("/expert/us_video", "/follower/us_image")  # the US picture's SSIM
 LAG_MAX_S, LAG_STEP_S = 2.0, 0.01
 
 ALIGN = (
@@ -126,6 +129,16 @@ def run_scans(run_dir: Path, summary: dict) -> list[dict[str, Any]]:
         for k in EXTRA_TOPICS:
             extra[k] += rec.samples(k)
     demo = summary.get("demo") or {}
+    quality: list[tuple[float, int, float]] = []
+    if spec.get("video"):
+        from humantele.study.quality import us_ssim
+
+        q: dict[str, list[dict]] = {k: [] for k in QUALITY_TOPICS}
+        for f in files:
+            rec = read_recording(f, QUALITY_TOPICS)
+            for k in QUALITY_TOPICS:
+                q[k] += rec.samples(k)
+        quality = us_ssim(q[QUALITY_TOPICS[0]], q[QUALITY_TOPICS[1]])
     rows = []
     for session in sessions:
         to_e = session.clock.to_expert
@@ -178,6 +191,10 @@ def run_scans(run_dir: Path, summary: dict) -> list[dict[str, Any]]:
                 row[f"{name}_fps"] = fz.get("fps")
                 row[f"{name}_freezes_per_min"] = fz.get("freezes_per_min")
                 row[f"{name}_frozen_pct"] = fz.get("frozen_pct")
+            qs = [v for t, _, v in quality if iv.start <= t <= iv.stop]
+            row["us_ssim"] = float(np.mean(qs)) if qs else None
+            us_frozen = row.get("us_frozen_pct")
+            row["us_live_pct"] = None if us_frozen is None else 100.0 - us_frozen
             # each report covers the ~1 s before it
             stale = [v for t, n, v in lat if n == "pose_stale_s" and iv.start < t <= iv.stop + 1]
             one_way = [v for t, n, v in lat if n == "pose_one_way" and iv.start <= t <= iv.stop]
@@ -206,6 +223,7 @@ SUMMARY_KEYS = (
     "us_age_p50_ms", "us_age_p95_ms", "pov_age_p50_ms", "pov_age_p95_ms", "us_fps", "pov_fps",
     "us_freezes_per_min", "us_frozen_pct", "pov_freezes_per_min", "pov_frozen_pct",
     "stale_pct", "pose_age_p50_ms", "setup_s", "sim_image_quality", "load_1min", "link_drops",
+    "us_ssim", "us_live_pct",
 )  # fmt: skip
 
 
@@ -282,8 +300,8 @@ SCAN_HEADER = [
 ]  # fmt: skip
 COND_HEADER = [
     "condition", "one way ms", "loss %", "kbit/s", "scans", *(h for _, h in ALIGN), "lag s",
-    "US p95 ms", "POV p95 ms", "US / POV frozen %", "stale %", "link drops", "set-up s", "load",
-    "follows",
+    "US p95 ms", "POV p95 ms", "US / POV frozen %", "US SSIM", "stale %", "link drops",
+    "set-up s", "load", "follows",
 ]  # fmt: skip
 
 
@@ -313,8 +331,9 @@ def condition_table(summary: list[dict]) -> str:
             s["bandwidth_kbps"] else "-", str(s["scans"]),
             *(_ms(s[k], s[f"{k}_sd"], 1 if "position" in k else 2) for k, _ in ALIGN),
             _f(s["effective_lag_s"], 2), _f(s["us_age_p95_ms"], 0), _f(s["pov_age_p95_ms"], 0),
-            f"{_f(s['us_frozen_pct'])} / {_f(s['pov_frozen_pct'])}", _f(s["stale_pct"]),
-            _f(s["link_drops"], 0), _f(s["setup_s"]), _f(s["load_1min"]), follows,
+            f"{_f(s['us_frozen_pct'])} / {_f(s['pov_frozen_pct'])}", _f(s.get("us_ssim"), 3),
+            _f(s["stale_pct"]), _f(s["link_drops"], 0), _f(s["setup_s"]), _f(s["load_1min"]),
+            follows,
         ])  # fmt: skip
     return markdown_table(COND_HEADER, out)
 
