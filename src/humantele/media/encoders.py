@@ -5,9 +5,11 @@ limits, and VP8 without libvpx's temporal denoiser and encode breakout.
 clamp the expert's congestion feedback (REMB, set by aiortc as ``encoder.target_bitrate``) to
 fixed limits (250-1500 and 500-3000 kbit/s). Ours start at the track's
 :class:`~humantele.media.config.BitrateConfig` ``start_kbps`` and clamp REMB to its
-``min_kbps``-``max_kbps``. PyAV cannot change the rate of an open libvpx or libx264 encoder (a
-new ``bit_rate`` is ignored), so, as in aiortc, the encoder is reopened (a keyframe) when the
-target has moved by more than 10 %; ``restarts`` counts the openings.
+``min_kbps``-``max_kbps`` and to the link budget's share (:meth:`_Limits.set_budget`). VP8 runs
+on libvpx itself (:mod:`humantele.media.vpx`): a new target is applied to the running encoder,
+no keyframe. PyAV cannot change the rate of an open FFmpeg encoder (a new ``bit_rate`` is
+ignored), so without a usable libvpx, and for H.264, as in aiortc, the encoder is reopened (a
+keyframe) when the target has moved by more than 10 %; ``restarts`` counts the openings.
 
 **VP8 settings.** aiortc's real-time libvpx settings less two: ``noise-sensitivity`` (aiortc 4,
 here 0: no temporal denoiser) and ``static-thresh`` (aiortc 1, here 0: no encode breakout).
