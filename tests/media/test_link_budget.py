@@ -90,3 +90,51 @@ def test_an_encoder_takes_its_share_and_floor_without_reopening():
     assert enc.target_bitrate == 2_000_000
     enc.target_bitrate = 10  # REMB nonsense: never below the floor
     assert enc.target_bitrate == 500_000
+
+
+class _Report:
+    def __init__(self, **kw):
+        self.__dict__.update(type="remote-inbound-rtp", **kw)
+
+
+class _Sender:
+    """An RTCRtpSender's getStats as aiortc gives it: the expert's receiver report."""
+
+    def __init__(self, lost: int, rtt: float, jitter: int) -> None:
+        self.report = {"r": _Report(fractionLost=lost, roundTripTime=rtt, jitter=jitter)}
+
+    async def getStats(self):  # noqa: N802 - aiortc's name
+        return self.report
+
+
+async def test_the_senders_check_reads_the_link_and_spends_it():
+    """What the follower does once a second: the REMB sum, the receiver reports' loss, round
+    trip and jitter; the POV off and the US at its floor on a 450 kbit/s link; the encoders
+    told their shares and the round trip; all in the stats."""
+    from media_helpers import small_video_config
+
+    from humantele.media.sender import VideoSender
+    from humantele.video.scene import DEFAULT_PATIENT
+
+    sender = VideoSender(small_video_config(process=False), None, None, DEFAULT_PATIENT)
+    config = sender.config
+    sender._senders = {"us": _Sender(5, 0.12, 900), "pov": _Sender(13, 0.15, 450)}
+    sender._encoders = {
+        "us": make_encoder("video/VP8", config.us_bitrate),
+        "pov": make_encoder("video/VP8", config.pov_bitrate),
+    }
+    sender._encoders["us"].target_bitrate = 300_000  # the expert's REMB of each track
+    assert (await sender.link_report())["link_kbps"] is None  # the POV's REMB not yet in
+    sender._encoders["pov"].target_bitrate = 150_000
+    report = await sender.link_report()
+    assert report == {"loss": 13 / 256, "rtt_s": 0.15, "jitter_s": 0.01, "link_kbps": 450.0}
+    await sender.check(10.0, 0.0, None)
+    p = sender.policy
+    assert p.pov_off and p.us_rate_level == 1  # 450 < the US's 500 floor: the US rate too
+    us, pov = sender._encoders["us"], sender._encoders["pov"]
+    assert us.target_bitrate == 375_000  # its floor at x0.75: what it needs to stay live
+    assert pov.target_bitrate == 75_000 and us.rtt_s == pov.rtt_s == 0.15
+    assert sender.captures["pov"].max_fps == pytest.approx(0.2)
+    assert sender.captures["us"].max_fps == pytest.approx(0.75 * sender.us_fps)
+    st = sender.stats()
+    assert st["pov_level"] == POV_OFF and st["us_level"] == 1 and st["link"]["link_kbps"] == 450
