@@ -46,6 +46,7 @@ def test_the_us_rate_steps_down_only_with_the_pov_off():
         assert b.pov_level == POV_OFF and b.us_level > 0
     assert split(450).us_level == 1 and split(200).us_level == 2
     assert split(200).us_kbps == US_MIN * US_RATES[2]  # the US's floor, whatever the link
+    assert split(450).us_kbps == 450 and split(450).pov_kbps == 0  # the POV off: all the US's
 
 
 def test_a_level_comes_back_only_with_a_margin():
@@ -72,6 +73,15 @@ def test_the_stepped_level_and_the_links_the_lower_picture_wins():
     p.level = 2  # CPU contention stepped the POV down
     p.apply_link(0.0, split(1500))  # the link alone allows level 1
     assert p.pov_level == 2 and p.pov_scale == 0.5
+
+
+def test_an_estimate_that_has_not_grown_yet_lowers_nothing_but_lets_levels_climb():
+    p = DegradationPolicy(DegradeConfig(recover_s=5.0))
+    assert not p.apply_link(0.0, split(300), short=False)  # a session's first REMB
+    assert p.pov_level == 0 and p.us_rate_level == 0
+    p.apply_link(1.0, split(300))  # the link really is short
+    assert p.pov_off
+    assert p.apply_link(6.0, split(5000), short=False) and p.us_rate_level == 1  # one step
 
 
 def test_disabled_degradation_ignores_the_link():
@@ -132,8 +142,12 @@ async def test_the_senders_check_reads_the_link_and_spends_it():
     p = sender.policy
     assert p.pov_off and p.us_rate_level == 1  # 450 < the US's 500 floor: the US rate too
     us, pov = sender._encoders["us"], sender._encoders["pov"]
-    assert us.target_bitrate == 375_000  # its floor at x0.75: what it needs to stay live
-    assert pov.target_bitrate == 75_000 and us.rtt_s == pov.rtt_s == 0.15
+    assert us.target_bitrate == 375_000  # REMB 300 is below its floor at x0.75: the floor
+    us.target_bitrate = 420_000  # a REMB within its share (the whole link, the POV off)
+    assert us.target_bitrate == 420_000
+    us.target_bitrate = 900_000  # and one above it: the share
+    assert us.target_bitrate == 450_000
+    assert pov.target_bitrate == 50_000 and us.rtt_s == pov.rtt_s == 0.15
     assert sender.captures["pov"].max_fps == pytest.approx(0.2)
     assert sender.captures["us"].max_fps == pytest.approx(0.75 * sender.us_fps)
     st = sender.stats()

@@ -109,10 +109,12 @@ class DegradationPolicy:
     def us_rate_factor(self) -> float:
         return US_RATES[self.us_rate_level]
 
-    def apply_link(self, t: float, budget: Budget) -> bool:
-        """The link's budget at time ``t`` (s): its levels take effect at once when lower;
-        they come back one step per ``recover_s`` (REMB moves every second: no flapping).
-        Whether a level changed."""
+    def apply_link(self, t: float, budget: Budget, short: bool = True) -> bool:
+        """The link's budget at time ``t`` (s): its levels take effect at once when lower and
+        the link is ``short`` (its estimate below what the tracks send, or losing more than
+        ``max_loss``: a REMB that has not yet grown to what the link carries, as at a
+        session's start, lowers nothing); they come back one step per ``recover_s`` (REMB
+        moves every second: no flapping). Whether a level changed."""
         self.budget = budget
         if not self.config.enabled:
             return False
@@ -120,7 +122,7 @@ class DegradationPolicy:
         climb = t - self._link_at >= self.config.recover_s
         for name, want in (("link_us_level", budget.us_level), ("link_level", budget.pov_level)):
             now = getattr(self, name)
-            if want > now:
+            if want > now and short:
                 setattr(self, name, want)
             elif want < now and climb:
                 setattr(self, name, now - 1)
@@ -198,7 +200,9 @@ def split_budget(
     order. The US claims ``US_SHARE`` of it, never less than its floor at its rate
     (``us_min_kbps`` at the full rate, proportionally less at x0.75 and x0.5: the same bits per
     frame, the lowest quality a sonographer reads) nor more than ``us_max_kbps``; the POV gets
-    the rest (at most ``pov_max_kbps``; what it cannot use goes back to the US). The POV's
+    the rest (at most ``pov_max_kbps``; what it cannot use goes back to the US, and all of it
+    when the POV is off: a REMB estimate grows only from what its track sends, so a share left
+    unspent would hold the US where it is). The POV's
     level follows what is left for it (:data:`POV_LEVEL_KBPS`: rate, then size, then bit
     rate, then off); only once the POV is off and the US still does not get its floor does
     the US frame rate step down (x0.75, x0.5). ``pov_level`` and ``us_level`` are the current
@@ -222,4 +226,6 @@ def split_budget(
             break
     if us_level_out > 0:
         level = POV_OFF
+    if level == POV_OFF:  # the POV's share is the US's: its REMB grows only with what it sends
+        us, pov = min(us_max_kbps, max(us_floor, link)), 0.0
     return Budget(link, us, us_floor, pov, level, us_level_out)

@@ -47,6 +47,10 @@ log = logging.getLogger(__name__)
 
 VIDEO_CHANNEL_ID = 3  # the link's channels are 0-2
 MAX_INFO_BUFFERED = 4096  # bytes of frame records allowed to wait in the channel
+# The link is short when the expert's estimate (REMB sum) is below this share of what the
+# tracks are set to send: its estimator then says the link is overused (it bids 0.85 of the
+# rate received); above it, the estimate may just not have grown yet (a session's start).
+SHORT_FRACTION = 0.95
 
 
 class SlotTrack(MediaStreamTrack):
@@ -292,7 +296,12 @@ class VideoSender:
         p = self.policy
         budget = split_budget(link, us_l.min_kbps, us_l.max_kbps, pov_l.max_kbps,
                               p.link_level, p.link_us_level)  # fmt: skip
-        p.apply_link(t, budget)
+        sending = sum(e.target_bitrate for e in self._encoders.values()) / 1000.0
+        loss = report["loss"]
+        short = link < SHORT_FRACTION * sending or (
+            loss is not None and loss > self.config.degrade.max_loss
+        )
+        p.apply_link(t, budget, short)
         us, pov = self._encoders.get("us"), self._encoders.get("pov")
         if us is not None:
             us.set_budget(int(budget.us_kbps * 1000), int(budget.us_floor_kbps * 1000))
