@@ -17,6 +17,7 @@ from aiortc.jitterbuffer import JitterFrame
 
 from humantele.config import ConfigError, validate_config
 from humantele.media.config import BitrateConfig, FollowerVideoConfig
+from humantele.media import encoders
 from humantele.media.encoders import make_encoder, two_packets
 from humantele.media.jitter import h264_is_keyframe, vp8_is_keyframe
 from humantele.media.receiver import luma_plane
@@ -60,6 +61,8 @@ def round_trip(mime, encoder, frames, keyframe_at=(), decoder=None):
     decoder = decoder or decoder_class()
     out = []
     for i, (seq, frame) in enumerate(frames):
+        # as sim_us_frames stamped it (aiortc's H.264 encoder restamps the frames it gets)
+        frame.pts, frame.time_base = (seq - 1) * 4500, fractions.Fraction(1, 90000)
         payloads, ts = encoder.encode(frame, i in keyframe_at)
         data = b"".join(depayload(p) for p in payloads)
         for d in decoder.decode(JitterFrame(data, ts)):
@@ -86,19 +89,64 @@ def test_the_counter_reads_at_the_low_and_high_ends_of_the_bit_rates(us_frames, 
     assert all(luma_counter(d) == seq for seq, d, _, _ in out)
 
 
-def test_remb_moves_the_bit_rate_only_within_the_limits_and_reopens_the_encoder(us_frames):
+def rate_kbps(out, fps=20.0):
+    """The mean bit rate (kbit/s) of round_trip's output."""
+    return np.mean([sum(len(p) for p in payloads) for _, _, payloads, _ in out]) * 8 * fps / 1e3
+
+
+def test_remb_moves_the_bit_rate_of_the_running_encoder_within_the_limits(us_frames):
     limits = BitrateConfig(start_kbps=800, min_kbps=400, max_kbps=1200)
     enc, dec = make_encoder("video/VP8", limits), Vp8Decoder()
     round_trip("video/VP8", enc, us_frames[:5], decoder=dec)
     assert enc.target_bitrate == 800_000 and enc.restarts == 1
     enc.target_bitrate = 100_000  # REMB far below the floor
     assert enc.target_bitrate == 400_000
+    low = round_trip("video/VP8", enc, us_frames[5:30], decoder=dec)
     enc.target_bitrate = 9_000_000  # and far above the ceiling
     assert enc.target_bitrate == 1_200_000
+    high = round_trip("video/VP8", enc, us_frames[30:55], decoder=dec)
+    # the same encoder all along: no reopening, no keyframe, every frame decoded and read
+    assert enc.restarts == 1 and enc.reconfigurations == 2
+    assert not any(key for *_, key in low + high)
+    assert all(luma_counter(d) == seq for seq, d, _, _ in low + high)
+    assert rate_kbps(low[5:]) < 600 < 900 < rate_kbps(high[5:])
+
+
+def test_a_smaller_frame_is_a_live_resize_with_one_keyframe_not_a_reopening(us_frames):
+    enc, dec = make_encoder("video/VP8", BitrateConfig(), max_size=(640, 480)), Vp8Decoder()
+    round_trip("video/VP8", enc, us_frames[:5], decoder=dec)
+    half = []
+    for seq, frame in us_frames[5:15]:
+        small = frame.reformat(width=320, height=240)
+        small.pts, small.time_base = frame.pts, frame.time_base
+        half.append((seq, small))
+    out = round_trip("video/VP8", enc, half, decoder=dec)
+    out += round_trip("video/VP8", enc, us_frames[15:20], decoder=dec)
+    assert [key for *_, key in out] == [True] + [False] * 9 + [True] + [False] * 4
+    assert [d.width for _, d, _, _ in out] == [320] * 10 + [640] * 5
+    assert enc.restarts == 1 and enc.resizes == 2
+
+
+def test_keyframe_requests_within_a_round_trip_of_a_keyframe_are_answered_once(us_frames):
+    enc = make_encoder("video/VP8", BitrateConfig())
+    enc.rtt_s = 0.18  # frames every 50 ms: one keyframe per 0.23 s at most
+    out = round_trip("video/VP8", enc, us_frames[:30], keyframe_at=set(range(10, 30)))
+    keys = [i for i, (*_, key) in enumerate(out) if key]
+    assert keys == [0, 10, 15, 20, 25]
+    assert enc.keyframes_forced == 20 and enc.keyframes_suppressed == 16
+    enc.rtt_s = 5.0  # a slow link never stretches it past the receiver's 0.5 s repeat
+    assert enc.keyframe_interval_s() < 0.5
+
+
+def test_without_libvpx_ffmpegs_encoder_is_reopened_on_a_rate_move(us_frames, monkeypatch):
+    monkeypatch.setattr(encoders, "USE_LIBVPX", False)
+    limits = BitrateConfig(start_kbps=800, min_kbps=400, max_kbps=1200)
+    enc, dec = make_encoder("video/VP8", limits), Vp8Decoder()
+    round_trip("video/VP8", enc, us_frames[:5], decoder=dec)
+    enc.target_bitrate = 9_000_000
     out = round_trip("video/VP8", enc, us_frames[5:40], decoder=dec)
     assert enc.restarts == 2 and out[0][3]  # reopened at the new rate: a keyframe first
-    sizes = [sum(len(p) for p in payloads) for _, _, payloads, _ in out[5:]]
-    assert np.mean(sizes) * 8 * 20 > 800_000  # now above the starting 800 kbit/s
+    assert rate_kbps(out[5:]) > 800
     enc.target_bitrate = 1_150_000  # within 10 %: no reopening (no keyframe)
     out = round_trip("video/VP8", enc, us_frames[40:45], decoder=dec)
     assert enc.restarts == 2 and not any(key for *_, key in out)

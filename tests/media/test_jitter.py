@@ -218,3 +218,29 @@ def test_any_packets_never_raise_and_the_buffer_stays_bounded(packets):
         pli, frame = buf.add(p)
         assert isinstance(pli, bool) and len(buf) <= 65
         assert frame is None or isinstance(frame.data, bytes)
+
+
+def test_on_a_long_round_trip_a_retransmission_is_waited_for_a_round_trip():
+    """At 60 ms each way a NACK's retransmission comes ~130 ms after the gap is seen: a fixed
+    100 ms wait gave up on every one (a freeze and a keyframe each); with the link's round
+    trip the wait is that round trip and a margin, and still bounded."""
+    clock, s = Clock(), Stream()
+    rtt = {"s": 0.13}
+    buf = make(clock, rtt=lambda: rtt["s"])
+    assert buf.wait_s() > 0.13 and buf.pli_every_s() == buf.pli_interval_s
+    feed(buf, s.frame([b"K0"]))
+    f1, f2 = s.frame([b"d1", b"x"]), s.frame([b"d2", b"y"])
+    assert feed(buf, [f1[1], *f2]) == [(False, None)] * 3
+    clock.t += 0.13  # past the 100 ms of max_wait_s, within the round trip's wait
+    assert feed(buf, [f1[0]]) == [(False, b"d1x")]
+    assert buf.counters.gaps_given_up == 0
+    # a gap never repaired is still given up, after the round trip's wait
+    f3, f4 = s.frame([b"d3", b"z"]), s.frame([b"d4", b"w"])
+    feed(buf, [f3[1], *f4])
+    clock.t += buf.wait_s() + 0.01
+    assert feed(buf, s.frame([b"K5"]))[-1][1] == b"K5"  # d3, d4 dropped: the keyframe next
+    assert buf.counters.gaps_given_up == 1
+    rtt["s"] = 30.0  # a silly round trip: the wait stays bounded, so do keyframe requests
+    assert buf.wait_s() <= 1.0 and buf.pli_every_s() <= 1.0
+    rtt["s"] = None
+    assert buf.wait_s() == WAIT

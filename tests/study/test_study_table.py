@@ -166,3 +166,89 @@ def test_where_it_breaks_is_the_first_condition_that_does_not_follow():
     fine = table.breaking_points(summary[:3])
     assert fine["delay"] is None and fine["largest_delay_ms"] == 200.0
     assert "still follows at the largest delay run, 200 ms" in table.breaking_text(fine)
+
+
+def _run(name, delay, jitter=0.0, loss=0.0, kbps=0.0, **kw):
+    """A synthetic condition row with its verdict, as summarize() makes it."""
+    s = _cond(delay_ms=delay, **kw)
+    return {**s, "name": name, "jitter_ms": jitter, "loss_pct": loss, "bandwidth_kbps": kbps,
+            **table.verdict(s)}  # fmt: skip
+
+
+def test_a_condition_that_changes_several_things_is_named_with_its_cause_not_an_axis():
+    """Issue 31's run: the satellite link (300 ms, 1 % loss, 2000 kbit/s) broke on pose age;
+    the summary had blamed loss ('stops following at 1 %') and said it still follows at the
+    largest delay run, 4 ms, though 300 ms was run."""
+    summary = [
+        _run("lan", 0.0), _run("750km", 4.0, 1.5),
+        _run("rural", 60.0, 20.0, loss=3.0, kbps=1500.0, us_frozen_pct=83.0),
+        _run("lossy", 0.0, loss=15.0, us_frozen_pct=25.0),
+        _run("satellite", 300.0, 30.0, loss=1.0, kbps=2000.0, centered_position_rmse_mm=23.6),
+    ]  # fmt: skip
+    b = table.breaking_points(summary)
+    assert b["loss"] is None and b["largest_loss_pct"] == 15.0  # the loss-only condition
+    assert b["delay"] is None and b["largest_delay_ms"] == 4.0
+    assert b["bandwidth"] is None and b["thinnest_kbps"] is None
+    assert [s["name"] for s in b["combined"]] == ["rural", "satellite"]
+    text = table.breaking_text(b)
+    assert "stops following at 1 %" not in text
+    assert "still follows at the largest loss run, 15 % each way" in text
+    sat = next(line for line in text.splitlines() if "satellite" in line)
+    assert "300 ms ± 30, 1 % loss, 2000 kbit/s" in sat and "does not follow: pose age" in sat
+    assert "bandwidth and delay and loss at once" in sat and "no single axis" in sat
+    rural = next(line for line in text.splitlines() if "rural" in line)
+    assert "it still follows (video freezes" in rural
+
+
+def test_an_axis_counts_conditions_whose_other_impairments_were_harmless_alone():
+    summary = [
+        _run("lan", 0.0), _run("d50", 50.0, 5.0), _run("d400", 400.0, 40.0, stale_pct=80.0),
+        _run("d50-l5", 50.0, 5.0, loss=5.0),
+        _run("d50-l10", 50.0, 5.0, loss=10.0, stale_pct=70.0),
+        _run("d400-l1", 400.0, 40.0, loss=1.0, stale_pct=90.0),  # 400 ms broke alone
+        _run("cap1000", 0.0, kbps=1000.0), _run("cap300", 0.0, kbps=300.0, stale_pct=60.0),
+        _run("d50-cap500", 50.0, 5.0, kbps=500.0),
+    ]  # fmt: skip
+    b = table.breaking_points(summary)
+    assert b["delay"]["name"] == "d400"
+    assert b["loss"]["name"] == "d50-l10"  # at 50 ms, which followed on its own
+    assert b["bandwidth"]["name"] == "cap300" and b["thinnest_kbps"] == 500.0
+    assert [s["name"] for s in b["combined"]] == ["d400-l1"]  # 400 ms alone did not follow
+    text = table.breaking_text(b)
+    assert "stops following at 300 kbit/s (cap300): pose staleness" in text
+    assert "d400-l1 (400 ms ± 40, 1 % loss) changes delay and loss at once" in text
+
+
+def test_the_thin_link_chart_is_drawn_from_capped_conditions(tmp_path):
+    from humantele.study.charts import write_charts
+
+    summary = []
+    for loss in (0.0, 3.0, 10.0):
+        for kbps in (500.0, 1000.0, 1500.0, 3000.0):
+            s = _run(f"b{kbps:g}-l{loss:g}", 4.0, 1.5, loss=loss, kbps=kbps)
+            s.update(
+                us_live_pct=100.0 - loss * 3000.0 / kbps,
+                us_age_p95_ms=40.0 + loss * 10,
+                us_ssim=0.8 + kbps / 30000.0,
+                loss_pct=loss,
+                position_rmse_mm=30.0,
+            )
+            summary.append(
+                {
+                    **s,
+                    **{
+                        f"{k}_sd": None
+                        for k in (
+                            "us_live_pct",
+                            "us_age_p95_ms",
+                            "us_ssim",
+                            "position_rmse_mm",
+                            "centered_position_rmse_mm",
+                        )
+                    },
+                }
+            )
+    paths = write_charts(summary, tmp_path)
+    assert [p.name for p in paths][-1] == "study_us_thin_links.png"
+    assert paths[-1].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "study_us_thin_links.png" not in [p.name for p in write_charts(summary[:1], tmp_path)]

@@ -87,6 +87,12 @@ class DegradeConfig(ConfigModel):
     max_us_level: int = Field(
         2, ge=0, le=2, description="how far the US rate may fall for the tracker: 0.75, 0.5"
     )
+    follow_link: bool = Field(
+        True,
+        description="split the link's budget (the expert's REMB of both tracks) in priority "
+        "order: the US first, the POV's level and bit rate from what is left (off at the "
+        "least), the US rate only with the POV off (humantele.media.policy.split_budget)",
+    )
 
 
 class FollowerVideoConfig(ConfigModel):

@@ -15,8 +15,10 @@ for every RTP packet, the payload already depayloaded into ``packet._data``):
 - releases a frame as soon as its last packet (RTP marker bit) is in and no packet since the
   previous frame is missing;
 - lets a missing packet be waited for ``max_wait_s`` after the first later packet arrived (time
-  for a NACK and its retransmission); after that, or beyond ``capacity`` packets, it drops the
-  frames up to the next keyframe, asks the sender for one (``pli``, again every
+  for a NACK and its retransmission), or, given the link's round trip (``rtt``), that round
+  trip and a margin when it is longer: at 60 ms each way a retransmission takes ~130 ms and a
+  fixed 100 ms gave up on every one of them; after that, or beyond ``capacity`` packets, it
+  drops the frames up to the next keyframe, asks the sender for one (``pli``, again every
   ``pli_interval_s`` while waiting) and releases nothing in between: a frame decoded without
   its reference would show a corrupt picture, a freeze is honest;
 - at most one frame per ``add`` (the receiver's interface): frames completed together leave
@@ -43,6 +45,8 @@ _SEQ_MOD = 1 << 16
 # released one and a stream of one-packet frames never catches up. After this many releases
 # in a row with another complete frame waiting, a keyframe is asked for (it has many packets).
 BEHIND_RELEASES = 3
+RTX_MARGIN_S = 0.04  # beyond the round trip: the sender's turn and the link's jitter (s)
+MAX_WAIT_S = 1.0  # never wait longer for a lost packet, whatever the round trip (s)
 
 
 def vp8_is_keyframe(data: bytes) -> bool:
@@ -89,9 +93,11 @@ class BoundedJitterBuffer:
         capacity: int = 1024,
         pli_interval_s: float = 0.5,
         clock: Callable[[], float] = time.monotonic,
+        rtt: Callable[[], float | None] | None = None,
     ) -> None:
         self.is_keyframe = is_keyframe
         self.max_wait_s = max_wait_s
+        self.rtt = rtt  # the link's round trip (s; the high end of recent samples) or None
         self._capacity = capacity
         self.pli_interval_s = pli_interval_s
         self.clock = clock
@@ -104,6 +110,23 @@ class BoundedJitterBuffer:
         self._pli_at: float | None = None  # when a keyframe was last asked for
         self._started: float | None = None  # the first packet's arrival
         self._behind = 0  # releases in a row after which another frame was already complete
+
+    def wait_s(self) -> float:
+        """How long a missing packet is waited for (s): ``max_wait_s``, or longer on a link
+        whose round trip is longer (a NACK and its retransmission take a round trip, plus
+        :data:`RTX_MARGIN_S`), at most :data:`MAX_WAIT_S`."""
+        rtt = self.rtt() if self.rtt is not None else None
+        if rtt is None or not rtt > 0:
+            return self.max_wait_s
+        return max(self.max_wait_s, min(MAX_WAIT_S, rtt + RTX_MARGIN_S))
+
+    def pli_every_s(self) -> float:
+        """Keyframe requests while waiting: every ``pli_interval_s``, or every round trip plus
+        :data:`RTX_MARGIN_S` when that is longer (the keyframe asked for is still on its way)."""
+        rtt = self.rtt() if self.rtt is not None else None
+        if rtt is None or not rtt > 0:
+            return self.pli_interval_s
+        return max(self.pli_interval_s, min(MAX_WAIT_S, rtt + RTX_MARGIN_S))
 
     @property
     def capacity(self) -> int:
@@ -151,9 +174,9 @@ class BoundedJitterBuffer:
         while frames keep leaving later than they could (:meth:`_pop`)."""
         if not (self._want_key or self._behind >= BEHIND_RELEASES) or self._started is None:
             return False
-        if self._pli_at is not None and now - self._pli_at < self.pli_interval_s:
+        if self._pli_at is not None and now - self._pli_at < self.pli_every_s():
             return False
-        if self.counters.frames == 0 and now - self._started <= self.max_wait_s:
+        if self.counters.frames == 0 and now - self._started <= self.wait_s():
             return False  # the stream's start: its first frame is a keyframe, unless late
         self._pli_at = now
         self.counters.plis += 1
@@ -223,7 +246,7 @@ class BoundedJitterBuffer:
         while self._packets:
             start, last = self._head()
             if last is None:
-                if len(self._packets) <= self._capacity and self._gap_age(now) <= self.max_wait_s:
+                if len(self._packets) <= self._capacity and self._gap_age(now) <= self.wait_s():
                     return None
                 self._give_up()
                 continue

@@ -13,6 +13,14 @@ too (``us_level``): the tracker's rate and the pose age are never what gives. Af
 (US delivery, loss) never lower the US rate (aiortc still lowers its bit rate on congestion).
 
 Levels: POV (size factor per side, rate factor); US (rate factor).
+
+**The link** (:func:`split_budget`, :meth:`DegradationPolicy.apply_link`): once a second the
+follower sums the expert's REMB of both tracks (what the link carries) and spends it in the
+same order: the US first (two thirds, never below its floor at its rate), the POV the rest,
+its level set by what is left (rate, size, bit rate, then off); the US frame rate steps down
+only with the POV off and the US still short of its floor. The US picture's size never
+changes: the console's calipers read its pixel spacing at the configured size. The levels in
+force are the lower of the stepped ones and the link's.
 """
 
 from __future__ import annotations
@@ -70,18 +78,61 @@ class DegradationPolicy:
         self.changes = 0
         self.reason = ""
         self._good_since: float | None = None
+        self.link_level = 0  # the lowest POV level the link's budget allows (4: off)
+        self.link_us_level = 0  # the lowest US rate level it allows
+        self.link_changes = 0
+        self.budget: Budget | None = None
+        self._link_at = -math.inf  # when a link level last changed (s)
+
+    @property
+    def pov_level(self) -> int:
+        """The POV's level in force: the lower of the stepped one and the link's (4: off)."""
+        return max(self.level, self.link_level)
+
+    @property
+    def us_rate_level(self) -> int:
+        return max(self.us_level, self.link_us_level)
+
+    @property
+    def pov_off(self) -> bool:
+        return self.pov_level >= POV_OFF
 
     @property
     def pov_scale(self) -> float:
-        return LEVELS[self.level][0]
+        return LEVELS[min(self.pov_level, len(LEVELS) - 1)][0]
 
     @property
     def pov_rate_factor(self) -> float:
-        return LEVELS[self.level][1]
+        return LEVELS[min(self.pov_level, len(LEVELS) - 1)][1]
 
     @property
     def us_rate_factor(self) -> float:
-        return US_RATES[self.us_level]
+        return US_RATES[self.us_rate_level]
+
+    def apply_link(self, t: float, budget: Budget, short: bool = True) -> bool:
+        """The link's budget at time ``t`` (s): its levels take effect at once when lower and
+        the link is ``short`` (its estimate below what the tracks send, or losing more than
+        ``max_loss``: a REMB that has not yet grown to what the link carries, as at a
+        session's start, lowers nothing); they come back one step per ``recover_s`` (REMB
+        moves every second: no flapping). Whether a level changed."""
+        self.budget = budget
+        if not self.config.enabled:
+            return False
+        before = (self.link_level, self.link_us_level)
+        climb = t - self._link_at >= self.config.recover_s
+        for name, want in (("link_us_level", budget.us_level), ("link_level", budget.pov_level)):
+            now = getattr(self, name)
+            if want > now and short:
+                setattr(self, name, want)
+            elif want < now and climb:
+                setattr(self, name, now - 1)
+                climb = False  # one step per recover_s, the US's first
+        if (self.link_level, self.link_us_level) != before:
+            self._link_at = t
+            self.link_changes += 1
+            self.reason = f"link {budget.link_kbps:.0f} kbit/s"
+            return True
+        return False
 
     def update(self, t: float, health: Health) -> int:
         """One check; returns the POV level (``us_level`` is beside it)."""
@@ -111,3 +162,70 @@ class DegradationPolicy:
                 self.reason = "recovered"
                 self._good_since = t
         return self.level
+
+
+# --- the link's budget (issue 31) ---------------------------------------------------------------
+
+US_SHARE = 2.0 / 3.0  # of the link's budget, the US's first claim (the POV gets the rest)
+# The POV's level for the budget left to it (kbit/s at or above which a level is allowed):
+# its frame rate goes first, then its size, then its bit rate, then it goes off.
+POV_LEVEL_KBPS: tuple[float, ...] = (700.0, 400.0, 250.0, 100.0)  # levels 0-3; below: off
+POV_OFF = len(LEVELS)  # the level past the last: off (one frame every POV_OFF_PERIOD_S)
+POV_OFF_PERIOD_S = 5.0  # the track stays alive and the expert sees a picture now and then
+CLIMB_MARGIN = 1.2  # a level comes back only with this much more than it needs
+
+
+@dataclass(frozen=True)
+class Budget:
+    """One split of the link's budget (kbit/s): each track's cap and floor for its encoder,
+    and the lowest levels the link allows (the POV's 0-4, 4 off; the US rate's 0-2)."""
+
+    link_kbps: float
+    us_kbps: float
+    us_floor_kbps: float
+    pov_kbps: float
+    pov_level: int
+    us_level: int
+
+
+def split_budget(
+    link_kbps: float,
+    us_min_kbps: float,
+    us_max_kbps: float,
+    pov_max_kbps: float,
+    pov_level: int = 0,
+    us_level: int = 0,
+) -> Budget:
+    """The link's budget (kbit/s; the expert's REMB of both tracks, summed) spent in priority
+    order. The US claims ``US_SHARE`` of it, never less than its floor at its rate
+    (``us_min_kbps`` at the full rate, proportionally less at x0.75 and x0.5: the same bits per
+    frame, the lowest quality a sonographer reads) nor more than ``us_max_kbps``; the POV gets
+    the rest (at most ``pov_max_kbps``; what it cannot use goes back to the US, and all of it
+    when the POV is off: a REMB estimate grows only from what its track sends, so a share left
+    unspent would hold the US where it is). The POV's
+    level follows what is left for it (:data:`POV_LEVEL_KBPS`: rate, then size, then bit
+    rate, then off); only once the POV is off and the US still does not get its floor does
+    the US frame rate step down (x0.75, x0.5). ``pov_level`` and ``us_level`` are the current
+    ones: a level comes back only with :data:`CLIMB_MARGIN` times what it needs."""
+    link = max(0.0, float(link_kbps))
+    us_level_out = 0
+    for lvl, factor in enumerate(US_RATES):  # the POV off: does the US get its floor?
+        us_level_out = lvl
+        need = us_min_kbps * factor * (CLIMB_MARGIN if lvl < us_level else 1.0)
+        if link >= need:
+            break
+    us_floor = us_min_kbps * US_RATES[us_level_out]
+    us = min(us_max_kbps, max(us_floor, US_SHARE * link))
+    pov = max(0.0, link - us)
+    if pov > pov_max_kbps:
+        us, pov = min(us_max_kbps, link - pov_max_kbps), pov_max_kbps
+    level = POV_OFF
+    for lvl, need in enumerate(POV_LEVEL_KBPS):
+        if pov >= need * (CLIMB_MARGIN if lvl < pov_level else 1.0):
+            level = lvl
+            break
+    if us_level_out > 0:
+        level = POV_OFF
+    if level == POV_OFF:  # the POV's share is the US's: its REMB grows only with what it sends
+        us, pov = min(us_max_kbps, max(us_floor, link)), 0.0
+    return Budget(link, us, us_floor, pov, level, us_level_out)

@@ -313,7 +313,9 @@ class VideoReceiver:
             transceiver = pc.addTransceiver("video", direction="recvonly")
             transceiver.setCodecPreferences(prefs)
             buffer = BoundedJitterBuffer(
-                KEYFRAME_TESTS[self.config.codec], self.config.loss_wait_ms / 1000.0
+                KEYFRAME_TESTS[self.config.codec],
+                self.config.loss_wait_ms / 1000.0,
+                rtt=lambda: getattr(self.clock, "high_rtt", None),  # a retransmission: a round trip
             )
             record = self.record is not None and self.config.record_encoded and self.recording()
             tap = EncodedFrameTap(

@@ -36,7 +36,7 @@ from humantele.media.capture import (
 from humantele.media.config import TRACKS, FollowerVideoConfig
 from humantele.media.encoders import ENCODERS, make_encoder
 from humantele.media.frameinfo import FrameInfo
-from humantele.media.policy import DegradationPolicy, Health
+from humantele.media.policy import POV_OFF_PERIOD_S, DegradationPolicy, Health, split_budget
 from humantele.runtime.child import Restarter
 from humantele.video.sources import make_video_source
 
@@ -47,6 +47,10 @@ log = logging.getLogger(__name__)
 
 VIDEO_CHANNEL_ID = 3  # the link's channels are 0-2
 MAX_INFO_BUFFERED = 4096  # bytes of frame records allowed to wait in the channel
+# The link is short when the expert's estimate (REMB sum) is below this share of what the
+# tracks are set to send: its estimator then says the link is overused (it bids 0.85 of the
+# rate received); above it, the estimate may just not have grown yet (a session's start).
+SHORT_FRACTION = 0.95
 
 
 class SlotTrack(MediaStreamTrack):
@@ -139,6 +143,7 @@ class VideoSender:
         self.infos_sent = 0
         self.infos_dropped = 0
         self.attached = 0
+        self.link: dict[str, Any] = {}  # the last link_report
         self._channel: Any = None
         self._senders: dict[str, Any] = {}
         self._encoders: dict[str, Any] = {}  # the current peer connection's, per track
@@ -219,7 +224,9 @@ class VideoSender:
             transceiver.direction = "sendonly"
             self._senders[name] = transceiver.sender
             if mime is not None:  # our encoder, with this track's bit-rate limits
-                self._encoders[name] = make_encoder(mime, limits[name])
+                src = self.config.us if name == "us" else self.config.pov
+                size = (int(src.width), int(src.height))  # opened at it: smaller is live
+                self._encoders[name] = make_encoder(mime, limits[name], max_size=size)
                 use_encoder(transceiver.sender, self._encoders[name])
         self.attached += 1
 
@@ -245,19 +252,62 @@ class VideoSender:
 
     async def loss(self) -> float | None:
         """The worst fraction lost the expert reports (RTCP) for either track, or None."""
-        worst = None
+        return (await self.link_report())["loss"]
+
+    async def link_report(self) -> dict[str, Any]:
+        """What the link carries, from the expert's RTCP: ``loss`` (the worst fraction lost of
+        either track's last receiver report, or None), ``rtt_s`` (the round trip aiortc
+        measures from them, or None), ``jitter_s`` (the worst interarrival jitter, s, or None),
+        ``link_kbps`` (the expert's REMB of both tracks, summed, kbit/s; None until both
+        came)."""
+        worst = rtt = jitter = None
         for sender in list(self._senders.values()):
             try:
                 report = await sender.getStats()
             except Exception:
                 continue
             for s in report.values():
-                if getattr(s, "type", "") == "remote-inbound-rtp":
-                    f = getattr(s, "fractionLost", None)  # RTCP's 8-bit fraction, /256
-                    if f is not None:
-                        f = f / 256.0
-                        worst = f if worst is None else max(worst, f)
-        return worst
+                if getattr(s, "type", "") != "remote-inbound-rtp":
+                    continue
+                f = getattr(s, "fractionLost", None)  # RTCP's 8-bit fraction, /256
+                if f is not None:
+                    worst = f / 256.0 if worst is None else max(worst, f / 256.0)
+                r = getattr(s, "roundTripTime", None)
+                if r is not None and math.isfinite(r) and r >= 0:
+                    rtt = r if rtt is None else max(rtt, r)
+                j = getattr(s, "jitter", None)  # RTP clock units (90 kHz)
+                if j is not None and j >= 0:
+                    j = j / 90_000.0
+                    jitter = j if jitter is None else max(jitter, j)
+        rembs = [e.remb for e in self._encoders.values()]
+        link = sum(rembs) / 1000.0 if len(rembs) == 2 and None not in rembs else None
+        return {"loss": worst, "rtt_s": rtt, "jitter_s": jitter, "link_kbps": link}
+
+    def _spend_link(self, t: float, report: dict[str, Any]) -> None:
+        """The link's budget split between the tracks (:func:`split_budget`): each encoder's
+        share and floor, the levels it allows; each encoder told the round trip."""
+        for enc in self._encoders.values():
+            if report["rtt_s"] is not None:
+                enc.rtt_s = report["rtt_s"]
+        link = report["link_kbps"]
+        if link is None or not self.config.degrade.follow_link:
+            return
+        us_l, pov_l = self.config.us_bitrate, self.config.pov_bitrate
+        p = self.policy
+        budget = split_budget(link, us_l.min_kbps, us_l.max_kbps, pov_l.max_kbps,
+                              p.link_level, p.link_us_level)  # fmt: skip
+        sending = sum(e.target_bitrate for e in self._encoders.values()) / 1000.0
+        loss = report["loss"]
+        short = link < SHORT_FRACTION * sending or (
+            loss is not None and loss > self.config.degrade.max_loss
+        )
+        p.apply_link(t, budget, short)
+        us, pov = self._encoders.get("us"), self._encoders.get("pov")
+        if us is not None:
+            us.set_budget(int(budget.us_kbps * 1000), int(budget.us_floor_kbps * 1000))
+        if pov is not None:
+            pov.set_budget(int(max(budget.pov_kbps, 50.0) * 1000), int(min(
+                budget.pov_kbps, pov_l.min_kbps) * 1000))  # fmt: skip
 
     def tick(
         self, t: float, late_ticks: int, tracker_frames: int = 0, tracker_hz: float = 0.0
@@ -296,17 +346,25 @@ class VideoSender:
         sent = us.sent - self._last_counts["sent"]
         self._last_counts = {"captured": us.published, "sent": us.sent}
         delivery = min(1.0, sent / published) if published >= 5 and self._senders else None
-        health = Health(delivery, await self.loss(), late_ticks_per_s, tracker_ratio)
-        before = (self.policy.level, self.policy.us_level)
-        level = self.policy.update(t, health)
-        if (level, self.policy.us_level) != before:
-            why = self.policy.reason or "recovered"
+        report = await self.link_report()
+        self.link = report
+        health = Health(delivery, report["loss"], late_ticks_per_s, tracker_ratio)
+        p = self.policy
+        before = (p.pov_level, p.us_rate_level)
+        p.update(t, health)
+        self._spend_link(t, report)
+        level = p.pov_level
+        if (level, p.us_rate_level) != before:
+            why = p.reason or "recovered"
             log.warning("video: POV level %d -> %d, US level %d -> %d (%s)", before[0], level,
-                        before[1], self.policy.us_level, why)  # fmt: skip
+                        before[1], p.us_rate_level, why)  # fmt: skip
         pov = self.captures["pov"]
-        pov.scale = self.policy.pov_scale
-        factor = self.policy.pov_rate_factor
-        pov.max_fps = None if factor >= 1.0 else self.pov_fps * factor
+        pov.scale = p.pov_scale
+        factor = p.pov_rate_factor
+        if p.pov_off:
+            pov.max_fps = 1.0 / POV_OFF_PERIOD_S
+        else:
+            pov.max_fps = None if factor >= 1.0 else self.pov_fps * factor
         us_factor = self.policy.us_rate_factor
         us.max_fps = None if us_factor >= 1.0 else self.us_fps * us_factor
         return level
@@ -324,9 +382,13 @@ class VideoSender:
     def stats(self) -> dict[str, Any]:
         out: dict[str, Any] = {
             "process": None if self.process is None else self.process_stats(),
-            "pov_level": self.policy.level,
-            "us_level": self.policy.us_level,
+            "pov_level": self.policy.pov_level,
+            "us_level": self.policy.us_rate_level,
             "pov_level_changes": self.policy.changes,
+            "link_level_changes": self.policy.link_changes,
+            "link": {
+                k: (round(v, 4) if isinstance(v, float) else v) for k, v in self.link.items()
+            },  # fmt: skip
             "pov_level_reason": self.policy.reason,
             "infos_sent": self.infos_sent,
             "infos_dropped": self.infos_dropped,

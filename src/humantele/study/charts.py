@@ -1,5 +1,6 @@
-"""The study's two charts (matplotlib, Agg, PNG): alignment error against one-way delay with
-the 750 km study marked, and video freezes against loss."""
+"""The study's charts (matplotlib, Agg, PNG): alignment error against one-way delay with the
+750 km study marked, video freezes against loss, and (conditions capping the link's rate) the
+US picture's share live, age and SSIM against the rate, per loss."""
 
 from __future__ import annotations
 
@@ -80,9 +81,57 @@ def freezes_vs_loss(summary: list[dict], path: Path) -> Path:
     return path
 
 
+US_PANELS = (
+    ("us_live_pct", "US picture live (% of the scan)", (0, 102)),
+    ("us_age_p95_ms", "US glass-to-glass age p95 (ms)", None),
+    ("us_ssim", "US SSIM against the captured frame", None),
+)
+
+
+def us_over_thin_links(summary: list[dict], path: Path) -> Path:
+    """The US picture against the link's rate, one line per loss (mean ± SD over each
+    condition's scans): its share of the scan live (not frozen), its glass-to-glass age p95
+    and its quality (SSIM against the frame the follower captured). Conditions with a rate
+    cap only; the delay of each line in its legend."""
+    capped = [s for s in summary if s.get("bandwidth_kbps")]
+    losses = sorted({s["loss_pct"] for s in capped})
+    fig, axes = plt.subplots(1, 3, figsize=(12.0, 4.0))
+    colours = plt.get_cmap("viridis")
+    for i, loss in enumerate(losses):
+        mine = [s for s in capped if s["loss_pct"] == loss]
+        delays = sorted({f"{s['delay_ms']:g}" + (f" ± {s['jitter_ms']:g}" if s.get("jitter_ms")
+                         else "") for s in mine})  # fmt: skip
+        label = f"{loss:g} % loss ({', '.join(delays)} ms)"
+        colour = colours(i / max(1, len(losses) - 1) * 0.85)
+        for ax, (key, _, _) in zip(axes, US_PANELS, strict=True):
+            x, y, sd = _series(mine, "bandwidth_kbps", key)
+            ax.errorbar(x, y, yerr=sd, fmt="o-", color=colour, capsize=3, label=label)
+    for ax, (_key, title, ylim) in zip(axes, US_PANELS, strict=True):
+        ax.set_xscale("log")
+        ticks = sorted({s["bandwidth_kbps"] for s in capped})
+        ax.set_xticks(ticks, [f"{t:g}" for t in ticks])
+        ax.minorticks_off()
+        ax.set_xlabel("link rate each way (kbit/s)")
+        ax.set_title(title, fontsize=9)
+        if ylim:
+            ax.set_ylim(*ylim)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7, loc="lower right")
+    fig.suptitle("The ultrasound over thin, lossy links: speed against quality", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def write_charts(summary: list[dict], out_dir: Path) -> list[Path]:
+    """The charts the conditions allow: alignment against delay and freezes against loss
+    always; the US over thin links when at least two conditions cap the rate."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    return [
+    paths = [
         alignment_vs_delay(summary, out_dir / "study_alignment_vs_delay.png"),
         freezes_vs_loss(summary, out_dir / "study_freezes_vs_loss.png"),
     ]
+    if sum(1 for s in summary if s.get("bandwidth_kbps")) >= 2:
+        paths.append(us_over_thin_links(summary, out_dir / "study_us_thin_links.png"))
+    return paths

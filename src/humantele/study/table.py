@@ -15,7 +15,9 @@ Per scan (complete scans 1..N of each run; :mod:`humantele.analysis` does the al
   all is frozen throughout;
 - the pose stream at the follower: median one-way age (``/follower/latency`` pose_one_way)
   and the share of the scan the virtual probe was stale (pose_stale_s);
-- the sim ultrasound's known-answer image quality (0-1).
+- the sim ultrasound's known-answer image quality (0-1);
+- the US picture at the expert: the share of the scan it was live (not frozen) and its SSIM
+  against the frame the follower captured (:mod:`humantele.study.quality`).
 
 Per run: set-up time (s, expert clock): the first calibration landmark taken to the patient
 model at the expert (scan 1's start less ``start_after_model_s``) - the registration task the
@@ -54,6 +56,7 @@ FROZEN_BREAK_PCT = 50.0  # the expert's picture frozen this share of a scan
 BASELINE_FROZEN_PCT = 10.0  # an unimpaired link's picture frozen more: the machine is busy
 START_AFTER_MODEL_S = 2.0  # as humantele.study.session
 EXTRA_TOPICS = ("/expert/video_frame", "/follower/latency", "/follower/calibration")
+QUALITY_TOPICS = ("/expert/us_video", "/follower/us_image")  # the US picture's SSIM
 LAG_MAX_S, LAG_STEP_S = 2.0, 0.01
 
 ALIGN = (
@@ -126,6 +129,16 @@ def run_scans(run_dir: Path, summary: dict) -> list[dict[str, Any]]:
         for k in EXTRA_TOPICS:
             extra[k] += rec.samples(k)
     demo = summary.get("demo") or {}
+    quality: list[tuple[float, int, float]] = []
+    if spec.get("video"):
+        from humantele.study.quality import us_ssim
+
+        q: dict[str, list[dict]] = {k: [] for k in QUALITY_TOPICS}
+        for f in files:
+            rec = read_recording(f, QUALITY_TOPICS)
+            for k in QUALITY_TOPICS:
+                q[k] += rec.samples(k)
+        quality = us_ssim(q[QUALITY_TOPICS[0]], q[QUALITY_TOPICS[1]])
     rows = []
     for session in sessions:
         to_e = session.clock.to_expert
@@ -178,6 +191,10 @@ def run_scans(run_dir: Path, summary: dict) -> list[dict[str, Any]]:
                 row[f"{name}_fps"] = fz.get("fps")
                 row[f"{name}_freezes_per_min"] = fz.get("freezes_per_min")
                 row[f"{name}_frozen_pct"] = fz.get("frozen_pct")
+            qs = [v for t, _, v in quality if iv.start <= t <= iv.stop]
+            row["us_ssim"] = float(np.mean(qs)) if qs else None
+            us_frozen = row.get("us_frozen_pct")
+            row["us_live_pct"] = None if us_frozen is None else 100.0 - us_frozen
             # each report covers the ~1 s before it
             stale = [v for t, n, v in lat if n == "pose_stale_s" and iv.start < t <= iv.stop + 1]
             one_way = [v for t, n, v in lat if n == "pose_one_way" and iv.start <= t <= iv.stop]
@@ -206,6 +223,7 @@ SUMMARY_KEYS = (
     "us_age_p50_ms", "us_age_p95_ms", "pov_age_p50_ms", "pov_age_p95_ms", "us_fps", "pov_fps",
     "us_freezes_per_min", "us_frozen_pct", "pov_freezes_per_min", "pov_frozen_pct",
     "stale_pct", "pose_age_p50_ms", "setup_s", "sim_image_quality", "load_1min", "link_drops",
+    "us_ssim", "us_live_pct",
 )  # fmt: skip
 
 
@@ -282,8 +300,8 @@ SCAN_HEADER = [
 ]  # fmt: skip
 COND_HEADER = [
     "condition", "one way ms", "loss %", "kbit/s", "scans", *(h for _, h in ALIGN), "lag s",
-    "US p95 ms", "POV p95 ms", "US / POV frozen %", "stale %", "link drops", "set-up s", "load",
-    "follows",
+    "US p95 ms", "POV p95 ms", "US / POV frozen %", "US SSIM", "stale %", "link drops",
+    "set-up s", "load", "follows",
 ]  # fmt: skip
 
 
@@ -313,8 +331,9 @@ def condition_table(summary: list[dict]) -> str:
             s["bandwidth_kbps"] else "-", str(s["scans"]),
             *(_ms(s[k], s[f"{k}_sd"], 1 if "position" in k else 2) for k, _ in ALIGN),
             _f(s["effective_lag_s"], 2), _f(s["us_age_p95_ms"], 0), _f(s["pov_age_p95_ms"], 0),
-            f"{_f(s['us_frozen_pct'])} / {_f(s['pov_frozen_pct'])}", _f(s["stale_pct"]),
-            _f(s["link_drops"], 0), _f(s["setup_s"]), _f(s["load_1min"]), follows,
+            f"{_f(s['us_frozen_pct'])} / {_f(s['pov_frozen_pct'])}", _f(s.get("us_ssim"), 3),
+            _f(s["stale_pct"]), _f(s["link_drops"], 0), _f(s["setup_s"]), _f(s["load_1min"]),
+            follows,
         ])  # fmt: skip
     return markdown_table(COND_HEADER, out)
 
@@ -330,33 +349,94 @@ def study_line() -> str:
     )
 
 
+AXES: dict[str, tuple[str, ...]] = {
+    "delay": ("delay_ms", "jitter_ms"),
+    "loss": ("loss_pct",),
+    "bandwidth": ("bandwidth_kbps",),
+}  # the impairments a condition sets; delay and its jitter are one axis
+
+
+def axes_set(s: dict[str, Any]) -> set[str]:
+    """The axes a condition impairs (a value other than 0)."""
+    return {a for a, keys in AXES.items() if any(s.get(k) for k in keys)}
+
+
+def _harsher(axis: str, s: dict[str, Any], than: dict[str, Any]) -> bool:
+    """Whether ``s`` impairs ``axis`` more than ``than`` does (a thinner cap is harsher)."""
+    if axis == "bandwidth":
+        b, t = s.get("bandwidth_kbps") or math.inf, than.get("bandwidth_kbps") or math.inf
+        return b < t
+    return any((s.get(k) or 0.0) > (than.get(k) or 0.0) for k in AXES[axis])
+
+
+def _harmless(summary: list[dict]) -> dict[str, list[dict]]:
+    """Per axis, the conditions impairing that axis alone with which the follower followed."""
+    return {a: [s for s in summary if axes_set(s) == {a} and s.get("follows")] for a in AXES}
+
+
+def counts_for(axis: str, s: dict[str, Any], harmless: dict[str, list[dict]]) -> bool:
+    """A condition tells about ``axis`` when it impairs it and each other impairment it sets
+    is no harsher than one the follower followed with on its own (so a loss series at the
+    750 km delay counts for loss; a satellite link of 300 ms, 1 % loss and 2000 kbit/s counts
+    for no axis unless 300 ms alone was shown harmless)."""
+    if axis not in axes_set(s):
+        return False
+    for other in axes_set(s) - {axis}:
+        if not any(not _harsher(other, s, ok) for ok in harmless[other]):
+            return False
+    return True
+
+
 def breaking_points(summary: list[dict]) -> dict[str, Any]:
-    """Where the follower stops following: the first delay (conditions without loss or a cap)
-    and the first loss at which it does not (None: not within the conditions run), and the
-    delay at which a straight line through the centered RMSE against delay crosses the bound
-    (None without a rising trend)."""
+    """Where the follower stops following, per axis, drawn only from conditions that tell
+    about that axis (:func:`counts_for`): the first delay, loss and bandwidth cap at which it
+    does not (None: not within those conditions), the harshest of each it still followed at,
+    the delay at which a straight line through the centered RMSE against delay crosses the
+    bound (delay-only conditions; None without a rising trend), and the conditions that
+    changed several things at once and tell about no axis (``combined``)."""
     ran = [s for s in summary if s.get("follows") is not None]
-    clean = sorted((s for s in ran if not s["loss_pct"] and not s["bandwidth_kbps"]),
-                   key=lambda s: s["delay_ms"])  # fmt: skip
-    lossy = sorted((s for s in ran if s["loss_pct"]), key=lambda s: (s["loss_pct"], s["delay_ms"]))
-    first_delay = next((s for s in clean if not s["follows"]), None)
-    first_loss = next((s for s in lossy if not s["follows"]), None)
+    harmless = _harmless(ran)
+    order = {
+        "delay": lambda s: (s["delay_ms"], s.get("jitter_ms") or 0.0),
+        "loss": lambda s: (s["loss_pct"], s["delay_ms"]),
+        "bandwidth": lambda s: (-(s["bandwidth_kbps"] or math.inf), s["delay_ms"]),
+    }
+    per = {a: sorted((s for s in ran if counts_for(a, s, harmless)), key=order[a]) for a in AXES}
+    first = {a: next((s for s in per[a] if not s["follows"]), None) for a in AXES}
     crossing = None
+    clean = sorted((s for s in ran if axes_set(s) <= {"delay"}), key=order["delay"])
     pts = [(s["delay_ms"], s["centered_position_rmse_mm"]) for s in clean
            if s.get("centered_position_rmse_mm") is not None]  # fmt: skip
     if len({x for x, _ in pts}) >= 3:
         slope, icpt = np.polyfit([x for x, _ in pts], [y for _, y in pts], 1)
         if slope > 0:
             crossing = float((BOUND["centered_position_rmse_mm"] - icpt) / slope)
+    told = {id(s) for a in AXES for s in per[a]}
+    combined = [s for s in ran if len(axes_set(s)) > 1 and id(s) not in told]
+    ok = {a: [s for s in per[a] if s["follows"]] for a in AXES}
     return {
-        "delay": first_delay, "loss": first_loss, "delay_crossing_ms": crossing,
-        "largest_delay_ms": clean[-1]["delay_ms"] if clean else None,
-        "largest_loss_pct": lossy[-1]["loss_pct"] if lossy else None,
+        "delay": first["delay"], "loss": first["loss"], "bandwidth": first["bandwidth"],
+        "delay_crossing_ms": crossing,
+        "largest_delay_ms": ok["delay"][-1]["delay_ms"] if ok["delay"] else None,
+        "largest_loss_pct": ok["loss"][-1]["loss_pct"] if ok["loss"] else None,
+        "thinnest_kbps": ok["bandwidth"][-1]["bandwidth_kbps"] if ok["bandwidth"] else None,
+        "combined": combined,
     }  # fmt: skip
 
 
+def _label(s: dict[str, Any]) -> str:
+    """``300 ms ± 30, 1 % loss, 2000 kbit/s``: what a condition sets."""
+    parts = [f"{s['delay_ms']:g} ms" + (f" ± {s['jitter_ms']:g}" if s.get("jitter_ms") else "")]
+    if s.get("loss_pct"):
+        parts.append(f"{s['loss_pct']:g} % loss")
+    if s.get("bandwidth_kbps"):
+        parts.append(f"{s['bandwidth_kbps']:g} kbit/s")
+    return ", ".join(parts)
+
+
 def breaking_text(b: dict[str, Any]) -> str:
-    """The breaking points in words."""
+    """The breaking points in words: per axis from the conditions that tell about it, then each
+    condition that changed several things at once, by name, with its measured cause."""
     lines = []
     if b["delay"] is not None:
         s = b["delay"]
@@ -378,6 +458,23 @@ def breaking_text(b: dict[str, Any]) -> str:
     elif b["largest_loss_pct"] is not None:
         lines.append(f"- loss: it still follows at the largest loss run, "
                      f"{b['largest_loss_pct']:g} % each way")  # fmt: skip
+    if b.get("bandwidth") is not None:
+        s = b["bandwidth"]
+        lines.append(f"- bandwidth: the follower stops following at {s['bandwidth_kbps']:g} "
+                     f"kbit/s ({s['name']}): {s['cause']}")  # fmt: skip
+    elif b.get("thinnest_kbps") is not None:
+        lines.append(f"- bandwidth: it still follows at the thinnest link run, "
+                     f"{b['thinnest_kbps']:g} kbit/s each way")  # fmt: skip
+    for s in b.get("combined", []):
+        what = " and ".join(sorted(axes_set(s)))
+        if s["follows"]:
+            verdict_text = "still follows" + (f" ({s['cause']})" if s.get("cause") else "")
+        else:
+            verdict_text = f"does not follow: {s['cause'] or 'cause not measured'}"
+        lines.append(
+            f"- {s['name']} ({_label(s)}) changes {what} at once, beyond what each was run "
+            f"alone: it {verdict_text}. It sets no single axis's break point."
+        )
     return "\n".join(lines)
 
 

@@ -65,6 +65,12 @@ class ClockSync:
         """Round trip (s) of the latest exchange, or None."""
         return self._samples[-1].rtt if self._samples else None
 
+    @property
+    def high_rtt(self) -> float | None:
+        """The longest round trip (s) of the recent exchanges (the window's), or None: what a
+        retransmission may take on a jittery link (the offset's ``rtt`` is the shortest)."""
+        return max(s.rtt for s in self._samples) if self._samples else None
+
     def make_ping(self) -> Ping:
         """A ping stamped now; send it on the control channel."""
         self._seq += 1

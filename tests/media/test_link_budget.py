@@ -1,0 +1,154 @@
+"""The link's budget spent in priority order (humantele.media.policy.split_budget and
+DegradationPolicy.apply_link): the US first and never below its floor, the POV's level from
+what is left (rate, size, bit rate, then off), the US rate only with the POV off; levels drop at
+once and come back one step per recover_s; the encoders take their share without reopening."""
+
+from __future__ import annotations
+
+import pytest
+
+from humantele.media.config import BitrateConfig, DegradeConfig
+from humantele.media.encoders import make_encoder
+from humantele.media.policy import (
+    POV_OFF,
+    US_RATES,
+    DegradationPolicy,
+    split_budget,
+)
+
+US_MIN, US_MAX, POV_MAX = 500.0, 2500.0, 2000.0
+
+
+def split(link, pov_level=0, us_level=0):
+    return split_budget(link, US_MIN, US_MAX, POV_MAX, pov_level, us_level)
+
+
+@pytest.mark.parametrize("link", [150, 300, 450, 600, 900, 1500, 2500, 3000, 5000, 9000])
+def test_the_us_always_gets_its_floor_and_never_less_than_the_pov(link):
+    b = split(link)
+    assert b.us_kbps >= b.us_floor_kbps == US_MIN * US_RATES[b.us_level]
+    assert b.us_kbps <= US_MAX and b.pov_kbps <= POV_MAX
+    assert b.us_kbps >= b.pov_kbps or b.us_kbps == US_MAX
+    if US_MIN <= link <= US_MAX + POV_MAX:
+        assert b.us_kbps + b.pov_kbps == pytest.approx(link)
+        assert b.us_level == 0  # the US rate is untouched while the link carries its floor
+
+
+def test_the_pov_gives_way_first_rate_then_size_then_bit_rate_then_off():
+    levels = [split(link).pov_level for link in (4000, 2100, 1500, 900, 600, 500)]
+    assert levels == [0, 0, 1, 2, 3, POV_OFF]  # non-decreasing as the link thins
+    assert split(3000).pov_kbps > split(1500).pov_kbps > split(600).pov_kbps > 0
+
+
+def test_the_us_rate_steps_down_only_with_the_pov_off():
+    for link in (450, 300, 100):
+        b = split(link)
+        assert b.pov_level == POV_OFF and b.us_level > 0
+    assert split(450).us_level == 1 and split(200).us_level == 2
+    assert split(200).us_kbps == US_MIN * US_RATES[2]  # the US's floor, whatever the link
+    assert split(450).us_kbps == 450 and split(450).pov_kbps == 0  # the POV off: all the US's
+
+
+def test_a_level_comes_back_only_with_a_margin():
+    assert split(700).pov_level == 3  # 700 * 1/3 = 233 kbit/s left for the POV: level 3
+    assert split(1200, pov_level=3).pov_level == 2  # 400 left: enough for level 2 with margin
+    assert split(800).pov_level == 2  # 267 left: level 2 from above
+    assert split(800, pov_level=3).pov_level == 3  # but not enough to climb to it
+
+
+def test_link_levels_drop_at_once_and_climb_one_step_per_recover_s():
+    p = DegradationPolicy(DegradeConfig(recover_s=5.0))
+    assert p.apply_link(0.0, split(400)) and p.pov_off and p.us_rate_level == 1
+    assert p.pov_scale == 0.5 and p.us_rate_factor == 0.75
+    assert not p.apply_link(1.0, split(5000))  # a good second is not enough
+    assert p.apply_link(5.0, split(5000)) and p.us_rate_level == 0 and p.pov_off  # US first
+    assert p.apply_link(10.0, split(5000)) and p.pov_level == POV_OFF - 1
+    for t in (15.0, 20.0, 25.0, 30.0):
+        p.apply_link(t, split(5000))
+    assert p.pov_level == 0 and p.link_changes == 6
+
+
+def test_the_stepped_level_and_the_links_the_lower_picture_wins():
+    p = DegradationPolicy()
+    p.level = 2  # CPU contention stepped the POV down
+    p.apply_link(0.0, split(1500))  # the link alone allows level 1
+    assert p.pov_level == 2 and p.pov_scale == 0.5
+
+
+def test_an_estimate_that_has_not_grown_yet_lowers_nothing_but_lets_levels_climb():
+    p = DegradationPolicy(DegradeConfig(recover_s=5.0))
+    assert not p.apply_link(0.0, split(300), short=False)  # a session's first REMB
+    assert p.pov_level == 0 and p.us_rate_level == 0
+    p.apply_link(1.0, split(300))  # the link really is short
+    assert p.pov_off
+    assert p.apply_link(6.0, split(5000), short=False) and p.us_rate_level == 1  # one step
+
+
+def test_disabled_degradation_ignores_the_link():
+    p = DegradationPolicy(DegradeConfig(enabled=False))
+    assert not p.apply_link(0.0, split(100)) and p.pov_level == 0
+
+
+def test_an_encoder_takes_its_share_and_floor_without_reopening():
+    enc = make_encoder("video/VP8", BitrateConfig(start_kbps=1000, min_kbps=500, max_kbps=2500))
+    enc.target_bitrate = 2_000_000  # REMB
+    enc.set_budget(1_200_000)  # the link's share is less: the share
+    assert enc.target_bitrate == 1_200_000 and enc.remb == 2_000_000
+    enc.set_budget(100_000, floor=250_000)  # below the floor of a halved US rate: the floor
+    assert enc.target_bitrate == 250_000
+    enc.set_budget(None)  # no budget: REMB within the configured limits again
+    assert enc.target_bitrate == 2_000_000
+    enc.target_bitrate = 10  # REMB nonsense: never below the floor
+    assert enc.target_bitrate == 500_000
+
+
+class _Report:
+    def __init__(self, **kw):
+        self.__dict__.update(type="remote-inbound-rtp", **kw)
+
+
+class _Sender:
+    """An RTCRtpSender's getStats as aiortc gives it: the expert's receiver report."""
+
+    def __init__(self, lost: int, rtt: float, jitter: int) -> None:
+        self.report = {"r": _Report(fractionLost=lost, roundTripTime=rtt, jitter=jitter)}
+
+    async def getStats(self):  # noqa: N802 - aiortc's name
+        return self.report
+
+
+async def test_the_senders_check_reads_the_link_and_spends_it():
+    """What the follower does once a second: the REMB sum, the receiver reports' loss, round
+    trip and jitter; the POV off and the US at its floor on a 450 kbit/s link; the encoders
+    told their shares and the round trip; all in the stats."""
+    from media_helpers import small_video_config
+
+    from humantele.media.sender import VideoSender
+    from humantele.video.scene import DEFAULT_PATIENT
+
+    sender = VideoSender(small_video_config(process=False), None, None, DEFAULT_PATIENT)
+    config = sender.config
+    sender._senders = {"us": _Sender(5, 0.12, 900), "pov": _Sender(13, 0.15, 450)}
+    sender._encoders = {
+        "us": make_encoder("video/VP8", config.us_bitrate),
+        "pov": make_encoder("video/VP8", config.pov_bitrate),
+    }
+    sender._encoders["us"].target_bitrate = 300_000  # the expert's REMB of each track
+    assert (await sender.link_report())["link_kbps"] is None  # the POV's REMB not yet in
+    sender._encoders["pov"].target_bitrate = 150_000
+    report = await sender.link_report()
+    assert report == {"loss": 13 / 256, "rtt_s": 0.15, "jitter_s": 0.01, "link_kbps": 450.0}
+    await sender.check(10.0, 0.0, None)
+    p = sender.policy
+    assert p.pov_off and p.us_rate_level == 1  # 450 < the US's 500 floor: the US rate too
+    us, pov = sender._encoders["us"], sender._encoders["pov"]
+    assert us.target_bitrate == 375_000  # REMB 300 is below its floor at x0.75: the floor
+    us.target_bitrate = 420_000  # a REMB within its share (the whole link, the POV off)
+    assert us.target_bitrate == 420_000
+    us.target_bitrate = 900_000  # and one above it: the share
+    assert us.target_bitrate == 450_000
+    assert pov.target_bitrate == 50_000 and us.rtt_s == pov.rtt_s == 0.15
+    assert sender.captures["pov"].max_fps == pytest.approx(0.2)
+    assert sender.captures["us"].max_fps == pytest.approx(0.75 * sender.us_fps)
+    st = sender.stats()
+    assert st["pov_level"] == POV_OFF and st["us_level"] == 1 and st["link"]["link_kbps"] == 450
