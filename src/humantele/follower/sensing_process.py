@@ -55,7 +55,7 @@ log = logging.getLogger(__name__)
 RESTART_FIRST_S = 0.5  # a dead sensing process's replacement starts this soon (s): the
 # tracker's pose is stale until it measures (the video's is 1 s, the servo's 2 s)
 RESTART_MAX_S = 8.0  # the back-off's cap (s): 0.5, 1, 2, 4, 8 for the five tries
-HUNG_S = 5.0  # a frame in the child this long without an answer: the child is hung, killed
+HUNG_S = 10.0  # a frame in the child this long without an answer: the child is hung, killed
 # and restarted (every device read is bounded, by about a second: hl2ss read_timeout_s)
 
 STATS_PERIOD_S = 0.25  # the child sends its devices' counters this often (s)
