@@ -113,9 +113,9 @@ class Hl2ssFrameConfig(ConfigModel):
                                  description="H.26x frames per key frame; None: hl2ss's "
                                  "default (45: one a second)")  # fmt: skip
     max_backlog_s: float = Field(
-        0.25, gt=0, le=60, description="a frame this much later than the connection's "
-        "quickest (the headset queues what a slow link cannot carry) drops the connection, "
-        "which empties the queue")  # fmt: skip
+        0.5, gt=0, le=60, description="3 frames in a row this much later than the quickest "
+        "(the headset queues what a slow link cannot carry) drop the connection, which "
+        "empties the queue")  # fmt: skip
     calibration_file: str | None = Field(
         None,
         description="JSON saved by `humantele devices hl2ss-calibration` (relative: "
