@@ -174,6 +174,8 @@ class Hl2ssFrameSource(FrameSource):
     the last row); ``T_rig_camera`` the AHAT camera in the rig (None without calibration)."""
 
     name = "hl2ss AHAT"
+    unbias_h26x = True  # H.26x frames: take back the biases hl2ss's decode leaves (a recorder
+    # keeps the frames as hl2ss's client decodes them)
 
     def __init__(self, config: Hl2ssFrameConfig | None = None):
         self.config = c = config or Hl2ssFrameConfig()
@@ -305,7 +307,7 @@ class Hl2ssFrameSource(FrameSource):
         depth, ab = p.depth_mm, p.ab
         paired = self._decoder.profile_ab != VIDEO_PROFILE_RAW
         intrinsics = self.intrinsics
-        if paired:  # hl2ss's decode, un-biased: see hl2ss_codec.unbias_h26x
+        if paired and self.unbias_h26x:  # see hl2ss_codec.unbias_h26x
             depth, intrinsics = unbias_h26x(depth, intrinsics, self._undistort)
         if self._undistort and self.calibration is not None:
             depth, ab = self.calibration.undistort(depth, ab, 0.5 if paired else 0.0)
@@ -326,7 +328,7 @@ class Hl2ssFrameSource(FrameSource):
             T_world_camera=T_world_camera,
             T_world_rig=T_world_rig,
             device_time_s=ts * 1e-7,  # hl2ss: 100 ns ticks
-            ab_paired=paired,
+            ab_paired=paired and self.unbias_h26x,
         )
 
     def _newest(self, end: int, pose_bytes: int) -> int:
