@@ -200,7 +200,10 @@ def test_backlog_monitor_finds_a_queue_not_a_clock_offset():
     assert not any(m.late(k / 45, 1000.03 + k / 45) for k in range(90))
     # a link carrying 80 % of the stream: each frame 5.6 ms later than the last
     late = [m.late((90 + k) / 45, 1000.03 + (90 + k) / 45 + k * 0.0056) for k in range(60)]
-    assert late.index(True) == 45 and m.backlog_s > 0.25
+    assert late.index(True) == 45 + 2 and m.backlog_s > 0.25  # 3 late frames in a row
+    # one late frame (the client stalled, then read the newest) is not a queue
+    m3 = BacklogMonitor(0.25)
+    assert not any(m3.late(k / 45, 7.0 + k / 45 + (0.4 if k == 50 else 0)) for k in range(90))
     # a replay starting again (device time back): a new baseline, not a queue
     assert not m.late(0.0, 2000.0)
     # 100 ppm drift over 1000 s is not a queue

@@ -80,6 +80,8 @@ def _raw_hl2ss_source(config: Any) -> Any:
     from humantele.tracking.hl2ss_source import Hl2ssFrameSource
 
     class RawHl2ssSource(Hl2ssFrameSource):
+        unbias_h26x = False  # H.26x: the images as hl2ss's own client decodes them
+
         def _set_calibration(self, cal: Any) -> None:
             super()._set_calibration(cal)
             self._undistort = False

@@ -23,11 +23,15 @@ from __future__ import annotations
 
 
 class BacklogMonitor:
-    """Says when a frame waited more than ``max_s`` (s) longer than the quickest frame."""
+    """Says when ``persist`` frames in a row each waited more than ``max_s`` (s) longer than
+    the quickest frame (one late frame is the client's own stall: the frames after it, read
+    newest first, are fresh again; a queue on the headset makes every frame late)."""
 
-    def __init__(self, max_s: float, drift: float = 1e-4):
+    def __init__(self, max_s: float, drift: float = 1e-4, persist: int = 3):
         self.max_s = max_s
         self.drift = drift
+        self.persist = persist
+        self._run = 0
         self._least: float | None = None
         self._last_arrival = 0.0
         self._last_device: float | None = None
@@ -46,4 +50,5 @@ class BacklogMonitor:
             self._least = min(self._least, offset)
         self._last_arrival = arrival_s
         self.backlog_s = offset - self._least
-        return self.backlog_s > self.max_s
+        self._run = self._run + 1 if self.backlog_s > self.max_s else 0
+        return self._run >= self.persist

@@ -127,9 +127,9 @@ class Hl2ssFrameConfig(ConfigModel):
                                  description="H.26x frames per key frame; None: hl2ss's "
                                  "default (45: one a second)")  # fmt: skip
     max_backlog_s: float = Field(
-        0.25, gt=0, le=60, description="a frame this much later than the connection's "
-        "quickest (the headset queues what a slow link cannot carry) drops the connection, "
-        "which empties the queue")  # fmt: skip
+        0.5, gt=0, le=60, description="3 frames in a row this much later than the quickest "
+        "(the headset queues what a slow link cannot carry) drop the connection, which "
+        "empties the queue")  # fmt: skip
     calibration_file: str | None = Field(
         None,
         description="JSON saved by `humantele devices hl2ss-calibration` (relative: "
@@ -194,6 +194,8 @@ class Hl2ssFrameSource(FrameSource):
     deadlines are always on ``time.monotonic``."""
 
     name = "hl2ss AHAT"
+    unbias_h26x = True  # H.26x frames: take back the biases hl2ss's decode leaves (a recorder
+    # keeps the frames as hl2ss's client decodes them)
 
     def __init__(
         self, config: Hl2ssFrameConfig | None = None, clock: Callable[[], float] = time.monotonic
@@ -378,7 +380,7 @@ class Hl2ssFrameSource(FrameSource):
         depth, ab = p.depth_mm, p.ab
         paired = self._decoder.profile_ab != VIDEO_PROFILE_RAW
         intrinsics = self.intrinsics
-        if paired:  # hl2ss's decode, un-biased: see hl2ss_codec.unbias_h26x
+        if paired and self.unbias_h26x:  # see hl2ss_codec.unbias_h26x
             depth, intrinsics = unbias_h26x(depth, intrinsics, self._undistort)
         if self._undistort and self.calibration is not None:
             depth, ab = self.calibration.undistort(depth, ab, 0.5 if paired else 0.0)
@@ -400,7 +402,7 @@ class Hl2ssFrameSource(FrameSource):
             T_world_camera=T_world_camera,
             T_world_rig=T_world_rig,
             device_time_s=ts * 1e-7,  # hl2ss: 100 ns ticks
-            ab_paired=paired,
+            ab_paired=paired and self.unbias_h26x,
         )
 
     def _newest(self, end: int, pose_bytes: int) -> int:

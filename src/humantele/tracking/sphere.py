@@ -106,7 +106,7 @@ class SphereFitParams:
     shape_tolerance: float = 0.35
     max_ir_misfit: float = 0.06
     saturated_weight: float = 0.25  # ToF range of clipped pixels is noisier (x2 sd)
-    phasor: bool = False  # a pixel's sphere and background returns sum as phasors (ToF)
+    phasor: bool = True  # a pixel's sphere and background returns sum as phasors (ToF)
 
 
 @dataclass(frozen=True)
