@@ -71,9 +71,9 @@ def fake_hd(fake_hd_path, tmp_path, monkeypatch):
     fake.fake_set_watchdog_us.argtypes = [ctypes.c_long]
     fake.fake_set_transform.argtypes = [ctypes.POINTER(ctypes.c_double)]
     fake.fake_reset(1)
-    # The watchdog (a tick over 1 ms faults) is on in the fake by default, as in the real
-    # scheduler; off here so that a busy test machine's stall is not taken for a defect. The
-    # tests of the watchdog turn it on. fake_reset leaves it as set.
+    # The watchdog (a tick over 1 ms faults, as the real scheduler's) is off in the fake until
+    # a test sets it, so that a busy test machine's stall is not taken for a defect; the tests
+    # of the watchdog turn it on. fake_reset leaves it as set.
     fake.fake_set_watchdog_us(0)
     yield fake_hd_path, fake
     fake.fake_reset(1)

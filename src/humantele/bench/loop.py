@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
+import os
 import threading
 import time
 from typing import Any
@@ -41,8 +42,8 @@ from humantele.report import (
 from humantele.runtime.stats import process_cpu_seconds
 
 HEADER = ["load", "s", "loop", "rate Hz", "p50 us", "p99 us", "max us", "> 1.5 ms", "> 2 ms",
-          "long: work / wake / other", "faults", "invol. switches", "GC", "CPU %",
-          "SCHED_FIFO"]  # fmt: skip
+          "long: work / wake / other", "faults", "invol. switches", "GC", "steal ms/s",
+          "CPU %", "SCHED_FIFO"]  # fmt: skip
 LABELS = {False: "idle", True: "one core busy"}
 
 
@@ -55,6 +56,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="run the bare loop beside the servo, over the same seconds (the same "
                    "noise of a shared machine), not after it")  # fmt: skip
     p.add_argument("--no-write", action="store_true", help="do not update docs/benchmarks.md")
+
+
+def steal_s() -> float | None:
+    """The machine's stolen time so far (s, summed over its CPUs): /proc/stat's steal, the time
+    a hypervisor ran something else while a CPU had work; None where there is none to read."""
+    try:
+        with open("/proc/stat", encoding="ascii") as f:
+            fields = f.readline().split()
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _steal_rate(a: float | None, b: float | None, seconds: float) -> float | None:
+    """Stolen ms per second of wall time between two :func:`steal_s` readings."""
+    if a is None or b is None or seconds <= 0:
+        return None
+    return round(1e3 * (b - a) / seconds, 1)
 
 
 def _bare_loop(config_json: str, seconds: float, conn) -> None:
@@ -134,18 +153,20 @@ def measure(seconds: float, load: bool, seed: int = 0, together: bool = False) -
                     target=lambda: beside.update(measure_floor(cfg, seconds)), daemon=True
                 )
                 th.start()
-            cpu0, t0 = process_cpu_seconds(sp.pid), time.monotonic()
+            cpu0, t0, steal0 = process_cpu_seconds(sp.pid), time.monotonic(), steal_s()
             time.sleep(seconds)
-            cpu1, t1 = process_cpu_seconds(sp.pid), time.monotonic()
+            cpu1, t1, steal1 = process_cpu_seconds(sp.pid), time.monotonic(), steal_s()
             sp.stop()
             st = sp.stats()
             if together:
                 th.join(seconds + 60.0)
                 if not beside:
                     raise RuntimeError("bare timing loop did not report")
-                floor = beside
+                floor = dict(beside, steal_ms_per_s=_steal_rate(steal0, steal1, t1 - t0))
             else:
+                t2, steal2 = time.monotonic(), steal_s()
                 floor = measure_floor(cfg, seconds)  # same load, same timing, no work
+                floor["steal_ms_per_s"] = _steal_rate(steal2, steal_s(), time.monotonic() - t2)
         finally:
             sp.stop()
     period_us = 1e6 / cfg.rate_hz
@@ -167,6 +188,7 @@ def measure(seconds: float, load: bool, seed: int = 0, together: bool = False) -
         ),
         **{k: getattr(st, k) for k in COUNTS},
         "work_max_us": round(st.work_max_us, 1),
+        "steal_ms_per_s": _steal_rate(steal0, steal1, t1 - t0),
         "spin_us": round(st.spin_us, 1),
     }
     res["floor"] = floor
@@ -188,7 +210,9 @@ def _loop_row(label: str, what: str, r: dict[str, Any], cpu: object) -> list[obj
             f"{r['period_max_us']:.0f}", r["overruns"], r["periods_over_2ms"],
             f"{r['overruns_work']} / {r['overruns_wake']} / {r['overruns_other']}",
             f"{r['minor_faults'] + r['major_faults']}", r["involuntary_switches"],
-            r["gc_collections"], cpu if cpu is not None else "",
+            r["gc_collections"],
+            "" if r.get("steal_ms_per_s") is None else f"{r['steal_ms_per_s']:.1f}",
+            cpu if cpu is not None else "",
             "yes" if r["realtime"] else "no"]  # fmt: skip
 
 
@@ -212,27 +236,27 @@ def section(r: dict[str, Any], kept: list[list[str]]) -> str:
         [
             "## Servo loop (`humantele bench loop --seconds N [--load]`)",
             "",
-            "The 1 kHz servo process on the sim Touch X with the scripted sonographer and the demo "
-            'patient; periods between tick starts. "one core busy": another process spins '
-            "a core during the run. 'bare': right after (with `--together`: beside it, over the "
-            "same seconds), under the same load, a process with the "
-            "servo's timing (SCHED_FIFO, deadline sleep + the same adaptive spin, GC off) and no "
-            "work: what the machine gives (hypervisor, kernel). Both loops are counted the same "
-            "way: periods over 1.5 ms (overruns) and over 2 ms; each overrun put down to the tick "
-            "before it working over 0.5 ms (work), the sleep waking over 0.5 ms late (wake) or "
-            "neither (other: the thread lost the CPU while it spun or worked); faults: the loop "
-            "thread's page faults, invol. switches: its involuntary context switches, GC: the "
-            "process's garbage collections, all while the loop ran (getrusage RUSAGE_THREAD, "
-            "gc.callbacks). Targets: 1000 +- 1 Hz, p99 within 50 us of 1 ms, the servo's "
-            "periods over 1.5 ms at most the bare loop's + 1. CPU %: the servo process (it spins "
-            "what the sleep's recent overshoot needs before each deadline, its p99.5 + 30 us, at "
-            "most `spin_s`, 200 us). What these counts found (issue 34): the tick that wrote "
-            "the statistics, 4 a second, summed a 20,000-bin histogram twice into fresh 160 kB "
-            "arrays (0.7-4 ms and ~90 page faults a write: the servo's 'work' overruns, its "
-            "page faults 50x the bare loop's); it now reads 300 bins. GC never runs in either "
-            "loop; the spin is the same SpinBudget in both, and an overrun needs a sleep waking "
-            "over 0.5 ms late whatever it spins (at most 0.2 ms); at SCHED_FIFO the kernel gives "
-            "no timer slack.",
+            "The 1 kHz servo process on the sim Touch X with the scripted sonographer and the "
+            'demo patient; periods between tick starts. "one core busy": another process spins a '
+            "core during the run. 'bare': right after (with `--together`: beside it, over the "
+            "same seconds), under the same load, a process with the servo's timing (SCHED_FIFO, "
+            "deadline sleep + the same adaptive spin, GC off) and no work: what the machine gives"
+            " (hypervisor, kernel). Both loops are counted the same way: periods over 1.5 ms "
+            "(overruns) and over 2 ms; each overrun put down to the tick before it working over "
+            "0.5 ms (work), the sleep waking over 0.5 ms late (wake) or neither (other: the "
+            "thread lost the CPU while it spun or worked); faults: the loop thread's page faults,"
+            " invol. switches: its involuntary context switches, GC: the process's garbage "
+            "collections, all while the loop ran (getrusage RUSAGE_THREAD, gc.callbacks); steal "
+            "ms/s: the machine's stolen time while the loop ran (a hypervisor's, /proc/stat, all "
+            "CPUs). Targets: 1000 +- 1 Hz, p99 within 50 us of 1 ms, the servo's periods over 1.5"
+            " ms at most the bare loop's + 1. CPU %: the servo process (it spins what the sleep's"
+            " recent overshoot needs before each deadline, its p99.5 + 30 us, at most `spin_s`, "
+            "200 us). What these counts found (issue 34): the tick that wrote the statistics, 4 a"
+            " second, summed a 20,000-bin histogram twice into fresh 160 kB arrays (0.7-4 ms and "
+            "~90 page faults a write: the servo's 'work' overruns, its page faults 50x the bare "
+            "loop's); it now reads 300 bins. GC never runs in either loop; the spin is the same "
+            "SpinBudget in both, and an overrun needs a sleep waking over 0.5 ms late whatever it"
+            " spins (at most 0.2 ms); at SCHED_FIFO the kernel gives no timer slack.",
             "",
             markdown_table(HEADER, rows),
             "",

@@ -365,6 +365,17 @@ def _run(config, device, cmd, out, st, stop, parent_pid, realtime) -> None:
                 next_t = end + period
     finally:
         st.write(_stats_row(timing, r, realtime, device, causes, counts, spin))
+        if timing.overruns:  # why, in the daemon's log (humantele bench loop: against the bare)
+            n = counts.counts()
+            log.warning(
+                "servo: %d periods over %.1f ms in %.0f s: the tick before worked over %.1f ms "
+                "%d, the sleep woke over %.1f ms late %d, neither %d; %d page faults, %d "
+                "involuntary switches, %d GC", timing.overruns, 1.5e3 * period,
+                timing.t_last - timing.t_first if timing.ticks > 1 else 0.0, 0.5e3 * period,
+                causes.work, 0.5e3 * period, causes.wake, causes.other,
+                n["minor_faults"] + n["major_faults"], n["involuntary_switches"],
+                n["gc_collections"],
+            )  # fmt: skip
         counts.close()
         gc.enable()
         sys.setswitchinterval(switch)

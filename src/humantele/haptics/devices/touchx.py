@@ -255,7 +255,7 @@ class TouchX(HapticDevice):
             self._stop_cb = False
             lib.hdStartScheduler()
             self._raise_if_error("starting the HD scheduler")
-        except DeviceError:
+        except Exception:  # a DeviceError, or anything: never a half-open device
             self._release()
             raise
 
@@ -377,7 +377,7 @@ class TouchX(HapticDevice):
             self.reopen_attempts += 1
             try:
                 self.open()
-            except DeviceError as exc:
+            except Exception as exc:  # noqa: BLE001 - a failed attempt whatever it raised
                 self._backoff = min(max(2.0 * self._backoff, 1e-3), self.config.reopen_max_s)
                 self._next_try = now + self._backoff
                 if self.reopen_attempts <= 3 or self.reopen_attempts % 10 == 0:
