@@ -46,6 +46,10 @@ async def test_a_new_sender_and_receiver_have_what_the_hooks_replace():
         use_jitter_buffer(t.receiver, buffer)
         assert getattr(t.receiver, aiortc_hooks._RECEIVER_JITTER) is buffer
         assert isinstance(encoder, AiortcVp8Encoder)  # aiortc's packetisation is kept
+        # the NACK the jitter buffer asks again with: aiortc's receiver's own coroutine
+        coro = aiortc_hooks.request_retransmission(t.receiver, 1234, [7, 5])
+        assert asyncio.iscoroutine(coro)
+        await coro  # no RTCP SSRC before negotiation: sends nothing, raises nothing
     finally:
         await pc.close()
 
@@ -57,6 +61,8 @@ def test_a_hook_on_an_object_without_the_attribute_is_a_clear_error():
         use_jitter_buffer(object(), BoundedJitterBuffer(vp8_is_keyframe))  # type: ignore[arg-type]
     with pytest.raises(AiortcChanged, match="aiortc changed"):
         newest_frame(object(), None)
+    with pytest.raises(AiortcChanged, match="aiortc changed"):
+        aiortc_hooks.request_retransmission(object(), 1, [2])  # type: ignore[arg-type]
 
 
 def _frame(seq: int) -> av.VideoFrame:

@@ -16,8 +16,8 @@ from aiortc.codecs.vpx import Vp8Decoder, vp8_depayload
 from aiortc.jitterbuffer import JitterFrame
 
 from humantele.config import ConfigError, validate_config
-from humantele.media.config import BitrateConfig, FollowerVideoConfig
 from humantele.media import encoders
+from humantele.media.config import BitrateConfig, FollowerVideoConfig
 from humantele.media.encoders import make_encoder, two_packets
 from humantele.media.jitter import h264_is_keyframe, vp8_is_keyframe
 from humantele.media.receiver import luma_plane

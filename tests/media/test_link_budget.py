@@ -104,14 +104,18 @@ def test_an_encoder_takes_its_share_and_floor_without_reopening():
 
 class _Report:
     def __init__(self, **kw):
-        self.__dict__.update(type="remote-inbound-rtp", **kw)
+        self.__dict__.update({"type": "remote-inbound-rtp", **kw})
 
 
 class _Sender:
     """An RTCRtpSender's getStats as aiortc gives it: the expert's receiver report."""
 
     def __init__(self, lost: int, rtt: float, jitter: int) -> None:
-        self.report = {"r": _Report(fractionLost=lost, roundTripTime=rtt, jitter=jitter)}
+        self.report = {"r": _Report(fractionLost=lost, roundTripTime=rtt, jitter=jitter),
+                       "o": _Report(type="outbound-rtp", bytesSent=0)}  # fmt: skip
+
+    def send(self, kbps: float, seconds: float) -> None:
+        self.report["o"].bytesSent += int(kbps * 1000 / 8 * seconds)
 
     async def getStats(self):  # noqa: N802 - aiortc's name
         return self.report
@@ -137,7 +141,11 @@ async def test_the_senders_check_reads_the_link_and_spends_it():
     assert (await sender.link_report())["link_kbps"] is None  # the POV's REMB not yet in
     sender._encoders["pov"].target_bitrate = 150_000
     report = await sender.link_report()
-    assert report == {"loss": 13 / 256, "rtt_s": 0.15, "jitter_s": 0.01, "link_kbps": 450.0}
+    assert report == {"loss": 13 / 256, "rtt_s": 0.15, "jitter_s": 0.01, "link_kbps": 450.0,
+                      "bytes_sent": 0}  # fmt: skip
+    await sender.check(9.0, 0.0, None)
+    sender._senders["us"].send(500, 1.0)  # the tracks sent 800 kbit/s: the estimate is short
+    sender._senders["pov"].send(300, 1.0)
     await sender.check(10.0, 0.0, None)
     p = sender.policy
     assert p.pov_off and p.us_rate_level == 1  # 450 < the US's 500 floor: the US rate too
@@ -152,3 +160,28 @@ async def test_the_senders_check_reads_the_link_and_spends_it():
     assert sender.captures["us"].max_fps == pytest.approx(0.75 * sender.us_fps)
     st = sender.stats()
     assert st["pov_level"] == POV_OFF and st["us_level"] == 1 and st["link"]["link_kbps"] == 450
+
+
+async def test_an_estimate_above_what_the_tracks_sent_is_not_a_short_link():
+    """A starved capture sends less than its target and the expert's estimate follows what it
+    receives: that is not the link (a session's start on a loaded machine)."""
+    from media_helpers import small_video_config
+
+    from humantele.media.config import DegradeConfig
+    from humantele.media.sender import VideoSender
+    from humantele.video.scene import DEFAULT_PATIENT
+
+    config = small_video_config(process=False).model_copy(
+        update={"degrade": DegradeConfig(max_loss=0.5)}
+    )
+    sender = VideoSender(config, None, None, DEFAULT_PATIENT)
+    sender._senders = {"us": _Sender(0, 0.01, 90), "pov": _Sender(0, 0.01, 90)}
+    sender._encoders = {"us": make_encoder("video/VP8", config.us_bitrate),
+                        "pov": make_encoder("video/VP8", config.pov_bitrate)}  # fmt: skip
+    sender._encoders["us"].target_bitrate = 300_000
+    sender._encoders["pov"].target_bitrate = 150_000
+    for t in (1.0, 2.0, 3.0):
+        sender._senders["us"].send(250, 1.0)  # 400 kbit/s sent, the estimate 450
+        sender._senders["pov"].send(150, 1.0)
+        await sender.check(t, 0.0, None)
+    assert sender.policy.pov_level == 0 and sender.policy.us_rate_level == 0

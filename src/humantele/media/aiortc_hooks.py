@@ -23,6 +23,9 @@ aiortc (1.16) has no supported way to do these three things, each needed for the
 5. :func:`request_keyframe`: send a PLI for a received stream (the console forwards the
    encoded frames to a page, whose decoder must start at a keyframe; the follower's encoders
    make keyframes only when asked).
+6. :func:`request_retransmission`: send a NACK for packets still missing (aiortc's receiver
+   NACKs a gap when it first shows and again only when a later gap shows; on a lossy link
+   the NACK or its retransmission is often lost too).
 
 ``tests/media/test_aiortc_hooks.py`` fails if aiortc renames or retypes what these touch.
 """
@@ -41,6 +44,7 @@ _SENDER_ENCODER = "_RTCRtpSender__encoder"
 _RECEIVER_JITTER = "_RTCRtpReceiver__jitter_buffer"
 _TRACK_QUEUE = "_queue"
 _RECEIVER_PLI = "_send_rtcp_pli"
+_RECEIVER_NACK = "_send_rtcp_nack"
 log = logging.getLogger(__name__)
 
 
@@ -101,6 +105,13 @@ def request_keyframe(receiver: RTCRtpReceiver, ssrc: int) -> Any:
     return getattr(receiver, _RECEIVER_PLI)(ssrc)
 
 
+def request_retransmission(receiver: RTCRtpReceiver, ssrc: int, lost: list[int]) -> Any:
+    """Ask the sender of stream ``ssrc`` on ``receiver`` to send packets ``lost`` (16-bit
+    sequence numbers) again (an RTCP NACK); the coroutine that sends it."""
+    _check(receiver, _RECEIVER_NACK, None)
+    return getattr(receiver, _RECEIVER_NACK)(ssrc, sorted(lost))
+
+
 class EncodedFrameTap:
     """A jitter buffer (``add(packet) -> (pli, frame or None)``) that also hands each frame it
     releases to ``on_frame(data, rtp_timestamp)`` (bytes as aiortc will decode them; the RTP
@@ -123,10 +134,16 @@ class EncodedFrameTap:
         self.tapped = 0
         self.tap_errors = 0
         self.ssrc: int | None = None
+        self.on_nack: Callable[[int, list[int]], Any] | None = None  # (ssrc, lost seqs)
 
     def add(self, packet: Any) -> tuple[bool, Any]:
         self.ssrc = getattr(packet, "ssrc", None)
         pli, frame = self.buffer.add(packet)
+        take = getattr(self.buffer, "take_nacks", None)
+        if take is not None:
+            lost = take()
+            if lost and self.on_nack is not None and self.ssrc is not None:
+                self.on_nack(self.ssrc, lost)
         if frame is not None:
             try:
                 if self.on_release is not None:

@@ -21,6 +21,9 @@ for every RTP packet, the payload already depayloaded into ``packet._data``):
   drops the frames up to the next keyframe, asks the sender for one (``pli``, again every
   ``pli_interval_s`` while waiting) and releases nothing in between: a frame decoded without
   its reference would show a corrupt picture, a freeze is honest;
+- asks again for a packet still missing a round trip after the last request
+  (:meth:`take_nacks`, sent by the receiver as an RTCP NACK): aiortc NACKs a gap once, and
+  again only when a later gap shows;
 - at most one frame per ``add`` (the receiver's interface): frames completed together leave
   on the next packets; if that backlog does not drain (one-packet frames), it asks for a
   keyframe, whose many packets drain it.
@@ -47,6 +50,9 @@ _SEQ_MOD = 1 << 16
 BEHIND_RELEASES = 3
 RTX_MARGIN_S = 0.04  # beyond the round trip: the sender's turn and the link's jitter (s)
 MAX_WAIT_S = 1.0  # never wait longer for a lost packet, whatever the round trip (s)
+MIN_RENACK_S = 0.025  # a missing packet asked for again at most this often (s)
+RENACK_MARGIN_S = 0.015  # beyond the round trip before asking again (s)
+MAX_RENACK_SPAN = 512  # packets between the head and the newest: past it, no re-asking
 
 
 def vp8_is_keyframe(data: bytes) -> bool:
@@ -77,6 +83,7 @@ class JitterCounters:
     plis: int = 0  # keyframe requests
     late_packets: int = 0  # packets older than the last released frame (ignored)
     duplicates: int = 0
+    renacks: int = 0  # missing packets asked for again (their NACK or retransmission lost)
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)
@@ -110,6 +117,9 @@ class BoundedJitterBuffer:
         self._pli_at: float | None = None  # when a keyframe was last asked for
         self._started: float | None = None  # the first packet's arrival
         self._behind = 0  # releases in a row after which another frame was already complete
+        self._missing_since: dict[int, float] = {}  # extended seq -> when first seen missing
+        self._nacked: dict[int, float] = {}  # extended seq -> when we last asked for it
+        self._nack_out: list[int] = []  # 16-bit sequence numbers to ask for (take_nacks)
 
     def wait_s(self) -> float:
         """How long a missing packet is waited for (s): ``max_wait_s``, or longer on a link
@@ -127,6 +137,37 @@ class BoundedJitterBuffer:
         if rtt is None or not rtt > 0:
             return self.pli_interval_s
         return max(self.pli_interval_s, min(MAX_WAIT_S, rtt + RTX_MARGIN_S))
+
+    def renack_every_s(self) -> float:
+        """A missing packet is asked for again this long after the last request (s): a round
+        trip and a little (its NACK or its retransmission was lost), at least 25 ms."""
+        rtt = self.rtt() if self.rtt is not None else None
+        rtt = rtt if rtt is not None and rtt > 0 else 0.0
+        return max(MIN_RENACK_S, rtt + RENACK_MARGIN_S)
+
+    def take_nacks(self) -> list[int]:
+        """The 16-bit sequence numbers to ask the sender for again (a NACK), once each."""
+        out, self._nack_out = self._nack_out, []
+        return out
+
+    def _renack(self, now: float) -> None:
+        """aiortc's receiver NACKs a missing packet when the gap first shows, and again only
+        when a later gap shows; this asks again every :meth:`renack_every_s` while the
+        packet is still waited for (at 15 % loss a NACK or its retransmission is lost about
+        one time in four)."""
+        if self._next is None or self._max is None or self._max - self._next > MAX_RENACK_SPAN:
+            return
+        every = None
+        for seq in range(self._next, self._max):
+            if seq in self._packets:
+                continue
+            first = self._missing_since.setdefault(seq, now)
+            if every is None:
+                every = self.renack_every_s()
+            if now - self._nacked.get(seq, first) >= every:
+                self._nacked[seq] = now
+                self._nack_out.append(seq % _SEQ_MOD)
+                self.counters.renacks += 1
 
     @property
     def capacity(self) -> int:
@@ -152,6 +193,7 @@ class BoundedJitterBuffer:
         else:
             self._packets[seq] = packet
             self._arrived[seq] = now
+        self._renack(now)
         frame = self._pop(now)
         return self._pli(now), frame
 
@@ -219,6 +261,9 @@ class BoundedJitterBuffer:
         for seq in [s for s in self._packets if s <= last]:
             del self._packets[seq]
             del self._arrived[seq]
+        for seq in [s for s in self._missing_since if s <= last]:
+            del self._missing_since[seq]
+            self._nacked.pop(seq, None)
         self._next = last + 1
 
     def _skip_to_next_start(self) -> None:

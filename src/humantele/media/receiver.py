@@ -58,6 +58,7 @@ from humantele.media.aiortc_hooks import (
     EncodedFrameTap,
     newest_frame,
     request_keyframe,
+    request_retransmission,
     use_jitter_buffer,
 )
 from humantele.media.config import TRACKS, ExpertVideoConfig
@@ -323,6 +324,7 @@ class VideoReceiver:
                 self._encoded_recorder(name) if record else None,
                 self._releaser(name),
             )
+            tap.on_nack = self._renacker(transceiver.receiver)
             use_jitter_buffer(transceiver.receiver, tap)
             self._taps[name] = tap
             self._receivers[name] = transceiver.receiver
@@ -363,6 +365,14 @@ class VideoReceiver:
                 data = bytes(jf.data)
                 return Encoded(data, KEYFRAME_TESTS[self.config.codec](data), self.config.codec)
         return None
+
+    def _renacker(self, receiver: Any) -> Callable[[int, list[int]], None]:
+        """The tap's NACK callback: ask the follower again for packets still missing."""
+
+        def on_nack(ssrc: int, lost: list[int]) -> None:
+            self._spawn(request_retransmission(receiver, ssrc, lost))
+
+        return on_nack
 
     def _encoded_recorder(self, name: str) -> Callable[[bytes, int], None]:
         """The tap's callback for track ``name``: record the encoded frame (see module doc)."""

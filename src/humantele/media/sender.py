@@ -48,8 +48,9 @@ log = logging.getLogger(__name__)
 VIDEO_CHANNEL_ID = 3  # the link's channels are 0-2
 MAX_INFO_BUFFERED = 4096  # bytes of frame records allowed to wait in the channel
 # The link is short when the expert's estimate (REMB sum) is below this share of what the
-# tracks are set to send: its estimator then says the link is overused (it bids 0.85 of the
-# rate received); above it, the estimate may just not have grown yet (a session's start).
+# tracks actually sent over the last check: its estimator then says the link is overused (it
+# bids 0.85 of the rate received); above it, the estimate may just not have grown yet (a
+# session's start) or the tracks send less than their targets (a starved capture).
 SHORT_FRACTION = 0.95
 
 
@@ -144,6 +145,7 @@ class VideoSender:
         self.infos_dropped = 0
         self.attached = 0
         self.link: dict[str, Any] = {}  # the last link_report
+        self._sent_at: tuple[float, int] | None = None  # (t s, bytes sent) at the last check
         self._channel: Any = None
         self._senders: dict[str, Any] = {}
         self._encoders: dict[str, Any] = {}  # the current peer connection's, per track
@@ -217,6 +219,7 @@ class VideoSender:
             "video", negotiated=True, id=VIDEO_CHANNEL_ID, ordered=False, maxRetransmits=0
         )
         self._senders, self._encoders = {}, {}
+        self._sent_at = None
         videos = [t for t in pc.getTransceivers() if t.kind == "video"]
         limits = {"us": self.config.us_bitrate, "pov": self.config.pov_bitrate}
         for name, transceiver, mime in zip(TRACKS, videos, offered_codecs(pc), strict=False):
@@ -259,14 +262,17 @@ class VideoSender:
         either track's last receiver report, or None), ``rtt_s`` (the round trip aiortc
         measures from them, or None), ``jitter_s`` (the worst interarrival jitter, s, or None),
         ``link_kbps`` (the expert's REMB of both tracks, summed, kbit/s; None until both
-        came)."""
+        came), ``bytes_sent`` (both tracks' RTP bytes sent so far)."""
         worst = rtt = jitter = None
+        sent = 0
         for sender in list(self._senders.values()):
             try:
                 report = await sender.getStats()
             except Exception:
                 continue
             for s in report.values():
+                if getattr(s, "type", "") == "outbound-rtp":
+                    sent += int(getattr(s, "bytesSent", 0) or 0)
                 if getattr(s, "type", "") != "remote-inbound-rtp":
                     continue
                 f = getattr(s, "fractionLost", None)  # RTCP's 8-bit fraction, /256
@@ -281,7 +287,8 @@ class VideoSender:
                     jitter = j if jitter is None else max(jitter, j)
         rembs = [e.remb for e in self._encoders.values()]
         link = sum(rembs) / 1000.0 if len(rembs) == 2 and None not in rembs else None
-        return {"loss": worst, "rtt_s": rtt, "jitter_s": jitter, "link_kbps": link}
+        return {"loss": worst, "rtt_s": rtt, "jitter_s": jitter, "link_kbps": link,
+                "bytes_sent": sent}  # fmt: skip
 
     def _spend_link(self, t: float, report: dict[str, Any]) -> None:
         """The link's budget split between the tracks (:func:`split_budget`): each encoder's
@@ -296,9 +303,14 @@ class VideoSender:
         p = self.policy
         budget = split_budget(link, us_l.min_kbps, us_l.max_kbps, pov_l.max_kbps,
                               p.link_level, p.link_us_level)  # fmt: skip
-        sending = sum(e.target_bitrate for e in self._encoders.values()) / 1000.0
+        # what the tracks actually sent since the last check (kbit/s; a starved capture or
+        # encoder sends less than its target, and the expert's estimate follows that)
+        prev, self._sent_at = self._sent_at, (t, report["bytes_sent"])
+        sending = None
+        if prev is not None and t > prev[0] and report["bytes_sent"] >= prev[1]:
+            sending = (report["bytes_sent"] - prev[1]) * 8 / 1000.0 / (t - prev[0])
         loss = report["loss"]
-        short = link < SHORT_FRACTION * sending or (
+        short = (sending is not None and link < SHORT_FRACTION * sending) or (
             loss is not None and loss > self.config.degrade.max_loss
         )
         p.apply_link(t, budget, short)
