@@ -15,9 +15,7 @@ _AE = re.compile(r"^[\x20-\x5b\x5d-\x7e]{1,16}$")  # DICOM AE: 16 chars, no back
 
 def _ae_title(v: str) -> str:
     if not _AE.match(v) or not v.strip():
-        raise ValueError(
-            f"AE title {v!r}: 1-16 printable characters, not all spaces, no backslash"
-        )
+        raise ValueError(f"AE title {v!r}: 1-16 printable characters, not all spaces, no backslash")
     return v
 
 

@@ -177,5 +177,3 @@ class ExamStore:
         assert self.exam is not None
         data = json.dumps(self.exam.model_dump(mode="json"), indent=1).encode()
         atomic_write(self.path, data, mode=0o600)
-
-

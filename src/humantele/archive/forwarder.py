@@ -137,9 +137,10 @@ class Forwarder:
             {"n": i.n, "kind": i.kind, "reason": i.reason}
             for i in self.queue.pending() if i.state == "refused"
         ]  # fmt: skip
+        retry = round(max(0.0, self.retry_at - now), 1) if waiting else None
         out = {**c, "sent": self.sent, "found": self.found, "refusals": self.refusals,
                "unreachable": bool(self.unreachable), "refused_items": refused[:20],
-               "retry_in_s": round(max(0.0, self.retry_at - now), 1) if waiting else None}  # fmt: skip
+               "retry_in_s": retry}  # fmt: skip
         if self.unreachable and waiting:
             out["text"] = (f"archive unreachable: {waiting} waiting "
                            f"(retrying in {max(0.0, self.retry_at - now):.0f} s)")  # fmt: skip

@@ -31,8 +31,8 @@ from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.encaps import encapsulate
 from pydicom.sr.codedict import codes
 from pydicom.uid import (
-    JPEGBaseline8Bit,
     PYDICOM_IMPLEMENTATION_UID,
+    JPEGBaseline8Bit,
     UltrasoundImageStorage,
     UltrasoundMultiFrameImageStorage,
     generate_uid,
@@ -355,8 +355,9 @@ def presentation_state(
         texts.append(hd.pr.TextObject(f"{c.mm:.1f} mm", units=hd.pr.AnnotationUnitsValues.PIXEL,
                                       anchor_point=tuple(pts[1])))  # fmt: skip
     for n in notes:
+        at = (n.at_px[0] + 0.5, n.at_px[1] + 0.5)
         texts.append(hd.pr.TextObject(n.text[:64], units=hd.pr.AnnotationUnitsValues.PIXEL,
-                                      anchor_point=(n.at_px[0] + 0.5, n.at_px[1] + 0.5)))  # fmt: skip
+                                      anchor_point=at))  # fmt: skip
     annotation = hd.pr.GraphicAnnotation(
         referenced_images=[image], graphic_layer=layer,
         graphic_objects=objects or None, text_objects=texts or None,
