@@ -101,7 +101,7 @@ class CStoreSender:
             if assoc.is_rejected:
                 why = "association rejected (check the AE titles)"
             elif assoc.is_aborted:
-                why = "association aborted"
+                why = "no association (connection refused or aborted)"
             else:
                 why = "no answer"
             raise Unreachable(f"{cfg.called_ae}@{cfg.host}:{cfg.port}: {why}")
