@@ -9,7 +9,7 @@ import av
 import cv2
 import numpy as np
 import pytest
-from exam_helpers import PATIENT, jpeg
+from exam_helpers import PATIENT, frame, jpeg
 from pydicom import dcmread
 from pydicom.uid import JPEGBaseline8Bit, UltrasoundImageStorage, UltrasoundMultiFrameImageStorage
 
@@ -83,10 +83,9 @@ def test_no_pixel_spacing_means_no_region_rather_than_a_wrong_one(exam):
 
 
 def test_the_console_s_own_i420_jpeg_is_accepted_and_decodes_the_same():
-    frame = av.VideoFrame.from_ndarray(cv2.cvtColor(
-        cv2.cvtColor(__import__("exam_helpers").frame(2), cv2.COLOR_BGR2RGB), cv2.COLOR_RGB2YUV_I420),
-        format="yuv420p")  # fmt: skip
-    data = I420Jpeg(88).encode(frame)
+    yuv = cv2.cvtColor(frame(2), cv2.COLOR_BGR2YUV_I420)
+    av_frame = av.VideoFrame.from_ndarray(yuv, format="yuv420p")
+    data = I420Jpeg(88).encode(av_frame)
     assert obj.jpeg_shape(data) == (480, 640, 3)
 
 
@@ -133,16 +132,23 @@ def test_the_sr_measures_the_caliper_on_the_image_it_references(exam):
 def test_marks_go_in_a_presentation_state_not_in_the_image(exam):
     image = obj.us_image(jpeg(), 1.79e9, SCALE, place(exam), EQ)
     before = bytes(image.PixelData)
-    ps = obj.presentation_state(image, [obj.Caliper((1, 2), (30, 40), 9.0)],
-                                [obj.Note((5, 6), "gallbladder")], place(exam, "reports"), EQ)  # fmt: skip
+    ps = obj.presentation_state(
+        image,
+        [obj.Caliper((1, 2), (30, 40), 9.0)],
+        [obj.Note((5, 6), "gallbladder")],
+        place(exam, "reports"),
+        EQ,
+    )
     assert bytes(image.PixelData) == before
     ann = ps.GraphicAnnotationSequence[0]
     assert ann.ReferencedImageSequence[0].ReferencedSOPInstanceUID == image.SOPInstanceUID
     assert {t.UnformattedTextValue for t in ann.TextObjectSequence} == {"9.0 mm", "gallbladder"}
 
 
-@pytest.mark.skipif(shutil.which("dciodvfy") is None,
-                    reason="dciodvfy (Debian package dicom3tools) is not installed; CI has it")  # fmt: skip
+NO_DCIODVFY = "dciodvfy (Debian package dicom3tools) is not installed; CI has it"
+
+
+@pytest.mark.skipif(shutil.which("dciodvfy") is None, reason=NO_DCIODVFY)
 def test_dciodvfy_finds_no_error_in_any_object(exam, tmp_path):
     image = obj.us_image(jpeg(), 1.79e9, SCALE, place(exam), EQ)
     clip = obj.us_multiframe([jpeg(i) for i in range(3)], [1.79e9, 1.79e9 + 0.05, 1.79e9 + 0.1],

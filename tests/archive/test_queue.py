@@ -177,9 +177,9 @@ def test_the_queue_refuses_beyond_its_budget_and_on_a_full_disk_leaving_nothing_
     def full(fd, data):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(files.os, "write", full)
     b = archive(tmp_path / "b", free_port())
     b.begin(PATIENT)
+    monkeypatch.setattr(files.os, "write", full)
     with pytest.raises(QueueFull, match="disk is full"):
         captures(b, 1)
     monkeypatch.setattr(files.os, "write", real)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import threading
 import time
 from collections import OrderedDict
@@ -25,7 +26,7 @@ from humantele.archive import objects as obj
 from humantele.archive.config import ArchiveConfig
 from humantele.archive.exam import ExamStore, Patient
 from humantele.archive.forwarder import Forwarder
-from humantele.archive.queue import DiskQueue, Item
+from humantele.archive.queue import DiskQueue, Item, QueueFull
 from humantele.archive.send import Sender, make_sender
 
 IMAGES_KEPT = 500  # captured images whose marks may still come (their headers only)
@@ -90,8 +91,14 @@ class ExamArchive:
     def _place(self, scan: str, description: str = "") -> obj.Placement:
         if self.exams.exam is None:
             raise NoExam("no patient: enter the patient (or pick from the worklist) first")
-        uid, number = self.exams.series_for(scan)
-        return obj.Placement(self.exams.exam, uid, number, self.exams.next_instance(), description)
+        try:
+            uid, number = self.exams.series_for(scan)
+            instance = self.exams.next_instance()
+        except OSError as exc:  # the exam's file beside the queue: the same disk
+            if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise QueueFull(exc.errno, f"the archive queue's disk is full: {exc}") from exc
+            raise
+        return obj.Placement(self.exams.exam, uid, number, instance, description)
 
     def unix(self, t: float) -> float:
         return t + self.unix_offset_s
