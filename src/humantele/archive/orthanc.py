@@ -8,8 +8,11 @@ Usage::
         cfg = ArchiveConfig(enabled=True, port=pacs.dicom_port, called_ae=pacs.aet)
         pacs.get("/patients")
 
-``refuse_series`` makes it refuse (its Lua ``ReceivedInstanceFilter``) any instance whose
-Series Description is that text: how a test gets one object refused. :meth:`stop` then
+``refuse_series`` makes it refuse any instance whose Series Description is that text: how a
+test gets one object refused. Its Lua ``ReceivedInstanceFilter`` raises an error for it, which
+Orthanc answers with status 0xA700; a filter that returns false instead makes Orthanc 1.10
+drop the instance and still answer Success (0x0000): a sender cannot tell, so that is not
+how an archive should refuse. :meth:`stop` then
 :meth:`start` again is an outage: the same ports, the same storage.
 """
 
@@ -102,7 +105,7 @@ class OrthancServer:
             script.write_text(
                 "function ReceivedInstanceFilter(dicom, origin, info)\n"
                 f"  if dicom.SeriesDescription == {json.dumps(self.refuse_series)} then\n"
-                "    return false\n  end\n  return true\nend\n"
+                "    error('refused by this test archive')\n  end\n  return true\nend\n"
             )
             cfg["LuaScripts"] = [str(script)]
         if self.worklists_dir is not None and (PLUGINS / "libModalityWorklists.so").exists():

@@ -128,7 +128,7 @@ class _Association:
         code = int(status.Status)
         if code in STORED:
             return Answer(True, "" if code == 0 else f"stored with warning 0x{code:04X}", code)
-        comment = str(status.get("ErrorComment", "")).strip()
+        comment = str(status.get("ErrorComment", "")).strip() or _meaning(code)
         return Answer(False, f"status 0x{code:04X}" + (f": {comment}" if comment else ""), code)
 
     def has(self, item: Item) -> bool | None:
@@ -224,6 +224,16 @@ class _Stow:
     def close(self) -> None:
         with contextlib.suppress(Exception):
             self.client._session.close()
+
+
+def _meaning(code: int) -> str:
+    """The standard's words for a C-STORE status (pynetdicom's table), '' if unknown."""
+    from pynetdicom.status import STORAGE_SERVICE_CLASS_STATUS
+
+    for c in (code, code & 0xFF00):
+        if c in STORAGE_SERVICE_CLASS_STATUS:
+            return STORAGE_SERVICE_CLASS_STATUS[c][1]
+    return ""
 
 
 def _failure(response: Any) -> str:
