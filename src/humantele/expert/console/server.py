@@ -315,6 +315,7 @@ class ConsoleServer:
         self.events: Counter[str] = Counter()
         self.captures: list[str] = []
         self.items = SessionItems()  # captures and measurements, listed on the page
+        self.archive: Any = None  # the exam's archive (archive_routes.ConsoleArchive), if on
         self._file_key = Credential(self.key, throttle=False)  # the captured files' reads
         self.clips_writing = 0
         self._tasks: set[asyncio.Future] = set()
@@ -376,12 +377,16 @@ class ConsoleServer:
             app.router.add_get("/ws", self._handle)
             app.router.add_get("/captures/{name}", self._captured_file)
             add_page_files(app, WEB_DIR)  # only its own files; any other name: 404
+            if self.archive is not None:
+                self.archive.add_routes(app)
 
         self._loop = asyncio.get_running_loop()
         self._loop_thread = threading.get_ident()
         self.port = await self.site.start(routes, cfg, (self._host_guard,))
         self.pages.guard = self.site.guard
         self._spawn(self._pump_state())
+        if self.archive is not None:
+            await self.archive.start()
 
     async def stop(self) -> None:
         self.pages.closing = True  # a page reconnecting now is turned away (cleanup waits)
@@ -394,6 +399,8 @@ class ConsoleServer:
         self._unsubscribe()
         await self.pages.close_all()
         await self.site.stop()
+        if self.archive is not None:  # (after the clips: theirs are queued too)
+            await self.archive.stop()
 
     def _spawn(self, coro: Any) -> None:
         task = asyncio.ensure_future(coro)
@@ -854,6 +861,8 @@ class ConsoleServer:
             self._record("caliper", {**base, "mm": mm, "a_px": m.a, "b_px": m.b})
             self._result(client, "caliper", True, f"{mm:.1f} mm", mm=mm, seq=f.seq, id=m.id)
             self._add_item("caliper", f, mm=round(mm, 2), text=f"{mm:.1f} mm")
+            if self.archive is not None:
+                self.archive.mark(f, caliper=(m.a, m.b, mm))
         elif isinstance(m, Annotation):
             text = " ".join(m.text.split())
             if not text:
@@ -863,6 +872,8 @@ class ConsoleServer:
             self._record("annotation", {**base, "text": text, "a_px": m.at})
             self._result(client, "annotation", True, text, seq=f.seq, id=m.id)
             self._add_item("note", f, text=text)
+            if self.archive is not None:
+                self.archive.mark(f, note=(m.at, text))
         else:
             self._spawn(self._capture_when_encoded(client, f, base, m))
 
@@ -953,6 +964,8 @@ class ConsoleServer:
             rec.attach(path.name, "image/jpeg", f.jpeg, f.t_capture)
         item = self._add_item("capture", f, file=path.name, clip=None, clip_pending=bool(clip))
         detail = path.name + (f" and a {clip_s:g} s clip (writing)" if clip else "")
+        if self.archive is not None:  # the same still and clip, as DICOM, to the PACS
+            self.archive.capture(f, clip)
         self._result(client, "capture", True, detail, seq=f.seq, file=str(path), id=m.id)
         if clip:
             task = asyncio.create_task(self._write_clip(client, path, clip, item, m.id))
@@ -1053,6 +1066,8 @@ class ConsoleServer:
             "transports": sorted({getattr(c, "transport", "?") for c in self.clients}),
             "subscribed": self._subscribed,
         }
+        if self.archive is not None:  # counts only: no identity in the stats
+            out["archive"] = {k: v for k, v in self.archive.status().items() if k != "last"}
         for track, st in self.tracks.items():
             out[track] = {
                 "frames": st.frames,
