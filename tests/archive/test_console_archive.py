@@ -82,6 +82,7 @@ async def test_the_exam_from_the_console_reaches_the_archive_and_nowhere_else(
             await until(lambda: len(scp.kept) == 4)  # image, clip, SR, presentation state
             await ws.send_json({"type": "caliper", "seq": 4, "a": [0, 0], "b": [30, 40]})
             await until(lambda: len(scp.kept) == 6)  # a new SR and presentation state
+            await until(lambda: server.archive.status()["archived"] == 6)  # (its answers)
             async with http.get(f"{base}/archive/status", headers=headers) as r:
                 status = await r.json()
             assert status["text"] == "archived 6 of 6" and status["exam"]
@@ -103,3 +104,26 @@ async def test_the_exam_from_the_console_reaches_the_archive_and_nowhere_else(
     recording = (tmp_path / "s.expert.mcap").read_bytes()
     for secret in (SECRET_NAME, PATIENT.patient_id, PATIENT.accession_number):
         assert secret.encode() not in recording
+
+
+async def test_the_expert_daemon_s_console_serves_the_archive_only_when_enabled(tmp_path):
+    from types import SimpleNamespace
+
+    from humantele.expert.console.hook import DaemonConsole
+
+    expert = SimpleNamespace(scan=None, clock=lambda: 0.0)
+    for enabled in (True, False):
+        cfg = ArchiveConfig(enabled=enabled, queue_dir=str(tmp_path / "q"))
+        host = DaemonConsole(ConsoleConfig(port=0, video="none"), None, cfg)
+        await host.start(expert)
+        try:
+            url = f"{host.server.address}archive/status"
+            async with (
+                aiohttp.ClientSession() as http,
+                http.get(url, headers={"X-Console-Key": host.server.key}) as r,
+            ):
+                assert r.status == (200 if enabled else 404)
+                if enabled:
+                    assert (await r.json())["text"] == "archived 0 of 0"
+        finally:
+            await host.stop()
