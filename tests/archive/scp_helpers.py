@@ -69,13 +69,13 @@ class ArchiveSCP:
             yield 0xFF00, r
         yield 0x0000, None
 
-    def start(self, port: int = 0) -> ArchiveSCP:
+    def start(self, port: int = 0, ssl_context=None) -> ArchiveSCP:
         ae = AE(ae_title=self.aet)
         for cx in AllStoragePresentationContexts:
             ae.add_supported_context(cx.abstract_syntax, ALL_SYNTAXES)
         ae.add_supported_context(StudyRootQueryRetrieveInformationModelFind)
         self.server = ae.start_server(
-            ("127.0.0.1", port), block=False,
+            ("127.0.0.1", port), block=False, ssl_context=ssl_context,
             evt_handlers=[(evt.EVT_C_STORE, self._store), (evt.EVT_C_FIND, self._find)],
         )  # fmt: skip
         self.port = self.server.server_address[1]

@@ -241,3 +241,24 @@ def test_a_daemon_killed_mid_send_loses_nothing_and_sends_nothing_twice(tmp_path
     assert set(scp.kept) == {i.sop for i in items}
     assert set(scp.stores.values()) == {1}  # the first was found, not sent again
     assert b.status()["text"] == "archived 3 of 3"
+
+
+def test_dicom_over_tls_checks_the_archive_s_certificate(tmp_path):
+    from humantele.web.tls import ensure_certificate
+
+    cert = ensure_certificate(tmp_path / "tls", ["127.0.0.1"])
+    scp = ArchiveSCP().start(ssl_context=cert.ssl_context())
+    try:
+        a = archive(tmp_path / "q", scp.port, tls=True, tls_ca_file=str(cert.cert_path))
+        a.begin(PATIENT)
+        items = captures(a, 1)
+        assert a.forwarder.step() is None
+        assert set(scp.kept) == {items[0].sop}
+        other = ensure_certificate(tmp_path / "other", ["127.0.0.1"])  # not the archive's
+        b = archive(tmp_path / "q2", scp.port, tls=True, tls_ca_file=str(other.cert_path))
+        b.begin(PATIENT)
+        captures(b, 1)
+        assert b.forwarder.step() == pytest.approx(2.0)  # unreachable: its back-off
+        assert b.status()["unreachable"] and b.queue.pending()
+    finally:
+        scp.stop()
