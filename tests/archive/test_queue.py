@@ -212,6 +212,7 @@ KILLED = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow  # starts a sender process
 def test_a_daemon_killed_mid_send_loses_nothing_and_sends_nothing_twice(tmp_path, scp):
     a = archive(tmp_path, scp.port)
     a.begin(PATIENT)

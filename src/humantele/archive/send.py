@@ -11,6 +11,7 @@ answer never came.
 from __future__ import annotations
 
 import contextlib
+import logging
 import ssl
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,6 +32,10 @@ from pydicom.uid import (
 
 from humantele.archive.config import ArchiveConfig
 from humantele.archive.queue import Item
+
+# pynetdicom logs whole datasets at DEBUG (a worklist answer's patient names among them): its
+# loggers stay at WARNING whatever the daemon's --log-level (no identity in logs).
+logging.getLogger("pynetdicom").setLevel(logging.WARNING)
 
 # Status codes a C-STORE SCP answers with that mean "stored" (PS3.4 B.2.3): success and the
 # warnings (coerced, elements discarded, does not match the SOP class).

@@ -181,12 +181,17 @@ class ExamArchive:
             self._task = asyncio.ensure_future(self.forwarder.run())
 
     async def stop(self) -> None:
+        """Stop sending: a send in progress is let finish (its answer journaled, up to the
+        association's timeout), then the journal is closed."""
         if self._task is not None:
             self._task.cancel()
             self.forwarder.kick()
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await self._task
             self._task = None
+        busy = self.forwarder._busy
+        if await asyncio.to_thread(busy.acquire, True, self.cfg.timeout_s + 5.0):
+            busy.release()
         self.queue.close()
 
     def status(self) -> dict[str, Any]:
