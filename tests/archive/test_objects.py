@@ -82,11 +82,16 @@ def test_no_pixel_spacing_means_no_region_rather_than_a_wrong_one(exam):
     assert "SequenceOfUltrasoundRegions" not in ds
 
 
-def test_the_console_s_own_i420_jpeg_is_accepted_and_decodes_the_same():
+def test_the_console_s_own_i420_jpeg_is_accepted_and_decodes_the_same(exam):
     yuv = cv2.cvtColor(frame(2), cv2.COLOR_BGR2YUV_I420)
     av_frame = av.VideoFrame.from_ndarray(yuv, format="yuv420p")
-    data = I420Jpeg(88).encode(av_frame)
+    data = I420Jpeg(88).encode(av_frame)  # libavcodec's MJPEG: a COM marker, no JFIF APP0
     assert obj.jpeg_shape(data) == (480, 640, 3)
+    ds = roundtrip(obj.us_image(data, 1.79e9, SCALE, place(exam), EQ))
+    rgb = ds.pixel_array  # pydicom's own decoder, YBR_FULL_422 converted to RGB
+    seen = cv2.cvtColor(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR),
+                        cv2.COLOR_BGR2RGB)  # fmt: skip
+    assert rgb.shape == seen.shape and np.abs(rgb.astype(float) - seen).mean() < 2.0
 
 
 def test_a_bad_frame_is_refused_with_a_reason(exam):
