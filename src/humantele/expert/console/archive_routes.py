@@ -25,24 +25,34 @@ from typing import Any
 from aiohttp import web
 from pydantic import ValidationError
 
-from humantele.archive import objects as obj
-from humantele.archive.config import ArchiveConfig
-from humantele.archive.exam import Patient
-from humantele.archive.queue import QueueFull
-from humantele.archive.send import Unreachable
-from humantele.archive.service import ExamArchive, NoExam
 from humantele.web.credential import Credential, Verdict
+
+# (humantele.archive, pydicom and highdicom are imported only when the archive is on)
 
 log = logging.getLogger(__name__)
 MAX_BODY = 4096
+
+
+def add_routes(app: web.Application, archive: ConsoleArchive | None) -> None:
+    """The archive's routes; with the archive off, only its status saying so (the page's
+    panel then stays hidden, and asks nothing more)."""
+    if archive is not None:
+        archive.add_routes(app)
+    else:
+        app.router.add_get("/archive/status", _off)
+
+
+async def _off(request: web.Request) -> web.Response:
+    return web.json_response({"enabled": False}, headers={"Cache-Control": "no-store"})
 
 
 class ConsoleArchive:
     """The archive behind the console (``cfg``: ``[expert.archive]``; ``key``: the console's;
     ``scan()``: the scan in progress, None when none)."""
 
-    def __init__(self, cfg: ArchiveConfig, key: str, scan: Any = None,
-                 archive: ExamArchive | None = None) -> None:  # fmt: skip
+    def __init__(self, cfg: Any, key: str, scan: Any = None, archive: Any = None) -> None:
+        from humantele.archive.service import ExamArchive
+
         self.cfg = cfg
         self.archive = archive or ExamArchive(cfg)
         self._key = Credential(key, throttle=False)
@@ -70,6 +80,8 @@ class ConsoleArchive:
 
     def capture(self, f: Any, clip: list[Any]) -> None:
         """A still the console saved (and its clip's cine frames) into the archive's queue."""
+        from humantele.archive import objects as obj
+
         scan = self.scan()
         scale = obj.Scale(f.pixel_spacing_mm, f.depth_origin_row)
 
@@ -85,6 +97,8 @@ class ConsoleArchive:
     def mark(self, f: Any, caliper: tuple | None = None, note: tuple | None = None) -> None:
         """A caliper ((a, b) px, mm) or note ((x, y) px, text) on a frame: with its capture,
         an SR and a presentation state."""
+        from humantele.archive import objects as obj
+
         scan = self.scan()
         name = "captures" if scan is None else f"scan {scan}"
         c = None if caliper is None else obj.Caliper(tuple(caliper[0]), tuple(caliper[1]),
@@ -98,6 +112,9 @@ class ConsoleArchive:
         self._spawn(work, f.seq)
 
     def _spawn(self, work: Any, seq: int) -> None:
+        from humantele.archive.queue import QueueFull
+        from humantele.archive.service import NoExam
+
         async def run() -> None:
             try:
                 text = await asyncio.to_thread(work)
@@ -121,8 +138,8 @@ class ConsoleArchive:
         log.warning("console: %s", text)  # (no identity in it: frame numbers and reasons)
 
     def status(self) -> dict[str, Any]:
-        return {**self.archive.status(), "last": self.last, "not_archived": dict(self.refused),
-                "identity": self.cfg.identity}  # fmt: skip
+        return {**self.archive.status(), "enabled": True, "last": self.last,
+                "not_archived": dict(self.refused), "identity": self.cfg.identity}  # fmt: skip
 
     # --- routes ------------------------------------------------------------------------------
 
@@ -142,6 +159,8 @@ class ConsoleArchive:
         return web.json_response({"patient": body}, headers={"Cache-Control": "no-store"})
 
     async def _post_exam(self, request: web.Request) -> web.Response:
+        from humantele.archive.exam import Patient
+
         self._check(request)
         if (request.content_length or 0) > MAX_BODY:
             raise web.HTTPRequestEntityTooLarge(MAX_BODY, request.content_length or 0)
@@ -165,9 +184,10 @@ class ConsoleArchive:
         return web.json_response({"ok": True})
 
     async def _worklist(self, request: web.Request) -> web.Response:
-        self._check(request)
+        from humantele.archive.send import Unreachable
         from humantele.archive.worklist import find
 
+        self._check(request)
         try:
             items, bad = await asyncio.to_thread(find, self.cfg)
         except Unreachable as exc:

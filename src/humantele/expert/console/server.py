@@ -62,6 +62,7 @@ from aiohttp import web
 from pydantic import Field, field_validator
 
 from humantele.config import ConfigModel, DirectoryField, directory_problem
+from humantele.expert.console import archive_routes
 from humantele.expert.console.captures import SessionItems, clip_path, save_capture
 from humantele.expert.console.cine import CineBuffer, CineFrame
 from humantele.expert.console.frames import TRACKS, FrameProvider
@@ -377,8 +378,7 @@ class ConsoleServer:
             app.router.add_get("/ws", self._handle)
             app.router.add_get("/captures/{name}", self._captured_file)
             add_page_files(app, WEB_DIR)  # only its own files; any other name: 404
-            if self.archive is not None:
-                self.archive.add_routes(app)
+            archive_routes.add_routes(app, self.archive)  # the exam's archive (or "off")
 
         self._loop = asyncio.get_running_loop()
         self._loop_thread = threading.get_ident()

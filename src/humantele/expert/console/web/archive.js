@@ -97,7 +97,10 @@ function showStatus(s) {
 async function poll() {
   let r;
   try { r = await call("GET", "/archive/status"); } catch { r = { status: 0 }; }
-  if (r.status === 404) { if (panel) panel.hidden = true; return; } // the archive is off
+  if (r.status === 200 && r.data && r.data.enabled === false) { // the archive is off
+    if (panel) panel.hidden = true;
+    return;
+  }
   if (r.status === 200) {
     if (!panel) { panel = buildPanel(); wire(); await loadExam(); }
     panel.hidden = false;
