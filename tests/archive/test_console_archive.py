@@ -86,6 +86,13 @@ async def test_the_exam_from_the_console_reaches_the_archive_and_nowhere_else(
             async with http.get(f"{base}/archive/status", headers=headers) as r:
                 status = await r.json()
             assert status["text"] == "archived 6 of 6" and status["exam"]
+            # a full queue: the capture is saved on disk, its archiving refused with the reason
+            server.archive.archive.queue.max_bytes = 1
+            await ws.send_json({"type": "capture", "seq": 3, "clip_s": 0})
+            r = await next_message(ws, lambda k, d: k == "json" and d["type"] == "result")
+            assert r["ok"]  # (the still itself is saved)
+            await until(lambda: "queue_max_mb" in server.archive.last)
+            assert server.archive.status()["not_archived"] == {"no_exam": 1, "queue_full": 1}
             stats = json.dumps(server.stats())
     finally:
         await server.stop()
