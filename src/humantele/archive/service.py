@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from pydicom.dataset import Dataset
 
 from humantele.archive import objects as obj
@@ -196,8 +197,12 @@ class ExamArchive:
 
     def status(self) -> dict[str, Any]:
         """For the console and the stats: counts and the archive's state, no identity."""
+        lat = self.latencies_s()
+        p50, p95 = (None, None) if not lat else (float(np.percentile(lat, 50)),
+                                                 float(np.percentile(lat, 95)))  # fmt: skip
         return {**self.forwarder.status(), "exam": self.exams.exam is not None,
-                "made": dict(self.made)}  # fmt: skip
+                "made": dict(self.made), "queued_to_archived_p50_s": p50,
+                "queued_to_archived_p95_s": p95}  # fmt: skip
 
     def latencies_s(self) -> list[float]:
         """Queued to archived (s) of each object archived this run."""
