@@ -263,3 +263,15 @@ def test_dicom_over_tls_checks_the_archive_s_certificate(tmp_path):
         assert b.status()["unreachable"] and b.queue.pending()
     finally:
         scp.stop()
+
+
+def test_a_damaged_object_in_the_queue_is_held_with_the_reason_and_the_rest_go_on(tmp_path, scp):
+    a = archive(tmp_path, scp.port)
+    a.begin(PATIENT)
+    items = captures(a, 3)
+    a.queue.path(items[1]).write_bytes(b"not DICOM any more")
+    a.forwarder.step()
+    st = a.status()
+    assert st["archived"] == 2 and st["refused"] == 1
+    assert "cannot be read from the queue" in st["refused_items"][0]["reason"]
+    assert set(scp.kept) == {items[0].sop, items[2].sop}

@@ -17,8 +17,10 @@ import threading
 import time
 from typing import Any
 
+from pydicom.errors import InvalidDicomError
+
 from humantele.archive.queue import DiskQueue
-from humantele.archive.send import Sender, Unreachable
+from humantele.archive.send import Answer, Sender, Unreachable
 
 log = logging.getLogger(__name__)
 
@@ -89,7 +91,10 @@ class Forwarder:
                         self.archived_at[item.n] = self.clock()
                         continue
                 self.queue.sending(item)
-                answer = conn.store(self.queue.path(item))
+                try:
+                    answer = conn.store(self.queue.path(item))
+                except (OSError, ValueError, InvalidDicomError) as exc:  # its file, not the link
+                    answer = Answer(False, f"cannot be read from the queue: {exc}"[:200])
                 if answer.stored:
                     self.queue.archived(item, answer.reason)
                     self.sent += 1
@@ -117,9 +122,14 @@ class Forwarder:
         self.unreachable = why
 
     async def run(self) -> None:
-        """Send until cancelled: a pass when something is due or :meth:`kick` is called."""
+        """Send until cancelled: a pass when something is due or :meth:`kick` is called (a
+        pass that fails unexpectedly is logged and tried again later, never ends sending)."""
         while True:
-            delay = await asyncio.to_thread(self.step)
+            try:
+                delay = await asyncio.to_thread(self.step)
+            except Exception:  # noqa: BLE001 - e.g. the journal's disk: said, tried again
+                log.exception("archive: sending failed; trying again in %.0f s", self.retry_max_s)
+                delay = self.retry_max_s
             self.wake.clear()
             wait = 3600.0 if delay is None else max(0.05, delay)
             await asyncio.to_thread(self.wake.wait, wait)
