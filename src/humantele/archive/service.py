@@ -117,6 +117,7 @@ class ExamArchive:
             where = self._place(scan, _series_text(scan))
             image = obj.us_image(jpeg, self.unix(t_capture), scale, where, self.equipment)
             items = [self._put(image, "image", seq)]
+            self.forwarder.kick()  # the still goes while its clip is encoded
             if clip and len(clip) >= 2:
                 cw = self._place(scan, _series_text(scan))
                 frames = obj.us_multiframe(
