@@ -21,6 +21,8 @@ NOT_IMPORTED = {"pyusb"}
 PART_OF = {
     "pydantic-core": "pydantic (pydantic pins its own core exactly)",
     "zstandard": "mcap (its compression; recording.writer falls back without it)",
+    "pillow": "highdicom (it requires it; archive.objects takes its sRGB ICC profile)",
+    "requests": "dicomweb-client (its HTTP session; archive.send gives it the TLS files)",
 }
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pydantic import Field
 
+from humantele.archive.config import ArchiveConfig
 from humantele.config import ConfigError, ConfigModel, validate_config
 from humantele.daemons.session import SessionConfig
 from humantele.expert.console import ConsoleConfig
@@ -30,6 +31,7 @@ class ExpertConfig(ConfigModel):
     recording: RecorderConfig = RecorderConfig()
     console: ConsoleConfig = ConsoleConfig()
     igtl: IgtlConfig = IgtlConfig()
+    archive: ArchiveConfig = ArchiveConfig()  # the hospital's PACS (off by default)
 
 
 def servo_config_for(mapping: MappingConfig, servo: ServoConfig) -> ServoConfig:

@@ -128,7 +128,7 @@ class ExpertDaemon(Daemon):
         self.virtual_history = PoseHistory()
         self.console_clutch = False
         receiver = self.video if config.video.enabled else None
-        self.console_host = DaemonConsole(config.console, receiver)  # serves the console
+        self.console_host = DaemonConsole(config.console, receiver, config.archive)
 
     # --- incoming messages, one handler per kind ------------------------------------------
 

@@ -1,4 +1,5 @@
-"""``humantele export RECORDING... [--scan N] [--start S] [--end S] [--out DIR] [--jobs N]``:
+"""``humantele export RECORDING... [--scan N] [--start S] [--end S] [--out DIR] [--jobs N]``
+(``--dicom``: DICOM objects instead, :mod:`humantele.export.dicom`):
 per scan, an MP4 (H.264) of each video stream for raters and any player, and an MCAP for
 Foxglove with the video (``foxglove.CompressedVideo``, H.264) beside the poses and force.
 
@@ -81,6 +82,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--crf", type=int, default=20, help="x264 quality, 0 (lossless) - 51; default 20"
     )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    from humantele.export.dicom import add_arguments as dicom_arguments
+
+    dicom_arguments(parser)  # --dicom and its options
 
 
 def usable_cores() -> int:
@@ -221,6 +225,10 @@ def run_jobs(jobs: list[TranscodeJob], n_workers: int, progress: Progress) -> li
 
 
 def run(args: argparse.Namespace) -> int:
+    if getattr(args, "dicom", False):  # humantele export --dicom (humantele.export.dicom)
+        from humantele.export.dicom import run_dicom
+
+        return run_dicom(args)
     if args.jobs is not None and args.jobs < 1:
         raise ConfigError(f"--jobs: must be >= 1, got {args.jobs}")
     if not 0 <= args.crf <= 51:

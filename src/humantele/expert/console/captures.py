@@ -127,6 +127,7 @@ class Captures:
         self.clips_writing = 0
         self._clips: set[asyncio.Task] = set()  # clips being written
         self._file_key = Credential(key, throttle=False)  # the captured files' reads
+        self.archive: Any = None  # the exam's archive (archive_routes.ConsoleArchive), if on
 
     @property
     def refused_count(self) -> int:
@@ -222,6 +223,8 @@ class Captures:
             rec.attach(path.name, "image/jpeg", f.jpeg, f.t_capture)
         item = self.add_item("capture", f, file=path.name, clip=None, clip_pending=bool(clip))
         detail = path.name + (f" and a {clip_s:g} s clip (writing)" if clip else "")
+        if self.archive is not None:  # the same still and clip, as DICOM, to the PACS
+            self.archive.capture(f, clip)
         result(client, "capture", True, detail, seq=f.seq, file=str(path), id=m.id)
         if clip:
             task = asyncio.create_task(self._write_clip(client, path, clip, item, m.id))

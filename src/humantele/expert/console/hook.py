@@ -187,8 +187,9 @@ class DaemonConsole:
     start (a port that cannot be had is logged and the daemon runs without it: the haptics come
     first), the follower's US scale on its received frames, stopped at the daemon's end."""
 
-    def __init__(self, cfg: ConsoleConfig, receiver: Any | None) -> None:
+    def __init__(self, cfg: ConsoleConfig, receiver: Any | None, archive: Any = None) -> None:
         self.cfg = cfg
+        self.archive_cfg = archive  # [expert.archive] (None or disabled: no archive)
         self.receiver = receiver
         self.server: Any = None  # the ConsoleServer while served (tests may put a stand-in)
         self.local: ProcessFrames | None = None  # sim video sources, stopped at the end
@@ -216,6 +217,15 @@ class DaemonConsole:
         if not self.cfg.enabled or self.server is not None:
             return
         self.server, self.local = make_console(expert, self.cfg, self.receiver)
+        if self.archive_cfg is not None and self.archive_cfg.enabled:
+            from humantele.expert.console.archive_routes import ConsoleArchive
+
+            try:
+                self.server.archive = ConsoleArchive(
+                    self.archive_cfg, self.server.key, scan=lambda: expert.scan
+                )
+            except OSError as exc:  # its queue folder: the haptics and the session go on
+                log.error("expert: [expert.archive] queue_dir unusable, no archive: %s", exc)
         self.apply_us_scale(self.server.frames)  # one that came before the console
         try:
             await self.server.start()

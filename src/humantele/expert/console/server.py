@@ -48,6 +48,7 @@ from typing import Any
 from aiohttp import web
 
 from humantele.config import directory_problem
+from humantele.expert.console import archive_routes
 from humantele.expert.console.captures import Captures
 from humantele.expert.console.cine import CineBuffer
 from humantele.expert.console.config import ConsoleConfig
@@ -197,11 +198,14 @@ class ConsoleServer:
             app.router.add_get("/ws", self._handle)
             app.router.add_get("/captures/{name}", self.captures.serve_file)
             add_page_files(app, WEB_DIR)  # only its own files; any other name: 404
+            archive_routes.add_routes(app, self.archive)  # the exam's archive (or "off")
 
         self.video_out.started()
         self.port = await self.site.start(routes, cfg, (self._host_guard,))
         self.pages.guard = self.site.guard
         self._spawn(self._pump_state())
+        if self.archive is not None:
+            await self.archive.start()
 
     async def stop(self) -> None:
         self.pages.closing = True  # a page reconnecting now is turned away (cleanup waits)
@@ -213,6 +217,17 @@ class ConsoleServer:
         self.video_out.unsubscribe()
         await self.pages.close_all()
         await self.site.stop()
+        if self.archive is not None:  # (after the clips: theirs are queued too)
+            await self.archive.stop()
+
+    @property
+    def archive(self) -> Any:
+        """The exam's archive (archive_routes.ConsoleArchive), or None when it is off."""
+        return self.captures.archive
+
+    @archive.setter
+    def archive(self, archive: Any) -> None:
+        self.captures.archive = archive
 
     def _spawn(self, coro: Any) -> None:
         task = asyncio.ensure_future(coro)
@@ -382,6 +397,8 @@ class ConsoleServer:
             "transports": sorted({getattr(c, "transport", "?") for c in self.clients}),
             "subscribed": self.video_out.subscribed,
         }
+        if self.archive is not None:  # counts only: no identity in the stats
+            out["archive"] = {k: v for k, v in self.archive.status().items() if k != "last"}
         for track, st in self.tracks.items():
             out[track] = st.stats()
         return out

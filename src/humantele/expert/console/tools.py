@@ -107,6 +107,8 @@ class UltrasoundTools:
             self.record("caliper", {**base, "mm": mm, "a_px": m.a, "b_px": m.b})
             result(client, "caliper", True, f"{mm:.1f} mm", mm=mm, seq=f.seq, id=m.id)
             self.captures.add_item("caliper", f, mm=round(mm, 2), text=f"{mm:.1f} mm")
+            if self.captures.archive is not None:
+                self.captures.archive.mark(f, caliper=(m.a, m.b, mm))
         elif isinstance(m, Annotation):
             text = " ".join(m.text.split())
             if not text:
@@ -116,5 +118,7 @@ class UltrasoundTools:
             self.record("annotation", {**base, "text": text, "a_px": m.at})
             result(client, "annotation", True, text, seq=f.seq, id=m.id)
             self.captures.add_item("note", f, text=text)
+            if self.captures.archive is not None:
+                self.captures.archive.mark(f, note=(m.at, text))
         else:
             self.spawn(self.captures.capture(client, f, base, m))

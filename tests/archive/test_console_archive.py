@@ -1,0 +1,140 @@
+"""The console with ``[expert.archive]`` on, against a pynetdicom archive in the test process:
+the patient entered on the page (a POST, never a URL), a capture before it refused with the
+reason, the capture, its clip, a caliper and a note archived as DICOM, the page told
+"archived N of N"; and the patient's identity appears in no log line, recording, capture side
+file or stats, only in the objects and their queue."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import sys
+from pathlib import Path
+
+import aiohttp
+import pytest
+from exam_helpers import PATIENT, SECRET_NAME
+from scp_helpers import ArchiveSCP
+
+from humantele.archive.config import ArchiveConfig
+from humantele.expert.console import ConsoleConfig, ConsoleServer
+from humantele.expert.console.archive_routes import ConsoleArchive
+from humantele.recording import Recorder
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "expert"))
+from test_console_server import FakeClock, ManualFrames, Session, next_message  # noqa: E402
+
+
+async def until(check, timeout_s: float = 30.0):
+    for _ in range(int(timeout_s / 0.02)):
+        if check():
+            return
+        await asyncio.sleep(0.02)
+    raise AssertionError("not in time")
+
+
+@pytest.fixture
+def scp():
+    s = ArchiveSCP().start()
+    yield s
+    s.stop()
+
+
+async def test_the_exam_from_the_console_reaches_the_archive_and_nowhere_else(
+    tmp_path, scp, caplog
+):
+    caplog.set_level(logging.DEBUG)
+    clock = FakeClock()
+    frames = ManualFrames(clock)
+    rec = Recorder(tmp_path / "s.expert.mcap", "expert")
+    session = Session(recorder=rec)
+    server = ConsoleServer(ConsoleConfig(port=0, captures_dir=str(tmp_path / "captures")),
+                           frames, session, clock=clock)  # fmt: skip
+    cfg = ArchiveConfig(enabled=True, port=scp.port, called_ae=scp.aet,
+                        queue_dir=str(tmp_path / "queue"), retry_min_s=0.1)  # fmt: skip
+    server.archive = ConsoleArchive(cfg, server.key, scan=lambda: session.scan)
+    await server.start()
+    headers = {"X-Console-Key": server.key}
+    base = server.address.rstrip("/")
+    try:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
+            async with http.get(f"{base}/archive/status") as r:
+                assert r.status == 401  # no key, nothing
+            for _ in range(4):
+                f = frames.next("us")
+                await next_message(ws, lambda k, d, s=f.seq: k == "frame" and d[0]["seq"] == s)
+                clock.t += 0.05
+            # a capture before the patient: saved on disk, not archived, the page says why
+            await ws.send_json({"type": "capture", "seq": 1, "clip_s": 0})
+            await next_message(ws, lambda k, d: k == "json" and d["type"] == "result")
+            await until(lambda: "enter the patient" in server.archive.last)
+            bad = {**PATIENT.model_dump(mode="json"), "sex": "X"}
+            async with http.post(f"{base}/archive/exam", json=bad, headers=headers) as r:
+                assert r.status == 400 and "sex" in (await r.json())["error"]
+            body = PATIENT.model_dump(mode="json")
+            async with http.post(f"{base}/archive/exam", json=body, headers=headers) as r:
+                assert r.status == 200
+            session.scan = 1
+            await ws.send_json({"type": "caliper", "seq": 4, "a": [10, 20], "b": [40, 60]})
+            await ws.send_json({"type": "annotation", "seq": 4, "at": [50, 50], "text": "cyst"})
+            await ws.send_json({"type": "capture", "seq": 4, "clip_s": 5})
+            await until(lambda: len(scp.kept) == 4)  # image, clip, SR, presentation state
+            await ws.send_json({"type": "caliper", "seq": 4, "a": [0, 0], "b": [30, 40]})
+            await until(lambda: len(scp.kept) == 6)  # a new SR and presentation state
+            await until(lambda: server.archive.status()["archived"] == 6)  # (its answers)
+            async with http.get(f"{base}/archive/status", headers=headers) as r:
+                status = await r.json()
+            assert status["text"] == "archived 6 of 6" and status["exam"]
+            # a full queue: the capture is saved on disk, its archiving refused with the reason
+            server.archive.archive.queue.max_bytes = 1
+            await ws.send_json({"type": "capture", "seq": 3, "clip_s": 0})
+            r = await next_message(ws, lambda k, d: k == "json" and d["type"] == "result")
+            assert r["ok"]  # (the still itself is saved)
+            await until(lambda: "queue_max_mb" in server.archive.last)
+            assert server.archive.status()["not_archived"] == {"no_exam": 1, "queue_full": 1}
+            stats = json.dumps(server.stats())
+    finally:
+        await server.stop()
+        rec.close()
+    kinds = sorted(str(d.SOPClassUID.name) for d in scp.kept.values())
+    assert kinds == sorted(["Ultrasound Image Storage", "Ultrasound Multi-frame Image Storage"]
+                           + ["Comprehensive 3D SR Storage"] * 2
+                           + ["Color Softcopy Presentation State Storage"] * 2)  # fmt: skip
+    assert all(d.PatientID == PATIENT.patient_id for d in scp.kept.values())
+    assert set(scp.stores.values()) == {1}
+    # identity: nowhere but in the objects and the queue's folder
+    assert SECRET_NAME not in caplog.text and PATIENT.patient_id not in caplog.text
+    assert SECRET_NAME not in stats and PATIENT.patient_id not in stats
+    for path in (tmp_path / "captures").iterdir():
+        assert SECRET_NAME.encode() not in path.read_bytes(), path
+    recording = (tmp_path / "s.expert.mcap").read_bytes()
+    for secret in (SECRET_NAME, PATIENT.patient_id, PATIENT.accession_number):
+        assert secret.encode() not in recording
+
+
+async def test_the_expert_daemon_s_console_says_whether_the_archive_is_on(tmp_path):
+    from types import SimpleNamespace
+
+    from humantele.expert.console.hook import DaemonConsole
+
+    expert = SimpleNamespace(scan=None, clock=lambda: 0.0)
+    for enabled in (True, False):
+        cfg = ArchiveConfig(enabled=enabled, queue_dir=str(tmp_path / "q"))
+        host = DaemonConsole(ConsoleConfig(port=0, video="none"), None, cfg)
+        await host.start(expert)
+        try:
+            url = f"{host.server.address}archive/status"
+            async with (
+                aiohttp.ClientSession() as http,
+                http.get(url, headers={"X-Console-Key": host.server.key}) as r,
+            ):
+                assert r.status == 200  # (never a 404: the page's console stays clean)
+                status = await r.json()
+                assert status["enabled"] is enabled
+                if enabled:
+                    assert status["text"] == "archived 0 of 0"
+                else:
+                    assert set(status) == {"enabled"}
+        finally:
+            await host.stop()
