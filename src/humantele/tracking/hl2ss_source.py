@@ -9,9 +9,11 @@ H.264/H.265 at a chosen bitrate (``ab_profile``, ``bitrate``; decoded as hl2ss's
 does, :mod:`humantele.tracking.hl2ss_codec`), always with a bitrate > 0 (the app refuses 0
 even for RAW) and, by default, mode 1: every frame carries the rig's pose in the app's world.
 Depth ZDEPTH is refused (its decoder, hl2ss's pyzdepth, is not on PyPI). A link slower than
-the stream makes the app queue frames without bound (docs/hololens.md): a frame later than
-``max_backlog_s`` behind the connection's quickest drops the connection, which empties that
-queue (counted as "backlog"; :mod:`humantele.tracking.hl2ss_backlog`).
+the stream makes the app queue frames without bound (docs/hololens.md): 3 frames in a row
+each later than ``max_backlog_s`` behind the connection's quickest drop the connection, which
+empties that queue (counted as "backlog"; :mod:`humantele.tracking.hl2ss_backlog`). H.26x
+frames are un-biased for the tracker (:func:`~humantele.tracking.hl2ss_codec.unbias_h26x`)
+and marked ``ab_paired``.
 
 Per frame (:class:`TrackingFrame`): ``T_world_rig`` = the rig pose (converted from hl2ss's
 row-vector matrix), ``T_world_camera = T_world_rig @ T_rig_camera`` with the AHAT extrinsics
