@@ -33,8 +33,9 @@ def frame_packets(n: int) -> tuple[list[bytes], list[np.ndarray]]:
 
 
 def cfg(port: int, **kw) -> Hl2ssFrameConfig:
-    base = {"host": "127.0.0.1", "port": port, "mode": 0, "download_calibration": False,
-            "read_timeout_s": 0.2, "stall_s": 2.0, "retry_s": 0.5, "retry_max_s": 2.0}  # fmt: skip
+    base = {"host": "127.0.0.1", "port": port, "mode": 0, "ab_profile": "raw",
+            "download_calibration": False, "read_timeout_s": 0.2, "stall_s": 2.0,
+            "retry_s": 0.5, "retry_max_s": 2.0}  # fmt: skip
     return Hl2ssFrameConfig(**{**base, **kw})
 
 
