@@ -185,3 +185,10 @@ async def test_an_estimate_above_what_the_tracks_sent_is_not_a_short_link():
         sender._senders["pov"].send(150, 1.0)
         await sender.check(t, 0.0, None)
     assert sender.policy.pov_level == 0 and sender.policy.us_rate_level == 0
+    # 15 % random loss: 500 sent, 425 arrive, the estimate 450: not short either
+    for name in ("us", "pov"):
+        sender._senders[name].report["r"].fractionLost = 38  # /256
+    sender._senders["us"].send(350, 1.0)
+    sender._senders["pov"].send(150, 1.0)
+    await sender.check(4.0, 0.0, None)
+    assert sender.policy.link_level == 0 and sender.policy.link_us_level == 0

@@ -111,9 +111,9 @@ class DegradationPolicy:
 
     def apply_link(self, t: float, budget: Budget, short: bool = True) -> bool:
         """The link's budget at time ``t`` (s): its levels take effect at once when lower and
-        the link is ``short`` (its estimate below what the tracks send, or losing more than
-        ``max_loss``: a REMB that has not yet grown to what the link carries, as at a
-        session's start, lowers nothing); they come back one step per ``recover_s`` (REMB
+        the link is ``short`` (its estimate below what the tracks send, less what was lost: a
+        REMB that has not yet grown to what the link carries, as at a session's start, lowers
+        nothing); they come back one step per ``recover_s`` (REMB
         moves every second: no flapping). Whether a level changed."""
         self.budget = budget
         if not self.config.enabled:

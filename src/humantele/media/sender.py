@@ -309,10 +309,10 @@ class VideoSender:
         sending = None
         if prev is not None and t > prev[0] and report["bytes_sent"] >= prev[1]:
             sending = (report["bytes_sent"] - prev[1]) * 8 / 1000.0 / (t - prev[0])
-        loss = report["loss"]
-        short = (sending is not None and link < SHORT_FRACTION * sending) or (
-            loss is not None and loss > self.config.degrade.max_loss
-        )
+        # what reached the expert of it: its estimate counts received bytes, and random loss
+        # is not a short link (the stepped policy lowers the POV on loss)
+        delivered = None if sending is None else sending * (1.0 - (report["loss"] or 0.0))
+        short = delivered is not None and link < SHORT_FRACTION * delivered
         p.apply_link(t, budget, short)
         us, pov = self._encoders.get("us"), self._encoders.get("pov")
         if us is not None:
