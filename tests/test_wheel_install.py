@@ -1,8 +1,9 @@
 """The package installs from a wheel and runs outside the source checkout.
 
 Builds a wheel of this checkout (from a copy, so the checkout gets no build/ or egg-info),
-installs it without dependencies into a fresh venv that sees the system's site-packages (the
-dependencies are installed there already), and runs ``humantele demo --json`` until poses flow
+installs it without dependencies into a fresh venv that sees the site-packages of the
+environment the tests run in (the dependencies are installed there already, be it a venv, the
+system's or the user's), and runs ``humantele demo --json`` until poses flow
 from a directory far from the checkout, without PYTHONPATH: the named definitions (the
 probe's tool, ...) must come from the installed package's data, not from the repository.
 """
@@ -46,6 +47,23 @@ def _run(cmd: list[str], cwd: Path, env: dict[str, str], timeout: float):
     return res
 
 
+def running_site_packages() -> list[str]:
+    """The site-packages folders of the interpreter running the tests, wherever they are (its
+    venv's, the system's, the user's), in its order; not the checkout (an editable install
+    reaches it through a .pth file in one of them, which a plain path line does not run)."""
+    return [p for p in sys.path if Path(p).name in ("site-packages", "dist-packages")]
+
+
+def _see_running_site_packages(py: Path) -> None:
+    """Make the venv of ``py`` see the running environment's packages: a .pth file in its own
+    site-packages (after it, so the wheel installed there comes first)."""
+    purelib = subprocess.run(
+        [str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+        capture_output=True, text=True, check=True, env=_clean_env(py.parent),
+    ).stdout.strip()  # fmt: skip
+    (Path(purelib) / "humantele-test-deps.pth").write_text("\n".join(running_site_packages()))
+
+
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
     tmp = tmp_path_factory.mktemp("wheel")
@@ -85,8 +103,9 @@ def test_wheel_holds_every_data_file_of_the_package_and_nothing_from_configs(whe
 @pytest.mark.e2e
 def test_installed_wheel_runs_the_demo_outside_the_checkout(wheel: Path, tmp_path: Path):
     env_dir = tmp_path / "venv"
-    venv.EnvBuilder(system_site_packages=True, with_pip=False).create(env_dir)
+    venv.EnvBuilder(with_pip=False).create(env_dir)
     py = env_dir / "bin" / "python"
+    _see_running_site_packages(py)
     env = _clean_env(tmp_path)
     _run(
         [sys.executable, "-m", "pip", "--python", str(py), "install", "-q", "--no-deps",
