@@ -13,13 +13,20 @@ Such a test is marked ``slow`` or uses a fixture that starts those processes; it
 marked ``e2e``, so ``python -m pytest -q -m "not e2e"`` is the fast lane for everyday work
 (the README's command runs everything).
 
+Tests that need a Debian package beyond Python (Chromium, coturn, OpenIGTLink's library, ...)
+skip without it, their reason naming it as ``(system package NAME)`` or ``(system packages A
+B)``; the run's last line counts them by package and gives the one command that installs them
+all (:func:`pytest_sessionfinish`).
+
 Whatever a test process started is killed with its process group when pytest ends, also on
 Ctrl-C, SIGTERM or SIGHUP (``procgroups``): stopping pytest leaves no daemon or Chromium.
 In the xdist controller (whose children are the workers) each worker does it for itself.
 """
 
 import os
+import re
 import sys
+from collections import Counter
 from pathlib import Path
 
 import pytest
@@ -66,3 +73,43 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     rest). An explicit ``-n N`` wins."""
     fast = "not e2e" in (config.getoption("markexpr") or "")
     return FAST_LANE_WORKERS if fast else SUITE_WORKERS
+
+
+INSTALL_SYSTEM_PACKAGES = "sudo tools/install_system_packages.sh"
+_SYSTEM_PACKAGES = re.compile(r"\(system packages? ([^()]+)\)")
+
+
+def skipped_for_system_packages(reports) -> Counter:
+    """Skipped tests by the system package their reason names (a test needing two counts for
+    both): ``{package: tests}``, and ``None`` the number of tests."""
+    counts: Counter = Counter()
+    for rep in reports:
+        longrepr = rep.longrepr
+        reason = longrepr[2] if isinstance(longrepr, tuple) else str(longrepr)
+        found = {p for m in _SYSTEM_PACKAGES.finditer(reason) for p in m.group(1).split()}
+        counts.update(found)
+        counts[None] += bool(found)
+    return counts
+
+
+def system_packages_line(reports) -> str | None:
+    """The run's last line when tests were skipped for want of system packages, else None."""
+    counts = skipped_for_system_packages(reports)
+    if not counts[None]:
+        return None
+    named = ", ".join(f"{p} ({n})" for p, n in sorted(counts.items(), key=str) if p)
+    return (
+        f"{counts[None]} tests skipped for want of system packages: {named}; "
+        f"install them with: {INSTALL_SYSTEM_PACKAGES}"
+    )
+
+
+@pytest.hookimpl(wrapper=True, tryfirst=True)  # around the terminal's, so after its last line
+def pytest_sessionfinish(session: pytest.Session):
+    result = yield
+    reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+    if reporter is not None and not hasattr(session.config, "workerinput"):
+        line = system_packages_line(reporter.stats.get("skipped", []))
+        if line:
+            reporter.write_line(line, yellow=True, bold=True)
+    return result

@@ -10,7 +10,7 @@ from humantele.transport.turnserver import TurnServer
 
 needs_turn = pytest.mark.skipif(
     not TurnServer.available(),
-    reason="turnserver (Debian package coturn) is not installed; CI installs it",
+    reason="no turnserver (system package coturn)",
 )
 
 
