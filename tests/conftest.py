@@ -9,14 +9,16 @@ not all run at once on a 2-core machine, or they starve each other's real-time l
 ones on the host's network go to one worker, one after the other (the xdist group
 ``processes``); the browser scenarios, each in a network namespace of its own (so no port of
 theirs meets the host's), to another (``processes-netns``); the other tests run beside them.
+The two lanes never run a whole session each at once (a Chromium beside a demo in one, another
+demo in the other put the load at 19 on 2 cores): such tests hold one slot between them
+(``tests/session_slot.py``), the lighter ones of each lane run beside.
 Such a test is marked ``slow`` or uses a fixture that starts those processes; it is also
 marked ``e2e``, so ``python -m pytest -q -m "not e2e"`` is the fast lane for everyday work
 (the README's command runs everything).
 
 Tests that need a Debian package beyond Python (Chromium, coturn, OpenIGTLink's library, ...)
-skip without it, their reason naming it as ``(system package NAME)`` or ``(system packages A
-B)``; the run's last line counts them by package and gives the one command that installs them
-all (:func:`pytest_sessionfinish`).
+skip without it, their reason naming it (``system_packages``); the run's last line counts them
+by package and gives the one command that installs them all (:func:`pytest_sessionfinish`).
 
 Whatever a test process started is killed with its process group when pytest ends, also on
 Ctrl-C, SIGTERM or SIGHUP (``procgroups``): stopping pytest leaves no daemon or Chromium.
@@ -24,15 +26,15 @@ In the xdist controller (whose children are the workers) each worker does it for
 """
 
 import os
-import re
 import sys
-from collections import Counter
 from pathlib import Path
 
 import pytest
 from hypothesis import settings
 
 from procgroups import pytest_configure, pytest_unconfigure  # noqa: F401 - the hooks
+from session_slot import whole_session_slot
+from system_packages import system_packages_line
 
 # Where PYTHONDONTWRITEBYTECODE is set (this machine's images set it), pytest rewrote every
 # test module's asserts again on each run, in each worker (2.1 of the 3.6 s a worker spends
@@ -67,41 +69,24 @@ def pytest_collection_modifyitems(items):
             item.add_marker(pytest.mark.e2e)  # the fast lane, -m "not e2e", leaves them out
 
 
+@pytest.fixture(autouse=True)
+def _whole_session_slot(request: pytest.FixtureRequest):
+    """Tests marked ``whole_session`` (a demo or both daemons, started by the test itself) hold
+    the suite's one slot for a whole session (tests/session_slot.py); the ``session`` and
+    ``demo_run`` fixtures and the browser scenarios that start daemons take it themselves."""
+    if request.node.get_closest_marker("whole_session") is None:
+        yield
+        return
+    with whole_session_slot():
+        yield
+
+
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     """``-n auto`` (pyproject.toml's addopts): three workers for the fast lane, two for a run
     with the e2e tests (their slow ones run one at a time in two xdist groups, beside the
     rest). An explicit ``-n N`` wins."""
     fast = "not e2e" in (config.getoption("markexpr") or "")
     return FAST_LANE_WORKERS if fast else SUITE_WORKERS
-
-
-INSTALL_SYSTEM_PACKAGES = "sudo tools/install_system_packages.sh"
-_SYSTEM_PACKAGES = re.compile(r"\(system packages? ([^()]+)\)")
-
-
-def skipped_for_system_packages(reports) -> Counter:
-    """Skipped tests by the system package their reason names (a test needing two counts for
-    both): ``{package: tests}``, and ``None`` the number of tests."""
-    counts: Counter = Counter()
-    for rep in reports:
-        longrepr = rep.longrepr
-        reason = longrepr[2] if isinstance(longrepr, tuple) else str(longrepr)
-        found = {p for m in _SYSTEM_PACKAGES.finditer(reason) for p in m.group(1).split()}
-        counts.update(found)
-        counts[None] += bool(found)
-    return counts
-
-
-def system_packages_line(reports) -> str | None:
-    """The run's last line when tests were skipped for want of system packages, else None."""
-    counts = skipped_for_system_packages(reports)
-    if not counts[None]:
-        return None
-    named = ", ".join(f"{p} ({n})" for p, n in sorted(counts.items(), key=str) if p)
-    return (
-        f"{counts[None]} tests skipped for want of system packages: {named}; "
-        f"install them with: {INSTALL_SYSTEM_PACKAGES}"
-    )
 
 
 @pytest.hookimpl(wrapper=True, tryfirst=True)  # around the terminal's, so after its last line

@@ -7,7 +7,11 @@ import subprocess
 from pathlib import Path
 from types import SimpleNamespace
 
-from conftest import INSTALL_SYSTEM_PACKAGES, skipped_for_system_packages, system_packages_line
+from system_packages import (
+    INSTALL_SYSTEM_PACKAGES,
+    skipped_for_system_packages,
+    system_packages_line,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "tools" / "install_system_packages.sh"
@@ -30,11 +34,7 @@ def test_every_package_a_skip_reason_names_is_installed_by_the_script():
     packages = set(listed())
     named: dict[str, set[str]] = {}
     for path in REPO.joinpath("tests").rglob("*.py"):
-        if (
-            "vendor" in path.parts
-            or path.name in ("conftest.py", Path(__file__).name)
-            and (path.parent == REPO / "tests")
-        ):
+        if "vendor" in path.parts or path.name in ("system_packages.py", Path(__file__).name):
             continue
         for m in re.finditer(r"\(system packages? ([^()\"]+)\)", path.read_text()):
             for pkg in m.group(1).split():

@@ -137,6 +137,7 @@ def test_wheel_holds_every_data_file_of_the_package_and_nothing_from_configs(whe
 
 
 @pytest.mark.e2e
+@pytest.mark.whole_session  # one at a time across the lanes (tests/session_slot.py)
 def test_installed_wheel_runs_the_demo_outside_the_checkout(wheel: Path, tmp_path: Path):
     env_dir = tmp_path / "venv"
     venv.EnvBuilder(with_pip=False).create(env_dir)

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+SCENARIOS = HERE / "scenarios"  # scenarios/<name>.py, each with ``async def run(ctx) -> dict``
 CHROMIUM_PATHS = ("/usr/lib/chromium/chromium", "/usr/bin/chromium")
 
 

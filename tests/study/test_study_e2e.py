@@ -18,6 +18,7 @@ TINY = Path(__file__).resolve().parents[2] / "configs" / "study-tiny.toml"
 
 @pytest.mark.e2e
 @pytest.mark.slow
+@pytest.mark.whole_session  # one at a time across the lanes (tests/session_slot.py)
 @pytest.mark.skipif(not TurnServer.available(), reason="no turnserver (system package coturn)")
 def test_a_tiny_study_records_tables_and_charts_and_resumes(tmp_path):
     out, img = tmp_path / "out", tmp_path / "img"
