@@ -62,7 +62,13 @@ from aiohttp import web
 from pydantic import Field, field_validator
 
 from humantele.config import ConfigModel, DirectoryField, directory_problem
-from humantele.expert.console.captures import SessionItems, clip_path, save_capture
+from humantele.expert.console.captures import (
+    FailureLog,
+    SessionItems,
+    clip_path,
+    name_clip,
+    save_capture,
+)
 from humantele.expert.console.cine import CineBuffer, CineFrame
 from humantele.expert.console.frames import TRACKS, FrameProvider
 from humantele.expert.console.jpeg import I420Jpeg, frame_jpeg
@@ -319,6 +325,8 @@ class ConsoleServer:
         self.clips_writing = 0
         self._tasks: set[asyncio.Future] = set()
         self._clips: set[asyncio.Task] = set()  # clips being written
+        self.capture_log = FailureLog(log, "capture")  # a full disk said once, not per capture
+        self.clip_log = FailureLog(log, "clip")
         self.in_flight_timeout_s = IN_FLIGHT_TIMEOUT_S
         self._index = (WEB_DIR / "index.html").read_bytes()
         # Encoded frames to forward: a provider that has them (the WebRTC receiver's).
@@ -936,12 +944,13 @@ class ConsoleServer:
         if rec is not None:
             info["session_id"] = rec.metadata.get("session_id")
         try:
-            path = save_capture(directory, f.seq, f.jpeg, _clean(info), len(clip))
+            path = save_capture(directory, f.seq, f.jpeg, _clean(info))
         except OSError as exc:
             self.refused["capture_failed"] += 1
-            log.error("console: capture not saved: %s", exc)
+            self.capture_log.failure(exc)
             self._result(client, "capture", False, f"not saved: {exc.strerror or exc}", id=m.id)
             return
+        self.capture_log.success()
         self.events["capture"] += 1
         self.captures.append(str(path))
         self.captures_bytes = (self.captures_bytes or 0) + _file_bytes(path)
@@ -970,14 +979,17 @@ class ConsoleServer:
         self.clips_writing += 1
         try:
             info = await asyncio.to_thread(  # (frames not yet JPEGs are made there too)
-                lambda: write_clip([(g.t_capture, g.image_jpeg()) for g in frames], path)
+                lambda: name_clip(
+                    still, write_clip([(g.t_capture, g.image_jpeg()) for g in frames], path)
+                )
             )
         except (OSError, ValueError) as exc:
             self.refused["clip_failed"] += 1
-            log.error("console: clip %s not written: %s", path.name, exc)
+            self.clip_log.failure(exc)
             item["clip_error"] = str(exc)[:200]
             self._result(client, "clip", False, f"clip not saved: {exc}", id=cmd_id)
         else:
+            self.clip_log.success()
             self.events["clip"] += 1
             self.captures_bytes = (self.captures_bytes or 0) + _size(path)
             item.update(clip=path.name, clip_s=round(info.duration_s, 2), clip_frames=info.frames)
