@@ -90,6 +90,7 @@ from humantele.expert.console.messages import (
     RtcAnswer,
     ScanCommand,
     frame_header,
+    outside_image,
 )
 from humantele.expert.console.session import ConsoleSession
 from humantele.runtime.stats import percentile_ms
@@ -848,6 +849,12 @@ class ConsoleServer:
             )
             return
         base = {"seq": f.seq, "t_capture": f.t_capture}
+        at = [m.a, m.b] if isinstance(m, Caliper) else [m.at] if isinstance(m, Annotation) else []
+        off = outside_image(at, f.width, f.height)
+        if off is not None:
+            self.refused["outside_image"] += 1
+            self._result(client, m.type, False, off, id=m.id)
+            return
         if isinstance(m, Caliper):
             if f.pixel_spacing_mm is None:
                 self._result(
