@@ -22,7 +22,7 @@ from humantele.follower.sim_human import SimPatient
 from humantele.recording import read_recording
 from humantele.signaling.server import SignalConfig, SignalingServer
 from procgroups import descendants, resource_tracker
-from session_slot import whole_session_slot
+from session_slot import scaled, whole_session_slot
 
 ROOT = Path(__file__).resolve().parents[2]
 DEMO_CONFIG = ROOT / "configs" / "demo.toml"  # with video
@@ -112,6 +112,9 @@ class Session:
         return proc
 
     async def wait(self, what: str, pred, timeout: float = 30.0) -> None:
+        """Poll ``pred(expert stats, follower stats)`` until true; ``timeout`` (s) scaled to
+        the machine's load (session_slot.time_scale): a bound on a failure, not a wait."""
+        timeout = scaled(timeout)
         t_end = time.monotonic() + timeout
         while time.monotonic() < t_end:
             e, f = self.stats("expert"), self.stats("follower")
@@ -123,7 +126,7 @@ class Session:
             await asyncio.sleep(0.2)
         logs = {p.name: p.read_text()[-3000:] for p in sorted(self.tmp.glob("*.log"))}
         raise AssertionError(
-            f"failed waiting for {what}\nexpert {self.stats('expert')}\n"
+            f"failed waiting for {what} ({timeout:.0f} s)\nexpert {self.stats('expert')}\n"
             f"follower {self.stats('follower')}\nlogs {logs}"
         )
 
