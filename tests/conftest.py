@@ -9,9 +9,16 @@ not all run at once on a 2-core machine, or they starve each other's real-time l
 ones on the host's network go to one worker, one after the other (the xdist group
 ``processes``); the browser scenarios, each in a network namespace of its own (so no port of
 theirs meets the host's), to another (``processes-netns``); the other tests run beside them.
+The two lanes never run a whole session each at once (a Chromium beside a demo in one, another
+demo in the other put the load at 19 on 2 cores): such tests hold one slot between them
+(``tests/session_slot.py``), the lighter ones of each lane run beside.
 Such a test is marked ``slow`` or uses a fixture that starts those processes; it is also
 marked ``e2e``, so ``python -m pytest -q -m "not e2e"`` is the fast lane for everyday work
 (the README's command runs everything).
+
+Tests that need a Debian package beyond Python (Chromium, coturn, OpenIGTLink's library, ...)
+skip without it, their reason naming it (``system_packages``); the run's last line counts them
+by package and gives the one command that installs them all (:func:`pytest_sessionfinish`).
 
 Whatever a test process started is killed with its process group when pytest ends, also on
 Ctrl-C, SIGTERM or SIGHUP (``procgroups``): stopping pytest leaves no daemon or Chromium.
@@ -26,6 +33,8 @@ import pytest
 from hypothesis import settings
 
 from procgroups import pytest_configure, pytest_unconfigure  # noqa: F401 - the hooks
+from session_slot import whole_session_slot
+from system_packages import system_packages_line
 
 # Where PYTHONDONTWRITEBYTECODE is set (this machine's images set it), pytest rewrote every
 # test module's asserts again on each run, in each worker (2.1 of the 3.6 s a worker spends
@@ -60,9 +69,32 @@ def pytest_collection_modifyitems(items):
             item.add_marker(pytest.mark.e2e)  # the fast lane, -m "not e2e", leaves them out
 
 
+@pytest.fixture(autouse=True)
+def _whole_session_slot(request: pytest.FixtureRequest):
+    """Tests marked ``whole_session`` (a demo or both daemons, started by the test itself) hold
+    the suite's one slot for a whole session (tests/session_slot.py); the ``session`` and
+    ``demo_run`` fixtures and the browser scenarios that start daemons take it themselves."""
+    if request.node.get_closest_marker("whole_session") is None:
+        yield
+        return
+    with whole_session_slot():
+        yield
+
+
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     """``-n auto`` (pyproject.toml's addopts): three workers for the fast lane, two for a run
     with the e2e tests (their slow ones run one at a time in two xdist groups, beside the
     rest). An explicit ``-n N`` wins."""
     fast = "not e2e" in (config.getoption("markexpr") or "")
     return FAST_LANE_WORKERS if fast else SUITE_WORKERS
+
+
+@pytest.hookimpl(wrapper=True, tryfirst=True)  # around the terminal's, so after its last line
+def pytest_sessionfinish(session: pytest.Session):
+    result = yield
+    reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+    if reporter is not None and not hasattr(session.config, "workerinput"):
+        line = system_packages_line(reporter.stats.get("skipped", []))
+        if line:
+            reporter.write_line(line, yellow=True, bold=True)
+    return result

@@ -1,8 +1,11 @@
 """The package installs from a wheel and runs outside the source checkout.
 
-Builds a wheel of this checkout (from a copy, so the checkout gets no build/ or egg-info),
-installs it without dependencies into a fresh venv that sees the system's site-packages (the
-dependencies are installed there already), and runs ``humantele demo --json`` until poses flow
+Builds a wheel and a source distribution of this checkout (from a copy, so the checkout gets no
+build/ or egg-info), checks that neither holds the vendored hl2ss client (its licence is not
+the project's: NOTICE),
+installs it without dependencies into a fresh venv that sees the site-packages of the
+environment the tests run in (the dependencies are installed there already, be it a venv, the
+system's or the user's), and runs ``humantele demo --json`` until poses flow
 from a directory far from the checkout, without PYTHONPATH: the named definitions (the
 probe's tool, ...) must come from the installed package's data, not from the repository.
 """
@@ -16,6 +19,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tarfile
 import threading
 import time
 import venv
@@ -46,26 +50,75 @@ def _run(cmd: list[str], cwd: Path, env: dict[str, str], timeout: float):
     return res
 
 
+def running_site_packages() -> list[str]:
+    """The site-packages folders of the interpreter running the tests, wherever they are (its
+    venv's, the system's, the user's), in its order; not the checkout (an editable install
+    reaches it through a .pth file in one of them, which a plain path line does not run)."""
+    return [p for p in sys.path if Path(p).name in ("site-packages", "dist-packages")]
+
+
+def _see_running_site_packages(py: Path) -> None:
+    """Make the venv of ``py`` see the running environment's packages: a .pth file in its own
+    site-packages (after it, so the wheel installed there comes first)."""
+    purelib = subprocess.run(
+        [str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+        capture_output=True, text=True, check=True, env=_clean_env(py.parent),
+    ).stdout.strip()  # fmt: skip
+    (Path(purelib) / "humantele-test-deps.pth").write_text("\n".join(running_site_packages()))
+
+
 @pytest.fixture(scope="module")
-def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def checkout_copy(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A copy of the checkout (tests and the vendored hl2ss client included), without git's
+    and the tools' caches, to build from."""
+    src = tmp_path_factory.mktemp("checkout") / "humantele-src"
+    ignore = ("__pycache__", "*.egg-info", ".git", ".pytest_cache", ".ruff_cache", "build",
+              "dist", ".venv", "runs")  # fmt: skip
+    shutil.copytree(REPO, src, ignore=shutil.ignore_patterns(*ignore))
+    assert (src / "tests" / "devices" / "vendor" / "hl2ss" / "hl2ss.py").exists()
+    return src
+
+
+@pytest.fixture(scope="module")
+def wheel(checkout_copy: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     tmp = tmp_path_factory.mktemp("wheel")
-    src = tmp / "humantele-src"
-    src.mkdir()
-    for name in ("pyproject.toml", "README.md"):
-        shutil.copy2(REPO / name, src / name)
-    shutil.copytree(
-        REPO / "src", src / "src", ignore=shutil.ignore_patterns("__pycache__", "*.egg-info")
-    )
     out = tmp / "dist"
     env = _clean_env(tmp)
     _run(
-        [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(out), str(src)],
+        [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(out),
+         str(checkout_copy)],
         tmp,
         env,
         timeout=300,
-    )
+    )  # fmt: skip
     (whl,) = out.glob("humantele-*.whl")
     return whl
+
+
+# hl2ss's client (BSD-3-Clause with the Commons Clause, tests only: NOTICE) by its files' names
+HL2SS_FILES = ("hl2ss.py", "hl2ss_lnm.py", "hl2ss_3dcv.py", "hl2ss_dp.py")
+
+
+def _foreign(names: list[str]) -> list[str]:
+    return [n for n in names if Path(n).name in HL2SS_FILES or "vendor/hl2ss" in n]
+
+
+def test_the_source_distribution_holds_the_package_and_not_the_vendored_hl2ss_client(
+    checkout_copy: Path, tmp_path: Path
+):
+    out = tmp_path / "sdist"
+    _run(
+        [sys.executable, "-c", "import sys; from setuptools import build_meta as b; "
+         "print(b.build_sdist(sys.argv[1]))", str(out)],
+        checkout_copy,
+        _clean_env(tmp_path),
+        timeout=300,
+    )  # fmt: skip
+    (sdist,) = out.glob("humantele-*.tar.gz")
+    with tarfile.open(sdist) as tar:
+        names = tar.getnames()
+    assert any(n.endswith("src/humantele/follower/web/index.html") for n in names)
+    assert not _foreign(names), _foreign(names)
 
 
 def test_wheel_holds_every_data_file_of_the_package_and_nothing_from_configs(wheel: Path):
@@ -80,13 +133,16 @@ def test_wheel_holds_every_data_file_of_the_package_and_nothing_from_configs(whe
     missing = sorted(data - names)
     assert not missing, f"package data not in the wheel (add to pyproject's globs): {missing}"
     assert not [n for n in names if n.startswith("configs/")]
+    assert not _foreign(sorted(names)), _foreign(sorted(names))  # built from the whole checkout
 
 
 @pytest.mark.e2e
+@pytest.mark.whole_session  # one at a time across the lanes (tests/session_slot.py)
 def test_installed_wheel_runs_the_demo_outside_the_checkout(wheel: Path, tmp_path: Path):
     env_dir = tmp_path / "venv"
-    venv.EnvBuilder(system_site_packages=True, with_pip=False).create(env_dir)
+    venv.EnvBuilder(with_pip=False).create(env_dir)
     py = env_dir / "bin" / "python"
+    _see_running_site_packages(py)
     env = _clean_env(tmp_path)
     _run(
         [sys.executable, "-m", "pip", "--python", str(py), "install", "-q", "--no-deps",

@@ -6,6 +6,7 @@ from humantele.cli import main
 
 
 @pytest.mark.slow
+@pytest.mark.whole_session  # one at a time across the lanes (tests/session_slot.py)
 def test_bench_session_runs_two_processes_and_prints_json(capsys):
     assert (
         main(["bench", "session", "--seconds", "1", "--rate", "200", "--json", "--no-write"]) == 0

@@ -10,12 +10,13 @@ from humantele.transport.turnserver import TurnServer
 
 needs_turn = pytest.mark.skipif(
     not TurnServer.available(),
-    reason="turnserver (Debian package coturn) is not installed; CI installs it",
+    reason="no turnserver (system package coturn)",
 )
 
 
 @needs_turn
 @pytest.mark.slow
+@pytest.mark.whole_session  # one at a time across the lanes (tests/session_slot.py)
 def test_bench_session_through_turn_and_the_delay_relay(capsys):
     argv = ["bench", "session", "--seconds", "1", "--rate", "200", "--json", "--no-write"]
     assert main([*argv, "--delay-ms", "10", "--loss", "1", "--seed", "5"]) == 0

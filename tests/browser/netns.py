@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+SCENARIOS = HERE / "scenarios"  # scenarios/<name>.py, each with ``async def run(ctx) -> dict``
 CHROMIUM_PATHS = ("/usr/lib/chromium/chromium", "/usr/bin/chromium")
 
 
@@ -55,13 +56,13 @@ def unshare_command() -> list[str] | None:
 def skip_reason() -> str | None:
     """Why the browser tests cannot run here, or None."""
     if chromium_path() is None:
-        return "no Chromium (Debian: apt-get install chromium fonts-liberation)"
+        return "no Chromium (system packages chromium fonts-liberation)"
     try:
         import playwright  # noqa: F401
     except ImportError:
         return "no playwright (pip install -e '.[test]')"
     if unshare_command() is None:
-        return "cannot make a network namespace (unshare -n and iproute2's ip are needed)"
+        return "cannot make a network namespace: unshare -n and ip (system package iproute2)"
     return None
 
 

@@ -32,6 +32,8 @@ sys.path[:0] = [str(HERE.parent / "session"), str(HERE.parent)]  # its helpers, 
 from netns import chromium_path  # noqa: E402
 from session_helpers import CONSOLE_KEY, PAIRING_CODE, Session, read_json  # noqa: E402
 
+from session_slot import scaled  # noqa: E402
+
 IWER = HERE / "vendor" / "iwer" / "iwer.min.js"
 CHROMIUM_ARGS = [
     "--allow-loopback-in-peer-connection",  # WebRTC ICE on loopback, in the namespace
@@ -132,6 +134,10 @@ class Ctx:
             await context.add_init_script(IWER.read_text() + "\n" + IWER_INSTALL)
         if init_script:
             await context.add_init_script(init_script)
+        # Playwright's own waits (a navigation, a click's target) 30 s by default: scaled, as
+        # every deadline here (session_slot.time_scale), so a loaded machine gets more time
+        context.set_default_timeout(scaled(30.0) * 1000)
+        context.set_default_navigation_timeout(scaled(60.0) * 1000)
         page = await context.new_page()
         page.on(
             "console",
@@ -144,7 +150,9 @@ class Ctx:
     async def until(self, page: Page, expression: str, timeout: float = 30.0) -> Any:
         """Poll ``expression`` (JavaScript) in the page until it is truthy; its value.
         (Playwright's ``wait_for_function`` evaluates strings, which the pages' CSP forbids;
-        ``page.evaluate`` is not subject to it.)"""
+        ``page.evaluate`` is not subject to it.) ``timeout`` (s) is scaled to the machine's
+        load (session_slot.time_scale)."""
+        timeout = scaled(timeout)
         end = time.monotonic() + timeout
         value = None
         while time.monotonic() < end:
@@ -152,7 +160,7 @@ class Ctx:
             if value:
                 return value
             await asyncio.sleep(0.05)
-        raise AssertionError(f"page: {expression!r} still {value!r} after {timeout} s")
+        raise AssertionError(f"page: {expression!r} still {value!r} after {timeout:.0f} s")
 
     async def until_progress(
         self, page: Page, expression: str, progress: str, stall_s: float = 90.0,
@@ -162,7 +170,8 @@ class Ctx:
         (JavaScript, a JSON-able value such as frame counters) keeps changing: it fails when
         ``progress`` has not changed for ``stall_s`` (from the start: nothing yet) or after
         ``cap_s`` in all. A page that draws slowly on a loaded machine gets there; one that
-        stopped drawing fails within ``stall_s``."""
+        stopped drawing fails within ``stall_s``. Both scaled (session_slot.time_scale)."""
+        stall_s, cap_s = scaled(stall_s), scaled(cap_s)
         t0 = time.monotonic()
         last, changed = None, t0
         value = None
@@ -182,11 +191,12 @@ class Ctx:
             await asyncio.sleep(0.1)
 
     async def wait(self, what: str, pred, timeout: float = 30.0) -> None:
-        """Poll ``pred()`` (here, in the scenario) until it is true."""
+        """Poll ``pred()`` (here, in the scenario) until it is true; ``timeout`` scaled."""
+        timeout = scaled(timeout)
         end = time.monotonic() + timeout
         while not pred():
             if time.monotonic() > end:
-                raise AssertionError(f"still waiting for {what} after {timeout} s")
+                raise AssertionError(f"still waiting for {what} after {timeout:.0f} s")
             await asyncio.sleep(0.02)
 
     async def close_page(self, page: Page) -> None:
@@ -311,6 +321,8 @@ class DemoRun:
         return {} if d is None else read_json(d / f"{role}.json")
 
     async def wait(self, what: str, pred, timeout: float = 60.0) -> None:
+        """Poll ``pred(expert stats, follower stats)`` until true; ``timeout`` (s) scaled."""
+        timeout = scaled(timeout)
         end = time.monotonic() + timeout
         while time.monotonic() < end:
             if pred(self.stats("expert"), self.stats("follower")):
@@ -319,7 +331,8 @@ class DemoRun:
                 break
             await asyncio.sleep(0.2)
         raise AssertionError(
-            f"demo: failed waiting for {what}; follower {json.dumps(self.stats('follower'))}"
+            f"demo: failed waiting for {what} ({timeout:.0f} s); "
+            f"follower {json.dumps(self.stats('follower'))}"
         )
 
     async def stop(self) -> None:

@@ -8,12 +8,13 @@ from pathlib import Path
 import pytest
 
 HERE = Path(__file__).parent
+NO_CC = "no C compiler to build the fake OpenHaptics libHD (system package g++)"
 
 
 def _build_fake_hd(out: Path, extra: list[str] | None = None) -> None:
     cc = shutil.which("cc") or shutil.which("gcc")
     if cc is None:
-        pytest.skip("no C compiler (cc/gcc) to build the fake OpenHaptics libHD")
+        pytest.skip(NO_CC)
     subprocess.run(
         [cc, "-shared", "-fPIC", "-O1", "-o", str(out), str(HERE / "fake_libhd.c"),
          *(extra or []), "-lpthread", "-lm"],
@@ -36,7 +37,7 @@ def fake_hd_missing_phantomio(tmp_path_factory) -> str:
     d = tmp_path_factory.mktemp("fakehd_dep")
     cc = shutil.which("cc") or shutil.which("gcc")
     if cc is None:
-        pytest.skip("no C compiler (cc/gcc) to build the fake OpenHaptics libHD")
+        pytest.skip(NO_CC)
     stub_c = d / "phantomio.c"
     stub_c.write_text("int phantom_io_stub(void) { return 0; }\n")
     stub = d / "libPhantomIOLib42.so"

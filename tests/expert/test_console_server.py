@@ -322,6 +322,13 @@ async def test_freeze_cine_calipers_annotation_and_capture_are_measured_saved_re
             r = await next_message(ws, lambda k, d: k == "json" and d["type"] == "result")
             want = math.hypot(30 * spacing[1], 40 * spacing[0])
             assert r["ok"] and r["of"] == "caliper" and r["mm"] == pytest.approx(want)
+            # Issue 34 §4: a caliper of 110,900 mm, far outside the image, was accepted
+            await ws.send_json({"type": "caliper", "seq": 2, "a": a, "b": [99000.0, 60.0]})
+            r = await next_message(ws, lambda k, d: k == "json" and d["type"] == "result")
+            assert not r["ok"] and "outside the" in r["detail"]
+            await ws.send_json({"type": "annotation", "seq": 2, "at": [-5.0, 60.0], "text": "x"})
+            r = await next_message(ws, lambda k, d: k == "json" and d["type"] == "result")
+            assert not r["ok"] and "outside the" in r["detail"]
             await ws.send_json({"type": "annotation", "seq": 2, "at": a, "text": " left  kidney "})
             r = await next_message(ws, lambda k, d: k == "json" and d["type"] == "result")
             assert r["ok"] and r["detail"] == "left kidney"
@@ -349,6 +356,7 @@ async def test_freeze_cine_calipers_annotation_and_capture_are_measured_saved_re
     assert read_counter(decode(saved[0].read_bytes())) == 2  # the frame scrolled back to
     events = read_recording(tmp_path / "s.expert.mcap").samples("/expert/console")
     assert [e["event"] for e in events] == ["freeze", "caliper", "annotation", "capture", "live"]
+    assert server.refused["outside_image"] == 2  # refused, not recorded
     assert events[1]["mm"] == pytest.approx(want) and events[1]["a_px"] == a
     assert events[2]["text"] == "left kidney"
     assert events[3]["file"] == saved[0].name and events[3]["position"] == [0.01, 0.02, 0.03]

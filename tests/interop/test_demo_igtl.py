@@ -29,6 +29,7 @@ def test_demo_takes_igtl_port():
 
 @pytest.mark.slow
 @pytest.mark.e2e
+@pytest.mark.whole_session  # one at a time across the lanes (tests/session_slot.py)
 def test_demo_serves_openigtlink_on_the_port_given(tmp_path):
     env = dict(os.environ)
     env.pop("HUMANTELE_TOKEN", None)

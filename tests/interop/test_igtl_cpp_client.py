@@ -22,7 +22,9 @@ INCLUDE = Path("/usr/include/openigtlink")
 def receiver(tmp_path_factory) -> str:
     cxx = shutil.which("c++") or shutil.which("g++")
     if cxx is None or not (INCLUDE / "igtlTransformMessage.h").exists():
-        pytest.skip("no C++ compiler or no OpenIGTLink C++ library (apt: libopenigtlink-dev)")
+        pytest.skip(
+            "no C++ compiler or no OpenIGTLink C++ library (system packages g++ libopenigtlink-dev)"
+        )
     out = tmp_path_factory.mktemp("igtl") / "igtl_receiver"
     subprocess.run([cxx, "-O1", "-o", str(out), str(HERE / "igtl_receiver.cxx"),
                     f"-I{INCLUDE}", "-lOpenIGTLink"], check=True)  # fmt: skip

@@ -22,6 +22,7 @@ from humantele.follower.sim_human import SimPatient
 from humantele.recording import read_recording
 from humantele.signaling.server import SignalConfig, SignalingServer
 from procgroups import descendants, resource_tracker
+from session_slot import scaled, whole_session_slot
 
 ROOT = Path(__file__).resolve().parents[2]
 DEMO_CONFIG = ROOT / "configs" / "demo.toml"  # with video
@@ -111,6 +112,9 @@ class Session:
         return proc
 
     async def wait(self, what: str, pred, timeout: float = 30.0) -> None:
+        """Poll ``pred(expert stats, follower stats)`` until true; ``timeout`` (s) scaled to
+        the machine's load (session_slot.time_scale): a bound on a failure, not a wait."""
+        timeout = scaled(timeout)
         t_end = time.monotonic() + timeout
         while time.monotonic() < t_end:
             e, f = self.stats("expert"), self.stats("follower")
@@ -122,7 +126,7 @@ class Session:
             await asyncio.sleep(0.2)
         logs = {p.name: p.read_text()[-3000:] for p in sorted(self.tmp.glob("*.log"))}
         raise AssertionError(
-            f"failed waiting for {what}\nexpert {self.stats('expert')}\n"
+            f"failed waiting for {what} ({timeout:.0f} s)\nexpert {self.stats('expert')}\n"
             f"follower {self.stats('follower')}\nlogs {logs}"
         )
 
@@ -178,10 +182,11 @@ async def session(tmp_path):
     server = SignalingServer(SignalConfig(port=0), token=token)
     await server.start()
     s = Session(tmp_path, server, token)
-    try:
-        yield s
-    finally:
-        await s.close()
+    with whole_session_slot():  # one whole session at a time across the lanes
+        try:
+            yield s
+        finally:
+            await s.close()
 
 
 def children(parent: int) -> dict[int, tuple[str, str]]:
@@ -301,8 +306,12 @@ def demo_run(tmp_path_factory) -> DemoRun:
     """The demo run shared by the tests that check one run (the command, its recording and
     the analysis, the video's export): it ends on its condition (scan 1 recorded, after the
     calibration, for ``SCAN_S`` with ``SCAN_POSES`` tracked probe poses), not after a fixed
-    duration."""
-    tmp = tmp_path_factory.mktemp("demo")
+    duration. One whole session at a time across the lanes (tests/session_slot.py)."""
+    with whole_session_slot():
+        return _run_demo(tmp_path_factory.mktemp("demo"))
+
+
+def _run_demo(tmp: Path) -> DemoRun:
     env = dict(os.environ)
     env.pop("HUMANTELE_TOKEN", None)
     proc = subprocess.Popen(

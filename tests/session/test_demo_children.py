@@ -16,7 +16,7 @@ from session_helpers import DemoLines, children, descendants
 
 from humantele.demo_status import poses_flowing
 
-pytestmark = [pytest.mark.e2e, pytest.mark.slow]
+pytestmark = [pytest.mark.e2e, pytest.mark.slow, pytest.mark.whole_session]
 
 
 def _victim(demo: DemoLines, comm: str) -> int | None:

@@ -22,7 +22,7 @@ from humantele.devices import record as record_cmd
 from humantele.follower.sim_world import SimWorld
 from humantele.tracking.hl2ss_replay import Hl2ssReplayServer
 
-pytestmark = [pytest.mark.e2e, pytest.mark.slow]
+pytestmark = [pytest.mark.e2e, pytest.mark.slow, pytest.mark.whole_session]
 
 
 def record_clinic(tmp_path, monkeypatch):

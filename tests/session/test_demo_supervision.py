@@ -76,6 +76,7 @@ def test_count_window_takes_both_ends_from_the_rejoin():
 
 
 @pytest.mark.slow
+@pytest.mark.whole_session  # one at a time across the lanes (tests/session_slot.py)
 def test_sigkill_of_the_follower_during_a_demo_it_comes_back_and_poses_flow_again():
     demo = DemoLines("--duration", "400", "--json", timeout_s=300.0)
     killed = None

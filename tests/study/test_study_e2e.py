@@ -18,7 +18,8 @@ TINY = Path(__file__).resolve().parents[2] / "configs" / "study-tiny.toml"
 
 @pytest.mark.e2e
 @pytest.mark.slow
-@pytest.mark.skipif(not TurnServer.available(), reason="turnserver (coturn) is not installed")
+@pytest.mark.whole_session  # one at a time across the lanes (tests/session_slot.py)
+@pytest.mark.skipif(not TurnServer.available(), reason="no turnserver (system package coturn)")
 def test_a_tiny_study_records_tables_and_charts_and_resumes(tmp_path):
     out, img = tmp_path / "out", tmp_path / "img"
     cmd = [sys.executable, "-m", "humantele", "study", str(TINY), "--out", str(out),

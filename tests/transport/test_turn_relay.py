@@ -20,7 +20,7 @@ Q = (0.0, 0.0, 0.0, 1.0)
 
 pytestmark = pytest.mark.skipif(
     not TurnServer.available(),
-    reason="turnserver (Debian package coturn) is not installed; CI installs it",
+    reason="no turnserver (system package coturn)",
 )
 
 

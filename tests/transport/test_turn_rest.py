@@ -23,7 +23,7 @@ SECRET = "4f0c9d1e7a2b6c3d8e5f0a1b2c3d4e5f"  # the deployment's shared secret (t
 pytestmark = [
     pytest.mark.skipif(
         not TurnServer.available(),
-        reason="turnserver (Debian package coturn) is not installed; CI installs it",
+        reason="no turnserver (system package coturn)",
     ),
     pytest.mark.e2e,
     pytest.mark.slow,

@@ -194,3 +194,24 @@ def test_console_key_from_the_environment(monkeypatch):
     monkeypatch.setenv("HUMANTELE_CONSOLE_KEY", "short")
     with pytest.raises(ValueError, match="16"):
         ConsoleServer(ConsoleConfig(port=0), None, Session())
+
+
+def test_a_paired_headset_gets_through_a_flood_of_wrong_codes_from_other_addresses():
+    """Issue 34 §4: 3,874 wrong codes in 26 s from 200 addresses spent the shared budget, and
+    the headset with the right code from its own address was refused 13 times in 13."""
+    clock = Clock()
+    c = Credential("12345678", normalize=normalize_code, clock=clock)  # the feed's settings
+    assert c.check("12345678", "10.0.0.50") is Verdict.OK  # the headset paired earlier
+    verdicts, refused, tries = [], 0, 0
+    for i in range(26 * 149):
+        clock.t = i / 149
+        verdicts.append(c.check("87654321", f"127.0.0.{2 + i % 200}"))
+        if i % 298 == 0:  # the headset reconnects every 2 s
+            tries += 1
+            refused += c.check("1234 5678", "10.0.0.50") is not Verdict.OK
+    assert tries == 13 and refused == 0
+    # the throttle still holds the guesses: the shared budget's 50 + 2 a second
+    assert verdicts.count(Verdict.WRONG) <= 50 + 2 * 26
+    assert c.check("12345678", "10.0.0.99") is Verdict.THROTTLED  # a new address waits
+    # the paired address's own wrong guesses still spend its own budget
+    assert [c.check("0", "10.0.0.50") for _ in range(6)][-1] is Verdict.THROTTLED

@@ -13,7 +13,13 @@ from typing import Any
 
 import numpy as np
 
-from humantele.analysis.sessions import ScanResult, Session, analyze_scans, load_sessions
+from humantele.analysis.sessions import (
+    SENSING_GAP_S,
+    ScanResult,
+    Session,
+    analyze_scans,
+    load_sessions,
+)
 from humantele.report import markdown_table
 
 METRICS = (
@@ -56,6 +62,16 @@ def analyze(
             for s in every
             if not s["complete"]
         ],
+        "sensing_gaps": [  # scans with stretches without tracker measurements
+            {
+                "session": s["session"],
+                "scan": s["scan"],
+                "gaps": s["sensing_gaps"],
+                "total_s": s["sensing_gap_s"],
+            }
+            for s in every
+            if s["sensing_gaps"]
+        ],  # fmt: skip
         "sessions": [
             {
                 "session": s.session_id,
@@ -144,6 +160,11 @@ def sim_quality_report(scans: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
+def _scan_label(s: dict[str, Any]) -> str:
+    """A scan's number, with ``*`` when it has a sensing gap."""
+    return f"{s['scan']}*" if s.get("sensing_gaps") else str(s["scan"])
+
+
 def _f(v: float | None, digits: int) -> str:
     return "-" if v is None else f"{v:.{digits}f}"
 
@@ -157,7 +178,9 @@ def format_report(report: dict[str, Any]) -> str:
         out += ["Alignment error per scan: no complete scan (see below)", ""]
     if complete:
         digits = {"position_rmse_mm": 1, "centered_position_rmse_mm": 1}
-        rows = [[s["scan"]] + [_f(s[k], digits.get(k, 2)) for k, _ in METRICS] for s in complete]
+        rows = [
+            [_scan_label(s)] + [_f(s[k], digits.get(k, 2)) for k, _ in METRICS] for s in complete
+        ]
         summ = report["summary"]
         rows.append(
             ["Mean ± SD"]
@@ -172,6 +195,20 @@ def format_report(report: dict[str, Any]) -> str:
             markdown_table(["Scan"] + [h for _, h in METRICS], rows),
             "",
         ]
+    if report.get("sensing_gaps"):
+        out += [
+            f"Scans with sensing gaps (*: no tracker measurement for {SENSING_GAP_S:g} s or more; "
+            "their figures stand on the rest of the scan):"
+        ]
+        out += [
+            f"- scan {g['scan']} of session {g['session']}: "
+            + ", ".join(
+                f"{x['duration_s']:.1f} s without measurements from {x['at_s']:.1f} s"
+                for x in g["gaps"]
+            )  # fmt: skip
+            for g in report["sensing_gaps"]
+        ]
+        out.append("")
     if report.get("incomplete_scans"):
         out += ["Incomplete scans, left out of the tables and the mean ± SD:"]
         out += [

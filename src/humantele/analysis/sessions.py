@@ -7,6 +7,11 @@ session without scan events is analysed whole, as scan 0, with a warning; when a
 expert's side is cut (not closed, or unreadable past some point) that scan 0 is incomplete
 too: its start and end are unknown (the lost part may hold the scan events). Incomplete scans
 are reported but left out of the tables and summaries (:mod:`humantele.analysis.report`).
+
+A scan inside which the follower's tracker gave no measurement for :data:`SENSING_GAP_S` or
+more (a killed sensing process: 10 s and more) has its sensing gaps listed (when into the
+scan, how long): its figures stand on the rest of it, and the report and the study's tables
+say so beside them.
 """
 
 from __future__ import annotations
@@ -29,6 +34,8 @@ from humantele.analysis.alignment import (
     fit_clock_map,
 )
 from humantele.recording.reader import Recording, read_recording
+
+SENSING_GAP_S = 1.0  # no tracker frame for this long inside a scan: a sensing gap (45 Hz: 22 ms)
 
 # What the alignment reads; other topics (force at 1 kHz...) are not even decoded.
 TOPICS = (
@@ -82,6 +89,8 @@ class ScanResult:
     frames_tracked: int
     sim_quality: float | None = None  # mean sim US image quality over the scan (0-1)
     sim_quality_frames: int = 0
+    # (s into the scan, s long) of each stretch without a tracker frame (sensing_gaps)
+    sensing_gaps: list[tuple[float, float]] = field(default_factory=list)
 
     def as_dict(self) -> dict[str, object]:
         """The JSON object of this scan (mm and degrees, the paper's units)."""
@@ -105,6 +114,10 @@ class ScanResult:
             "mean_rotation_error_deg": _num(np.degrees(r.mean_rotation_error_rad)),
             "sim_image_quality": None if self.sim_quality is None else _num(self.sim_quality),
             "sim_image_quality_frames": self.sim_quality_frames,
+            "sensing_gaps": [
+                {"at_s": round(a, 2), "duration_s": round(d, 2)} for a, d in self.sensing_gaps
+            ],
+            "sensing_gap_s": round(sum(d for _, d in self.sensing_gaps), 2),
         }
 
 
@@ -242,6 +255,19 @@ def _scan_intervals(
     return sorted(out, key=lambda iv: (iv.start, iv.scan))
 
 
+def sensing_gaps(
+    frame_times: NDArray[np.float64], start: float, stop: float, min_gap_s: float = SENSING_GAP_S
+) -> list[tuple[float, float]]:
+    """The stretches of ``[start, stop]`` (s) with no tracker frame (``frame_times``, every
+    frame, tracked or not) of ``min_gap_s`` or more: (s from ``start``, s long), in order; the
+    scan's edges count (a scan without any frame is one gap)."""
+    t = np.sort(frame_times[(frame_times >= start) & (frame_times <= stop)])
+    edges = np.concatenate(([start], t, [stop]))
+    d = np.diff(edges)
+    at = np.flatnonzero(d >= min_gap_s)
+    return [(float(edges[i] - start), float(d[i])) for i in at]
+
+
 def analyze_scans(session: Session, max_gap_s: float = 0.05) -> list[ScanResult]:
     """Alignment RMSE of each scan of ``session``."""
     results = []
@@ -257,6 +283,7 @@ def analyze_scans(session: Session, max_gap_s: float = 0.05) -> list[ScanResult]
         ft = session.frame_times
         frames_total = int(np.count_nonzero((ft >= iv.start) & (ft <= iv.stop)))
         result = ScanResult(session.session_id, iv, rmse, errors, frames_total, int(in_scan.sum()))
+        result.sensing_gaps = sensing_gaps(ft, iv.start, iv.stop)
         q_in = (session.us_quality_t >= iv.start) & (session.us_quality_t <= iv.stop)
         if np.any(q_in):
             result.sim_quality = float(np.mean(session.us_quality[q_in]))

@@ -50,6 +50,9 @@ class SyntheticSession(ConfigModel):
     tracking_noise_mm: float = Field(0.0, ge=0.0, description="RMS per axis")
     tracking_noise_deg: float = Field(0.0, ge=0.0)
     dropout: float = Field(0.0, ge=0.0, lt=1.0, description="share of frames not tracked")
+    sensing_gaps: list[tuple[float, float]] = Field(
+        [], description="(s from the start, s long): no tracker frame at all (sensing killed)"
+    )
     clock_offset_s: float = Field(0.0, description="expert clock minus follower clock, s")
     clock_drift_ppm: float = 0.0
     sync_period_s: float = Field(1.0, gt=0.0)
@@ -154,7 +157,11 @@ def write_synthetic(
     p_meas[~tracked] = 0.0
     q_meas = r_meas.as_quat()
     q_meas[~tracked] = [0.0, 0.0, 0.0, 1.0]
-    truth.n_tracking, truth.n_tracked = n_f, int(tracked.sum())
+    since = te_f - T0_EXPERT
+    measured = np.ones(n_f, dtype=bool)  # frames outside the sensing gaps
+    for a, d in cfg.sensing_gaps:
+        measured &= ~((since >= a) & (since < a + d))
+    truth.n_tracking, truth.n_tracked = int(measured.sum()), int((tracked & measured).sum())
 
     # Scans: equal slices of the session with 1 s before, between and after.
     gap = 1.0
@@ -231,6 +238,7 @@ def write_synthetic(
             {"position": pm[j], "quaternion": qm[j], "tracked": tr[j]},
         )
         for j, (te, tf) in enumerate(zip(te_f.tolist(), t_f.tolist(), strict=True))
+        if measured[j]
     )
     events.sort(key=lambda e: e[0])
     merged = heapq.merge(expert_stream, probe_stream, iter(events), key=lambda e: e[0])

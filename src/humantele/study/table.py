@@ -18,6 +18,8 @@ Per scan (complete scans 1..N of each run; :mod:`humantele.analysis` does the al
 - the sim ultrasound's known-answer image quality (0-1);
 - the US picture at the expert: the share of the scan it was live (not frozen) and its SSIM
   against the frame the follower captured (:mod:`humantele.study.quality`).
+- the time without tracker measurements (``sensing_gap_s``: a killed sensing process); such
+  scans are marked ``*`` in the per-scan table.
 
 Per run: set-up time (s, expert clock): the first calibration landmark taken to the patient
 model at the expert (scan 1's start less ``start_after_model_s``) - the registration task the
@@ -179,6 +181,7 @@ def run_scans(run_dir: Path, summary: dict) -> list[dict[str, Any]]:
                 **{k: d[k] for k, _ in ALIGN},
                 "mean_error_y_mm": d["mean_position_error_mm"][1],
                 "sim_image_quality": d["sim_image_quality"],
+                "sensing_gap_s": d["sensing_gap_s"],  # without tracker measurements (0: none)
             }
             lag, lag_c = effective_lag(session, iv.start, iv.stop)
             row["effective_lag_s"] = lag
@@ -309,7 +312,7 @@ def scan_table(rows: list[dict]) -> str:
     out = []
     for r in rows:
         out.append([
-            r["condition"], str(r["seed"]), str(r["scan"]),
+            r["condition"], str(r["seed"]), f"{r['scan']}{'*' if r.get('sensing_gap_s') else ''}",
             *(_f(r[k], 1 if "position" in k else 2) for k, _ in ALIGN),
             _f(r["effective_lag_s"], 2),
             f"{_f(r['us_age_p50_ms'], 0)} / {_f(r['us_age_p95_ms'], 0)}",
@@ -502,6 +505,16 @@ def markdown(rows: list[dict], summary: list[dict], header: str = "") -> str:
     if broken:
         parts.append("\n".join(f"- **{s['name']}**: {s['cause']}" for s in broken))
     parts += ["### Per scan", scan_table(rows)]
+    gaps = [r for r in rows if r.get("sensing_gap_s")]
+    if gaps:
+        parts.append(
+            "\\* a sensing gap in the scan (the tracker gave no measurement for 1 s or more: "
+            + "; ".join(
+                f"{r['condition']} seed {r['seed']} scan {r['scan']}: {r['sensing_gap_s']:.1f} s"
+                for r in gaps
+            )  # fmt: skip
+            + "); its figures stand on the rest of the scan"
+        )
     return "\n\n".join(parts) + "\n"
 
 

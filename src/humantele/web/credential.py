@@ -6,7 +6,9 @@ the page passes it on its WebSocket). The headset page's is a pairing code (:fun
 eight digits), printed by the follower beside its address and certificate fingerprint, typed
 once on the headset and kept there. Either goes on the WebSocket's URL (``?key=`` /
 ``?code=``); :class:`Credential` compares it in constant time, throttles wrong guesses (per
-client address and in total, so the eight digits cannot be tried in bulk), and never logs it.
+client address and in total, so the eight digits cannot be tried in bulk; the total not for an
+address that has given the right code, so a flood of wrong ones from other addresses does not
+lock a paired headset out), and never logs it.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ CODE_DIGITS = 8
 CLOSE_UNAUTHORIZED = 4401  # WebSocket close code: missing or wrong credential
 CLOSE_THROTTLED = 4429  # WebSocket close code: too many wrong ones, wait
 ADDRESSES_KEPT = 1024
+PAIRED_KEPT = 64  # addresses seen with the right code (headsets), the most recent kept
 
 log = logging.getLogger(__name__)
 
@@ -130,10 +133,13 @@ class Verdict(Enum):
 
 class Credential:
     """Checks what a page offers against ``secret``. Wrong guesses spend a budget per client
-    address (``burst`` at once, ``rate_hz`` a second after) and one in total (ten times
-    that); a client out of budget is refused unchecked (``THROTTLED``) until it refills.
-    ``throttle=False`` for a secret too long to guess (the console's key), where a throttle
-    would only let wrong guesses lock the right page out."""
+    address (``burst`` at once, ``rate_hz`` a second after) and, from an address never seen
+    with the right code, one in total (ten times that); a client out of its own budget, or a
+    new one while the total is out, is refused unchecked (``THROTTLED``) until it refills.
+    An address that gave the right code (:data:`PAIRED_KEPT` of them, the latest) answers to
+    its own budget only: wrong codes from other addresses cannot keep a paired headset that
+    reconnects out. ``throttle=False`` for a secret too long to guess (the console's key),
+    where a throttle would only let wrong guesses lock the right page out."""
 
     def __init__(
         self,
@@ -152,6 +158,7 @@ class Credential:
         self._clock = clock
         self._per_address: OrderedDict[str, MessageBudget] = OrderedDict()
         self._total = MessageBudget(10 * rate_hz, 10 * burst, clock)
+        self._paired: OrderedDict[str, None] = OrderedDict()  # addresses seen with the secret
 
     @property
     def secret(self) -> str:
@@ -174,11 +181,17 @@ class Credential:
             given = offered.encode("utf-8", "replace")
             return Verdict.OK if hmac.compare_digest(given, self._secret) else Verdict.WRONG
         b = self._budget(where)
-        if not _has_token(b) or not _has_token(self._total):
+        paired = where in self._paired
+        if not _has_token(b) or not (paired or _has_token(self._total)):
             return Verdict.THROTTLED
         given = self._normalize(offered).encode("utf-8", "replace")
         if hmac.compare_digest(given, self._secret):
+            self._paired[where] = None
+            self._paired.move_to_end(where)
+            while len(self._paired) > PAIRED_KEPT:
+                self._paired.popitem(last=False)
             return Verdict.OK
         b.take()
-        self._total.take()
+        if not paired:
+            self._total.take()
         return Verdict.WRONG

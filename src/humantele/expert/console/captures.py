@@ -7,7 +7,10 @@ page's reads of the files (with the run's key).
 
 Files are named by the capture's wall-clock time (UTC) and frame number, never by anything
 about the patient: ``capture-20261123T101500Z-000123.jpg``, ``....json`` and ``....mp4``. A
-file that exists is never overwritten (a numbered suffix is added).
+file that exists is never overwritten (a numbered suffix is added). Each is written whole or
+not at all (:mod:`humantele.runtime.files`): a capture is its JPEG and its JSON, or nothing;
+the JSON names the clip only once the clip is there whole (:func:`name_clip`). On a full disk
+a capture leaves no file, and :class:`FailureLog` says it once, not once a capture.
 
 :class:`SessionItems` is the session's list of captures and measurements (calipers, notes)
 that the console page shows, so the sonographer reviews them before the session ends.
@@ -16,9 +19,9 @@ that the console page shows, so the sonographer reviews them before the session 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
-import os
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -32,6 +35,7 @@ from humantele.expert.console.config import ConsoleConfig
 from humantele.expert.console.messages import Capture
 from humantele.expert.console.protocol import clean, result
 from humantele.expert.console.session import ConsoleSession
+from humantele.runtime.files import replace_whole, write_new
 from humantele.web.credential import Credential, Verdict
 from humantele.web.guard import MessageBudget
 from humantele.web.pagesocket import PageClient, PageSockets
@@ -43,34 +47,79 @@ CLIP_FINISH_S = 20.0  # at stop, a clip being written gets this long to finish
 POSE_FIELDS = ("position", "quaternion", "virtual_position", "virtual_quaternion")
 
 
-def save_capture(
-    directory: Path, seq: int, jpeg: bytes, info: dict[str, Any], clip_frames: int = 0
-) -> Path:
-    """Write ``jpeg`` and ``info`` (JSON) into ``directory`` (made if needed); the JPEG's
-    path. With ``clip_frames``, the JSON names the clip to come beside it (``clip``: file,
-    frames). OSError when it cannot be written."""
+def save_capture(directory: Path, seq: int, jpeg: bytes, info: dict[str, Any]) -> Path:
+    """Write ``jpeg`` and ``info`` (its JSON side file) into ``directory`` (made if needed),
+    both whole or neither; the JPEG's path. OSError when they cannot be written (nothing
+    left)."""
     directory.mkdir(parents=True, exist_ok=True)
     stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
     base = f"capture-{stamp}-{seq:06d}"
+    side = json.dumps(info, indent=1).encode()
     for n in range(1000):
         name = base if n == 0 else f"{base}-{n}"
         path = directory / f"{name}.jpg"
+        if path.with_suffix(".json").exists():
+            continue
         try:
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            write_new(path, jpeg)
         except FileExistsError:
             continue
-        with os.fdopen(fd, "wb") as f:
-            f.write(jpeg)
-        if clip_frames:
-            info = {**info, "clip": {"file": clip_path(path).name, "frames": clip_frames}}
-        path.with_suffix(".json").write_text(json.dumps(info, indent=1), encoding="utf-8")
+        try:
+            write_new(path.with_suffix(".json"), side)
+        except OSError:
+            with contextlib.suppress(OSError):
+                path.unlink()
+            raise
         return path
     raise OSError(f"no free capture file name for {base} in {directory}")
+
+
+def name_clip(still: Path, clip: Any) -> Any:
+    """Name the clip written whole beside ``still`` in the still's JSON (``clip``: file,
+    frames), replaced in one step; ``clip`` (an export.clip.ClipInfo) returned. OSError when
+    it cannot be (the clip removed: a capture's files are whole and named, or not there)."""
+    side = still.with_suffix(".json")
+    try:
+        info = json.loads(side.read_text(encoding="utf-8"))
+        info["clip"] = {"file": clip.path.name, "frames": clip.frames}
+        replace_whole(side, json.dumps(info, indent=1).encode())
+    except (OSError, ValueError) as exc:
+        with contextlib.suppress(OSError):
+            clip.path.unlink()
+        raise OSError(f"clip not named in {side.name}: {exc}") from exc
+    return clip
 
 
 def clip_path(still: Path) -> Path:
     """Where the clip of a capture goes: beside its JPEG, ``.mp4``."""
     return still.with_suffix(".mp4")
+
+
+class FailureLog:
+    """Says a run of failures (captures or clips not saved: a full disk) once: the first at
+    ERROR, the ones after it at DEBUG, and at INFO when one succeeds again, with the count.
+    ``failed`` counts them all (the stats have them)."""
+
+    def __init__(self, logger: logging.Logger, what: str) -> None:
+        self.log = logger
+        self.what = what
+        self.failed = 0
+        self._in_a_row = 0
+
+    def failure(self, detail: object) -> None:
+        self.failed += 1
+        self._in_a_row += 1
+        if self._in_a_row == 1:
+            self.log.error("console: %s not saved: %s (said once until one is saved again)",
+                           self.what, detail)  # fmt: skip
+        else:
+            self.log.debug("console: %s not saved: %s", self.what, detail)
+
+    def success(self) -> None:
+        if self._in_a_row > 1:
+            self.log.info("console: %s saved again after %d not saved", self.what,
+                          self._in_a_row)  # fmt: skip
+        self._in_a_row = 0
 
 
 class SessionItems:
@@ -128,6 +177,8 @@ class Captures:
         self._clips: set[asyncio.Task] = set()  # clips being written
         self._file_key = Credential(key, throttle=False)  # the captured files' reads
         self.archive: Any = None  # the exam's archive (archive_routes.ConsoleArchive), if on
+        self.capture_log = FailureLog(log, "capture")  # a full disk said once, not per capture
+        self.clip_log = FailureLog(log, "clip")
 
     @property
     def refused_count(self) -> int:
@@ -206,12 +257,13 @@ class Captures:
         if rec is not None:
             info["session_id"] = rec.metadata.get("session_id")
         try:
-            path = save_capture(directory, f.seq, f.jpeg, clean(info), len(clip))
+            path = save_capture(directory, f.seq, f.jpeg, clean(info))
         except OSError as exc:
             self.refused["capture_failed"] += 1
-            log.error("console: capture not saved: %s", exc)
+            self.capture_log.failure(exc)
             result(client, "capture", False, f"not saved: {exc.strerror or exc}", id=m.id)
             return
+        self.capture_log.success()
         self.events["capture"] += 1
         self.saved.append(str(path))
         self.bytes = (self.bytes or 0) + _file_bytes(path)
@@ -243,14 +295,17 @@ class Captures:
         self.clips_writing += 1
         try:
             info = await asyncio.to_thread(  # (frames not yet JPEGs are made there too)
-                lambda: write_clip([(g.t_capture, g.image_jpeg()) for g in frames], path)
+                lambda: name_clip(
+                    still, write_clip([(g.t_capture, g.image_jpeg()) for g in frames], path)
+                )
             )
         except (OSError, ValueError) as exc:
             self.refused["clip_failed"] += 1
-            log.error("console: clip %s not written: %s", path.name, exc)
+            self.clip_log.failure(exc)
             item["clip_error"] = str(exc)[:200]
             result(client, "clip", False, f"clip not saved: {exc}", id=cmd_id)
         else:
+            self.clip_log.success()
             self.events["clip"] += 1
             self.bytes = (self.bytes or 0) + _size(path)
             item.update(clip=path.name, clip_s=round(info.duration_s, 2), clip_frames=info.frames)

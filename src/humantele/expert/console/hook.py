@@ -17,8 +17,12 @@ the console never imports the daemon). :func:`make_console` builds the server wi
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
+import os
+import sys
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -32,7 +36,7 @@ from humantele.recording import Recorder
 from humantele.video.scene import SceneSnapshot, look_at
 from humantele.video.sim_pov import SimPovConfig
 from humantele.video.sim_ultrasound import SimUltrasoundConfig
-from humantele.web.credential import key_from_env
+from humantele.web.credential import CONSOLE_KEY_ENV, key_from_env
 from humantele.wire import UsScale
 
 log = logging.getLogger(__name__)
@@ -234,7 +238,7 @@ class DaemonConsole:
             print(f"humantele expert: console not served: {exc}", flush=True)
             self.server = None
             return
-        print(f"humantele expert: {self.server.banner()}", flush=True)
+        print(f"humantele expert: {console_line(self.server, sys.stdout.isatty())}", flush=True)
 
     async def stop(self) -> None:
         if self.local is not None:
@@ -242,3 +246,35 @@ class DaemonConsole:
             self.local = None
         if self.server is not None:
             await self.server.stop()
+
+
+def console_url_file() -> Path:
+    """Where the expert keeps its console's whole address (with the key) when its output is
+    not a terminal: ``$XDG_STATE_HOME/humantele/console_url`` (``~/.local/state``)."""
+    state = os.environ.get("XDG_STATE_HOME") or "~/.local/state"
+    return Path(state).expanduser() / "humantele" / "console_url"
+
+
+def console_line(server: ConsoleServer, tty: bool) -> str:
+    """The expert's line about its console. On a terminal (a person runs it) the whole
+    address, with the key; otherwise (a log file, systemd's journal, which others may read)
+    the address without the key, and where the key is: ``$HUMANTELE_CONSOLE_KEY`` when set,
+    else the whole address written to a file only this user can read."""
+    if tty:
+        return server.banner()
+    if os.environ.get(CONSOLE_KEY_ENV):
+        return f"console {server.address} (its key: ${CONSOLE_KEY_ENV}; not logged)"
+    path = console_url_file()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()  # made again below with this run's address, owner-only
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "w", encoding="ascii") as f:
+            f.write(server.url + "\n")
+    except OSError as exc:
+        return (
+            f"console {server.address} (its key is not logged, and could not be kept in "
+            f"{path}: {exc.strerror or exc}; set ${CONSOLE_KEY_ENV} to choose it)"
+        )
+    return f"console {server.address} (the address with its key, not logged: in {path})"

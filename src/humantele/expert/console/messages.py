@@ -33,9 +33,10 @@ from __future__ import annotations
 
 import math
 import struct
+import unicodedata
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, TypeAdapter
 
 FRAME_VERSION = 2
 TRACK_IDS = {"us": 0, "pov": 1}
@@ -88,6 +89,28 @@ class _Msg(BaseModel):
 Px = Annotated[float, Field(ge=-1e5, le=1e5, allow_inf_nan=False)]
 Point = tuple[Px, Px]
 Seq = Annotated[int, Field(ge=0, le=0xFFFFFFFF)]
+
+
+def plain_text(text: str) -> str:
+    """``text`` as it may be shown, recorded and listed: control characters (line breaks,
+    tabs: a space) and the invisible format ones (bidirectional overrides such as U+202E,
+    which reverse what follows on screen; zero-width characters) dropped, and runs of spaces
+    made one (Unicode categories Cc, Cf, Co, Cs, Cn)."""
+    kept = (
+        " " if ch.isspace() else ch
+        for ch in text
+        if ch.isspace() or not unicodedata.category(ch).startswith("C")
+    )
+    return " ".join("".join(kept).split())
+
+
+def outside_image(points: list[tuple[float, float]], width: int, height: int) -> str | None:
+    """Why points (image px, x right, y down; the pixel grid's edges 0 and width/height)
+    cannot be on a ``width`` x ``height`` image, or None when they all are."""
+    for x, y in points:
+        if not (0.0 <= x <= width and 0.0 <= y <= height):
+            return f"point ({x:.0f}, {y:.0f}) px is outside the {width} x {height} image"
+    return None
 
 
 class Drawn(_Msg):
@@ -163,7 +186,7 @@ class Annotation(_Command):
     type: Literal["annotation"]
     seq: Seq
     at: Point
-    text: str = Field(min_length=1, max_length=200)
+    text: Annotated[str, Field(min_length=1, max_length=200), AfterValidator(plain_text)]
 
 
 class Capture(_Command):

@@ -14,7 +14,13 @@ from typing import Any
 
 from humantele.expert.console.captures import Captures
 from humantele.expert.console.cine import CineBuffer, CineFrame
-from humantele.expert.console.messages import Annotation, Caliper, Capture, frame_header
+from humantele.expert.console.messages import (
+    Annotation,
+    Caliper,
+    Capture,
+    frame_header,
+    outside_image,
+)
 from humantele.expert.console.protocol import result
 from humantele.web.pagesocket import PageClient, PageSockets
 
@@ -93,6 +99,12 @@ class UltrasoundTools:
                    id=m.id)  # fmt: skip
             return
         base = {"seq": f.seq, "t_capture": f.t_capture}
+        at = [m.a, m.b] if isinstance(m, Caliper) else [m.at] if isinstance(m, Annotation) else []
+        off = outside_image(at, f.width, f.height)
+        if off is not None:
+            self.refused["outside_image"] += 1
+            result(client, m.type, False, off, id=m.id)
+            return
         if isinstance(m, Caliper):
             if f.pixel_spacing_mm is None:
                 result(

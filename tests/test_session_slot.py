@@ -1,0 +1,63 @@
+"""The suite's one slot for a whole session (tests/session_slot.py): held across processes,
+reentrant in one, and the deadlines' scale."""
+
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import session_slot
+from session_slot import scaled, time_scale, whole_session_slot
+
+HOLDER = (
+    "import sys; sys.path.insert(0, sys.argv[1]); from pathlib import Path;"
+    " from session_slot import whole_session_slot\n"
+    "with whole_session_slot(Path(sys.argv[2])):\n"
+    "    print('held', flush=True); sys.stdin.readline()\n"
+)
+
+
+def test_another_process_waits_for_the_slot_until_its_holder_lets_it_go(tmp_path: Path):
+    lock = tmp_path / "slot.lock"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", HOLDER, str(Path(__file__).parent), str(lock)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        got = threading.Event()
+
+        def take():
+            with whole_session_slot(lock):
+                got.set()
+
+        t = threading.Thread(target=take, daemon=True)
+        t.start()
+        t.join(0.5)
+        assert not got.is_set()  # held by the other process: never taken meanwhile
+        holder.stdin.write("go\n")
+        holder.stdin.flush()
+        assert got.wait(60)
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+def test_the_slot_is_reentrant_in_a_process_and_freed_at_the_outermost_exit(tmp_path: Path):
+    lock = tmp_path / "slot.lock"
+    with whole_session_slot(lock), whole_session_slot(lock):  # would block if not reentrant
+        assert session_slot._held["depth"] == 2
+    assert session_slot._held["depth"] == 0 and session_slot._held["fd"] == -1
+
+
+def test_deadlines_scale_with_the_environment_or_the_load(monkeypatch):
+    monkeypatch.setenv("HUMANTELE_TEST_TIME_SCALE", "2.5")
+    assert time_scale() == 2.5 and scaled(30) == 75
+    monkeypatch.delenv("HUMANTELE_TEST_TIME_SCALE")
+    monkeypatch.setattr(session_slot.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(session_slot.os, "getloadavg", lambda: (19.0, 10.0, 5.0))
+    assert time_scale() == session_slot.MAX_SCALE  # load 9.5 a core: the cap
+    monkeypatch.setattr(session_slot.os, "getloadavg", lambda: (3.0, 1.0, 1.0))
+    assert time_scale() == 1.5
+    monkeypatch.setattr(session_slot.os, "getloadavg", lambda: (0.2, 1.0, 1.0))
+    assert time_scale() == 1.0
