@@ -17,7 +17,10 @@ HOLDER = (
 )
 
 
-def test_another_process_waits_for_the_slot_until_its_holder_lets_it_go(tmp_path: Path):
+def test_another_process_waits_for_the_slot_until_its_holder_lets_it_go(
+    tmp_path: Path, monkeypatch
+):
+    monkeypatch.setenv("HUMANTELE_TEST_ONE_SESSION", "1")  # crowded, whatever the load
     lock = tmp_path / "slot.lock"
     holder = subprocess.Popen(
         [sys.executable, "-c", HOLDER, str(Path(__file__).parent), str(lock)],
@@ -43,7 +46,10 @@ def test_another_process_waits_for_the_slot_until_its_holder_lets_it_go(tmp_path
         holder.wait()
 
 
-def test_the_slot_is_reentrant_in_a_process_and_freed_at_the_outermost_exit(tmp_path: Path):
+def test_the_slot_is_reentrant_in_a_process_and_freed_at_the_outermost_exit(
+    tmp_path: Path, monkeypatch
+):
+    monkeypatch.setenv("HUMANTELE_TEST_ONE_SESSION", "1")
     lock = tmp_path / "slot.lock"
     with whole_session_slot(lock), whole_session_slot(lock):  # would block if not reentrant
         assert session_slot._held["depth"] == 2
@@ -61,3 +67,19 @@ def test_deadlines_scale_with_the_environment_or_the_load(monkeypatch):
     assert time_scale() == 1.5
     monkeypatch.setattr(session_slot.os, "getloadavg", lambda: (0.2, 1.0, 1.0))
     assert time_scale() == 1.0
+
+
+def test_the_slot_is_taken_only_on_a_crowded_machine(tmp_path: Path, monkeypatch):
+    lock = tmp_path / "slot.lock"
+    monkeypatch.delenv("HUMANTELE_TEST_ONE_SESSION", raising=False)
+    monkeypatch.setattr(session_slot.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(session_slot.os, "getloadavg", lambda: (2.0, 1.0, 1.0))  # 1 a core
+    with whole_session_slot(lock):
+        assert session_slot._held["fd"] == -1  # quiet: the lanes run side by side
+    monkeypatch.setattr(session_slot.os, "getloadavg", lambda: (6.0, 1.0, 1.0))  # 3 a core
+    with whole_session_slot(lock):
+        assert session_slot._held["fd"] >= 0  # crowded: one session at a time
+    assert session_slot._held["fd"] == -1
+    monkeypatch.setenv("HUMANTELE_TEST_ONE_SESSION", "0")
+    with whole_session_slot(lock):
+        assert session_slot._held["fd"] == -1
