@@ -23,6 +23,7 @@ The command's exit code is this tool's.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import ctypes
 import json
 import os
@@ -147,6 +148,19 @@ def reap_all(timeout_s: float) -> int:
             time.sleep(0.05)
 
 
+def reap_orphans(keep: int) -> None:
+    """Reap the orphans given to us (the subreaper) that have ended, once sampled: left as
+    zombies they would look alive to a test that waits for a process to go (``keep``: the
+    command itself, whose exit code ``Popen`` reads)."""
+    me = os.getpid()
+    for entry in os.listdir("/proc"):
+        if entry.isdigit() and int(entry) != keep:
+            st = read_stat(int(entry))
+            if st is not None and st[0] == me:
+                with contextlib.suppress(ChildProcessError):
+                    os.waitpid(int(entry), os.WNOHANG)
+
+
 def _is_child(pid: int) -> bool:
     st = read_stat(pid)
     return st is not None and st[0] == os.getpid()
@@ -193,6 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         while proc.poll() is None:
             tree.sample()
+            reap_orphans(proc.pid)
             time.sleep(args.interval)
     finally:
         signal.signal(signal.SIGINT, old)
