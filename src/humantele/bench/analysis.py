@@ -14,10 +14,11 @@ import time
 from pathlib import Path
 
 from humantele.analysis.sessions import TOPICS, analyze_scans, build_session
+from humantele.bench import publish
 from humantele.recording.reader import read_recording
 from humantele.recording.synthetic import SyntheticSession, write_synthetic
 from humantele.recording.writer import Recorder
-from humantele.report import machine_line, markdown_table, write_section
+from humantele.report import machine_line, markdown_table
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -193,6 +194,5 @@ def run(args: argparse.Namespace) -> int:
             "Target: recording costs the daemon <= 5 % of a core.",
         ]
     )
-    if not args.no_write:
-        print(f"wrote {write_section('analysis', md)}")
+    publish("analysis", md, None, args)
     return 0

@@ -28,7 +28,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from humantele.report import machine_line, markdown_table, write_section
+from humantele.bench import publish
+from humantele.report import machine_line, markdown_table
 
 SECTION = "archive"
 FPS = 20.0
@@ -249,8 +250,5 @@ def run(args: argparse.Namespace) -> int:
         markdown_table(["figure", "value"], rows),
     ])  # fmt: skip
     print(md)
-    if not args.no_write:
-        write_section(SECTION, md)
-    if args.json:
-        print(json.dumps(r, default=str))
+    publish(SECTION, md, r, args)
     return 0

@@ -12,7 +12,6 @@ load instead (:mod:`humantele.bench.haptics_callback`, section ``haptics-callbac
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import statistics
 import subprocess
@@ -21,8 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+from humantele.bench import publish
 from humantele.haptics.ellipsoid import METHODS, Ellipsoid
-from humantele.report import DOCS_DIR, machine_line, markdown_table, write_section
+from humantele.report import DOCS_DIR, machine_line, markdown_table
 
 # name -> semi-axes (m) along patient (x, y, z)
 SCENES: dict[str, tuple[float, float, float]] = {
@@ -272,28 +272,17 @@ def run_callback(args: argparse.Namespace) -> int:
         print("humantele bench haptics: --callback-seconds in [0.5, 120], --callback-realtime "
               "in [0, 99]")  # fmt: skip
         return 2
+    fifo_only = getattr(args, "callback_fifo_only", False)
     try:
-        rows = hc.measure(args.callback_seconds, args.callback_realtime,
-                          getattr(args, "callback_fifo_only", False))  # fmt: skip
+        rows = hc.measure(args.callback_seconds, args.callback_realtime, fifo_only)
     except (RuntimeError, OSError, subprocess.CalledProcessError) as exc:
         print(f"humantele bench haptics --callback: cannot build the fake libHD: {exc}")
         return 1
     table = markdown_table(hc.HEADER, hc.table_rows(rows))
     print(table)
-    if not args.no_write:
-        write_section(
-            "haptics-callback",
-            hc.section(
-                rows,
-                args.callback_seconds,
-                table,
-                machine_line(),
-                args.callback_realtime,
-                getattr(args, "callback_fifo_only", False),
-            ),
-        )
-    if args.json:
-        print(json.dumps(rows))
+    md = hc.section(rows, args.callback_seconds, table, machine_line(), args.callback_realtime,
+                    fifo_only)  # fmt: skip
+    publish("haptics-callback", md, rows, args)
     return 0
 
 
@@ -310,22 +299,20 @@ def run(args: argparse.Namespace) -> int:
     print(failure_notes(results))
     if not args.no_write:
         chart(results, CHART)
-        md = "\n\n".join(
-            [
-                "## Haptics: ellipsoid penetration methods",
-                machine_line(),
-                f"`humantele bench haptics --points {args.points} --seed {args.seed}`: "
-                f"{args.points} seeded world points per scene within {BAND * 1e3:.0f} mm of the "
-                "surface (inside and outside), random centre and heading; errors against "
-                f"`exact`; scalar cost is the median of {REPEATS} repeats over "
-                f"{SCALAR_POINTS} points; batch over {BATCH_POINTS} points. Targets: radial "
-                "<= 3 us, exact <= 15 us, newton depth error <= 0.05 mm, batch radial >= 1 M/s.",
-                table,
-                "![speed against accuracy](img/haptics_speed_accuracy.png)",
-                failure_notes(results),
-            ]
-        )
-        write_section("haptics", md)
-    if args.json:
-        print(json.dumps(results))
+    md = "\n\n".join(
+        [
+            "## Haptics: ellipsoid penetration methods",
+            machine_line(),
+            f"`humantele bench haptics --points {args.points} --seed {args.seed}`: "
+            f"{args.points} seeded world points per scene within {BAND * 1e3:.0f} mm of the "
+            "surface (inside and outside), random centre and heading; errors against "
+            f"`exact`; scalar cost is the median of {REPEATS} repeats over "
+            f"{SCALAR_POINTS} points; batch over {BATCH_POINTS} points. Targets: radial "
+            "<= 3 us, exact <= 15 us, newton depth error <= 0.05 mm, batch radial >= 1 M/s.",
+            table,
+            "![speed against accuracy](img/haptics_speed_accuracy.png)",
+            failure_notes(results),
+        ]
+    )
+    publish("haptics", md, results, args)
     return 0

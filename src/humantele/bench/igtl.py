@@ -24,7 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from humantele.report import machine_line, markdown_table, write_section
+from humantele.bench import publish
+from humantele.report import machine_line, markdown_table
 
 SECTION = "igtl"
 
@@ -250,8 +251,5 @@ def run(args: argparse.Namespace) -> int:
         markdown_table(["figure", "value"], rows),
     ])  # fmt: skip
     print(md)
-    if not args.no_write:
-        write_section(SECTION, md)
-    if args.json:
-        print(json.dumps({**r, "cpu_added_percent": added}))
+    publish(SECTION, md, {**r, "cpu_added_percent": added}, args)
     return 0

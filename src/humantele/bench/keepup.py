@@ -22,12 +22,12 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import math
 import os
 import time
 
-from humantele.report import machine_line, markdown_table, write_section
+from humantele.bench import publish
+from humantele.report import machine_line, markdown_table
 
 FRAMES = 45
 
@@ -174,21 +174,18 @@ def run(args: argparse.Namespace) -> int:
                   f"({r['measured_pct']} %), unmeasured {r['unmeasured']}, sensing CPU "
                   f"{r['cpu_percent_sensing']} %, load average {r['load1']:.1f}",
                   flush=True)  # fmt: skip
-    if not args.no_write:
-        rows = [[r["load"], r["delivered"], r["measured"], f"{r['measured_pct']:.1f}",
-                 r["unmeasured"]["stale"], r["unmeasured"]["no_frame"],
-                 f"{r['cpu_percent_sensing'] or 0:.0f}", f"{r['load1']:.1f}"]
-                for r in runs]  # fmt: skip
-        md = "\n\n".join([
-            "## The follower's sensing keeps up with the headset (`humantele bench keepup`)",
-            machine_line() + f" {args.seconds:g} s per run; the headset's {args.rate:g} Hz "
-            "AHAT stream from the hl2ss replay server (RAW, loopback) to the follower's sensing "
-            "process through its hl2ss client, the daemon's 45 Hz frame clock submitting.",
-            markdown_table(["busy processes", "delivered", "measured", "measured %",
-                            "replaced unread", "no frame", "sensing CPU %", "load average"],
-                           rows),  # fmt: skip
-        ])  # fmt: skip
-        print(f"wrote {write_section('keepup', md)}")
-    if args.json:
-        print(json.dumps({"runs": runs, "seconds": args.seconds}))
+    rows = [[r["load"], r["delivered"], r["measured"], f"{r['measured_pct']:.1f}",
+             r["unmeasured"]["stale"], r["unmeasured"]["no_frame"],
+             f"{r['cpu_percent_sensing'] or 0:.0f}", f"{r['load1']:.1f}"]
+            for r in runs]  # fmt: skip
+    md = "\n\n".join([
+        "## The follower's sensing keeps up with the headset (`humantele bench keepup`)",
+        machine_line() + f" {args.seconds:g} s per run; the headset's {args.rate:g} Hz "
+        "AHAT stream from the hl2ss replay server (RAW, loopback) to the follower's sensing "
+        "process through its hl2ss client, the daemon's 45 Hz frame clock submitting.",
+        markdown_table(["busy processes", "delivered", "measured", "measured %",
+                        "replaced unread", "no frame", "sensing CPU %", "load average"],
+                       rows),  # fmt: skip
+    ])  # fmt: skip
+    publish("keepup", md, {"runs": runs, "seconds": args.seconds}, args)
     return 0

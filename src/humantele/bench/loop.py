@@ -18,13 +18,13 @@ bare loop shows too come from the machine (hypervisor steal, kernel), not from t
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing as mp
 import os
 import threading
 import time
 from typing import Any
 
+from humantele.bench import publish
 from humantele.bench.cpuload import cpu_load
 from humantele.haptics.demo_patient import demo_model
 from humantele.haptics.devices import SimDeviceConfig
@@ -37,7 +37,6 @@ from humantele.report import (
     machine_line,
     markdown_table,
     section_rows,
-    write_section,
 )
 from humantele.runtime.stats import process_cpu_seconds
 
@@ -280,9 +279,6 @@ def run(args: argparse.Namespace) -> int:
               f"{r['floor']['overruns']} (target: at most the bare loop's + 1: "
               f"{'met' if r['target_vs_bare'] else 'not met'}); servo longest work "
               f"{r['work_max_us']:.0f} us, spin now {r['spin_us']:.0f} us")  # fmt: skip
-    if not args.no_write:
-        path = write_section("loop", section(r, _kept_rows(LABELS[not args.load])), BENCHMARKS_MD)
-        if not args.json:
-            print(f"wrote {path}")
-    print(json.dumps(r))
+    md = section(r, _kept_rows(LABELS[not args.load]))
+    publish("loop", md, r, args, BENCHMARKS_MD, always_json=True)
     return 0

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import multiprocessing as mp
 import os
 import socket
@@ -27,7 +26,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from humantele.report import machine_line, markdown_table, write_section
+from humantele.bench import publish
+from humantele.report import machine_line, markdown_table
 
 MODES = ("none", "thread", "process")
 
@@ -242,43 +242,40 @@ def run(args: argparse.Namespace) -> int:
             ]
         )
     loads = [r["load1"] for r in runs]
-    if not args.no_write:
-        md = "\n\n".join(
-            [
-                "## Follower sensing beside the event loop (`humantele bench sensing`)",
-                machine_line()
-                + f" {args.repeat} runs of {args.seconds:g} s per mode, interleaved; load "
-                f"average during the runs {min(loads):.1f}-{max(loads):.1f}; {policy}. Figures "
-                "are medians over the runs.",
-                "A loop shaped like the follower's (100 Hz ticks, a sim tracker frame measured "
-                "at 45 Hz, one in flight) receives timestamped UDP datagrams at "
-                f"{args.rate:g} Hz from another process: receive latency is when the loop reads "
-                "each one, the part of the demo's pose age the follower adds. *none*: no "
-                "sensing; *thread*: sensing on a worker thread (the follower until issue 9); "
-                "*process*: sensing in a child process (`humantele.follower.sensing_process`, "
-                "nice +10, normal scheduling). With `--realtime` other work on the machine "
-                "cannot delay the loop, so what is left is the cost of the sensing beside it: "
-                "in a thread, the loop waits for the GIL the sensing holds (CPython hands it "
-                "over every 5 ms, `sys.getswitchinterval()`); in a process, nothing. The "
-                "frames/s column is what the sensing managed at the machine's load (45 asked): "
-                "a niced child gives way to the loop and to other work.",
-                markdown_table(
-                    [
-                        "sensing",
-                        "p50 ms",
-                        "p99 ms",
-                        "p99.9 ms",
-                        "max ms",
-                        "> 2 ms %",
-                        "tick late p99 ms",
-                        "frames/s",
-                        "p99 per run ms",
-                    ],
-                    rows,
-                ),
-            ]
-        )
-        write_section("sensing", md)
-    if args.json:
-        print(json.dumps(summary))
+    md = "\n\n".join(
+        [
+            "## Follower sensing beside the event loop (`humantele bench sensing`)",
+            machine_line()
+            + f" {args.repeat} runs of {args.seconds:g} s per mode, interleaved; load "
+            f"average during the runs {min(loads):.1f}-{max(loads):.1f}; {policy}. Figures "
+            "are medians over the runs.",
+            "A loop shaped like the follower's (100 Hz ticks, a sim tracker frame measured "
+            "at 45 Hz, one in flight) receives timestamped UDP datagrams at "
+            f"{args.rate:g} Hz from another process: receive latency is when the loop reads "
+            "each one, the part of the demo's pose age the follower adds. *none*: no "
+            "sensing; *thread*: sensing on a worker thread (the follower until issue 9); "
+            "*process*: sensing in a child process (`humantele.follower.sensing_process`, "
+            "nice +10, normal scheduling). With `--realtime` other work on the machine "
+            "cannot delay the loop, so what is left is the cost of the sensing beside it: "
+            "in a thread, the loop waits for the GIL the sensing holds (CPython hands it "
+            "over every 5 ms, `sys.getswitchinterval()`); in a process, nothing. The "
+            "frames/s column is what the sensing managed at the machine's load (45 asked): "
+            "a niced child gives way to the loop and to other work.",
+            markdown_table(
+                [
+                    "sensing",
+                    "p50 ms",
+                    "p99 ms",
+                    "p99.9 ms",
+                    "max ms",
+                    "> 2 ms %",
+                    "tick late p99 ms",
+                    "frames/s",
+                    "p99 per run ms",
+                ],
+                rows,
+            ),
+        ]
+    )
+    publish("sensing", md, summary, args)
     return 0

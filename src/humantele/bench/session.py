@@ -42,8 +42,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from humantele import report
+from humantele.bench import publish
 from humantele.bench.cpuload import cpu_load
-from humantele.report import machine_line, markdown_table, section_rows, write_section
+from humantele.report import machine_line, markdown_table, section_rows
 
 ROOM = "bench"
 Q_IDENTITY = (0.0, 0.0, 0.0, 1.0)
@@ -543,12 +544,8 @@ def run(args: argparse.Namespace) -> int:
         f"(largest RTO {summary['sctp_expert']['rto_max_s']} s), "
         f"dropped {summary['dropped']}"
     )
-    if not args.no_write:
-        rows = merge_rows(section_rows(SECTION, len(HEADER), report.BENCHMARKS_MD), _row(summary))
-        path = write_section(SECTION, _markdown(summary, rows))
-        print(f"wrote {path}")
-    if args.json:
-        print(json.dumps(summary))
+    rows = merge_rows(section_rows(SECTION, len(HEADER), report.BENCHMARKS_MD), _row(summary))
+    publish(SECTION, _markdown(summary, rows), summary, args)
     return 0
 
 

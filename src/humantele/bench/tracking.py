@@ -11,14 +11,14 @@ Deterministic by ``--seed``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 
 import numpy as np
 
+from humantele.bench import publish
 from humantele.geometry import Pose, quat_from_axis_angle, quat_multiply
-from humantele.report import DOCS_DIR, machine_line, markdown_table, write_section
+from humantele.report import DOCS_DIR, machine_line, markdown_table
 from humantele.tracking.filter import FilterConfig
 from humantele.tracking.pipeline import PipelineConfig, Tracker
 from humantele.tracking.psf import estimate_psf_sigma
@@ -27,6 +27,7 @@ from humantele.tracking.sim import SimFrameConfig, SimFrameSource, default_sim_p
 WRONG_M, WRONG_RAD = 0.005, np.radians(5.0)
 BEFORE = "before: core median + 0.47 R depth"
 FILTER = {"enabled": True, "alpha": 0.4, "beta": 0.05}
+CHART = DOCS_DIR / "img" / "tracking_speed_accuracy.png"
 # the matcher before the missing-marker checks (issue 9): any 3-marker fit within tolerance
 NO_CHECKS = {"verify_missing": False, "max_rms_partial_mm": 1.5}
 
@@ -154,7 +155,7 @@ def force_rms(seed: int) -> dict:
     return out
 
 
-def chart(points: list[tuple[str, float, float]], noise: list[tuple[float, float, float]]):
+def chart(points: list[tuple[str, float, float]], noise: list[tuple[float, float, float]]) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -178,11 +179,9 @@ def chart(points: list[tuple[str, float, float]], noise: list[tuple[float, float
     ax.set_ylabel("position RMSE, mm (log)")
     ax.set_title("IR marker tracking on simulated AHAT frames: speed against accuracy")
     fig.tight_layout()
-    path = DOCS_DIR / "img" / "tracking_speed_accuracy.png"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
+    CHART.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(CHART)
     plt.close(fig)
-    return path
 
 
 def calibrated_psf(sim: SimFrameConfig, seed: int) -> float:
@@ -290,79 +289,77 @@ def run(args: argparse.Namespace) -> int:
     )
     print(f"lag off {lag_off}  on {lag_on}  force {force}  render {render_ms:.2f} ms")
     if not args.no_write:
-        png = chart(points, noise_pts)
-        head = [
-            "variant",
-            "noise",
-            "ms/frame",
-            "pos RMSE mm",
-            "rot RMSE deg",
-            "tip RMSE mm",
-            "tracked %",
-            "wrong",
+        chart(points, noise_pts)
+    head = [
+        "variant",
+        "noise",
+        "ms/frame",
+        "pos RMSE mm",
+        "rot RMSE deg",
+        "tip RMSE mm",
+        "tracked %",
+        "wrong",
+    ]
+    md = "\n\n".join(
+        [
+            "## Tracking (IR markers, simulated AHAT frames)",
+            machine_line() + f" {n} frames per row, seed {seed}, `humantele bench tracking`;"
+            f" load average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end "
+            "(times grow with it; the tracked and wrong columns do not).",
+            "Time is the pipeline only (blobs, depth, matching, fit), median, one core; "
+            f"rendering a sim frame takes {render_ms:.2f} ms more. Poses: 0.35-0.5 m, tilted "
+            "<= 30 deg. *Wrong* counts tracked frames off by > 5 mm or 5 deg. Targets: "
+            "<= 2 ms, <= 0.5 mm, <= 0.5 deg (STTAR 0.09 mm lateral / 0.42 mm depth / 0.80 deg;"
+            " Polaris 0.25 mm RMS).",
+            markdown_table(head, rows),
+            "Depth: the default fits each marker's ToF image with a model of the sphere "
+            "(blurred disc coverage, depth of the visible cap, amplitude-weighted mixing with "
+            "the background ring; `humantele.tracking.sphere`): each pixel votes for the "
+            "centre's range along the IR centroid's ray, robustly weighted. *Before* is the "
+            "previous default (median range of the bright core + 0.47 R, fitted on the sim: "
+            "biased by -1 mm at 0.5 m and +0.4 mm at 0.35 m). A blob whose IR image misfits "
+            "the model (a finger over the sphere, a merged glint) is refused, so the pose "
+            "comes from the other markers or is lost, never wrong. The model's one sensor "
+            "parameter, the camera blur, is calibrated from IR frames alone "
+            "(`humantele.tracking.psf.estimate_psf_sigma`, 10 frames).",
+            "Where the default pipeline fails (hidden markers have a finger in front; sphere "
+            "strays are drawn by the sim's marker renderer, never intersecting a marker; the "
+            "second tool is `src/humantele/defaults/tools/reference_frame.toml` 7-14 cm "
+            "from the probe). "
+            "*Before checks*: the same scene with the matcher as it was before issue 9 "
+            "(any three-marker fit within the distance tolerances).",
+            markdown_table(
+                ["scenario", *head[2:], "tracked % before checks", "wrong before checks"],
+                scen_rows,
+            ),
+            "Lost, never wrong: a fit that leaves a marker unmatched (three of four) is kept "
+            "only if (1) its RMS residual is <= 0.6 mm (1.5 mm for four), (2) no candidate "
+            "point lies on that marker's ray or within the tool's marker spacing of its "
+            "fitted place (it was seen and did not fit), and (3) the depth image shows a "
+            "reason not to see it: at its fitted place the depth reads no farther than its "
+            "front surface + 10 mm (a finger in front, or its own refused image). If the ray "
+            "is clear, the background visible through where the marker would be, the fit is "
+            "refuted (`humantele.tracking.evidence`). Without depth, or outside the image, "
+            "only four-marker fits are trusted. A fit that puts its missing marker straight "
+            "behind one of its own matched markers (the tool turned edge-on) is kept only "
+            "when no other candidate is in view: with one, a stray may stand in for the "
+            "hidden marker. Refusing those fits always cost the demo's side landmark press "
+            "most of its frames (84 % tracked before, 17 % with the rule always applied, "
+            "70 % now; `tests/tracking/test_tracking_markers.py`). "
+            "The cost is the drop in tracked % in the rows above. The same scenes "
+            "with 400 frames and seed 7 gave no wrong pose but one at noise x4 (2.5 mm, "
+            "8 deg: three noisy markers whose fourth was not detected at all), beyond the "
+            "sensor's spec; before the checks, every tracked frame with two markers hidden "
+            "was wrong.",
+            f"Alpha-beta filter (alpha {FILTER['alpha']}, beta {FILTER['beta']}) on a 0.1 m/s "
+            f"ramp: it adds {lag_on['lag_ms'] - lag_off['lag_ms']:.1f} ms of lag and takes "
+            f"the along-track jitter from {lag_off['jitter_mm']:.2f} to "
+            f"{lag_on['jitter_mm']:.2f} mm.",
+            f"Force sensor (sim, +-20 N presses, after least-squares calibration): "
+            f"{force['default']:.3f} N RMS (vector); with 10 K temperature swings and a 0.5 mT "
+            f"outside field: {force['drift']:.3f} N RMS (anchor: 0.45 N RMS).",
+            f"![speed against accuracy](img/{CHART.name})",
         ]
-        md = "\n\n".join(
-            [
-                "## Tracking (IR markers, simulated AHAT frames)",
-                machine_line() + f" {n} frames per row, seed {seed}, `humantele bench tracking`;"
-                f" load average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end "
-                "(times grow with it; the tracked and wrong columns do not).",
-                "Time is the pipeline only (blobs, depth, matching, fit), median, one core; "
-                f"rendering a sim frame takes {render_ms:.2f} ms more. Poses: 0.35-0.5 m, tilted "
-                "<= 30 deg. *Wrong* counts tracked frames off by > 5 mm or 5 deg. Targets: "
-                "<= 2 ms, <= 0.5 mm, <= 0.5 deg (STTAR 0.09 mm lateral / 0.42 mm depth / 0.80 deg;"
-                " Polaris 0.25 mm RMS).",
-                markdown_table(head, rows),
-                "Depth: the default fits each marker's ToF image with a model of the sphere "
-                "(blurred disc coverage, depth of the visible cap, amplitude-weighted mixing with "
-                "the background ring; `humantele.tracking.sphere`): each pixel votes for the "
-                "centre's range along the IR centroid's ray, robustly weighted. *Before* is the "
-                "previous default (median range of the bright core + 0.47 R, fitted on the sim: "
-                "biased by -1 mm at 0.5 m and +0.4 mm at 0.35 m). A blob whose IR image misfits "
-                "the model (a finger over the sphere, a merged glint) is refused, so the pose "
-                "comes from the other markers or is lost, never wrong. The model's one sensor "
-                "parameter, the camera blur, is calibrated from IR frames alone "
-                "(`humantele.tracking.psf.estimate_psf_sigma`, 10 frames).",
-                "Where the default pipeline fails (hidden markers have a finger in front; sphere "
-                "strays are drawn by the sim's marker renderer, never intersecting a marker; the "
-                "second tool is `src/humantele/defaults/tools/reference_frame.toml` 7-14 cm "
-                "from the probe). "
-                "*Before checks*: the same scene with the matcher as it was before issue 9 "
-                "(any three-marker fit within the distance tolerances).",
-                markdown_table(
-                    ["scenario", *head[2:], "tracked % before checks", "wrong before checks"],
-                    scen_rows,
-                ),
-                "Lost, never wrong: a fit that leaves a marker unmatched (three of four) is kept "
-                "only if (1) its RMS residual is <= 0.6 mm (1.5 mm for four), (2) no candidate "
-                "point lies on that marker's ray or within the tool's marker spacing of its "
-                "fitted place (it was seen and did not fit), and (3) the depth image shows a "
-                "reason not to see it: at its fitted place the depth reads no farther than its "
-                "front surface + 10 mm (a finger in front, or its own refused image). If the ray "
-                "is clear, the background visible through where the marker would be, the fit is "
-                "refuted (`humantele.tracking.evidence`). Without depth, or outside the image, "
-                "only four-marker fits are trusted. A fit that puts its missing marker straight "
-                "behind one of its own matched markers (the tool turned edge-on) is kept only "
-                "when no other candidate is in view: with one, a stray may stand in for the "
-                "hidden marker. Refusing those fits always cost the demo's side landmark press "
-                "most of its frames (84 % tracked before, 17 % with the rule always applied, "
-                "70 % now; `tests/tracking/test_tracking_markers.py`). "
-                "The cost is the drop in tracked % in the rows above. The same scenes "
-                "with 400 frames and seed 7 gave no wrong pose but one at noise x4 (2.5 mm, "
-                "8 deg: three noisy markers whose fourth was not detected at all), beyond the "
-                "sensor's spec; before the checks, every tracked frame with two markers hidden "
-                "was wrong.",
-                f"Alpha-beta filter (alpha {FILTER['alpha']}, beta {FILTER['beta']}) on a 0.1 m/s "
-                f"ramp: it adds {lag_on['lag_ms'] - lag_off['lag_ms']:.1f} ms of lag and takes "
-                f"the along-track jitter from {lag_off['jitter_mm']:.2f} to "
-                f"{lag_on['jitter_mm']:.2f} mm.",
-                f"Force sensor (sim, +-20 N presses, after least-squares calibration): "
-                f"{force['default']:.3f} N RMS (vector); with 10 K temperature swings and a 0.5 mT "
-                f"outside field: {force['drift']:.3f} N RMS (anchor: 0.45 N RMS).",
-                f"![speed against accuracy](img/{png.name})",
-            ]
-        )
-        write_section("tracking", md)
-    if args.json:
-        print(json.dumps(summary))
+    )
+    publish("tracking", md, summary, args)
     return 0

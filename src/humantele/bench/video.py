@@ -19,13 +19,13 @@ docs/benchmarks.md. Deterministic images (seeded); times depend on the machine.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 
 import numpy as np
 
-from humantele.report import BENCHMARKS_MD, machine_line, markdown_table, write_section
+from humantele.bench import publish
+from humantele.report import BENCHMARKS_MD, machine_line, markdown_table
 from humantele.video.counter import patch_size, read_counter
 from humantele.video.fidelity import psnr, ssim
 from humantele.video.scene import DemoScene
@@ -176,37 +176,35 @@ def run(args: argparse.Namespace) -> int:
                       f"{c['psnr_db']:.1f} dB, SSIM {c['ssim']:.3f}, "
                       f"encode {c['encode_ms']:.1f} ms")  # fmt: skip
     summary = {"part": "sources", "frames": n, "seed": seed, "render": renders, "vp8": counters}
-    if not args.no_write:
-        md = "\n\n".join(
-            [
-                "## Video sources",
-                machine_line() + f" {n} frames per row, seed {seed}, `humantele bench video`; "
-                f"load average {load:.1f} at the start (above 1.5 the times are provisional).",
-                "Render cost of the sim sources per frame (one OpenCV thread, the demo scene's "
-                "probe sweeping; the US image at 20 fps and the POV at 25 fps beside the 1 kHz "
-                "servo). Default sizes: US 640x480, POV 960x540.",
-                markdown_table(["source", "size", "median ms", "p90 ms"], rows),
-                "The frame counter (24 bits + 8-bit check, 8 px cells) read back after VP8, "
-                "the frames sent as the follower sends them (I420, 20 fps) and decoded by "
-                "aiortc's decoder: through aiortc's own VP8 encoder (its libvpx settings: "
-                "temporal denoiser and encode breakout on) and through ours "
-                "(`humantele.media.encoders`: both off), at a fixed bit rate; with PSNR and "
-                "SSIM of our decoded frame against its source (grey, counter rows left out, "
-                "median) and our encoder's time per frame:",
-                markdown_table(
-                    [
-                        "source",
-                        "kbit/s",
-                        "counter read % (aiortc's encoder)",
-                        "counter read % (ours)",
-                        "PSNR dB",
-                        "SSIM",
-                        "encode ms",
-                    ],
-                    crow,
-                ),  # fmt: skip
-            ]
-        )
-        write_section("video", md, BENCHMARKS_MD)
-    print(json.dumps(summary))
+    md = "\n\n".join(
+        [
+            "## Video sources",
+            machine_line() + f" {n} frames per row, seed {seed}, `humantele bench video`; "
+            f"load average {load:.1f} at the start (above 1.5 the times are provisional).",
+            "Render cost of the sim sources per frame (one OpenCV thread, the demo scene's "
+            "probe sweeping; the US image at 20 fps and the POV at 25 fps beside the 1 kHz "
+            "servo). Default sizes: US 640x480, POV 960x540.",
+            markdown_table(["source", "size", "median ms", "p90 ms"], rows),
+            "The frame counter (24 bits + 8-bit check, 8 px cells) read back after VP8, "
+            "the frames sent as the follower sends them (I420, 20 fps) and decoded by "
+            "aiortc's decoder: through aiortc's own VP8 encoder (its libvpx settings: "
+            "temporal denoiser and encode breakout on) and through ours "
+            "(`humantele.media.encoders`: both off), at a fixed bit rate; with PSNR and "
+            "SSIM of our decoded frame against its source (grey, counter rows left out, "
+            "median) and our encoder's time per frame:",
+            markdown_table(
+                [
+                    "source",
+                    "kbit/s",
+                    "counter read % (aiortc's encoder)",
+                    "counter read % (ours)",
+                    "PSNR dB",
+                    "SSIM",
+                    "encode ms",
+                ],
+                crow,
+            ),  # fmt: skip
+        ]
+    )
+    publish("video", md, summary, args, BENCHMARKS_MD, always_json=True)
     return 0

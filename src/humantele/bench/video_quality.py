@@ -34,7 +34,8 @@ from typing import Any
 
 import numpy as np
 
-from humantele.report import BENCHMARKS_MD, machine_line, markdown_table, write_section
+from humantele.bench import publish
+from humantele.report import BENCHMARKS_MD, machine_line, markdown_table
 from humantele.runtime.stats import percentile_ms
 
 SECTION = "video-quality"
@@ -253,27 +254,27 @@ def run_quality(args: argparse.Namespace) -> int:
                 print(json.dumps(r), flush=True)
     if not args.no_write:
         chart(points, CHART)
-        rows = [[p["size"], p["kbps_set"], p["kbps_sent"], p["fps"],
-                 f"{p['age_p50_ms']} / {p['age_p95_ms']}", p["psnr_db"], p["ssim"],
-                 p["compared"], p["load"]] for p in points]  # fmt: skip
-        md = "\n\n".join(
-            [
-                "## Video: speed against quality (`humantele bench video quality`)",
-                machine_line() + f" Load average {load0:.1f} at the start (a figure taken at a "
-                "load above 1.5 is provisional).",
-                f"Per US size and bit rate (fixed), {args.seconds:g} s of a live link on loopback:"
-                " a follower process (sim sources in its video process, the demo scene, our "
-                "encoders, the POV at its defaults) and the expert's receiver in the bench "
-                "process. Latency: capture to decoded (counter and clock sync), after the first "
-                f"{WARMUP_S:g} s. PSNR and SSIM (median): every {EVERY}th decoded US frame "
-                "against the frame the follower gave its encoder, grey, the counter's rows left "
-                "out. kbit/s sent: RTP payload of the US track.",
-                f"![speed against quality](img/{CHART.name})",
-                markdown_table(HEADER, rows),
-            ]
-        )
-        write_section(SECTION, md, BENCHMARKS_MD)
-    print(json.dumps({"part": "quality", "points": points}))
+    rows = [[p["size"], p["kbps_set"], p["kbps_sent"], p["fps"],
+             f"{p['age_p50_ms']} / {p['age_p95_ms']}", p["psnr_db"], p["ssim"],
+             p["compared"], p["load"]] for p in points]  # fmt: skip
+    md = "\n\n".join(
+        [
+            "## Video: speed against quality (`humantele bench video quality`)",
+            machine_line() + f" Load average {load0:.1f} at the start (a figure taken at a "
+            "load above 1.5 is provisional).",
+            f"Per US size and bit rate (fixed), {args.seconds:g} s of a live link on loopback:"
+            " a follower process (sim sources in its video process, the demo scene, our "
+            "encoders, the POV at its defaults) and the expert's receiver in the bench "
+            "process. Latency: capture to decoded (counter and clock sync), after the first "
+            f"{WARMUP_S:g} s. PSNR and SSIM (median): every {EVERY}th decoded US frame "
+            "against the frame the follower gave its encoder, grey, the counter's rows left "
+            "out. kbit/s sent: RTP payload of the US track.",
+            f"![speed against quality](img/{CHART.name})",
+            markdown_table(HEADER, rows),
+        ]
+    )
+    summary = {"part": "quality", "points": points}
+    publish(SECTION, md, summary, args, BENCHMARKS_MD, always_json=True)
     return 0
 
 
