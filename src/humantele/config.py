@@ -33,6 +33,7 @@ from pydantic import (
     AfterValidator,
     BaseModel,
     ConfigDict,
+    Field,
     ValidationError,
     ValidationInfo,
     model_validator,
@@ -186,6 +187,12 @@ def _directory(v: str) -> str:
 DirectoryField = Annotated[str, AfterValidator(_directory)]
 """A directory a daemon writes into (``~`` allowed; made when needed): refused at load when
 empty or when a file stands where it or one of its parents must be."""
+
+Port = Annotated[int, Field(ge=0, le=65535)]
+"""A port this process listens on, 0-65535 (0: the system picks a free one)."""
+
+RemotePort = Annotated[int, Field(ge=1, le=65535)]
+"""A port of another host's service this process connects to, 1-65535."""
 
 
 def directory_problem(path: str | Path) -> str | None:

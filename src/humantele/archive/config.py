@@ -8,7 +8,7 @@ import re
 
 from pydantic import Field, field_validator, model_validator
 
-from humantele.config import ConfigModel, DirectoryField
+from humantele.config import ConfigModel, DirectoryField, RemotePort
 
 _AE = re.compile(r"^[\x20-\x5b\x5d-\x7e]{1,16}$")  # DICOM AE: 16 chars, no backslash, no control
 
@@ -27,7 +27,7 @@ class ArchiveConfig(ConfigModel):
         "dimse", pattern=r"^(dimse|stow)$", description="'dimse': C-STORE; 'stow': STOW-RS"
     )
     host: str = Field("127.0.0.1", min_length=1, description="the archive's DICOM host")
-    port: int = Field(104, ge=1, le=65535, description="the archive's DICOM port")
+    port: RemotePort = Field(104, description="the archive's DICOM port")
     called_ae: str = Field("ORTHANC", description="the archive's AE title")
     calling_ae: str = Field("HUMANTELE", description="this expert's AE title")
     tls: bool = Field(False, description="DICOM over TLS (PS3.15 B.1): needs tls_ca_file")
@@ -54,7 +54,7 @@ class ArchiveConfig(ConfigModel):
         "from the Modality Worklist (worklist_*)",
     )
     worklist_host: str | None = Field(None, description="None: the archive's host")
-    worklist_port: int | None = Field(None, ge=1, le=65535, description="None: the archive's")
+    worklist_port: RemotePort | None = Field(None, description="None: the archive's")
     worklist_ae: str | None = Field(None, description="None: called_ae")
     station_ae: str | None = Field(
         None, description="Scheduled Station AE Title the worklist is asked for (None: any)"

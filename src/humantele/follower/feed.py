@@ -71,7 +71,7 @@ from aiohttp import web
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 
 from humantele.cliargs import socket_error
-from humantele.config import ConfigModel
+from humantele.config import ConfigModel, Port
 from humantele.follower.registration import RegistrationMessage, ViewerPoseMessage
 from humantele.runtime.stats import percentile_ms
 from humantele.web.connguard import GuardedPages
@@ -102,7 +102,7 @@ class FeedConfig(ConfigModel):
 
     enabled: bool = True
     host: str = Field("0.0.0.0", description="address to listen on ('0.0.0.0': all)")
-    port: int = Field(8766, ge=0, le=65535)
+    port: Port = 8766
     path: str = Field(  # segments of safe characters: no "//", no "/.." nor "/."
         "/feed", max_length=200, pattern=r"^(/[A-Za-z0-9_-][A-Za-z0-9_.-]*)+$"
     )

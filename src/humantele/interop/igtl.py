@@ -48,7 +48,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
 
-from humantele.config import ConfigModel
+from humantele.config import ConfigModel, Port
 from humantele.geometry import Pose
 
 log = logging.getLogger(__name__)
@@ -77,7 +77,7 @@ class IgtlConfig(ConfigModel):
 
     enabled: bool = False
     host: str = "127.0.0.1"
-    port: int = Field(18944, ge=0, le=65535)
+    port: Port = 18944
     max_clients: int = Field(4, ge=1, le=64)
     pose_rate_hz: float = Field(60.0, gt=0.0, le=1000.0)
     image_rate_hz: float = Field(10.0, gt=0.0, le=60.0)

@@ -30,7 +30,7 @@ from aiohttp import WSCloseCode, WSMsgType, web
 from pydantic import Field, FilePath, SecretStr, model_validator
 
 from humantele.cliargs import port, socket_error
-from humantele.config import ConfigError, ConfigModel, load_config, validate_config
+from humantele.config import ConfigError, ConfigModel, Port, load_config, validate_config
 from humantele.signaling.guard import (
     ACCEPT_BACKLOG,
     FD_RESERVE,
@@ -75,7 +75,7 @@ class SignalConfig(ConfigModel):
     """Signaling server settings (``configs/signal.toml``)."""
 
     host: str = "127.0.0.1"
-    port: int = Field(8765, ge=0, le=65535)
+    port: Port = 8765
     path: str = Field("/ws", pattern=r"^/[A-Za-z0-9_/.-]*$")
     token: SecretStr | None = None  # else $HUMANTELE_TOKEN, else the loopback-only dev token
     tls_cert: FilePath | None = None  # PEM certificate (chain): serve wss://

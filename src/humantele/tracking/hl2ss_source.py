@@ -58,7 +58,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from humantele.config import ConfigModel
+from humantele.config import ConfigModel, RemotePort
 from humantele.geometry import Pose
 from humantele.tracking.camera import CameraIntrinsics
 from humantele.tracking.frames import FrameSource, FrameSourceUnavailable, TrackingFrame
@@ -111,7 +111,7 @@ class Hl2ssFrameConfig(ConfigModel):
 
     backend: Literal["hl2ss"] = "hl2ss"
     host: str = "192.168.1.7"
-    port: int = Field(AHAT_PORT, ge=1, le=65535)
+    port: RemotePort = AHAT_PORT
     mode: Literal[0, 1] = Field(1, description="1: packets carry the rig pose (the follower "
                                 "needs it); 0: frames only")  # fmt: skip
     divisor: int = Field(1, ge=1, le=255, description="send every n-th frame (45 Hz / n)")

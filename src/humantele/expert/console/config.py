@@ -6,7 +6,7 @@ import math
 
 from pydantic import Field, field_validator
 
-from humantele.config import ConfigModel, DirectoryField
+from humantele.config import ConfigModel, DirectoryField, Port
 from humantele.web.loopback import is_loopback
 
 # How a page may get the received video (docs/console.md, "The video path"): the first is
@@ -19,7 +19,7 @@ class ConsoleConfig(ConfigModel):
 
     enabled: bool = True
     host: str = Field("127.0.0.1", description="loopback only (an SSH tunnel for elsewhere)")
-    port: int = Field(8767, ge=0, le=65535, description="0 picks a free one")
+    port: Port = Field(8767, description="0 picks a free one")
     video: str = Field(
         "auto",
         pattern=r"^(auto|received|sim|none)$",
