@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import Any
 
 from humantele.report import write_section
 
@@ -27,3 +28,22 @@ def publish(
             print(f"wrote {where}")
     if as_json or always_json:
         print(json.dumps(summary, default=str))
+
+
+def pyplot() -> Any:
+    """matplotlib's pyplot on the Agg backend (files only, no display); imported when a bench
+    draws its chart, not when the command line is built."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_chart(fig: Any, path: Path) -> Path:
+    """Write ``fig`` to ``path`` (its folder made), close it; returns ``path``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    pyplot().close(fig)
+    return path

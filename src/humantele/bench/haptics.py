@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from humantele.bench import publish
+from humantele.bench import publish, pyplot, save_chart
 from humantele.haptics.ellipsoid import METHODS, Ellipsoid
 from humantele.report import DOCS_DIR, machine_line, markdown_table
 
@@ -224,10 +224,7 @@ def failure_notes(results: dict) -> str:
 
 
 def chart(results: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(7, 4.5), dpi=110)
     markers = {"radial": "o", "newton": "s", "exact": "^"}
@@ -259,9 +256,7 @@ def chart(results: dict, path: Path) -> None:
     ax.legend(fontsize=8, loc="center right")
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
+    save_chart(fig, path)
 
 
 def run_callback(args: argparse.Namespace) -> int:

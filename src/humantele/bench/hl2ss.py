@@ -25,9 +25,11 @@ import math
 import multiprocessing
 import os
 import time
+from pathlib import Path
 
 import numpy as np
 
+from humantele.bench import pyplot, save_chart
 from humantele.geometry import Pose, quat_from_axis_angle, quat_multiply
 from humantele.report import DOCS_DIR, machine_line, markdown_table, write_section
 
@@ -162,11 +164,8 @@ def run_case(frames, items, ab_profile: str, bitrate: int | None, bandwidth: flo
             "backlog_drops": src.dropped.get("backlog", 0)}  # fmt: skip
 
 
-def chart(results: list[tuple[str, float, dict]]):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+def chart(results: list[tuple[str, float, dict]]) -> Path:
+    plt = pyplot()
     import matplotlib.ticker
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 5.0), dpi=110)
@@ -200,11 +199,7 @@ def chart(results: list[tuple[str, float, dict]]):
     fig.suptitle("hl2ss AHAT settings over a Wi-Fi link (numbers: link Mbit/s; red: targets)",
                  fontsize=10)  # fmt: skip
     fig.tight_layout(rect=(0, 0.06, 1, 1))
-    path = DOCS_DIR / "img" / "hl2ss_settings.png"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_chart(fig, DOCS_DIR / "img" / "hl2ss_settings.png")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -19,10 +19,12 @@ from __future__ import annotations
 import argparse
 import math
 import os
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
+from humantele.bench import pyplot, save_chart
 from humantele.follower.registration import (
     DegenerateRegistration,
     RegistrationConfig,
@@ -159,11 +161,8 @@ def trajectory_case(trials: int, lag_s: float, known_offset: bool, seed: int,
 
 
 def chart(series: dict[str, list[dict]], setup_s: float, per_point_s: float, noise: str,
-          trajectories: list[tuple[str, float, dict]]):  # fmt: skip
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+          trajectories: list[tuple[str, float, dict]]) -> Path:  # fmt: skip
+    plt = pyplot()
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 5.0), dpi=110)
     for (name, rows), colour in zip(series.items(), ("C1", "C0", "C2"), strict=False):
@@ -199,11 +198,7 @@ def chart(series: dict[str, list[dict]], setup_s: float, per_point_s: float, noi
     fig.suptitle(f"Headset registration: time against accuracy (numbers: targets; {noise})",
                  fontsize=10)  # fmt: skip
     fig.tight_layout(rect=(0, 0.1, 1, 1))
-    path = DOCS_DIR / "img" / "registration_speed_accuracy.png"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_chart(fig, DOCS_DIR / "img" / "registration_speed_accuracy.png")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from humantele.bench import publish
+from humantele.bench import publish, pyplot, save_chart
 from humantele.geometry import Pose, quat_from_axis_angle, quat_multiply
 from humantele.report import DOCS_DIR, machine_line, markdown_table
 from humantele.tracking.filter import FilterConfig
@@ -156,10 +156,7 @@ def force_rms(seed: int) -> dict:
 
 
 def chart(points: list[tuple[str, float, float]], noise: list[tuple[float, float, float]]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(7.5, 4.8), dpi=110)
     for name, ms, err in points:
@@ -179,9 +176,7 @@ def chart(points: list[tuple[str, float, float]], noise: list[tuple[float, float
     ax.set_ylabel("position RMSE, mm (log)")
     ax.set_title("IR marker tracking on simulated AHAT frames: speed against accuracy")
     fig.tight_layout()
-    CHART.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(CHART)
-    plt.close(fig)
+    save_chart(fig, CHART)
 
 
 def calibrated_psf(sim: SimFrameConfig, seed: int) -> float:

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from humantele.bench import publish
+from humantele.bench import publish, pyplot, save_chart
 from humantele.report import BENCHMARKS_MD, machine_line, markdown_table
 from humantele.runtime.stats import percentile_ms
 
@@ -205,10 +205,7 @@ def _sizes(text: str) -> list[tuple[int, int]]:
 
 
 def chart(points: list[dict[str, Any]], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, (q, lat) = plt.subplots(1, 2, figsize=(10, 4.2), dpi=110)
     for size in dict.fromkeys(p["size"] for p in points):
@@ -236,9 +233,7 @@ def chart(points: list[dict[str, Any]], path: Path) -> None:
     q.legend(fontsize=8)
     lat.legend(fontsize=8)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
+    save_chart(fig, path)
 
 
 def run_quality(args: argparse.Namespace) -> int:
