@@ -169,6 +169,18 @@ def _f(v: float | None, digits: int) -> str:
     return "-" if v is None else f"{v:.{digits}f}"
 
 
+def _spearman_lines(q: dict[str, Any], what: str) -> list[str]:
+    """A line per alignment metric: the Spearman correlation of ``what`` (the quality) with it."""
+    lines = []
+    for key, head in METRICS:
+        sp = q["spearman"][key]
+        lines.append(
+            f"Spearman {what} vs {head}: rho {_f(sp['rho'], 2)} (p = {_f(sp['p'], 2)}, "
+            f"n = {sp['n']})"
+        )
+    return lines
+
+
 def format_report(report: dict[str, Any]) -> str:
     """The report as text: the paper's Table II layout (complete scans only), then the other
     results."""
@@ -233,13 +245,7 @@ def format_report(report: dict[str, Any]) -> str:
             + ", ".join(f"scan {k}: {v:.2f}" for k, v in q["scan_quality"].items())
             + f"; mean {q['mean']:.2f}"
         )
-        for key, head in METRICS:
-            sp = q["spearman"][key]
-            out.append(
-                f"Spearman sim quality vs {head}: rho {_f(sp['rho'], 2)} (p = {_f(sp['p'], 2)}, "
-                f"n = {sp['n']})"
-            )
-        out.append("")
+        out += [*_spearman_lines(q, "sim quality"), ""]
     elif q:
         out += ["Image quality (0-5)", ""]
         for label, qq in (("all scans", q), ("without excluded scans", q.get("without_excluded"))):
@@ -254,13 +260,7 @@ def format_report(report: dict[str, Any]) -> str:
                 f">= 3 by all raters {_f(None if share3 is None else 100 * share3, 1)} %, "
                 f"5 by all raters {_f(None if share5 is None else 100 * share5, 1)} %"
             )
-        for key, head in METRICS:
-            sp = q["spearman"][key]
-            out.append(
-                f"Spearman quality vs {head}: rho {_f(sp['rho'], 2)} (p = {_f(sp['p'], 2)}, "
-                f"n = {sp['n']})"
-            )
-        out.append("")
+        out += [*_spearman_lines(q, "quality"), ""]
     t = report.get("tlx")
     if t:
         rows = [
