@@ -14,8 +14,10 @@ scalar types: a string is never taken for a number or a boolean (``port = "8767"
 ``enabled = "yes"``), nor a number for a boolean, a boolean for a number, or a float for an
 integer; an integer is a float, and arrays fill tuples and lists (pydantic's own strict mode
 would refuse those TOML arrays, and its JSON mode is lost under a model's "before" validator).
-Rotations are :data:`Quaternion` fields, refused unless normalisable. A bad value fails at
-start with :class:`ConfigError`, whose message names the file, the field and the reason.
+Rotations are :data:`Quaternion` fields, refused unless normalisable; ports are :data:`Port`
+(listened on) or :data:`RemotePort` (another host's); directories written into are
+:data:`DirectoryField`. A bad value fails at start with :class:`ConfigError`, whose message
+names the file, the field and the reason.
 """
 
 from __future__ import annotations
