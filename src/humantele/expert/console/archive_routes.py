@@ -140,14 +140,17 @@ class ConsoleArchive:
 
         def work() -> str:
             self.archive.scan(f"scan {k.scan}", frames, scale)
-            k.outcome, k.sent_frames, k.frames, k.nbytes = "queued", len(frames), [], 0
             return (f"scan {k.scan}: the whole scan ({len(frames)} frames over {span:.0f} s"
                     f"{left_out}) queued for the archive")  # fmt: skip
+
+        def queued() -> None:  # (on the loop) its frames are in the queue's file: let go
+            k.sent_frames, k.frames, k.nbytes = len(frames), [], 0
+            k.outcome = "queued"
 
         def failed() -> None:
             k.outcome = ""  # (it may be asked for again: the patient entered, room made)
 
-        self._spawn(work, f"scan {k.scan}", failed)
+        self._spawn(work, f"scan {k.scan}", failed, queued)
 
     def mark(self, f: Any, caliper: tuple | None = None, note: tuple | None = None) -> None:
         """A caliper ((a, b) px, mm) or note ((x, y) px, text) on a frame: with its capture,
@@ -166,7 +169,7 @@ class ConsoleArchive:
 
         self._spawn(work, f"frame {f.seq}")
 
-    def _spawn(self, work: Any, what: str, failed: Any = None) -> None:
+    def _spawn(self, work: Any, what: str, failed: Any = None, done: Any = None) -> None:
         from humantele.archive.queue import QueueFull
         from humantele.archive.service import NoExam
 
@@ -180,6 +183,8 @@ class ConsoleArchive:
             except (OSError, ValueError) as exc:
                 self._refuse("failed", f"{what} not archived: {exc}")
             else:
+                if done is not None:
+                    done()
                 if text:
                     self.last = text
                 return
