@@ -68,7 +68,9 @@ class ArchiveConfig(ConfigModel):
     remote_site: str = Field(
         "", max_length=64, description="the clinic where the follower scans (recorded in DICOM)"
     )
-    clip_quality: int = Field(88, ge=30, le=100, description="JPEG quality of clip frames")
+    clip_quality: int = Field(
+        88, ge=30, le=100, description="JPEG quality of a whole scan's frames (sent live)"
+    )
     send_scans: bool = Field(
         False,
         description="archive every scan whole at its end (false: only a scan the console's "
