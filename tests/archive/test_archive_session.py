@@ -1,7 +1,8 @@
 """Privacy with the real expert daemon: an exam with a known patient is entered on the
 console, a still, its clip, a caliper and the whole scan they were taken in ("Archive scan")
-reach the archive (a pynetdicom archive in the test process); then every log, stats file, capture file and the session's recording is read: the
-patient's name, ID and accession number are in none of them, only in the archived objects.
+reach the archive (a pynetdicom archive in the test process); then every log, stats file,
+capture file and the session's recording is read: the patient's name, ID and accession
+number are in none of them, only in the archived objects.
 One daemon (the expert, sim video on its console), a few seconds."""
 
 import asyncio

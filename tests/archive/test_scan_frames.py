@@ -81,8 +81,9 @@ class Scans:
                                  max_mb=60.0, quality=85, auto=auto)  # fmt: skip
 
     def _send(self, k: KeptScan) -> None:
-        k.outcome = "building"
         self.sent.append((k.scan, list(k.frames)))
+        if len(k.frames) >= 2:  # (as the console's: one with fewer is refused, not built)
+            k.outcome = "building"
 
     async def run(self, seconds: float, fps: float = 20.0) -> None:
         for _ in range(int(seconds * fps)):
@@ -146,5 +147,10 @@ async def test_send_scans_sends_every_scan_at_its_end():
         await s.run(1.0)
         s.scan = None
         await s.run(0.5)
-    assert [n for n, _ in s.sent] == [1, 2]
-    assert all(9 <= len(f) <= 11 for _, f in s.sent)
+    s.scan = 3  # a scan of which nothing was kept (no console open): offered, refused there
+    s.frames.poll()
+    s.scan = None
+    s.frames.poll()
+    assert [(n, len(f)) for n, f in s.sent][2] == (3, 0)
+    assert [n for n, _ in s.sent] == [1, 2, 3]
+    assert all(9 <= len(f) <= 11 for _, f in s.sent[:2])

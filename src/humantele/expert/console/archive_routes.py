@@ -130,6 +130,10 @@ class ConsoleArchive:
         """Build scan ``k``'s Ultrasound Multi-frame Image and queue it (in a thread)."""
         from humantele.archive import objects as obj
 
+        if len(k.frames) < 2:
+            self._refuse("no_frames", f"scan {k.scan} not archived: {len(k.frames)} frame(s) "
+                         "kept of it (they are kept while the console is open)")  # fmt: skip
+            return
         k.outcome = "building"
         frames = list(k.frames)
         geo = k.geometry or (0, 0, None, None)

@@ -156,8 +156,8 @@ class ScanFrames:
             return
         k.ended = True
         self.last = k
-        if (k.wanted or self.auto) and not k.outcome and len(k.frames) >= 2:
-            self.send(k)
+        if (k.wanted or self.auto) and not k.outcome:
+            self.send(k)  # (one with too few frames is refused there, with the reason)
 
     def request(self) -> tuple[bool, str]:
         """The sonographer asks for the scan in progress or the last one: (done, what)."""
