@@ -154,3 +154,29 @@ async def test_send_scans_sends_every_scan_at_its_end():
     assert [(n, len(f)) for n, f in s.sent][2] == (3, 0)
     assert [n for n, _ in s.sent] == [1, 2, 3]
     assert all(9 <= len(f) <= 11 for _, f in s.sent[:2])
+
+
+async def test_received_frames_are_kept_from_their_decoded_planes():
+    """The default video path: the expert's decode of a received frame (planar YUV), made a
+    JPEG by libavcodec's MJPEG, the same picture."""
+    import av
+
+    kept_scans: list[KeptScan] = []
+    scan = {"now": 1}
+    keeper = ScanFrames(lambda: scan["now"], kept_scans.append, fps=10.0, auto=True)
+    pictures = []
+    for i in range(6):
+        img = cv2.resize(frame(i), (64, 48))
+        pictures.append(img)
+        planes = av.VideoFrame.from_ndarray(img, format="bgr24").reformat(format="yuv420p")
+        keeper.offer(SimpleNamespace(seq=i + 1, t_capture=10.0 + 0.1 * i, width=64, height=48,
+                                     pixel_spacing_mm=None, depth_origin_row=None,
+                                     av_frame=planes))  # fmt: skip
+        await keeper.idle()
+    scan["now"] = None
+    keeper.poll()
+    (k,) = kept_scans
+    assert len(k.frames) == 6 and k.geometry == (64, 48, None, None)
+    for (_, j), want in zip(k.frames, pictures, strict=True):
+        got = cv2.imdecode(np.frombuffer(j, np.uint8), cv2.IMREAD_COLOR)
+        assert np.abs(got.astype(int) - want.astype(int)).mean() < 12.0
