@@ -195,6 +195,7 @@ async def _whole_scan(args, cfg, a, drained) -> dict:
     kept = console.scans.current
     encoded = console.scans.encoded
     frames, halved, fps = len(kept.frames), kept.halvings, 1.0 / kept.interval_s
+    kb = kept.nbytes / max(1, frames) / 1e3
     before = set(a.queue.items)
     scan["now"] = None
     t_end = time.monotonic()
@@ -208,6 +209,7 @@ async def _whole_scan(args, cfg, a, drained) -> dict:
     archived_s = (done[new[0].n] - t_end) if new and new[0].n in done else None
     return {"asked": ok, "seconds": args.scan_seconds, "scan_fps": cfg.scan_fps,
             "offered": n, "frames": frames, "fps": fps, "halved": halved, "kept_mb": most / 1e6,
+            "kb_per_frame": kb,
             "mb": new[0].size / 1e6 if new else None, "outcome": kept.outcome,
             "keep_ms_per_frame": keep_cpu / max(1, encoded) * 1000.0,
             "keep_cpu_percent_at_20fps": keep_cpu / args.scan_seconds * 100.0,
@@ -266,7 +268,8 @@ def _scan_rows(sc: dict | None) -> list[list[str]]:
         ["whole scan sent live", f"{sc['seconds']:.0f} s of 640 x 480 US at {FPS:.0f} fps "
          f"(asked for during it: {sc['asked']}): {sc['frames']} frames kept at "
          f"{sc['fps']:.2g} a second (scan_fps {sc['scan_fps']:g}, halved {sc['halved']} times; "
-         f"at most {sc['kept_mb']:.1f} MB kept), {sc['mb'] or 0:.1f} MB object, {sc['outcome']}"],
+         f"at most {sc['kept_mb']:.1f} MB kept; the bench's speckle JPEGs {sc['kb_per_frame']:.0f} "
+         f"kB a frame), {sc['mb'] or 0:.1f} MB object, {sc['outcome']}"],
         ["whole scan: the expert's cost", f"keeping: {sc['keep_ms_per_frame']:.1f} ms CPU a "
          f"kept frame ({sc['keep_cpu_percent_at_20fps']:.1f} % of a core over the scan); "
          f"building, queueing and sending: {sc['send_cpu_s']:.2f} s CPU"],
