@@ -48,7 +48,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "analysis": ("humantele.bench.analysis", "analyze a 10-min session; recording CPU cost"),
     "video": ("humantele.bench.video", "video: sources (render cost) and link (glass to glass)"),
     "igtl": ("humantele.bench.igtl", "OpenIGTLink: added follower CPU, pose/image latency"),
-    "archive": ("humantele.bench.archive", "DICOM to Orthanc: capture to archived, an outage"),
+    "archive": ("humantele.bench.archive", "DICOM to Orthanc: capture to archived, a scan, outage"),
     "registration": (
         "humantele.bench.registration",
         "headset registration: time (targets) against accuracy",

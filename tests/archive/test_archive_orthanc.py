@@ -79,9 +79,10 @@ def test_the_session_s_captures_arrive_under_the_patient_study_and_series(tmp_pa
     items = a.capture(3, still, 10.25, SCALE, "scan 1", clip=clip)
     items += a.capture(9, jpeg(9), 20.0, SCALE, "scan 2")
     items += a.mark(3, caliper=obj.Caliper((100, 240), (300, 240), 40.0), scan="scan 1")
-    assert [i.kind for i in items] == ["image", "clip", "image", "sr", "pr"]
+    items.append(a.scan("scan 1", [(11.0 + 0.1 * k, jpeg(k)) for k in range(8)], SCALE))
+    assert [i.kind for i in items] == ["image", "clip", "image", "sr", "pr", "scan"]
     assert a.forwarder.step() is None
-    assert a.status()["text"] == "archived 5 of 5"
+    assert a.status()["text"] == "archived 6 of 6"
 
     patients = empty.get("/patients")
     assert len(patients) == 1
@@ -96,7 +97,7 @@ def test_the_session_s_captures_arrive_under_the_patient_study_and_series(tmp_pa
         f"/studies/{study_id}/series?expand")}  # fmt: skip
     assert {a.exams.series_for(k)[0] for k in ("scan 1", "scan 2", "reports")} == set(series)
     scan1 = series[a.exams.series_for("scan 1")[0]]
-    assert len(scan1["Instances"]) == 2 and scan1["MainDicomTags"]["Modality"] == "US"
+    assert len(scan1["Instances"]) == 3 and scan1["MainDicomTags"]["Modality"] == "US"
 
     # the image Orthanc renders is the one the sonographer saw
     inst = json.loads(empty.request("POST", "/tools/lookup", items[0].sop.encode()))[0]
@@ -111,6 +112,18 @@ def test_the_session_s_captures_arrive_under_the_patient_study_and_series(tmp_pa
     clip_inst = json.loads(empty.request("POST", "/tools/lookup", items[1].sop.encode()))[0]
     tags = empty.get(f"/instances/{clip_inst['ID']}/simplified-tags")
     assert int(tags["NumberOfFrames"]) == 6
+
+    # the whole scan, in the scan's series: each frame Orthanc renders is the one received
+    scan_inst = json.loads(empty.request("POST", "/tools/lookup", items[5].sop.encode()))[0]
+    tags = empty.get(f"/instances/{scan_inst['ID']}/simplified-tags")
+    assert int(tags["NumberOfFrames"]) == 8
+    times = [float(v) for v in tags["FrameTimeVector"].split("\\")]
+    assert times == pytest.approx([0.0] + [100.0] * 7)  # ms, from the capture times
+    for k in (0, 5):
+        png = empty.get_bytes(f"/instances/{scan_inst['ID']}/frames/{k}/preview")
+        shown = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE).astype(float)
+        seen = cv2.cvtColor(frame(k), cv2.COLOR_BGR2GRAY).astype(float)
+        assert np.abs(shown - seen).mean() < 4.0, k  # (JPEG q88 and two decoders)
 
     # the SR's measurement references the image, as the archive holds it
     sr_inst = json.loads(empty.request("POST", "/tools/lookup", items[3].sop.encode()))[0]

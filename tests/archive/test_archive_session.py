@@ -1,7 +1,8 @@
 """Privacy with the real expert daemon: an exam with a known patient is entered on the
-console, a still, its clip and a caliper reach the archive (a pynetdicom archive in the test
-process); then every log, stats file, capture file and the session's recording is read: the
-patient's name, ID and accession number are in none of them, only in the archived objects.
+console, a still, its clip, a caliper and the whole scan they were taken in ("Archive scan")
+reach the archive (a pynetdicom archive in the test process); then every log, stats file,
+capture file and the session's recording is read: the patient's name, ID and accession
+number are in none of them, only in the archived objects.
 One daemon (the expert, sim video on its console), a few seconds."""
 
 import asyncio
@@ -60,6 +61,7 @@ async def test_the_patient_is_in_the_archive_and_in_no_log_or_recording(session,
         async with http.post(f"{url}archive/exam", json=body, headers=headers) as r:
             assert r.status == 200
         async with http.ws_connect(ws_url) as ws:
+            await ws.send_json({"type": "scan", "action": "start", "id": 1})
             seqs = []
             while len(seqs) < 20:  # a second of sim ultrasound in the cine
                 msg = await ws.receive(timeout=60)
@@ -73,17 +75,24 @@ async def test_the_patient_is_in_the_archive_and_in_no_log_or_recording(session,
             seq = seqs[-2]
             await ws.send_json({"type": "caliper", "seq": seq, "a": [10, 10], "b": [60, 90]})
             await ws.send_json({"type": "capture", "seq": seq, "clip_s": 1})
+            async with http.post(f"{url}archive/scan", headers=headers) as r:
+                assert r.status == 200, await r.text()  # (the scan archived at its end)
+            await ws.send_json({"type": "scan", "action": "stop", "id": 2})
             status = {}
             for _ in range(600):
                 async with http.get(f"{url}archive/status", headers=headers) as r:
                     status = await r.json()
-                if status["total"] >= 4 and status["archived"] == status["total"]:
+                if status["total"] >= 5 and status["archived"] == status["total"]:
                     break
                 await asyncio.sleep(0.1)
-            assert status.get("text") == "archived 4 of 4", (status, session.logs())
+            assert status.get("text") == "archived 5 of 5", (status, session.logs())
+            assert status["scan_archive"]["scan"] == 1, status
     assert await session.terminate("expert") == 0
     assert all(str(d.PatientName).startswith(SECRET_NAME) for d in scp.kept.values())
-    assert len(scp.kept) == 4 and set(scp.stores.values()) == {1}
+    assert len(scp.kept) == 5 and set(scp.stores.values()) == {1}
+    multi = [d for d in scp.kept.values() if "Multi-frame" in str(d.SOPClassUID.name)]
+    assert len(multi) == 2  # the capture's clip and the whole scan, both in scan 1's series
+    assert len({d.SeriesInstanceUID for d in multi}) == 1
     read = 0
     for path in tmp_path.rglob("*"):
         if not path.is_file() or "queue" in path.relative_to(tmp_path).parts:

@@ -138,3 +138,102 @@ async def test_the_expert_daemon_s_console_says_whether_the_archive_is_on(tmp_pa
                     assert set(status) == {"enabled"}
         finally:
             await host.stop()
+
+
+async def test_a_whole_scan_asked_for_on_the_console_reaches_the_archive(tmp_path, scp, caplog):
+    """'Archive scan' during a scan: at its end the US frames the console received, one every
+    1/scan_fps s, go as one Ultrasound Multi-frame Image into the scan's series (its frame
+    times the capture times' intervals, its pixels the scanner's), through the same queue, the
+    page told; asked again: refused, never sent twice; dciodvfy finds no error in it."""
+    import shutil
+    import subprocess
+
+    import cv2
+    import numpy as np
+    from pydicom.encaps import generate_frames
+    from pydicom.uid import UltrasoundImageStorage, UltrasoundMultiFrameImageStorage
+
+    from humantele.archive.queue import to_bytes
+
+    caplog.set_level(logging.DEBUG)
+    clock = FakeClock()
+    frames = ManualFrames(clock)
+    session = Session()
+    server = ConsoleServer(ConsoleConfig(port=0, captures_dir=str(tmp_path / "captures")),
+                           frames, session, clock=clock)  # fmt: skip
+    cfg = ArchiveConfig(enabled=True, port=scp.port, called_ae=scp.aet, scan_fps=10,
+                        queue_dir=str(tmp_path / "queue"), retry_min_s=0.1)  # fmt: skip
+    server.archive = ConsoleArchive(cfg, server.key, scan=lambda: session.scan)
+    await server.start()
+    headers = {"X-Console-Key": server.key}
+    base = server.address.rstrip("/")
+    shown: dict[float, np.ndarray] = {}  # capture time -> the scanner's picture
+
+    async def scan_frames(n: int) -> None:
+        for _ in range(n):
+            f = frames.next("us")
+            shown[f.t_capture] = f.image
+            await next_message(ws, lambda k, d, s=f.seq: k == "frame" and d[0]["seq"] == s)
+            await ws.send_json({"type": "drawn", "track": "us", "seq": f.seq,
+                                "draw_to_send_ms": 1.0})  # fmt: skip
+            await server.archive.scans.idle()
+            clock.t += 0.05  # 20 fps
+
+    try:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
+            async with http.post(f"{base}/archive/scan") as r:
+                assert r.status == 401
+            async with http.post(f"{base}/archive/scan", headers=headers) as r:
+                assert r.status == 409 and "enter the patient" in (await r.json())["error"]
+            async with http.post(f"{base}/archive/exam", json=PATIENT.model_dump(mode="json"),
+                                 headers=headers) as r:  # fmt: skip
+                assert r.status == 200
+            await scan_frames(4)  # before the scan: not kept
+            session.scan = 1
+            await scan_frames(40)
+            last = frames.latest("us")
+            await ws.send_json({"type": "capture", "seq": last.seq, "clip_s": 0})
+            async with http.post(f"{base}/archive/scan", headers=headers) as r:
+                assert r.status == 200 and "when it stops" in (await r.json())["text"]
+            await scan_frames(20)
+            await until(lambda: len(scp.kept) == 1)  # the still; the scan waits for its end
+            session.scan = None  # (noticed with no frame coming)
+            await until(lambda: len(scp.kept) == 2)
+            await until(lambda: server.archive.status()["archived"] == 2)
+            async with http.get(f"{base}/archive/status", headers=headers) as r:
+                status = await r.json()
+            assert status["text"] == "archived 2 of 2" and status["made"]["scan"] == 1
+            assert status["scan_archive"]["outcome"] == "queued"
+            assert status["scan_archive"]["frames"] == 30 and "queued" in status["last"]
+            async with http.post(f"{base}/archive/scan", headers=headers) as r:
+                assert r.status == 409 and "already queued" in (await r.json())["error"]
+            stats = json.dumps(server.stats())
+    finally:
+        await server.stop()
+    by_class = {str(d.SOPClassUID): d for d in scp.kept.values()}
+    image, scan = by_class[UltrasoundImageStorage], by_class[UltrasoundMultiFrameImageStorage]
+    assert set(scp.stores.values()) == {1}
+    assert scan.SeriesInstanceUID == image.SeriesInstanceUID  # one series per scan
+    assert scan.StudyInstanceUID == image.StudyInstanceUID and scan.PatientID == "HT-0042"
+    assert scan.NumberOfFrames == 30  # 3 s of a 20 fps scanner, kept at 10 fps
+    assert scan.FrameTimeVector[0] == 0 and all(
+        abs(v - 100.0) < 0.01 for v in scan.FrameTimeVector[1:])  # fmt: skip
+    region = scan.SequenceOfUltrasoundRegions[0]
+    spacing = frames.frames["us"].pixel_spacing_mm
+    assert region.PhysicalDeltaY == pytest.approx(spacing[0] / 10)
+    first = min(t for t in shown if t >= 100.0 + 4 * 0.05 - 1e-9)
+    kept_times = [first + 0.1 * k for k in range(30)]
+    for k, jpeg in enumerate(generate_frames(scan.PixelData, number_of_frames=30)):
+        if k % 7:
+            continue
+        picture = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+        want = shown[min(shown, key=lambda t, k=k: abs(t - kept_times[k]))]
+        assert np.abs(picture.astype(int) - want.astype(int)).mean() < 4.0, k
+    assert SECRET_NAME not in caplog.text and PATIENT.patient_id not in caplog.text
+    assert SECRET_NAME not in stats and PATIENT.patient_id not in stats
+    if shutil.which("dciodvfy") is not None:  # (CI has it: Debian dicom3tools)
+        path = tmp_path / "scan.dcm"
+        path.write_bytes(to_bytes(scan))
+        out = subprocess.run(["dciodvfy", str(path)], capture_output=True, text=True)
+        errors = [x for x in (out.stdout + out.stderr).splitlines() if x.startswith("Error")]
+        assert errors == [], out.stdout + out.stderr

@@ -31,8 +31,12 @@ def test_console_tells_the_truth_when_the_daemon_is_slow(browser_scenario):
     assert all(s["lost"] is None for s in p), [s["lost"] for s in p if s["lost"]]
     slow = [s["expert"] for s in p if s["expert"].startswith("slow (")]
     assert all(int(x[6:-4]) >= 300 for x in slow), slow
-    # Said steadily (the longest delay of the last 3 s), not flickering with each hold.
-    assert len(slow) >= 0.8 * len(p[len(p) // 4 :]), [s["expert"] for s in p]
+    # Said steadily (the longest delay of the last 3 s), not flickering with each hold: amber
+    # throughout, "slow" (the daemon) or, on a machine loaded enough that the page itself
+    # reads late, "page behind"; never back to "ok" between holds.
+    tail = p[len(p) // 4 :]
+    warn = [s for s in tail if s["expert_level"] == "warn"]
+    assert len(warn) >= 0.8 * len(tail) and slow, [s["expert"] for s in p]
     assert p[-1]["frames"] > p[0]["frames"]  # the pictures kept coming meanwhile
     # A stalled daemon, its socket open: slow (amber), every chip grey, the picture not live.
     s = d["stall"]

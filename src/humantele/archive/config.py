@@ -68,7 +68,24 @@ class ArchiveConfig(ConfigModel):
     remote_site: str = Field(
         "", max_length=64, description="the clinic where the follower scans (recorded in DICOM)"
     )
-    clip_quality: int = Field(88, ge=30, le=100, description="JPEG quality of clip frames")
+    clip_quality: int = Field(
+        88, ge=30, le=100, description="JPEG quality of a whole scan's frames (sent live)"
+    )
+    send_scans: bool = Field(
+        False,
+        description="archive every scan whole at its end (false: only a scan the console's "
+        "'Archive scan' asks for)",
+    )
+    scan_fps: float = Field(
+        10.0, gt=0, le=60, description="frames a second kept of a scan for its multi-frame"
+    )
+    scan_max_frames: int = Field(
+        1200, ge=2, le=100_000, description="frames kept of one scan; beyond: every other "
+        "dropped and the rate halved (the whole scan, at a lower rate)",
+    )  # fmt: skip
+    scan_max_mb: float = Field(
+        60.0, gt=0, le=4000, description="JPEG bytes kept of one scan (MB); beyond: as above"
+    )
 
     @field_validator("called_ae", "calling_ae")
     @classmethod

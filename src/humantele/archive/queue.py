@@ -51,7 +51,7 @@ class Item:
     sop: str
     study: str
     series: str
-    kind: str  # 'image', 'clip', 'sr', 'pr'
+    kind: str  # 'image', 'clip', 'scan', 'sr', 'pr'
     size: int
     state: str = "waiting"  # waiting, sending, uncertain, archived, refused
     attempts: int = 0

@@ -1,11 +1,11 @@
 """The exam's archive in the expert: captures and marks in, DICOM objects queued and sent.
 
 :class:`ExamArchive` is what the console calls (from a thread: it encodes and writes):
-:meth:`begin` the exam of a patient, :meth:`capture` a still (and its clip), :meth:`mark` a
-caliper or note on a frame. Every object goes into the queue on disk first, then the
-:class:`~humantele.archive.forwarder.Forwarder` sends it. Capture times are on the expert's
-clock (s); ``unix_offset_s`` moves them to Unix time (as the recording's
-``clock_unix_offset_s``).
+:meth:`begin` the exam of a patient, :meth:`capture` a still (and its clip), :meth:`scan` a
+whole scan's frames, :meth:`mark` a caliper or note on a frame. Every object goes into the
+queue on disk first, then the :class:`~humantele.archive.forwarder.Forwarder` sends it.
+Capture times are on the expert's clock (s); ``unix_offset_s`` moves them to Unix time (as
+the recording's ``clock_unix_offset_s``).
 """
 
 from __future__ import annotations
@@ -68,7 +68,7 @@ class ExamArchive:
         self._marks: OrderedDict[int, _Captured] = OrderedDict()  # marks before a capture
         self._lock = threading.Lock()
         self._task: asyncio.Task | None = None
-        self.made: dict[str, int] = {"image": 0, "clip": 0, "sr": 0, "pr": 0}
+        self.made: dict[str, int] = {"image": 0, "clip": 0, "scan": 0, "sr": 0, "pr": 0}
         self.queued_at: dict[int, float] = {}  # item -> when queued (expert clock), figures
 
     # --- the exam ------------------------------------------------------------------------
@@ -135,6 +135,21 @@ class ExamArchive:
                 items += self._reports(cap, scan)
         self.forwarder.kick()
         return items
+
+    def scan(self, scan: str, frames: list[tuple[float, bytes]], scale: obj.Scale) -> Item:
+        """A whole scan (``frames``: (t, jpeg) oldest first, on the expert's clock) as an
+        Ultrasound Multi-frame Image in the scan's series, into the queue. NoExam without a
+        patient; QueueFull when the queue cannot take it; ValueError for frames that make
+        no multi-frame (fewer than 2, not JPEGs, of different sizes, times not increasing)."""
+        with self._lock:
+            where = self._place(scan, _series_text(scan))
+        # (built outside the lock: a long scan's encapsulation takes a moment; captures go on)
+        ds = obj.us_multiframe([j for _, j in frames], [self.unix(t) for t, _ in frames], scale,
+                               where, self.equipment)  # fmt: skip
+        with self._lock:
+            item = self._put(ds, "scan", None)
+        self.forwarder.kick()
+        return item
 
     def mark(self, seq: int, caliper: obj.Caliper | None = None, note: obj.Note | None = None,
              scan: str = "captures") -> list[Item]:  # fmt: skip

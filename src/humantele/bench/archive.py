@@ -3,6 +3,11 @@
 - a session of ``--seconds`` with a capture (still + ``--clip-frames`` clip, 640 x 480 JPEG
   frames as the console's) every ``60 / --captures-per-minute`` s, a caliper on every other:
   objects made and sent, time from Capture to "archived" (p50 / p95) for stills and clips;
+- a whole scan sent live: the console's keeper (expert/console/scan_frames.py) offered the US
+  frames of a ``--scan-seconds`` scan (640 x 480, 20 fps, their capture times those of a scan
+  ending now, fed as fast as they are kept), "Archive scan" asked during it, then its end:
+  frames kept (the memory bound), MB, the CPU of keeping them, and the scan's end to
+  "archived";
 - an outage of ``--outage-s``: the archive stopped, captures made meanwhile, the archive
   back: all archived after, none sent twice (the queue's journal), the time to drain;
 - dciodvfy (Debian dicom3tools) on one object of each kind: its errors and warnings;
@@ -39,6 +44,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seconds", type=float, default=120.0, help="session length, s")
     parser.add_argument("--captures-per-minute", type=float, default=12.0)
     parser.add_argument("--clip-frames", type=int, default=100, help="frames per clip (20 fps)")
+    parser.add_argument("--scan-seconds", type=float, default=120.0,
+                        help="length of the whole scan sent live, s (0: none)")  # fmt: skip
     parser.add_argument("--outage-s", type=float, default=60.0, help="archive down for, s")
     parser.add_argument("--cpu-window-s", type=float, default=5.0)
     parser.add_argument("--no-write", action="store_true", help="do not write benchmarks.md")
@@ -116,6 +123,8 @@ async def _session(args, pacs, tmp: Path) -> dict:
                "bytes": sum(i.size for i in a.queue.items.values()),
                "lat": {k: (_pct(v, 50), _pct(v, 95), len(v)) for k, v in lat.items()}}  # fmt: skip
 
+    session["scan"] = await _whole_scan(args, cfg, a, drained) if args.scan_seconds > 0 else None
+
     # 2. an outage
     before = set(a.queue.items)
     await asyncio.to_thread(pacs.stop)
@@ -158,6 +167,55 @@ async def _session(args, pacs, tmp: Path) -> dict:
     await a.stop()
     return {"session": session, "outage": outage,
             "cpu": {"idle_percent": idle, "clip_percent": sending, "window_s": w}}  # fmt: skip
+
+
+async def _whole_scan(args, cfg, a, drained) -> dict:
+    """A whole scan through the console's own path: its keeper, "Archive scan", the queue."""
+    from types import SimpleNamespace
+
+    from humantele.expert.console.archive_routes import ConsoleArchive
+    from humantele.web.credential import new_key
+
+    scan: dict[str, int | None] = {"now": 2}
+    console = ConsoleArchive(cfg, new_key(), scan=lambda: scan["now"], archive=a)
+    pictures = [cv2.cvtColor(cv2.imdecode(np.frombuffer(j, np.uint8), cv2.IMREAD_GRAYSCALE),
+                             cv2.COLOR_GRAY2BGR) for j in _frames(40, seed=2)]  # fmt: skip
+    n = int(args.scan_seconds * FPS)
+    t0 = time.monotonic() - args.scan_seconds
+    ok, _ = console.request_scan()  # during the scan: archived at its end
+    c0 = time.process_time()
+    most = 0.0
+    for i in range(n):
+        f = SimpleNamespace(seq=i + 1, t_capture=t0 + i / FPS, width=640, height=480,
+                            pixel_spacing_mm=(0.2, 0.2), depth_origin_row=0.0,
+                            image=pictures[i % len(pictures)])  # fmt: skip
+        console.scans.offer(f)
+        await console.scans.idle()
+        most = max(most, console.scans.current.nbytes)
+    keep_cpu = time.process_time() - c0
+    kept = console.scans.current
+    encoded = console.scans.encoded
+    frames, halved, fps = len(kept.frames), kept.halvings, 1.0 / kept.interval_s
+    kb = kept.nbytes / max(1, frames) / 1e3
+    before = set(a.queue.items)
+    scan["now"] = None
+    t_end = time.monotonic()
+    c0 = time.process_time()
+    console.scans.poll()  # its end: built and queued in a thread
+    while kept.outcome == "building":
+        await asyncio.sleep(0.01)
+    new = [i for i in a.queue.items.values() if i.n not in before and i.kind == "scan"]
+    await drained(300.0)
+    done = a.forwarder.archived_at
+    archived_s = (done[new[0].n] - t_end) if new and new[0].n in done else None
+    return {"asked": ok, "seconds": args.scan_seconds, "scan_fps": cfg.scan_fps,
+            "offered": n, "frames": frames, "fps": fps, "halved": halved, "kept_mb": most / 1e6,
+            "kb_per_frame": kb,
+            "mb": new[0].size / 1e6 if new else None, "outcome": kept.outcome,
+            "keep_ms_per_frame": keep_cpu / max(1, encoded) * 1000.0,
+            "keep_cpu_percent_at_20fps": keep_cpu / args.scan_seconds * 100.0,
+            "end_to_archived_s": archived_s,
+            "send_cpu_s": time.process_time() - c0}  # fmt: skip
 
 
 def _validate(tmp: Path) -> dict[str, str]:
@@ -203,6 +261,23 @@ def _ms(v: float | None) -> str:
     return "n/a" if v is None else f"{v * 1000:.0f} ms"
 
 
+def _scan_rows(sc: dict | None) -> list[list[str]]:
+    if sc is None:
+        return []
+    end = sc["end_to_archived_s"]
+    return [
+        ["whole scan sent live", f"{sc['seconds']:.0f} s of 640 x 480 US at {FPS:.0f} fps "
+         f"(asked for during it: {sc['asked']}): {sc['frames']} frames kept at "
+         f"{sc['fps']:.2g} a second (scan_fps {sc['scan_fps']:g}, halved {sc['halved']} times; "
+         f"at most {sc['kept_mb']:.1f} MB kept; the bench's speckle JPEGs {sc['kb_per_frame']:.0f} "
+         f"kB a frame), {sc['mb'] or 0:.1f} MB object, {sc['outcome']}"],
+        ["whole scan: the expert's cost", f"keeping: {sc['keep_ms_per_frame']:.1f} ms CPU a "
+         f"kept frame ({sc['keep_cpu_percent_at_20fps']:.1f} % of a core over the scan); "
+         f"building, queueing and sending: {sc['send_cpu_s']:.2f} s CPU"],
+        ["whole scan: its end to archived", "n/a" if end is None else f"{end:.2f} s"],
+    ]  # fmt: skip
+
+
 def run(args: argparse.Namespace) -> int:
     from humantele.archive.orthanc import OrthancError, OrthancServer
 
@@ -222,13 +297,14 @@ def run(args: argparse.Namespace) -> int:
     rows = [
         ["session", f"{args.seconds:.0f} s, {s['captures']} captures (still + "
                     f"{args.clip_frames}-frame clip), a caliper on every other"],
-        ["objects made", ", ".join(f"{k} {v}" for k, v in s["made"].items())
+        ["objects made", ", ".join(f"{k} {v}" for k, v in s["made"].items() if k != "scan" or v)
          + f"; {s['status']['text']}; {s['bytes'] / 1e6:.1f} MB"],
         ["Capture to archived, still p50 / p95", f"{_ms(lat['image'][0])} / "
                                                  f"{_ms(lat['image'][1])} (n {lat['image'][2]})"],
         ["Capture to archived, clip p50 / p95", f"{_ms(lat['clip'][0])} / "
                                                 f"{_ms(lat['clip'][1])} (n {lat['clip'][2]})"],
         ["Capture to archived, SR p50 / p95", f"{_ms(lat['sr'][0])} / {_ms(lat['sr'][1])}"],
+        *_scan_rows(s["scan"]),
         ["outage", f"{args.outage_s:.0f} s: {o['captures']} captures ({o['objects']} objects) "
                    f"made during it; the page said \"{o['waiting_shown']}\""],
         ["after the outage", f"all archived: {o['all_archived']} in {o['drain_s']:.1f} s; "

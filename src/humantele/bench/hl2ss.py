@@ -15,6 +15,9 @@ with the app's packing by libx264/libx265 (the encoders are slower than the head
 hardware one; the encoding is not what is measured), sent at their capture times.
 
 ``--spells``: the hand tracker's 5 Hz spells (1 s of every 3) in the default setting's case.
+``--stall S``: the default setting at 80 Mbit/s with the link stalled S s (no byte, no close) 4 s
+after its start: the stalls found, the reconnects, and the time from the stall's end to the
+next frame at the tracker.
 Writes docs/img/hl2ss_settings.png and the "hl2ss" section of docs/benchmarks.md.
 """
 
@@ -50,6 +53,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--delay-ms", type=float, default=3.0, help="one-way delay of the link")
     p.add_argument("--settings", default=",".join(SETTINGS), help="comma-separated names")
     p.add_argument("--spells", action="store_true", help="also the default through 5 Hz spells")
+    p.add_argument(
+        "--stall",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="also the default through a stall of S s (no byte, no close)",
+    )
     p.add_argument("--no-write", action="store_true", help="print only")
 
 
@@ -93,31 +103,34 @@ def encode_run(frames, profile_ab: int, bitrate: int, seconds: float, spells) ->
     return out
 
 
-def _serve(items, bandwidth: float, delay_s: float, conn) -> None:
-    """Child: the replay server behind the link; sends the link's port, runs until told."""
+def _serve(items, bandwidth: float, delay_s: float, stalls, conn) -> None:
+    """Child: the replay server behind the link; sends the link's port and start time (the
+    stalls' origin, monotonic s), runs until told."""
     from humantele.tracking.hl2ss_link import LinkConfig, TcpLinkRelay
     from humantele.tracking.hl2ss_replay import Hl2ssReplayServer
 
     with Hl2ssReplayServer([items], repeat=True, live=True) as srv:
-        link = LinkConfig(bandwidth_mbps=bandwidth, delay_s=delay_s)
+        link = LinkConfig(bandwidth_mbps=bandwidth, delay_s=delay_s, stalls=stalls)
         with TcpLinkRelay(("127.0.0.1", srv.port), link) as relay:
-            conn.send(relay.port)
+            conn.send((relay.port, relay.t0))
             conn.recv()
 
 
 def run_case(frames, items, ab_profile: str, bitrate: int | None, bandwidth: float,
-             delay_s: float, seconds: float) -> dict:  # fmt: skip
-    """One setting over one link: the follower's figures."""
+             delay_s: float, seconds: float, stalls=()) -> dict:  # fmt: skip
+    """One setting over one link (``stalls``: (start, length) s from the link's start): the
+    follower's figures."""
     from humantele.tracking.hl2ss_source import Hl2ssFrameConfig, Hl2ssFrameSource
     from humantele.tracking.pipeline import Tracker
     from humantele.tracking.tool import load_tool
 
     ctx = multiprocessing.get_context("fork")
     parent, child = ctx.Pipe()
-    proc = ctx.Process(target=_serve, args=(items, bandwidth, delay_s, child), daemon=True)
+    proc = ctx.Process(target=_serve, args=(items, bandwidth, delay_s, list(stalls), child),
+                       daemon=True)  # fmt: skip
     proc.start()
     try:
-        port = parent.recv()
+        port, link_t0 = parent.recv()
         src = Hl2ssFrameSource(Hl2ssFrameConfig(
             host="127.0.0.1", port=port, mode=0, download_calibration=False, newest=True,
             ab_profile=ab_profile, bitrate=bitrate, read_timeout_s=2.0, connect_timeout_s=10.0,
@@ -128,7 +141,7 @@ def run_case(frames, items, ab_profile: str, bitrate: int | None, bandwidth: flo
         tracker = Tracker(load_tool("probe_default"))
         src.open()
         src.read()  # the first frame (encoder start-up, connection) is not measured
-        ages, errs, angs = [], [], []
+        ages, errs, angs, arrivals = [], [], [], []
         n = wrong = 0
         c0, t0 = time.process_time(), time.monotonic()
         while time.monotonic() - t0 < seconds:
@@ -136,6 +149,7 @@ def run_case(frames, items, ab_profile: str, bitrate: int | None, bandwidth: flo
             if g is None:
                 continue
             n += 1
+            arrivals.append(time.monotonic())
             ages.append(time.monotonic() - g.device_time_s)
             truth = frames[src.last_sensor_ticks % len(frames)].T_camera_probe_true
             r = tracker.process(g)
@@ -161,7 +175,10 @@ def run_case(frames, items, ab_profile: str, bitrate: int | None, bandwidth: flo
             "mm_p50": pct(errs, 50), "mm_p95": pct(errs, 95), "deg_p50": pct(angs, 50),
             "deg_p95": pct(angs, 95), "tracked_pct": 100.0 * len(errs) / max(n, 1),
             "wrong": wrong, "cpu_pct": 100.0 * cpu / wall,
-            "backlog_drops": src.dropped.get("backlog", 0)}  # fmt: skip
+            "backlog_drops": src.dropped.get("backlog", 0), "stalls": src.stalls,
+            "reconnects": src.reconnects, "back_after_stall_s": [
+                next((a - end for a in arrivals if a >= end), float("nan"))
+                for end in (link_t0 + s0 + length for s0, length in stalls)]}  # fmt: skip
 
 
 def chart(results: list[tuple[str, float, dict]]) -> Path:
@@ -216,15 +233,28 @@ def run(args: argparse.Namespace) -> int:
     cases = [(n, bw, ()) for n in names for bw in bandwidths]
     if args.spells:
         cases.append((DEFAULT_SETTING, 80.0, [(t, t + 1.0) for t in range(1, 600, 3)]))
-    results, rows = [], []
+    if args.stall > 0:
+        cases.append((DEFAULT_SETTING, 80.0, "stall"))
+    results, rows, stall_line = [], [], ""
     for name, bw, spells in cases:
+        stalls = [(4.0, args.stall)] if spells == "stall" else []
+        spells = [] if spells == "stall" else spells
         ab_profile, bitrate = SETTINGS[name]
         profile = PROFILE_NAMES[ab_profile]
         items = encode_run(frames, profile, bitrate or default_bitrate(profile), args.seconds,
                            list(spells))  # fmt: skip
-        r = run_case(frames, items, ab_profile, bitrate, bw, args.delay_ms / 1e3, args.seconds)
+        r = run_case(frames, items, ab_profile, bitrate, bw, args.delay_ms / 1e3, args.seconds,
+                     stalls)  # fmt: skip
         label = name + (", 5 Hz spells 1 s in 3" if spells else "")
-        if not spells:
+        if stalls:
+            label = f"{name}, a {args.stall:g} s stall"
+            back = r["back_after_stall_s"][0]
+            stall_line = (f"Through a {args.stall:g} s stall (no byte, no close) 4 s after the "
+                          f"link's start: {r['stalls']} stall(s) found, {r['reconnects']} "
+                          f"reconnect(s), the next frame at the tracker {back:.2f} s after the "
+                          "stall's end.")  # fmt: skip
+            print(stall_line, flush=True)
+        if not spells and not stalls:
             results.append((name, bw, r))
         row = [label, f"{bw:g}", f"{r['hz']:.1f}", f"{r['age_p50_ms']:.0f}",
                f"{r['age_p95_ms']:.0f}", f"{r['mm_p50']:.2f}", f"{r['mm_p95']:.2f}",
@@ -251,6 +281,7 @@ process (receive, decode, track), % of one core. docs/hololens.md picks the defa
 ![hl2ss settings: speed against accuracy](img/{path.name})
 
 {table}
+{stall_line}
 """
     print(f"wrote {write_section('hl2ss', md)} and {path}")
     return 0

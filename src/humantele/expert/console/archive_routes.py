@@ -10,10 +10,14 @@ request and response bodies only, never in a URL):
   capture's outcome;
 - ``GET /archive/exam``, ``POST /archive/exam`` (JSON: patient_id, family_name,
   given_name, birth_date, sex, accession_number), ``DELETE /archive/exam`` (the exam ends);
-- ``GET /archive/worklist``: today's scheduled US exams (C-FIND).
+- ``GET /archive/worklist``: today's scheduled US exams (C-FIND);
+- ``POST /archive/scan``: archive the whole scan, the one in progress (at its end) or the
+  last one ended (now), as an Ultrasound Multi-frame Image (:mod:`.scan_frames`); with
+  ``send_scans`` every scan is, at its end.
 
-The server calls :meth:`ConsoleArchive.capture` and :meth:`ConsoleArchive.mark`; the work
-(JPEG of clip frames, DICOM encoding, the queue's writes) runs in a thread.
+The server calls :meth:`ConsoleArchive.capture` and :meth:`ConsoleArchive.mark`, and hands
+each ultrasound frame to :attr:`ConsoleArchive.scans`; the work (JPEG of clip and scan frames,
+DICOM encoding, the queue's writes) runs in a thread.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from typing import Any
 from aiohttp import web
 from pydantic import ValidationError
 
+from humantele.expert.console.scan_frames import KeptScan, ScanFrames
 from humantele.web.credential import Credential, Verdict
 
 # (humantele.archive, pydicom and highdicom are imported only when the archive is on)
@@ -60,6 +65,11 @@ class ConsoleArchive:
         self.last = ""  # the last capture's outcome, for the page
         self.refused: dict[str, int] = {}
         self._tasks: set[asyncio.Task] = set()
+        self._watch: asyncio.Task | None = None
+        self.scans = ScanFrames(  # the whole scans (PageVideo offers it the US frames)
+            self.scan, self._send_scan, cfg.scan_fps, cfg.scan_max_frames, cfg.scan_max_mb,
+            cfg.clip_quality, auto=cfg.send_scans,
+        )  # fmt: skip
 
     # --- the server's hooks ------------------------------------------------------------------
 
@@ -69,14 +79,27 @@ class ConsoleArchive:
         app.router.add_post("/archive/exam", self._post_exam)
         app.router.add_delete("/archive/exam", self._end_exam)
         app.router.add_get("/archive/worklist", self._worklist)
+        app.router.add_post("/archive/scan", self._post_scan)
 
     async def start(self) -> None:
         await self.archive.start()
+        self._watch = asyncio.ensure_future(self._watch_scans())
 
     async def stop(self) -> None:
+        if self._watch is not None:
+            self._watch.cancel()
+        await self.scans.idle()
+        self.scans.poll()
+        self.scans.end()  # a scan still on: archived as far as it went, if it was asked for
         if self._tasks:
             await asyncio.wait(list(self._tasks), timeout=20.0)
         await self.archive.stop()
+
+    async def _watch_scans(self, period_s: float = 0.5) -> None:
+        """A scan's end is noticed with no frame coming (a scripted scan, a closed page)."""
+        while True:
+            await asyncio.sleep(period_s)
+            self.scans.poll()
 
     def capture(self, f: Any, clip: list[Any]) -> None:
         """A still the console saved (and its clip's cine frames) into the archive's queue."""
@@ -92,7 +115,46 @@ class ConsoleArchive:
                                          clip=frames)  # fmt: skip
             return f"frame {f.seq}: {len(items)} DICOM object(s) queued for the archive"
 
-        self._spawn(work, f.seq)
+        self._spawn(work, f"frame {f.seq}")
+
+    def request_scan(self) -> tuple[bool, str]:
+        """The sonographer's "Archive scan": the scan in progress (at its end) or the last
+        one ended (now); (done, what to say)."""
+        if self.archive.patient is None:
+            return False, "enter the patient first: the archive files the scan under them"
+        ok, text = self.scans.request()
+        self.last = text
+        return ok, text
+
+    def _send_scan(self, k: KeptScan) -> None:
+        """Build scan ``k``'s Ultrasound Multi-frame Image and queue it (in a thread)."""
+        from humantele.archive import objects as obj
+
+        if len(k.frames) < 2:
+            self._refuse("no_frames", f"scan {k.scan} not archived: {len(k.frames)} frame(s) "
+                         "kept of it (they are kept while the console is open)")  # fmt: skip
+            return
+        k.outcome = "building"
+        frames = list(k.frames)
+        geo = k.geometry or (0, 0, None, None)
+        scale = obj.Scale(geo[2], geo[3])
+        span = frames[-1][0] - frames[0][0] if frames else 0.0
+        left_out = f"; {k.other_geometry} of another size or scale left out" if (
+            k.other_geometry) else ""  # fmt: skip
+
+        def work() -> str:
+            self.archive.scan(f"scan {k.scan}", frames, scale)
+            return (f"scan {k.scan}: the whole scan ({len(frames)} frames over {span:.0f} s"
+                    f"{left_out}) queued for the archive")  # fmt: skip
+
+        def queued() -> None:  # (on the loop) its frames are in the queue's file: let go
+            k.sent_frames, k.frames, k.nbytes = len(frames), [], 0
+            k.outcome = "queued"
+
+        def failed() -> None:
+            k.outcome = ""  # (it may be asked for again: the patient entered, room made)
+
+        self._spawn(work, f"scan {k.scan}", failed, queued)
 
     def mark(self, f: Any, caliper: tuple | None = None, note: tuple | None = None) -> None:
         """A caliper ((a, b) px, mm) or note ((x, y) px, text) on a frame: with its capture,
@@ -109,9 +171,9 @@ class ConsoleArchive:
             items = self.archive.mark(f.seq, caliper=c, note=n, scan=name)
             return f"frame {f.seq}: {len(items)} report object(s) queued" if items else ""
 
-        self._spawn(work, f.seq)
+        self._spawn(work, f"frame {f.seq}")
 
-    def _spawn(self, work: Any, seq: int) -> None:
+    def _spawn(self, work: Any, what: str, failed: Any = None, done: Any = None) -> None:
         from humantele.archive.queue import QueueFull
         from humantele.archive.service import NoExam
 
@@ -119,14 +181,19 @@ class ConsoleArchive:
             try:
                 text = await asyncio.to_thread(work)
             except NoExam as exc:
-                self._refuse("no_exam", f"frame {seq} not archived: {exc}")
+                self._refuse("no_exam", f"{what} not archived: {exc}")
             except QueueFull as exc:
-                self._refuse("queue_full", f"frame {seq} not archived: {exc.strerror}")
+                self._refuse("queue_full", f"{what} not archived: {exc.strerror}")
             except (OSError, ValueError) as exc:
-                self._refuse("failed", f"frame {seq} not archived: {exc}")
+                self._refuse("failed", f"{what} not archived: {exc}")
             else:
+                if done is not None:
+                    done()
                 if text:
                     self.last = text
+                return
+            if failed is not None:
+                failed()
 
         task = asyncio.ensure_future(run())
         self._tasks.add(task)
@@ -139,7 +206,8 @@ class ConsoleArchive:
 
     def status(self) -> dict[str, Any]:
         return {**self.archive.status(), "enabled": True, "last": self.last,
-                "not_archived": dict(self.refused), "identity": self.cfg.identity}  # fmt: skip
+                "not_archived": dict(self.refused), "identity": self.cfg.identity,
+                "scan_archive": self.scans.status()}  # fmt: skip
 
     # --- routes ------------------------------------------------------------------------------
 
@@ -182,6 +250,13 @@ class ConsoleArchive:
         await asyncio.to_thread(self.archive.end)
         self.last = "exam ended"
         return web.json_response({"ok": True})
+
+    async def _post_scan(self, request: web.Request) -> web.Response:
+        self._check(request)
+        ok, text = self.request_scan()
+        if not ok:
+            return web.json_response({"ok": False, "error": text}, status=409)
+        return web.json_response({"ok": True, "text": text})
 
     async def _worklist(self, request: web.Request) -> web.Response:
         from humantele.archive.send import Unreachable

@@ -228,6 +228,7 @@ class ConsoleServer:
     @archive.setter
     def archive(self, archive: Any) -> None:
         self.captures.archive = archive
+        self.video_out.scan_frames = getattr(archive, "scans", None)
 
     def _spawn(self, coro: Any) -> None:
         task = asyncio.ensure_future(coro)

@@ -55,6 +55,7 @@ class PageVideo:
         if frames is not None and hasattr(frames, "request_keyframe"):
             self.webcodecs = WebCodecsTransport(frames, self.tracks, cine, config.jpeg_quality)
         self.subscribed = False
+        self.scan_frames: Any = None  # the archive's whole scans (scan_frames.ScanFrames)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._loop_thread: int | None = None
         self._subscribers = {t: functools.partial(self._from_provider, t) for t in TRACKS}
@@ -109,6 +110,8 @@ class PageVideo:
         if not self.pages.clients or frame.seq == st.seq:
             return
         st.note(frame, self.clock())
+        if track == "us" and self.scan_frames is not None:  # (kept only while a scan is on)
+            self.scan_frames.offer(frame)
         jpeg = False
         for c in list(self.pages.clients):
             if isinstance(c, ConsolePage):

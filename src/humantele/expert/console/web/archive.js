@@ -2,6 +2,8 @@
 // capture (or picked from the worklist), and what has reached the archive. Its own panel and
 // its own requests (/archive/..., the console's key in a header; the patient's identity only
 // in request and response bodies, never in an address). Absent when the archive is off.
+// "Archive scan" beside the scan controls: the whole scan as one multi-frame image, the scan in
+// progress at its end or the last one ended now (POST /archive/scan).
 const KEY_STORE = "humantele-console-key";
 const POLL_MS = 1000;
 
@@ -62,7 +64,33 @@ function buildPanel() {
     el("ul", { id: "archive-refused" }));
   const side = document.getElementById("side");
   side.insertBefore(panel, document.getElementById("items-panel"));
+  const scanButton = el("button", { type: "button", id: "archive-scan", class: "big", disabled: "",
+    title: "Send the whole scan to the archive as one multi-frame image", text: "Archive scan" });
+  document.getElementById("clutch").after(scanButton);
   return panel;
+}
+
+// The "Archive scan" button from the status: enabled once a scan has frames (and a patient).
+function showScan(s) {
+  const b = document.getElementById("archive-scan");
+  const k = s.scan_archive;
+  let text = "Archive scan", can = false, why = "no scan yet";
+  if (k && k.outcome === "queued") {
+    text = `Scan ${k.scan} archived`; why = `queued for the archive: ${k.frames} frames`;
+  } else if (k && k.outcome === "building") {
+    text = `Archiving scan ${k.scan}…`; why = "making its image";
+  } else if (k && k.running && (k.wanted || k.auto)) {
+    text = `Scan ${k.scan}: archived at its end`; why = `${k.frames} frames kept so far`;
+  } else if (k) {
+    text = `Archive scan ${k.scan}`;
+    can = k.running ? k.frames > 0 : k.frames >= 2;
+    why = can ? `${k.frames} frames over ${k.seconds} s (${k.fps} a second)${k.running ? ", sent when the scan stops" : ""}`
+      : "no frames kept of it (frames are kept while the console is open)";
+  }
+  if (!s.exam) { can = false; why = "enter the patient first"; }
+  if (b.textContent !== text) b.textContent = text;
+  b.disabled = !can;
+  b.title = why;
 }
 
 let panel = null, exam = undefined;
@@ -92,6 +120,7 @@ function showStatus(s) {
     el("li", { text: `refused: object ${i.n} (${i.kind}): ${i.reason}` })));
   panel.querySelector("#worklist-ask").hidden = s.identity !== "worklist";
   if (s.exam !== !!exam) loadExam();
+  showScan(s);
 }
 
 async function poll() {
@@ -111,6 +140,15 @@ async function poll() {
 }
 
 function wire() {
+  document.getElementById("archive-scan").addEventListener("click", async () => {
+    const r = await call("POST", "/archive/scan");
+    const text = r.status === 200 ? r.data.text : `not archived: ${r.data?.error || r.status}`;
+    panel.querySelector("#archive-last").textContent = text;
+    const out = document.getElementById("control-result");
+    out.dataset.ok = String(r.status === 200);
+    out.dataset.state = r.status === 200 ? "ok" : "failed";
+    out.textContent = `Archive scan: ${text}`;
+  });
   panel.querySelector("#exam-form").addEventListener("submit", async (ev) => {
     ev.preventDefault();
     const data = Object.fromEntries(new FormData(ev.target).entries());
