@@ -84,8 +84,10 @@ class JitterCounters:
     late_packets: int = 0  # packets older than the last released frame (ignored)
     duplicates: int = 0
     renacks: int = 0  # missing packets asked for again (their NACK or retransmission lost)
+    wait_ms: float = 0.0  # the wait for a lost packet in force at the last look (ms)
+    wait_ms_max: float = 0.0  # the longest wait in force (ms)
 
-    def as_dict(self) -> dict[str, int]:
+    def as_dict(self) -> dict[str, float]:
         return asdict(self)
 
 
@@ -126,9 +128,13 @@ class BoundedJitterBuffer:
         whose round trip is longer (a NACK and its retransmission take a round trip, plus
         :data:`RTX_MARGIN_S`), at most :data:`MAX_WAIT_S`."""
         rtt = self.rtt() if self.rtt is not None else None
-        if rtt is None or not rtt > 0:
-            return self.max_wait_s
-        return max(self.max_wait_s, min(MAX_WAIT_S, rtt + RTX_MARGIN_S))
+        wait = self.max_wait_s
+        if rtt is not None and rtt > 0:
+            wait = max(self.max_wait_s, min(MAX_WAIT_S, rtt + RTX_MARGIN_S))
+        c = self.counters
+        c.wait_ms = round(wait * 1e3, 1)
+        c.wait_ms_max = max(c.wait_ms_max, c.wait_ms)
+        return wait
 
     def pli_every_s(self) -> float:
         """Keyframe requests while waiting: every ``pli_interval_s``, or every round trip plus
