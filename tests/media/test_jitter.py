@@ -6,12 +6,19 @@ A frame here is a list of payload chunks; its first chunk starts with b"K" for a
 
 from __future__ import annotations
 
+import pytest
 from aiortc.rtp import RtpPacket
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from daemon_doubles import Clock
-from humantele.media.jitter import BEHIND_RELEASES, BoundedJitterBuffer
+from humantele.media.jitter import (
+    BEHIND_RELEASES,
+    MIN_REPAIRS,
+    REPAIRS_KEPT,
+    RTX_MARGIN_S,
+    BoundedJitterBuffer,
+)
 
 WAIT = 0.1  # s, max_wait_s of the buffers below
 
@@ -276,3 +283,69 @@ def test_a_packet_still_missing_is_asked_for_again_each_round_trip_until_it_come
     clock.t += 1.0
     feed(buf, s.frame([b"d6"]))
     assert buf.take_nacks() == [] and buf.counters.gaps_given_up == 1
+
+
+def test_the_waits_follow_the_repairs_measured_not_only_the_given_round_trip():
+    """Retransmissions take 250 ms (a queue on the link) where the given round trip says 30
+    ms: the first gaps are given up, but their late retransmissions are timed, and from then
+    on the wait covers a repair (so the picture no longer freezes on each lost packet) and
+    re-asking follows it too (no duplicate NACKs every 45 ms)."""
+    clock, s = Clock(), Stream()
+    buf = make(clock, rtt=lambda: 0.03)
+    assert buf.wait_s() == WAIT and buf.renack_every_s() == pytest.approx(0.045)
+    feed(buf, s.frame([b"K0"]))
+    for i in range(MIN_REPAIRS):  # a gap given up; its retransmission comes 250 ms late
+        f1, f2 = s.frame([b"d1", b"x"]), s.frame([b"d2", b"y"])
+        feed(buf, [f1[1], *f2])
+        clock.t += 0.25
+        feed(buf, s.frame([b"K" + bytes([48 + i])]))  # the gap is given up here
+        assert feed(buf, [f1[0]]) == [(False, None)]  # late: counted, timed
+    assert buf.counters.gaps_given_up == MIN_REPAIRS
+    assert buf.counters.late_repairs == MIN_REPAIRS
+    assert buf.wait_s() == pytest.approx(0.25 + RTX_MARGIN_S)
+    assert buf.renack_every_s() > 0.25
+    # now a packet repaired 250 ms after its gap showed is waited for
+    f1, f2 = s.frame([b"d1", b"x"]), s.frame([b"d2", b"y"])
+    feed(buf, [f1[1], *f2])
+    clock.t += 0.25
+    assert feed(buf, [f1[0]]) == [(False, b"d1x")]
+    assert buf.counters.gaps_given_up == MIN_REPAIRS
+    assert buf.counters.repair_ms == pytest.approx(250.0)
+
+
+def test_repairs_faster_than_the_floor_keep_the_floor_and_a_silly_one_is_bounded():
+    clock, s = Clock(), Stream()
+    buf = make(clock)
+    feed(buf, s.frame([b"K0"]))
+    for _ in range(5):  # repaired in 5 ms
+        f1, f2 = s.frame([b"d1", b"x"]), s.frame([b"d2", b"y"])
+        feed(buf, [f1[1], *f2])
+        clock.t += 0.005
+        feed(buf, [f1[0]])
+    assert buf.wait_s() == WAIT and buf.renack_every_s() == 0.025
+    for _ in range(REPAIRS_KEPT):  # then 30 s each (a stalled peer)
+        f1, f2 = s.frame([b"d1", b"x"]), s.frame([b"d2", b"y"])
+        feed(buf, [f1[1], *f2])
+        clock.t += 30.0
+        feed(buf, [f1[0]])
+    assert buf.wait_s() <= 1.0 and buf.pli_every_s() <= 1.0
+
+
+def test_waiting_for_a_keyframe_the_frames_before_it_are_not_waited_for():
+    """After a gap was given up only a keyframe helps: when one starts to arrive, an older
+    incomplete frame (which could not be decoded anyway) must not hold it back for the
+    whole wait."""
+    clock, s = Clock(), Stream()
+    buf = make(clock)
+    feed(buf, s.frame([b"K0"]))
+    feed(buf, s.frame([b"d1", b"x"])[1:])
+    clock.t += 2 * WAIT
+    out = feed(buf, s.frame([b"d2", b"y"]))  # d1 given up: a keyframe is asked for
+    assert any(p for p, _ in out) and buf.waiting_for_keyframe
+    d3 = s.frame([b"d3", b"z"])  # its last packet lost too
+    feed(buf, d3[:1])
+    key = s.frame([b"K4", b"a", b"b"])
+    assert feed(buf, key)[-1] == (False, b"K4ab")  # at once, not WAIT later
+    assert buf.counters.skipped_to_keyframe == 1 and not buf.waiting_for_keyframe
+    assert feed(buf, s.frame([b"d5"])) == [(False, b"d5")]
+    assert feed(buf, d3[1:]) == [(False, None)] and buf.counters.late_packets == 1
