@@ -88,6 +88,7 @@ class JitterCounters:
     dropped_frames: int = 0  # complete frames dropped while waiting for a keyframe
     gaps_given_up: int = 0  # missing packets waited for max_wait_s in vain (or overflow)
     plis: int = 0  # keyframe requests
+    behind_plis: int = 0  # of them, for frames leaving later than they could (no loss)
     late_packets: int = 0  # packets older than the last released frame (ignored)
     duplicates: int = 0
     renacks: int = 0  # missing packets asked for again (their NACK or retransmission lost)
@@ -280,6 +281,7 @@ class BoundedJitterBuffer:
             return False  # the stream's start: its first frame is a keyframe, unless late
         self._pli_at = now
         self.counters.plis += 1
+        self.counters.behind_plis += not self._want_key
         return True
 
     def _head(self) -> tuple[int, int | None]:
