@@ -349,3 +349,25 @@ def test_waiting_for_a_keyframe_the_frames_before_it_are_not_waited_for():
     assert buf.counters.skipped_to_keyframe == 1 and not buf.waiting_for_keyframe
     assert feed(buf, s.frame([b"d5"])) == [(False, b"d5")]
     assert feed(buf, d3[1:]) == [(False, None)] and buf.counters.late_packets == 1
+
+
+def test_a_backlog_that_drains_after_a_repair_asks_for_no_keyframe():
+    """On a long round trip several frames complete behind a repaired packet; frames of two
+    or more packets drain that backlog by themselves (each packet releases one): a keyframe
+    request for it was a keyframe (3-10 delta frames of bits) after nearly every repair."""
+    clock, s = Clock(), Stream()
+    buf = make(clock, rtt=lambda: 0.25)
+    feed(buf, s.frame([b"K0"]))
+    f1 = s.frame([b"d1", b"x"])
+    out = feed(buf, f1[1:])
+    for i in range(5):  # 250 ms of frames complete behind d1
+        out += feed(buf, s.frame([b"d" + bytes([50 + i]), b"y"]))
+    clock.t += 0.25
+    out += feed(buf, f1[:1])  # the retransmission: d1 leaves, five frames wait
+    released = []
+    for i in range(8):  # the stream goes on
+        for pli, frame in feed(buf, s.frame([b"n" + bytes([48 + i]), b"z"])):
+            out.append((pli, frame))
+            released.append(frame)
+    assert not any(pli for pli, _ in out) and buf.counters.plis == 0
+    assert released[-1] == b"n7z"  # caught up: the newest frame leaves on its last packet

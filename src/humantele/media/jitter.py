@@ -130,7 +130,8 @@ class BoundedJitterBuffer:
         self._want_key = True  # the decoder needs a keyframe (at start, after a drop)
         self._pli_at: float | None = None  # when a keyframe was last asked for
         self._started: float | None = None  # the first packet's arrival
-        self._behind = 0  # releases in a row after which another frame was already complete
+        self._behind = 0  # releases in a row after which the backlog did not shrink
+        self._backlog = 0  # complete frames waiting when that run of releases began
         self._missing_since: dict[int, float] = {}  # extended seq -> when first seen missing
         self._nacked: dict[int, float] = {}  # extended seq -> when we last asked for it
         self._nack_out: list[int] = []  # 16-bit sequence numbers to ask for (take_nacks)
@@ -284,11 +285,12 @@ class BoundedJitterBuffer:
         self.counters.behind_plis += not self._want_key
         return True
 
-    def _head(self) -> tuple[int, int | None]:
-        """The head frame from ``_next``: (its start, its last sequence number), the last None
-        while incomplete (a packet missing or its marker not yet in)."""
-        assert self._next is not None
-        start = self._next
+    def _head(self, start: int | None = None) -> tuple[int, int | None]:
+        """The head frame from ``_next`` (or the frame from ``start``): (its start, its last
+        sequence number), the last None while incomplete (a packet missing or its marker not
+        yet in)."""
+        start = self._next if start is None else start
+        assert start is not None
         p = self._packets.get(start)
         if p is None:
             return start, None
@@ -356,6 +358,29 @@ class BoundedJitterBuffer:
                 return
         self._drop_through(self._max if self._max is not None else self._next)
 
+    def _complete_waiting(self) -> int:
+        """Complete frames waiting at the head, one behind another."""
+        assert self._next is not None
+        n, start = 0, self._next
+        while True:
+            _, last = self._head(start)
+            if last is None:
+                return n
+            n, start = n + 1, last + 1
+
+    def _count_backlog(self) -> None:
+        """After a release: complete frames left waiting are a backlog (they leave one per
+        packet added). One that drains (frames of two or more packets: each brings more
+        releases than frames) is no fault; one that does not (one-packet frames) makes
+        ``_pli`` ask for a keyframe, whose many packets drain it."""
+        waiting = self._complete_waiting()
+        if waiting == 0:
+            self._behind = 0
+        elif self._behind == 0 or waiting < self._backlog:
+            self._behind, self._backlog = 1, waiting  # a new backlog, or it is draining
+        else:
+            self._behind += 1
+
     def _give_up(self) -> None:
         self.counters.gaps_given_up += 1
         self._want_key = True
@@ -383,10 +408,8 @@ class BoundedJitterBuffer:
             if self._want_key:
                 self._want_key, self._behind, self._pli_at = False, 0, None
                 self._key_starts.clear()
-            elif self._packets and self._head()[1] is not None:
-                self._behind += 1  # the next frame is complete too: it leaves one add late
             else:
-                self._behind = 0
+                self._count_backlog()
             self.counters.frames += 1
             return JitterFrame(data=data, timestamp=packets[0].timestamp)
         return None
