@@ -286,31 +286,39 @@ def test_a_packet_still_missing_is_asked_for_again_each_round_trip_until_it_come
 
 
 def test_the_waits_follow_the_repairs_measured_not_only_the_given_round_trip():
-    """Retransmissions take 250 ms (a queue on the link) where the given round trip says 30
-    ms: the first gaps are given up, but their late retransmissions are timed, and from then
-    on the wait covers a repair (so the picture no longer freezes on each lost packet) and
-    re-asking follows it too (no duplicate NACKs every 45 ms)."""
+    """Retransmissions take 90 ms, then 125 ms (a queue on the link) where the given round
+    trip says 30 ms: the wait grows with the repairs measured (so the picture does not freeze
+    on each lost packet) and re-asking follows them too (no duplicate NACKs every 45 ms). A
+    retransmission after its frame was given up is counted, not timed (aiortc asks for every
+    missing packet again at each new gap: it answers a later request)."""
     clock, s = Clock(), Stream()
     buf = make(clock, rtt=lambda: 0.03)
     assert buf.wait_s() == WAIT and buf.renack_every_s() == pytest.approx(0.045)
     feed(buf, s.frame([b"K0"]))
-    for i in range(MIN_REPAIRS):  # a gap given up; its retransmission comes 250 ms late
+
+    def repaired_after(took: float) -> list:
         f1, f2 = s.frame([b"d1", b"x"]), s.frame([b"d2", b"y"])
         feed(buf, [f1[1], *f2])
-        clock.t += 0.25
-        feed(buf, s.frame([b"K" + bytes([48 + i])]))  # the gap is given up here
-        assert feed(buf, [f1[0]]) == [(False, None)]  # late: counted, timed
-    assert buf.counters.gaps_given_up == MIN_REPAIRS
-    assert buf.counters.late_repairs == MIN_REPAIRS
-    assert buf.wait_s() == pytest.approx(0.25 + RTX_MARGIN_S)
-    assert buf.renack_every_s() > 0.25
-    # now a packet repaired 250 ms after its gap showed is waited for
+        clock.t += took
+        return feed(buf, [f1[0]])
+
+    for _ in range(MIN_REPAIRS):
+        assert repaired_after(0.09) == [(False, b"d1x")]
+    assert buf.wait_s() == pytest.approx(0.09 + RTX_MARGIN_S)
+    assert buf.renack_every_s() == pytest.approx(0.09 + 0.015)
+    assert buf.counters.repair_ms == pytest.approx(90.0)
+    assert repaired_after(0.125) == [(False, b"d1x")]  # waited for: 125 ms < 130 ms
+    assert buf.counters.gaps_given_up == 0 and buf.counters.repairs == MIN_REPAIRS + 1
+    # one never repaired in time is given up; its retransmission, 2 s late, moves nothing
+    wait = buf.wait_s()
     f1, f2 = s.frame([b"d1", b"x"]), s.frame([b"d2", b"y"])
     feed(buf, [f1[1], *f2])
-    clock.t += 0.25
-    assert feed(buf, [f1[0]]) == [(False, b"d1x")]
-    assert buf.counters.gaps_given_up == MIN_REPAIRS
-    assert buf.counters.repair_ms == pytest.approx(250.0)
+    clock.t += wait + 0.01
+    feed(buf, s.frame([b"K5"]))
+    clock.t += 2.0
+    assert feed(buf, [f1[0]]) == [(False, None)]
+    assert buf.counters.gaps_given_up == 1 and buf.counters.late_repairs == 1
+    assert buf.wait_s() == wait
 
 
 def test_repairs_faster_than_the_floor_keep_the_floor_and_a_silly_one_is_bounded():

@@ -55,11 +55,14 @@ MIN_RENACK_S = 0.025  # a missing packet asked for again at most this often (s)
 RENACK_MARGIN_S = 0.015  # beyond the round trip before asking again (s)
 MAX_RENACK_SPAN = 512  # packets between the head and the newest: past it, no re-asking
 # The round trip of a repair, measured here: from a gap's first sight (when aiortc NACKs it)
-# to its retransmission's arrival, also when that came after the wait (a late repair).
+# to its retransmission's arrival within the wait. One after the wait is not timed: aiortc
+# asks again for every packet still missing at each new gap, given up or not, so it answers
+# a later request (measured at 15 % loss, such times up to 1 s stretched the wait to 1 s).
+# The wait still grows when repairs take longer: its quantile plus the margin.
 REPAIRS_KEPT = 32  # the recent repair times the waits follow
 MIN_REPAIRS = 3  # repairs measured before they set the waits (until then: the given rtt)
 REPAIR_WAIT_QUANTILE = 0.9  # the wait covers this share of recent repairs (and a margin)
-GONE_KEPT = 256  # given-up packets remembered, so a late retransmission is still measured
+GONE_KEPT = 256  # given-up packets remembered, so a late retransmission is counted
 
 
 def vp8_is_keyframe(data: bytes) -> bool:
@@ -92,8 +95,8 @@ class JitterCounters:
     late_packets: int = 0  # packets older than the last released frame (ignored)
     duplicates: int = 0
     renacks: int = 0  # missing packets asked for again (their NACK or retransmission lost)
-    repairs: int = 0  # missing packets that came (a retransmission), in time or late
-    late_repairs: int = 0  # of them, after their frame was given up (the wait was too short)
+    repairs: int = 0  # missing packets that came (a retransmission) within the wait
+    late_repairs: int = 0  # missing packets that came after their frame was given up
     skipped_to_keyframe: int = 0  # waiting for a keyframe, older frames skipped when it came
     repair_ms: float = 0.0  # the round trip of a repair in force (ms; 0: none known)
     wait_ms: float = 0.0  # the wait for a lost packet in force at the last look (ms)
@@ -238,10 +241,8 @@ class BoundedJitterBuffer:
             self._next, self._started = seq, now
         if seq < self._next:
             self.counters.late_packets += 1
-            first = self._gone.pop(seq, None)
-            if first is not None:  # a retransmission after its frame was given up
-                self.counters.late_repairs += 1
-                self._repaired(now - first)
+            if self._gone.pop(seq, None) is not None:  # came after its frame was given up
+                self.counters.late_repairs += 1  # not timed: aiortc asked for it again since
         elif seq in self._packets:
             self.counters.duplicates += 1
         else:
@@ -324,7 +325,7 @@ class BoundedJitterBuffer:
             del self._packets[seq]
             del self._arrived[seq]
         for seq in [s for s in self._missing_since if s <= last]:
-            self._gone[seq] = self._missing_since.pop(seq)  # its late repair is still timed
+            self._gone[seq] = self._missing_since.pop(seq)  # a late repair is counted
             self._nacked.pop(seq, None)
         while len(self._gone) > GONE_KEPT:
             self._gone.popitem(last=False)
