@@ -242,3 +242,36 @@ async def test_an_estimate_that_started_from_a_dark_picture_does_not_turn_the_vi
     sender._senders["pov"].send(130, 1.0)
     await sender.check(16.0, 0.0, None)
     assert not sender.remb_stale and p.pov_off and p.us_rate_level == 1
+
+
+async def test_an_overuse_while_the_tracks_send_little_lowers_nothing():
+    """Measured at 15 % loss: with the US dark (~15 kbit/s sent of the 1000 asked) aiortc's
+    estimator saw an overuse and set the US estimate to 10 kbit/s. What the tracks send far
+    below what their encoders were asked for measures nothing of the link: no level falls,
+    no encoder is capped; once they send, a real overuse does lower the levels."""
+    from media_helpers import small_video_config
+
+    from humantele.media.sender import VideoSender
+    from humantele.video.scene import DEFAULT_PATIENT
+
+    sender = VideoSender(small_video_config(process=False), None, None, DEFAULT_PATIENT)
+    config = sender.config
+    sender._senders = {"us": _Sender(0, 0.01, 900), "pov": _Sender(0, 0.01, 450)}
+    sender._encoders = {"us": make_encoder("video/VP8", config.us_bitrate),
+                        "pov": make_encoder("video/VP8", config.pov_bitrate)}  # fmt: skip
+    us, pov = sender._encoders["us"], sender._encoders["pov"]
+    for t, remb in ((1.0, (20, 70)), (2.0, (22, 75)), (3.0, (10, 60)), (4.0, (11, 62))):
+        us.target_bitrate, pov.target_bitrate = remb[0] * 1000, remb[1] * 1000
+        sender._senders["us"].send(15, 1.0)  # dark: a few kbit/s, whatever it is asked
+        sender._senders["pov"].send(70, 1.0)
+        await sender.check(t, 0.0, None)
+        assert not sender.link_trusted
+    p = sender.policy
+    assert p.pov_level == 0 and p.us_rate_level == 0
+    assert us.target_bitrate == config.us_bitrate.min_kbps * 1000  # its floor, not 10
+    for t in (5.0, 6.0):  # the picture comes: the tracks send what they are asked
+        sender._senders["us"].send(us.target_bitrate / 1000, 1.0)
+        sender._senders["pov"].send(pov.target_bitrate / 1000, 1.0)
+        us.target_bitrate, pov.target_bitrate = 300_000, 80_000  # and the link is short
+        await sender.check(t, 0.0, None)
+    assert sender.link_trusted and p.pov_off and p.us_rate_level == 1

@@ -61,6 +61,9 @@ SHORT_FRACTION = 0.95
 # rate at its floor bit rate and turned the POV off. A stale estimate stays stale until it has
 # climbed to what gets through, or falls again in step with it (a fresh overuse).
 STALE_FRACTION = 0.5
+# The tracks are application-limited when they sent less than this share of what their
+# encoders were asked for: then the estimate follows what they send, not the link.
+APP_LIMITED_FRACTION = 0.5
 
 
 class SlotTrack(MediaStreamTrack):
@@ -176,6 +179,8 @@ class VideoSender:
         self._sent_at: tuple[float, int] | None = None  # (t s, bytes sent) at the last check
         self._remb_kbps: float | None = None  # the REMB sum at the last check
         self.remb_stale = False  # the REMB sum is stale: the link is what got through
+        self.link_trusted = False  # the last check measured the link (caps and levels)
+        self._asked_kbps = 0.0  # the encoders' targets summed at the last check
         self._channel: Any = None
         self._senders: dict[str, Any] = {}
         self._encoders: dict[str, Any] = {}  # the current peer connection's, per track
@@ -250,7 +255,7 @@ class VideoSender:
         )
         self._senders, self._encoders = {}, {}
         self._sent_at = None
-        self._remb_kbps, self.remb_stale = None, False
+        self._remb_kbps, self.remb_stale, self._asked_kbps = None, False, 0.0
         videos = [t for t in pc.getTransceivers() if t.kind == "video"]
         limits = {"us": self.config.us_bitrate, "pov": self.config.pov_bitrate}
         for name, transceiver, mime in zip(TRACKS, videos, offered_codecs(pc), strict=False):
@@ -325,7 +330,10 @@ class VideoSender:
         """The link's budget split between the tracks (:func:`split_budget`): each encoder's
         share and floor, the levels it allows; each encoder told the round trip. The link is
         the expert's REMB sum, or what reached it when that estimate is stale
-        (:func:`link_estimate`)."""
+        (:func:`link_estimate`). Only a measured link (``link_trusted``: the estimate not
+        stale, the tracks not application-limited, what got through known) caps the encoders
+        and lowers levels; otherwise each encoder keeps within its own limits (the US never
+        below its floor) and levels may only climb."""
         for enc in self._encoders.values():
             if report["rtt_s"] is not None:
                 enc.rtt_s = report["rtt_s"]
@@ -348,8 +356,19 @@ class VideoSender:
         budget = split_budget(link, us_l.min_kbps, us_l.max_kbps, pov_l.max_kbps,
                               p.link_level, p.link_us_level)  # fmt: skip
         short = delivered is not None and link < SHORT_FRACTION * delivered
-        p.apply_link(t, budget, short)
+        # the tracks sent far less than their encoders were asked for (a dark US, a starved
+        # capture): neither the estimate nor what got through measured the link
+        asked, self._asked_kbps = self._asked_kbps, sum(
+            e.target_bitrate for e in self._encoders.values()) / 1000.0  # fmt: skip
+        limited = sending is not None and sending < APP_LIMITED_FRACTION * asked
+        self.link_trusted = delivered is not None and not (self.remb_stale or limited)
+        p.apply_link(t, budget, short and self.link_trusted)
         us, pov = self._encoders.get("us"), self._encoders.get("pov")
+        if not self.link_trusted:  # no bound measured: each encoder within its own limits
+            for enc in (us, pov):
+                if enc is not None:
+                    enc.set_budget(None)
+            return
         if us is not None:
             us.set_budget(int(budget.us_kbps * 1000), int(budget.us_floor_kbps * 1000))
         if pov is not None:
@@ -438,6 +457,7 @@ class VideoSender:
             },  # fmt: skip
             "pov_level_reason": self.policy.reason,
             "remb_stale": self.remb_stale,
+            "link_trusted": self.link_trusted,
             "infos_sent": self.infos_sent,
             "infos_dropped": self.infos_dropped,
         }
