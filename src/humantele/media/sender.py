@@ -332,8 +332,9 @@ class VideoSender:
         the expert's REMB sum, or what reached it when that estimate is stale
         (:func:`link_estimate`). Only a measured link (``link_trusted``: the estimate not
         stale, the tracks not application-limited, what got through known) caps the encoders
-        and lowers levels; otherwise each encoder keeps within its own limits (the US never
-        below its floor) and levels may only climb."""
+        and lowers levels; otherwise each encoder follows the estimate up to its track's start
+        rate (an estimate can be as wrong upwards: measured 4.4 Mbit/s for the POV on a 1.5
+        Mbit/s link), never below its floor, and levels may only climb."""
         for enc in self._encoders.values():
             if report["rtt_s"] is not None:
                 enc.rtt_s = report["rtt_s"]
@@ -364,10 +365,10 @@ class VideoSender:
         self.link_trusted = delivered is not None and not (self.remb_stale or limited)
         p.apply_link(t, budget, short and self.link_trusted)
         us, pov = self._encoders.get("us"), self._encoders.get("pov")
-        if not self.link_trusted:  # no bound measured: each encoder within its own limits
-            for enc in (us, pov):
+        if not self.link_trusted:  # no bound measured: no more than each track's start rate
+            for enc, lim in ((us, us_l), (pov, pov_l)):
                 if enc is not None:
-                    enc.set_budget(None)
+                    enc.set_budget(lim.start_kbps * 1000)
             return
         if us is not None:
             us.set_budget(int(budget.us_kbps * 1000), int(budget.us_floor_kbps * 1000))
