@@ -271,6 +271,7 @@ async def test_an_overuse_while_the_tracks_send_little_lowers_nothing():
     assert us.target_bitrate == config.us_bitrate.min_kbps * 1000  # its floor, not 10
     pov.target_bitrate = 4_420_000  # and an estimate as wrong upwards (measured, 1.5 Mbit/s
     assert pov.target_bitrate == config.pov_bitrate.start_kbps * 1000  # link): its start
+    pov.target_bitrate = 62_000
     for t in (5.0, 6.0):  # the picture comes: the tracks send what they are asked
         sender._senders["us"].send(us.target_bitrate / 1000, 1.0)
         sender._senders["pov"].send(pov.target_bitrate / 1000, 1.0)
