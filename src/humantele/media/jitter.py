@@ -15,9 +15,11 @@ for every RTP packet, the payload already depayloaded into ``packet._data``):
 - releases a frame as soon as its last packet (RTP marker bit) is in and no packet since the
   previous frame is missing;
 - lets a missing packet be waited for ``max_wait_s`` after the first later packet arrived (time
-  for a NACK and its retransmission), or, given the link's round trip (``rtt``), that round
-  trip and a margin when it is longer: at 60 ms each way a retransmission takes ~130 ms and a
-  fixed 100 ms gave up on every one of them; after that, or beyond ``capacity`` packets, it
+  for a NACK and its retransmission), or longer when the repairs it measures take longer (or,
+  until it has measured some, the given round trip ``rtt``), plus a margin: at 60 ms each way
+  a retransmission takes ~130 ms and a fixed 100 ms gave up on every one of them; waiting for
+  a keyframe, it skips the frames before one that has started to arrive; after the wait, or
+  beyond ``capacity`` packets, it
   drops the frames up to the next keyframe, asks the sender for one (``pli``, again every
   ``pli_interval_s`` while waiting) and releases nothing in between: a frame decoded without
   its reference would show a corrupt picture, a freeze is honest;
