@@ -130,3 +130,29 @@ def test_frames_without_a_counter_get_their_capture_time_from_the_records_and_rt
         assert g is None or g == pytest.approx(t, abs=3e-5)  # never a wrong capture time
     st = rx.stats_by_track["us"]
     assert st.unreadable == 6 and st.anchor == first  # capture time = (pts + anchor) / 90 kHz
+
+
+async def test_a_lost_clock_sync_ping_does_not_stretch_the_video_waits():
+    """The clock sync's pings go over the reliable control channel: a lost one waits for
+    SCTP's retransmission (>= 1 s). The expert's jitter buffers must not take that for the
+    link's round trip: it made the wait for every lost video packet, the keyframe requests'
+    repeat and the re-asking 1 s on any lossy link (a freeze of up to 1 s per loss)."""
+    from humantele.wire import Pong
+
+    t = {"now": 0.0}
+    clock = ClockSync(clock=lambda: t["now"])
+    for rtt in [0.02] * 10 + [1.3] + [0.02] * 3:
+        ping = clock.make_ping()
+        t["now"] += rtt
+        clock.on_pong(Pong(seq=ping.seq, t0=ping.t0, t1=ping.t0, t2=ping.t0))
+    assert clock.high_rtt == pytest.approx(1.3) and clock.rtt == pytest.approx(0.02)
+    rx = VideoReceiver(ExpertVideoConfig(enabled=True), clock)
+    pc = RTCPeerConnection()
+    try:
+        rx.prepare(pc)
+        assert set(rx._jitter) == {"us", "pov"}
+        for buf in rx._jitter.values():
+            assert buf.wait_s() == pytest.approx(0.1) and buf.pli_every_s() == 0.5
+            assert buf.renack_every_s() == pytest.approx(0.035)
+    finally:
+        await pc.close()

@@ -138,6 +138,18 @@ def test_keyframe_requests_within_a_round_trip_of_a_keyframe_are_answered_once(u
     assert enc.keyframe_interval_s() < 0.5
 
 
+def test_a_keyframe_request_within_the_interval_is_deferred_not_dropped(us_frames):
+    """The receiver asks again 100 ms after a keyframe (that keyframe lost a packet for good):
+    the request is answered once the interval has passed, not only at the receiver's next
+    request 0.5 s or more later."""
+    enc = make_encoder("video/VP8", BitrateConfig())
+    enc.rtt_s = 0.18  # frames every 50 ms: one keyframe per 0.23 s at most
+    out = round_trip("video/VP8", enc, us_frames[:20], keyframe_at={2})
+    keys = [i for i, (*_, key) in enumerate(out) if key]
+    assert keys == [0, 5]  # 0.25 s after the first: the first frame past 0.23 s; once
+    assert enc.keyframes_suppressed == 1 and enc.keyframes_deferred == 1
+
+
 def test_without_libvpx_ffmpegs_encoder_is_reopened_on_a_rate_move(us_frames, monkeypatch):
     monkeypatch.setattr(encoders, "USE_LIBVPX", False)
     limits = BitrateConfig(start_kbps=800, min_kbps=400, max_kbps=1200)

@@ -6,12 +6,19 @@ A frame here is a list of payload chunks; its first chunk starts with b"K" for a
 
 from __future__ import annotations
 
+import pytest
 from aiortc.rtp import RtpPacket
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from daemon_doubles import Clock
-from humantele.media.jitter import BEHIND_RELEASES, BoundedJitterBuffer
+from humantele.media.jitter import (
+    BEHIND_RELEASES,
+    MIN_REPAIRS,
+    REPAIRS_KEPT,
+    RTX_MARGIN_S,
+    BoundedJitterBuffer,
+)
 
 WAIT = 0.1  # s, max_wait_s of the buffers below
 
@@ -276,3 +283,99 @@ def test_a_packet_still_missing_is_asked_for_again_each_round_trip_until_it_come
     clock.t += 1.0
     feed(buf, s.frame([b"d6"]))
     assert buf.take_nacks() == [] and buf.counters.gaps_given_up == 1
+
+
+def test_the_waits_follow_the_repairs_measured_not_only_the_given_round_trip():
+    """Retransmissions take 90 ms, then 125 ms (a queue on the link) where the given round
+    trip says 30 ms: the wait grows with the repairs measured (so the picture does not freeze
+    on each lost packet) and re-asking follows them too (no duplicate NACKs every 45 ms). A
+    retransmission after its frame was given up is counted, not timed (aiortc asks for every
+    missing packet again at each new gap: it answers a later request)."""
+    clock, s = Clock(), Stream()
+    buf = make(clock, rtt=lambda: 0.03)
+    assert buf.wait_s() == WAIT and buf.renack_every_s() == pytest.approx(0.045)
+    feed(buf, s.frame([b"K0"]))
+
+    def repaired_after(took: float) -> list:
+        f1, f2 = s.frame([b"d1", b"x"]), s.frame([b"d2", b"y"])
+        feed(buf, [f1[1], *f2])
+        clock.t += took
+        return feed(buf, [f1[0]])
+
+    for _ in range(MIN_REPAIRS):
+        assert repaired_after(0.09) == [(False, b"d1x")]
+    assert buf.wait_s() == pytest.approx(0.09 + RTX_MARGIN_S)
+    assert buf.renack_every_s() == pytest.approx(0.09 + 0.015)
+    assert buf.counters.repair_ms == pytest.approx(90.0)
+    assert repaired_after(0.125) == [(False, b"d1x")]  # waited for: 125 ms < 130 ms
+    assert buf.counters.gaps_given_up == 0 and buf.counters.repairs == MIN_REPAIRS + 1
+    # one never repaired in time is given up; its retransmission, 2 s late, moves nothing
+    wait = buf.wait_s()
+    f1, f2 = s.frame([b"d1", b"x"]), s.frame([b"d2", b"y"])
+    feed(buf, [f1[1], *f2])
+    clock.t += wait + 0.01
+    feed(buf, s.frame([b"K5"]))
+    clock.t += 2.0
+    assert feed(buf, [f1[0]]) == [(False, None)]
+    assert buf.counters.gaps_given_up == 1 and buf.counters.late_repairs == 1
+    assert buf.wait_s() == wait
+
+
+def test_repairs_faster_than_the_floor_keep_the_floor_and_a_silly_one_is_bounded():
+    clock, s = Clock(), Stream()
+    buf = make(clock)
+    feed(buf, s.frame([b"K0"]))
+    for _ in range(5):  # repaired in 5 ms
+        f1, f2 = s.frame([b"d1", b"x"]), s.frame([b"d2", b"y"])
+        feed(buf, [f1[1], *f2])
+        clock.t += 0.005
+        feed(buf, [f1[0]])
+    assert buf.wait_s() == WAIT and buf.renack_every_s() == 0.025
+    for _ in range(REPAIRS_KEPT):  # then 30 s each (a stalled peer)
+        f1, f2 = s.frame([b"d1", b"x"]), s.frame([b"d2", b"y"])
+        feed(buf, [f1[1], *f2])
+        clock.t += 30.0
+        feed(buf, [f1[0]])
+    assert buf.wait_s() <= 1.0 and buf.pli_every_s() <= 1.0
+
+
+def test_waiting_for_a_keyframe_the_frames_before_it_are_not_waited_for():
+    """After a gap was given up only a keyframe helps: when one starts to arrive, an older
+    incomplete frame (which could not be decoded anyway) must not hold it back for the
+    whole wait."""
+    clock, s = Clock(), Stream()
+    buf = make(clock)
+    feed(buf, s.frame([b"K0"]))
+    feed(buf, s.frame([b"d1", b"x"])[1:])
+    clock.t += 2 * WAIT
+    out = feed(buf, s.frame([b"d2", b"y"]))  # d1 given up: a keyframe is asked for
+    assert any(p for p, _ in out) and buf.waiting_for_keyframe
+    d3 = s.frame([b"d3", b"z"])  # its last packet lost too
+    feed(buf, d3[:1])
+    key = s.frame([b"K4", b"a", b"b"])
+    assert feed(buf, key)[-1] == (False, b"K4ab")  # at once, not WAIT later
+    assert buf.counters.skipped_to_keyframe == 1 and not buf.waiting_for_keyframe
+    assert feed(buf, s.frame([b"d5"])) == [(False, b"d5")]
+    assert feed(buf, d3[1:]) == [(False, None)] and buf.counters.late_packets == 1
+
+
+def test_a_backlog_that_drains_after_a_repair_asks_for_no_keyframe():
+    """On a long round trip several frames complete behind a repaired packet; frames of two
+    or more packets drain that backlog by themselves (each packet releases one): a keyframe
+    request for it was a keyframe (3-10 delta frames of bits) after nearly every repair."""
+    clock, s = Clock(), Stream()
+    buf = make(clock, rtt=lambda: 0.25)
+    feed(buf, s.frame([b"K0"]))
+    f1 = s.frame([b"d1", b"x"])
+    out = feed(buf, f1[1:])
+    for i in range(5):  # 250 ms of frames complete behind d1
+        out += feed(buf, s.frame([b"d" + bytes([50 + i]), b"y"]))
+    clock.t += 0.25
+    out += feed(buf, f1[:1])  # the retransmission: d1 leaves, five frames wait
+    released = []
+    for i in range(8):  # the stream goes on
+        for pli, frame in feed(buf, s.frame([b"n" + bytes([48 + i]), b"z"])):
+            out.append((pli, frame))
+            released.append(frame)
+    assert not any(pli for pli, _ in out) and buf.counters.plis == 0
+    assert released[-1] == b"n7z"  # caught up: the newest frame leaves on its last packet

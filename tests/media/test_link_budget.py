@@ -192,3 +192,89 @@ async def test_an_estimate_above_what_the_tracks_sent_is_not_a_short_link():
     sender._senders["pov"].send(150, 1.0)
     await sender.check(4.0, 0.0, None)
     assert sender.policy.link_level == 0 and sender.policy.link_us_level == 0
+
+
+def test_a_stale_estimate_is_no_bound_until_it_catches_up_or_falls_with_what_got_through():
+    from humantele.media.sender import link_estimate
+
+    # aiortc's estimate started from a dark US (~40 kbit/s) and climbs 8 % a second, while
+    # 600 kbit/s got through: stale, the link is what got through
+    assert link_estimate(145.0, None, 600.0, False) == (600.0, True)
+    assert link_estimate(400.0, 370.0, 600.0, True) == (600.0, True)  # still climbing
+    assert link_estimate(580.0, 540.0, 600.0, True) == (580.0, False)  # caught up
+    # a fresh overuse: it fell, to 0.85 of what it received: the link is short, trust it
+    assert link_estimate(510.0, 900.0, 600.0, True) == (510.0, False)
+    assert link_estimate(510.0, 480.0, 600.0, False) == (510.0, False)  # and stays trusted
+    assert link_estimate(100.0, 900.0, 600.0, False) == (600.0, True)  # far below: stale
+    assert link_estimate(450.0, None, None, True) == (450.0, False)  # nothing measured yet
+
+
+async def test_an_estimate_that_started_from_a_dark_picture_does_not_turn_the_video_down():
+    """Measured at 15 % loss (and at the rural link): the expert's REMB of the US started at
+    ~40 kbit/s (the probe not yet on the patient) and climbed 8 % a second, the POV's at ~105,
+    while 630 kbit/s got through: spent as the link it halved the US frame rate and turned
+    the POV off for the whole scan. A real overuse later still lowers the levels."""
+    from media_helpers import small_video_config
+
+    from humantele.media.sender import VideoSender
+    from humantele.video.scene import DEFAULT_PATIENT
+
+    sender = VideoSender(small_video_config(process=False), None, None, DEFAULT_PATIENT)
+    config = sender.config
+    sender._senders = {"us": _Sender(7, 0.01, 900), "pov": _Sender(7, 0.01, 450)}
+    sender._encoders = {"us": make_encoder("video/VP8", config.us_bitrate),
+                        "pov": make_encoder("video/VP8", config.pov_bitrate)}  # fmt: skip
+    us, pov = sender._encoders["us"], sender._encoders["pov"]
+    remb = {"us": 40.0, "pov": 105.0}
+    for t in range(1, 16):  # the sum climbs from 145 to 425 kbit/s
+        us.target_bitrate = int(remb["us"] * 1000)
+        pov.target_bitrate = int(remb["pov"] * 1000)
+        sender._senders["us"].send(500, 1.0)  # the US at its floor, the POV at its level's
+        sender._senders["pov"].send(130, 1.0)
+        await sender.check(float(t), 0.0, None)
+        remb = {k: v * 1.08 for k, v in remb.items()}
+    p = sender.policy
+    assert p.us_rate_level == 0 and not p.pov_off and sender.remb_stale
+    assert us.target_bitrate == 500_000 and sender.captures["us"].max_fps is None
+    # a real overuse: the estimate falls to 0.85 of what it receives, well below the floors
+    us.target_bitrate, pov.target_bitrate = 300_000, 100_000
+    sender._senders["us"].send(500, 1.0)
+    sender._senders["pov"].send(130, 1.0)
+    await sender.check(16.0, 0.0, None)
+    assert not sender.remb_stale and p.pov_off and p.us_rate_level == 1
+
+
+async def test_an_overuse_while_the_tracks_send_little_lowers_nothing():
+    """Measured at 15 % loss: with the US dark (~15 kbit/s sent of the 1000 asked) aiortc's
+    estimator saw an overuse and set the US estimate to 10 kbit/s. What the tracks send far
+    below what their encoders were asked for measures nothing of the link: no level falls,
+    no encoder is capped; once they send, a real overuse does lower the levels."""
+    from media_helpers import small_video_config
+
+    from humantele.media.sender import VideoSender
+    from humantele.video.scene import DEFAULT_PATIENT
+
+    sender = VideoSender(small_video_config(process=False), None, None, DEFAULT_PATIENT)
+    config = sender.config
+    sender._senders = {"us": _Sender(0, 0.01, 900), "pov": _Sender(0, 0.01, 450)}
+    sender._encoders = {"us": make_encoder("video/VP8", config.us_bitrate),
+                        "pov": make_encoder("video/VP8", config.pov_bitrate)}  # fmt: skip
+    us, pov = sender._encoders["us"], sender._encoders["pov"]
+    for t, remb in ((1.0, (20, 70)), (2.0, (22, 75)), (3.0, (10, 60)), (4.0, (11, 62))):
+        us.target_bitrate, pov.target_bitrate = remb[0] * 1000, remb[1] * 1000
+        sender._senders["us"].send(15, 1.0)  # dark: a few kbit/s, whatever it is asked
+        sender._senders["pov"].send(70, 1.0)
+        await sender.check(t, 0.0, None)
+        assert not sender.link_trusted
+    p = sender.policy
+    assert p.pov_level == 0 and p.us_rate_level == 0
+    assert us.target_bitrate == config.us_bitrate.min_kbps * 1000  # its floor, not 10
+    pov.target_bitrate = 4_420_000  # and an estimate as wrong upwards (measured, 1.5 Mbit/s
+    assert pov.target_bitrate == config.pov_bitrate.start_kbps * 1000  # link): its start
+    pov.target_bitrate = 62_000
+    for t in (5.0, 6.0):  # the picture comes: the tracks send what they are asked
+        sender._senders["us"].send(us.target_bitrate / 1000, 1.0)
+        sender._senders["pov"].send(pov.target_bitrate / 1000, 1.0)
+        us.target_bitrate, pov.target_bitrate = 300_000, 80_000  # and the link is short
+        await sender.check(t, 0.0, None)
+    assert sender.link_trusted and p.pov_off and p.us_rate_level == 1

@@ -111,7 +111,10 @@ def test_the_run_configs_carry_the_condition_seed_scans_and_relay(tmp_path):
     assert e.link.relay_only and e.link.ice_servers[0].urls == ["turn:127.0.0.1:4000?transport=udp"]
     assert f.link.relay_only and f.link.ice_servers[0].urls == ["turn:127.0.0.1:4001?transport=udp"]
     assert e.scans.repeat and e.scans.length_s == 10.0 and e.scans.gap_s == 2.5
-    assert e.video.enabled and f.video.enabled and not e.video.record_encoded
+    assert e.video.enabled and f.video.enabled
+    # the US picture's SSIM (study/quality.py) needs the expert's encoded US frames and the
+    # follower's JPEG of the captures: without them the study's SSIM column stayed empty
+    assert e.video.record_encoded and f.video.record_us_hz > 0
     assert s.device.seed == 4 and f.clinic.novice.seed == 4
     assert (tmp_path / "conf").stat().st_mode & 0o077 == 0  # the TURN credential is private
 

@@ -126,13 +126,15 @@ class Vp8Encoder(_Limits, vpx.Vp8Encoder):
     encoder through PyAV, reopened on each move of more than 10 % (a keyframe each time).
 
     Keyframes asked for by the receiver (PLI) come at most once per
-    :meth:`keyframe_interval_s` (about a round trip, ``rtt_s`` as the sender measures it): a
-    request within it was sent before the last keyframe could have arrived, and a receiver
-    still waiting asks again (every 0.5 s or round trip, ``humantele.media.jitter``); on a
-    lossy link this keeps a PLI storm from becoming a stream of keyframes (each 3-10 times a
-    delta frame, so more packets to lose). A keyframe's size is capped at ``MAX_INTRA_PCT`` %
-    of an average frame's budget (WebRTC's floor for its libvpx encoder): a smaller keyframe
-    is fewer packets to lose and leaves sooner; the frames after it sharpen the picture.
+    :meth:`keyframe_interval_s` (about a round trip, ``rtt_s`` as the sender measures it): on
+    a lossy link this keeps a PLI storm from becoming a stream of keyframes (each 3-10 times a
+    delta frame, so more packets to lose). A request within it is deferred, not dropped: the
+    keyframe comes once the interval has passed (``keyframes_deferred``). Dropped, a request
+    made because the last keyframe itself could not be repaired was answered only at the
+    receiver's next request, 0.5 s or more later: a freeze that long each time. A keyframe's
+    size is capped at ``MAX_INTRA_PCT`` % of an average frame's budget (WebRTC's floor for
+    its libvpx encoder): a smaller keyframe is fewer packets to lose and leaves sooner; the
+    frames after it sharpen the picture.
     """
 
     def __init__(self, limits: BitrateConfig, max_size: tuple[int, int] | None = None) -> None:
@@ -143,6 +145,8 @@ class Vp8Encoder(_Limits, vpx.Vp8Encoder):
         self.reconfigurations = 0  # bit-rate changes applied to the running encoder
         self.resizes = 0  # size changes applied to the running encoder (a keyframe each)
         self.keyframes_suppressed = 0  # requests within keyframe_interval_s of a keyframe
+        self.keyframes_deferred = 0  # keyframes made after the interval for such a request
+        self._key_pending = False  # a request not yet answered (it came within the interval)
         self.keyframes = 0  # keyframes sent (any cause)
         self.rtt_s: float | None = None  # the link's round trip (s), set by the sender
         self._last_key_pts: int | None = None  # 90 kHz
@@ -154,14 +158,21 @@ class Vp8Encoder(_Limits, vpx.Vp8Encoder):
         return min(MAX_KEYFRAME_GAP_S, max(MIN_KEYFRAME_GAP_S, rtt + 0.05))
 
     def _want_key(self, force_keyframe: bool, pts: int) -> bool:
-        if not force_keyframe:
+        """Whether this frame (``pts``, 90 kHz) is to be a keyframe: one was asked for now or
+        earlier, and the last keyframe is at least :meth:`keyframe_interval_s` old."""
+        if force_keyframe:
+            self.keyframes_forced += 1
+        elif not self._key_pending:
             return False
-        self.keyframes_forced += 1
         if self._last_key_pts is not None:
             since = (pts - self._last_key_pts) / VIDEO_CLOCK_HZ
             if 0 <= since < self.keyframe_interval_s():
-                self.keyframes_suppressed += 1
+                self.keyframes_suppressed += force_keyframe
+                self._key_pending = True
                 return False
+        if not force_keyframe:
+            self.keyframes_deferred += 1
+        self._key_pending = False
         return True
 
     def figures(self) -> dict[str, Any]:
@@ -171,6 +182,7 @@ class Vp8Encoder(_Limits, vpx.Vp8Encoder):
             "resizes": self.resizes,
             "keyframes": self.keyframes,
             "keyframes_suppressed": self.keyframes_suppressed,
+            "keyframes_deferred": self.keyframes_deferred,
             "libvpx": self.live is not None,
         }
 
@@ -248,6 +260,7 @@ class Vp8Encoder(_Limits, vpx.Vp8Encoder):
         if is_key:
             self.keyframes += 1
             self._last_key_pts = timestamp
+            self._key_pending = False  # a keyframe for any cause answers a request
         payloads = self._packetize(data, self.picture_id)
         if len(payloads) == 1 and len(data) >= 2:
             payloads = two_packets(data, self.picture_id)

@@ -15,9 +15,11 @@ for every RTP packet, the payload already depayloaded into ``packet._data``):
 - releases a frame as soon as its last packet (RTP marker bit) is in and no packet since the
   previous frame is missing;
 - lets a missing packet be waited for ``max_wait_s`` after the first later packet arrived (time
-  for a NACK and its retransmission), or, given the link's round trip (``rtt``), that round
-  trip and a margin when it is longer: at 60 ms each way a retransmission takes ~130 ms and a
-  fixed 100 ms gave up on every one of them; after that, or beyond ``capacity`` packets, it
+  for a NACK and its retransmission), or longer when the repairs it measures take longer (or,
+  until it has measured some, the given round trip ``rtt``), plus a margin: at 60 ms each way
+  a retransmission takes ~130 ms and a fixed 100 ms gave up on every one of them; waiting for
+  a keyframe, it skips the frames before one that has started to arrive; after the wait, or
+  beyond ``capacity`` packets, it
   drops the frames up to the next keyframe, asks the sender for one (``pli``, again every
   ``pli_interval_s`` while waiting) and releases nothing in between: a frame decoded without
   its reference would show a corrupt picture, a freeze is honest;
@@ -36,6 +38,7 @@ after the previous frame's marker packet (or where the timestamp changes).
 from __future__ import annotations
 
 import time
+from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -53,6 +56,15 @@ MAX_WAIT_S = 1.0  # never wait longer for a lost packet, whatever the round trip
 MIN_RENACK_S = 0.025  # a missing packet asked for again at most this often (s)
 RENACK_MARGIN_S = 0.015  # beyond the round trip before asking again (s)
 MAX_RENACK_SPAN = 512  # packets between the head and the newest: past it, no re-asking
+# The round trip of a repair, measured here: from a gap's first sight (when aiortc NACKs it)
+# to its retransmission's arrival within the wait. One after the wait is not timed: aiortc
+# asks again for every packet still missing at each new gap, given up or not, so it answers
+# a later request (measured at 15 % loss, such times up to 1 s stretched the wait to 1 s).
+# The wait still grows when repairs take longer: its quantile plus the margin.
+REPAIRS_KEPT = 32  # the recent repair times the waits follow
+MIN_REPAIRS = 3  # repairs measured before they set the waits (until then: the given rtt)
+REPAIR_WAIT_QUANTILE = 0.9  # the wait covers this share of recent repairs (and a margin)
+GONE_KEPT = 256  # given-up packets remembered, so a late retransmission is counted
 
 
 def vp8_is_keyframe(data: bytes) -> bool:
@@ -81,11 +93,18 @@ class JitterCounters:
     dropped_frames: int = 0  # complete frames dropped while waiting for a keyframe
     gaps_given_up: int = 0  # missing packets waited for max_wait_s in vain (or overflow)
     plis: int = 0  # keyframe requests
+    behind_plis: int = 0  # of them, for frames leaving later than they could (no loss)
     late_packets: int = 0  # packets older than the last released frame (ignored)
     duplicates: int = 0
     renacks: int = 0  # missing packets asked for again (their NACK or retransmission lost)
+    repairs: int = 0  # missing packets that came (a retransmission) within the wait
+    late_repairs: int = 0  # missing packets that came after their frame was given up
+    skipped_to_keyframe: int = 0  # waiting for a keyframe, older frames skipped when it came
+    repair_ms: float = 0.0  # the round trip of a repair in force (ms; 0: none known)
+    wait_ms: float = 0.0  # the wait for a lost packet in force at the last look (ms)
+    wait_ms_max: float = 0.0  # the longest wait in force (ms)
 
-    def as_dict(self) -> dict[str, int]:
+    def as_dict(self) -> dict[str, float]:
         return asdict(self)
 
 
@@ -104,7 +123,7 @@ class BoundedJitterBuffer:
     ) -> None:
         self.is_keyframe = is_keyframe
         self.max_wait_s = max_wait_s
-        self.rtt = rtt  # the link's round trip (s; the high end of recent samples) or None
+        self.rtt = rtt  # the link's round trip (s; its shortest recent sample) or None
         self._capacity = capacity
         self.pli_interval_s = pli_interval_s
         self.clock = clock
@@ -116,34 +135,70 @@ class BoundedJitterBuffer:
         self._want_key = True  # the decoder needs a keyframe (at start, after a drop)
         self._pli_at: float | None = None  # when a keyframe was last asked for
         self._started: float | None = None  # the first packet's arrival
-        self._behind = 0  # releases in a row after which another frame was already complete
+        self._behind = 0  # releases in a row after which the backlog did not shrink
+        self._backlog = 0  # complete frames waiting when that run of releases began
         self._missing_since: dict[int, float] = {}  # extended seq -> when first seen missing
         self._nacked: dict[int, float] = {}  # extended seq -> when we last asked for it
         self._nack_out: list[int] = []  # 16-bit sequence numbers to ask for (take_nacks)
+        self._repairs: deque[float] = deque(maxlen=REPAIRS_KEPT)  # repair times (s)
+        self._gone: OrderedDict[int, float] = OrderedDict()  # given up: seq -> first missing
+        self._key_starts: set[int] = set()  # packets that start a keyframe (while wanted)
+
+    def _given_rtt(self) -> float | None:
+        rtt = self.rtt() if self.rtt is not None else None
+        return rtt if rtt is not None and rtt > 0 and rtt < MAX_WAIT_S * 10 else None
+
+    def _repair_quantile(self, q: float) -> float | None:
+        """The ``q`` quantile of the recent repair times (s), None until enough."""
+        if len(self._repairs) < MIN_REPAIRS:
+            return None
+        xs = sorted(self._repairs)
+        return xs[min(len(xs) - 1, int(q * len(xs)))]
+
+    def round_trip_s(self) -> float | None:
+        """A repair's round trip (s): the median of the recent repairs measured here, else
+        the given ``rtt`` (the link's shortest recent round trip), else None."""
+        median = self._repair_quantile(0.5)
+        rtt = self._given_rtt()
+        if median is None:
+            return rtt
+        return median if rtt is None else max(median, rtt)
 
     def wait_s(self) -> float:
         """How long a missing packet is waited for (s): ``max_wait_s``, or longer on a link
-        whose round trip is longer (a NACK and its retransmission take a round trip, plus
-        :data:`RTX_MARGIN_S`), at most :data:`MAX_WAIT_S`."""
-        rtt = self.rtt() if self.rtt is not None else None
-        if rtt is None or not rtt > 0:
-            return self.max_wait_s
-        return max(self.max_wait_s, min(MAX_WAIT_S, rtt + RTX_MARGIN_S))
+        whose repairs take longer: :data:`REPAIR_WAIT_QUANTILE` of the repairs measured
+        here (re-asks included) or the given round trip, plus :data:`RTX_MARGIN_S`; at most
+        :data:`MAX_WAIT_S`. A clock-sync exchange over the reliable control channel is no
+        measure of it: one lost ping waits for SCTP's retransmission (at least 1 s)."""
+        wait = self.max_wait_s
+        rtt, high = self._given_rtt(), self._repair_quantile(REPAIR_WAIT_QUANTILE)
+        for r in (rtt, high):
+            if r is not None:
+                wait = max(wait, min(MAX_WAIT_S, r + RTX_MARGIN_S))
+        c = self.counters
+        c.wait_ms = round(wait * 1e3, 1)
+        c.wait_ms_max = max(c.wait_ms_max, c.wait_ms)
+        return wait
 
     def pli_every_s(self) -> float:
         """Keyframe requests while waiting: every ``pli_interval_s``, or every round trip plus
         :data:`RTX_MARGIN_S` when that is longer (the keyframe asked for is still on its way)."""
-        rtt = self.rtt() if self.rtt is not None else None
-        if rtt is None or not rtt > 0:
+        rtt = self.round_trip_s()
+        if rtt is None:
             return self.pli_interval_s
         return max(self.pli_interval_s, min(MAX_WAIT_S, rtt + RTX_MARGIN_S))
 
     def renack_every_s(self) -> float:
         """A missing packet is asked for again this long after the last request (s): a round
         trip and a little (its NACK or its retransmission was lost), at least 25 ms."""
-        rtt = self.rtt() if self.rtt is not None else None
-        rtt = rtt if rtt is not None and rtt > 0 else 0.0
+        rtt = self.round_trip_s() or 0.0
         return max(MIN_RENACK_S, rtt + RENACK_MARGIN_S)
+
+    def _repaired(self, took_s: float) -> None:
+        self._repairs.append(took_s)
+        self.counters.repairs += 1
+        rtt = self.round_trip_s()
+        self.counters.repair_ms = 0.0 if rtt is None else round(rtt * 1e3, 1)
 
     def take_nacks(self) -> list[int]:
         """The 16-bit sequence numbers to ask the sender for again (a NACK), once each."""
@@ -188,11 +243,19 @@ class BoundedJitterBuffer:
             self._next, self._started = seq, now
         if seq < self._next:
             self.counters.late_packets += 1
+            if self._gone.pop(seq, None) is not None:  # came after its frame was given up
+                self.counters.late_repairs += 1  # not timed: aiortc asked for it again since
         elif seq in self._packets:
             self.counters.duplicates += 1
         else:
             self._packets[seq] = packet
             self._arrived[seq] = now
+            first = self._missing_since.pop(seq, None)
+            self._nacked.pop(seq, None)
+            if first is not None:  # a missing packet came: its retransmission
+                self._repaired(now - first)
+            if self._want_key and self.is_keyframe(getattr(packet, "_data", b"")):
+                self._key_starts.add(seq)
         self._renack(now)
         frame = self._pop(now)
         return self._pli(now), frame
@@ -222,13 +285,15 @@ class BoundedJitterBuffer:
             return False  # the stream's start: its first frame is a keyframe, unless late
         self._pli_at = now
         self.counters.plis += 1
+        self.counters.behind_plis += not self._want_key
         return True
 
-    def _head(self) -> tuple[int, int | None]:
-        """The head frame from ``_next``: (its start, its last sequence number), the last None
-        while incomplete (a packet missing or its marker not yet in)."""
-        assert self._next is not None
-        start = self._next
+    def _head(self, start: int | None = None) -> tuple[int, int | None]:
+        """The head frame from ``_next`` (or the frame from ``start``): (its start, its last
+        sequence number), the last None while incomplete (a packet missing or its marker not
+        yet in)."""
+        start = self._next if start is None else start
+        assert start is not None
         p = self._packets.get(start)
         if p is None:
             return start, None
@@ -262,9 +327,24 @@ class BoundedJitterBuffer:
             del self._packets[seq]
             del self._arrived[seq]
         for seq in [s for s in self._missing_since if s <= last]:
-            del self._missing_since[seq]
+            self._gone[seq] = self._missing_since.pop(seq)  # a late repair is counted
             self._nacked.pop(seq, None)
+        while len(self._gone) > GONE_KEPT:
+            self._gone.popitem(last=False)
+        self._key_starts = {s for s in self._key_starts if s > last}
         self._next = last + 1
+
+    def _skip_to_keyframe(self) -> bool:
+        """Waiting for a keyframe, one has started to arrive: drop everything before it (the
+        frames there cannot be decoded, so waiting for their lost packets only delays the
+        keyframe). Whether anything was dropped."""
+        assert self._next is not None
+        later = [s for s in self._key_starts if s > self._next]
+        if not later or self._next in self._key_starts:
+            return False
+        self._drop_through(min(later) - 1)
+        self.counters.skipped_to_keyframe += 1
+        return True
 
     def _skip_to_next_start(self) -> None:
         """Drop the head (incomplete) up to the next packet known to start a frame: one after
@@ -281,14 +361,41 @@ class BoundedJitterBuffer:
                 return
         self._drop_through(self._max if self._max is not None else self._next)
 
+    def _complete_waiting(self) -> int:
+        """Complete frames waiting at the head, one behind another."""
+        assert self._next is not None
+        n, start = 0, self._next
+        while True:
+            _, last = self._head(start)
+            if last is None:
+                return n
+            n, start = n + 1, last + 1
+
+    def _count_backlog(self) -> None:
+        """After a release: complete frames left waiting are a backlog (they leave one per
+        packet added). One that drains (frames of two or more packets: each brings more
+        releases than frames) is no fault; one that does not (one-packet frames) makes
+        ``_pli`` ask for a keyframe, whose many packets drain it."""
+        waiting = self._complete_waiting()
+        if waiting == 0:
+            self._behind = 0
+        elif self._behind == 0 or waiting < self._backlog:
+            self._behind, self._backlog = 1, waiting  # a new backlog, or it is draining
+        else:
+            self._behind += 1
+
     def _give_up(self) -> None:
         self.counters.gaps_given_up += 1
         self._want_key = True
         self._pli_at = None
         self._skip_to_next_start()
+        self._key_starts = {s for s, p in self._packets.items()
+                            if self.is_keyframe(getattr(p, "_data", b""))}  # fmt: skip
 
     def _pop(self, now: float) -> JitterFrame | None:
         while self._packets:
+            if self._want_key and self._skip_to_keyframe():
+                continue
             start, last = self._head()
             if last is None:
                 if len(self._packets) <= self._capacity and self._gap_age(now) <= self.wait_s():
@@ -303,10 +410,9 @@ class BoundedJitterBuffer:
                 continue
             if self._want_key:
                 self._want_key, self._behind, self._pli_at = False, 0, None
-            elif self._packets and self._head()[1] is not None:
-                self._behind += 1  # the next frame is complete too: it leaves one add late
+                self._key_starts.clear()
             else:
-                self._behind = 0
+                self._count_backlog()
             self.counters.frames += 1
             return JitterFrame(data=data, timestamp=packets[0].timestamp)
         return None

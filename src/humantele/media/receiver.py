@@ -316,7 +316,10 @@ class VideoReceiver:
             buffer = BoundedJitterBuffer(
                 KEYFRAME_TESTS[self.config.codec],
                 self.config.loss_wait_ms / 1000.0,
-                rtt=lambda: getattr(self.clock, "high_rtt", None),  # a retransmission: a round trip
+                # a prior for a repair's round trip until the buffer has measured some: the
+                # clock sync's shortest recent one (its longest is a lost ping's SCTP
+                # retransmission, >= 1 s, on any lossy link: docs/video.md "Loss")
+                rtt=lambda: getattr(self.clock, "rtt", None),
             )
             record = self.record is not None and self.config.record_encoded and self.recording()
             tap = EncodedFrameTap(

@@ -52,6 +52,18 @@ MAX_INFO_BUFFERED = 4096  # bytes of frame records allowed to wait in the channe
 # bids 0.85 of the rate received); above it, the estimate may just not have grown yet (a
 # session's start) or the tracks send less than their targets (a starved capture).
 SHORT_FRACTION = 0.95
+# The estimate is stale, not the link, when it is below this share of what reached the expert
+# over the last check: aiortc's estimator sets its estimate to the rate it receives 3 s after
+# the first packet, and lowers it to 0.85 of that rate on each overuse, so a session whose US
+# starts dark (the probe not yet on the patient: ~40 kbit/s) starts from ~40 kbit/s and climbs
+# 8 % a second (~40 s to 1 Mbit/s). Measured at 15 % loss: the REMB sum at 145-200 kbit/s
+# for the whole scan while 600 kbit/s got through; spent as the link, it halved the US frame
+# rate at its floor bit rate and turned the POV off. A stale estimate stays stale until it has
+# climbed to what gets through, or falls again in step with it (a fresh overuse).
+STALE_FRACTION = 0.5
+# The tracks are application-limited when they sent less than this share of what their
+# encoders were asked for: then the estimate follows what they send, not the link.
+APP_LIMITED_FRACTION = 0.5
 
 
 class SlotTrack(MediaStreamTrack):
@@ -90,6 +102,25 @@ def offered_codecs(pc: RTCPeerConnection) -> list[str | None]:
             mimes = [c.mimeType for c in media.rtp.codecs]
             out.append(next((m for m in mimes if m.lower() in ENCODERS), None))
     return out
+
+
+def link_estimate(
+    remb: float, last_remb: float | None, delivered: float | None, stale: bool
+) -> tuple[float, bool]:
+    """What the link carries (kbit/s) and whether the REMB sum ``remb`` is stale, given the
+    sum at the last check (``last_remb``), what reached the expert since (``delivered``, None
+    at the first check) and whether the estimate was stale then. Stale below
+    :data:`STALE_FRACTION` of what got through; no longer once it has grown to
+    :data:`SHORT_FRACTION` of it, or fell since the last check to within that band (aiortc
+    lowers its estimate only on an overuse, to 0.85 of what it receives: a real one). A stale
+    estimate is no bound: the link is what got through."""
+    if delivered is None or delivered <= 0:
+        return remb, False
+    if remb < STALE_FRACTION * delivered:
+        stale = True
+    elif remb >= SHORT_FRACTION * delivered or (last_remb is not None and remb < last_remb):
+        stale = False
+    return (max(remb, delivered) if stale else remb), stale
 
 
 class VideoSender:
@@ -146,6 +177,10 @@ class VideoSender:
         self.attached = 0
         self.link: dict[str, Any] = {}  # the last link_report
         self._sent_at: tuple[float, int] | None = None  # (t s, bytes sent) at the last check
+        self._remb_kbps: float | None = None  # the REMB sum at the last check
+        self.remb_stale = False  # the REMB sum is stale: the link is what got through
+        self.link_trusted = False  # the last check measured the link (caps and levels)
+        self._asked_kbps = 0.0  # the encoders' targets summed at the last check
         self._channel: Any = None
         self._senders: dict[str, Any] = {}
         self._encoders: dict[str, Any] = {}  # the current peer connection's, per track
@@ -220,6 +255,7 @@ class VideoSender:
         )
         self._senders, self._encoders = {}, {}
         self._sent_at = None
+        self._remb_kbps, self.remb_stale, self._asked_kbps = None, False, 0.0
         videos = [t for t in pc.getTransceivers() if t.kind == "video"]
         limits = {"us": self.config.us_bitrate, "pov": self.config.pov_bitrate}
         for name, transceiver, mime in zip(TRACKS, videos, offered_codecs(pc), strict=False):
@@ -292,17 +328,19 @@ class VideoSender:
 
     def _spend_link(self, t: float, report: dict[str, Any]) -> None:
         """The link's budget split between the tracks (:func:`split_budget`): each encoder's
-        share and floor, the levels it allows; each encoder told the round trip."""
+        share and floor, the levels it allows; each encoder told the round trip. The link is
+        the expert's REMB sum, or what reached it when that estimate is stale
+        (:func:`link_estimate`). Only a measured link (``link_trusted``: the estimate not
+        stale, the tracks not application-limited, what got through known) caps the encoders
+        and lowers levels; otherwise each encoder follows the estimate up to its track's start
+        rate (an estimate can be as wrong upwards: measured 4.4 Mbit/s for the POV on a 1.5
+        Mbit/s link), never below its floor, and levels may only climb."""
         for enc in self._encoders.values():
             if report["rtt_s"] is not None:
                 enc.rtt_s = report["rtt_s"]
-        link = report["link_kbps"]
-        if link is None or not self.config.degrade.follow_link:
+        remb = report["link_kbps"]
+        if remb is None or not self.config.degrade.follow_link:
             return
-        us_l, pov_l = self.config.us_bitrate, self.config.pov_bitrate
-        p = self.policy
-        budget = split_budget(link, us_l.min_kbps, us_l.max_kbps, pov_l.max_kbps,
-                              p.link_level, p.link_us_level)  # fmt: skip
         # what the tracks actually sent since the last check (kbit/s; a starved capture or
         # encoder sends less than its target, and the expert's estimate follows that)
         prev, self._sent_at = self._sent_at, (t, report["bytes_sent"])
@@ -312,9 +350,26 @@ class VideoSender:
         # what reached the expert of it: its estimate counts received bytes, and random loss
         # is not a short link (the stepped policy lowers the POV on loss)
         delivered = None if sending is None else sending * (1.0 - (report["loss"] or 0.0))
+        link, self.remb_stale = link_estimate(remb, self._remb_kbps, delivered, self.remb_stale)
+        self._remb_kbps = remb
+        us_l, pov_l = self.config.us_bitrate, self.config.pov_bitrate
+        p = self.policy
+        budget = split_budget(link, us_l.min_kbps, us_l.max_kbps, pov_l.max_kbps,
+                              p.link_level, p.link_us_level)  # fmt: skip
         short = delivered is not None and link < SHORT_FRACTION * delivered
-        p.apply_link(t, budget, short)
+        # the tracks sent far less than their encoders were asked for (a dark US, a starved
+        # capture): neither the estimate nor what got through measured the link
+        asked, self._asked_kbps = self._asked_kbps, sum(
+            e.target_bitrate for e in self._encoders.values()) / 1000.0  # fmt: skip
+        limited = sending is not None and sending < APP_LIMITED_FRACTION * asked
+        self.link_trusted = delivered is not None and not (self.remb_stale or limited)
+        p.apply_link(t, budget, short and self.link_trusted)
         us, pov = self._encoders.get("us"), self._encoders.get("pov")
+        if not self.link_trusted:  # no bound measured: no more than each track's start rate
+            for enc, lim in ((us, us_l), (pov, pov_l)):
+                if enc is not None:
+                    enc.set_budget(lim.start_kbps * 1000)
+            return
         if us is not None:
             us.set_budget(int(budget.us_kbps * 1000), int(budget.us_floor_kbps * 1000))
         if pov is not None:
@@ -402,6 +457,8 @@ class VideoSender:
                 k: (round(v, 4) if isinstance(v, float) else v) for k, v in self.link.items()
             },  # fmt: skip
             "pov_level_reason": self.policy.reason,
+            "remb_stale": self.remb_stale,
+            "link_trusted": self.link_trusted,
             "infos_sent": self.infos_sent,
             "infos_dropped": self.infos_dropped,
         }

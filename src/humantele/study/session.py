@@ -41,6 +41,9 @@ from typing import Any
 START_AFTER_MODEL_S = 2.0  # [expert.scans] start_after_model_s: scan 1 this long after the model
 RECORD_BASE = "session.mcap"  # the demo's --record: session.expert.mcap, session.follower.mcap
 POLL_S = 0.25
+# The US picture's SSIM (humantele.study.quality) compares the expert's recorded encoded US
+# frames with the follower's JPEG of the same captures: both must be recorded.
+RECORD_US_HZ = 2.0
 
 
 def _toml(v: object) -> str:
@@ -70,13 +73,13 @@ def write_configs(d: Path, spec: dict, ice: dict[str, Any] | None) -> Path:
         f"start_after_model_s = {START_AFTER_MODEL_S}\nlength_s = {float(spec['scan_s'])}\n"
         f"repeat = true\ngap_s = {float(spec['gap_s'])}\n"
         f"[expert.video]\nenabled = {str(video).lower()}\nrecord_frames = true\n"
-        "record_encoded = false\n"
+        "record_encoded = true\n"
         f'[servo.device]\nbackend = "sim"\nseed = {seed}\n'
     )
     (d / "follower.toml").write_text(
         f"[follower.link]\n{_ice_lines('follower', ice.get('follower'))}\n"
         f"[follower.video]\nenabled = {str(video).lower()}\n"
-        "record_us_hz = 0.0\nrecord_pov_hz = 0.0\n"
+        f"record_us_hz = {RECORD_US_HZ}\nrecord_pov_hz = 0.0\n"
         f'[follower.clinic]\nbackend = "sim"\n[follower.clinic.novice]\nseed = {seed}\n'
         f'[sensing.camera]\nbackend = "sim"\nseed = {seed}\n'
         f'[sensing.force.sensor]\nbackend = "sim"\nseed = {seed}\n'
