@@ -47,7 +47,11 @@ def test_bad_arguments_are_refused_with_exit_2(capsys, command, args, says):
 
 
 def test_ports_are_checked_on_the_command_line(capsys):
-    for command, flag in (("signal", "--port"), ("follower", "--feed-port")):
+    for command, flag in (
+        ("signal", "--port"),
+        ("follower", "--feed-port"),
+        ("expert", "--console-port"),
+    ):
         with pytest.raises(SystemExit):
             main([command, flag, "70000"])
         assert "70000: a port is 0-65535" in capsys.readouterr().err

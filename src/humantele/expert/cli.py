@@ -20,7 +20,7 @@ from humantele.haptics.servo_config import ServoConfig
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_daemon_arguments(parser, "TOML file; [expert] and [servo] sections are used")
-    parser.add_argument("--console-port", type=int, help="console page port (0 picks one)")
+    parser.add_argument("--console-port", type=port, help="console page port (0 picks one)")
     parser.add_argument("--no-console", action="store_true", help="do not serve the console page")
     parser.add_argument(
         "--us-pixel-spacing-mm", type=float, nargs=2, metavar=("ROW", "COL"),
