@@ -230,19 +230,18 @@ def run(args: argparse.Namespace) -> int:
         print(f"bench hl2ss: unknown settings {unknown}; known: {', '.join(SETTINGS)}")
         return 2
     frames = scene(LOOP_FRAMES)
-    cases = [(n, bw, ()) for n in names for bw in bandwidths]
+    # (setting, link Mbit/s, the hand tracker's 5 Hz spells, the link's stalls)
+    cases = [(n, bw, [], []) for n in names for bw in bandwidths]
     if args.spells:
-        cases.append((DEFAULT_SETTING, 80.0, [(t, t + 1.0) for t in range(1, 600, 3)]))
+        cases.append((DEFAULT_SETTING, 80.0, [(t, t + 1.0) for t in range(1, 600, 3)], []))
     if args.stall > 0:
-        cases.append((DEFAULT_SETTING, 80.0, "stall"))
+        cases.append((DEFAULT_SETTING, 80.0, [], [(4.0, args.stall)]))
     results, rows, stall_line = [], [], ""
-    for name, bw, spells in cases:
-        stalls = [(4.0, args.stall)] if spells == "stall" else []
-        spells = [] if spells == "stall" else spells
+    for name, bw, spells, stalls in cases:
         ab_profile, bitrate = SETTINGS[name]
         profile = PROFILE_NAMES[ab_profile]
         items = encode_run(frames, profile, bitrate or default_bitrate(profile), args.seconds,
-                           list(spells))  # fmt: skip
+                           spells)  # fmt: skip
         r = run_case(frames, items, ab_profile, bitrate, bw, args.delay_ms / 1e3, args.seconds,
                      stalls)  # fmt: skip
         label = name + (", 5 Hz spells 1 s in 3" if spells else "")
