@@ -121,22 +121,27 @@ class _Sender:
         return self.report
 
 
+def _video_sender(config, us: tuple[int, float, int], pov: tuple[int, float, int]):
+    """A VideoSender (no encoder process) whose two tracks' senders give the receiver reports
+    ``us`` and ``pov`` ((fraction lost /256, round trip s, jitter in RTP ticks)) and whose
+    encoders are VP8 at the config's bit rates, as after a connection."""
+    from humantele.media.sender import VideoSender
+    from humantele.video.scene import DEFAULT_PATIENT
+
+    sender = VideoSender(config, None, None, DEFAULT_PATIENT)
+    sender._senders = {"us": _Sender(*us), "pov": _Sender(*pov)}
+    sender._encoders = {"us": make_encoder("video/VP8", config.us_bitrate),
+                        "pov": make_encoder("video/VP8", config.pov_bitrate)}  # fmt: skip
+    return sender
+
+
 async def test_the_senders_check_reads_the_link_and_spends_it():
     """What the follower does once a second: the REMB sum, the receiver reports' loss, round
     trip and jitter; the POV off and the US at its floor on a 450 kbit/s link; the encoders
     told their shares and the round trip; all in the stats."""
     from media_helpers import small_video_config
 
-    from humantele.media.sender import VideoSender
-    from humantele.video.scene import DEFAULT_PATIENT
-
-    sender = VideoSender(small_video_config(process=False), None, None, DEFAULT_PATIENT)
-    config = sender.config
-    sender._senders = {"us": _Sender(5, 0.12, 900), "pov": _Sender(13, 0.15, 450)}
-    sender._encoders = {
-        "us": make_encoder("video/VP8", config.us_bitrate),
-        "pov": make_encoder("video/VP8", config.pov_bitrate),
-    }
+    sender = _video_sender(small_video_config(process=False), (5, 0.12, 900), (13, 0.15, 450))
     sender._encoders["us"].target_bitrate = 300_000  # the expert's REMB of each track
     assert (await sender.link_report())["link_kbps"] is None  # the POV's REMB not yet in
     sender._encoders["pov"].target_bitrate = 150_000
@@ -167,17 +172,10 @@ async def test_an_estimate_above_what_the_tracks_sent_is_not_a_short_link():
     receives: that is not the link (a session's start on a loaded machine)."""
     from media_helpers import small_video_config
 
-    from humantele.media.config import DegradeConfig
-    from humantele.media.sender import VideoSender
-    from humantele.video.scene import DEFAULT_PATIENT
-
     config = small_video_config(process=False).model_copy(
         update={"degrade": DegradeConfig(max_loss=0.5)}
     )
-    sender = VideoSender(config, None, None, DEFAULT_PATIENT)
-    sender._senders = {"us": _Sender(0, 0.01, 90), "pov": _Sender(0, 0.01, 90)}
-    sender._encoders = {"us": make_encoder("video/VP8", config.us_bitrate),
-                        "pov": make_encoder("video/VP8", config.pov_bitrate)}  # fmt: skip
+    sender = _video_sender(config, (0, 0.01, 90), (0, 0.01, 90))
     sender._encoders["us"].target_bitrate = 300_000
     sender._encoders["pov"].target_bitrate = 150_000
     for t in (1.0, 2.0, 3.0):
@@ -216,14 +214,7 @@ async def test_an_estimate_that_started_from_a_dark_picture_does_not_turn_the_vi
     the POV off for the whole scan. A real overuse later still lowers the levels."""
     from media_helpers import small_video_config
 
-    from humantele.media.sender import VideoSender
-    from humantele.video.scene import DEFAULT_PATIENT
-
-    sender = VideoSender(small_video_config(process=False), None, None, DEFAULT_PATIENT)
-    config = sender.config
-    sender._senders = {"us": _Sender(7, 0.01, 900), "pov": _Sender(7, 0.01, 450)}
-    sender._encoders = {"us": make_encoder("video/VP8", config.us_bitrate),
-                        "pov": make_encoder("video/VP8", config.pov_bitrate)}  # fmt: skip
+    sender = _video_sender(small_video_config(process=False), (7, 0.01, 900), (7, 0.01, 450))
     us, pov = sender._encoders["us"], sender._encoders["pov"]
     remb = {"us": 40.0, "pov": 105.0}
     for t in range(1, 16):  # the sum climbs from 145 to 425 kbit/s
@@ -251,14 +242,8 @@ async def test_an_overuse_while_the_tracks_send_little_lowers_nothing():
     no encoder is capped; once they send, a real overuse does lower the levels."""
     from media_helpers import small_video_config
 
-    from humantele.media.sender import VideoSender
-    from humantele.video.scene import DEFAULT_PATIENT
-
-    sender = VideoSender(small_video_config(process=False), None, None, DEFAULT_PATIENT)
+    sender = _video_sender(small_video_config(process=False), (0, 0.01, 900), (0, 0.01, 450))
     config = sender.config
-    sender._senders = {"us": _Sender(0, 0.01, 900), "pov": _Sender(0, 0.01, 450)}
-    sender._encoders = {"us": make_encoder("video/VP8", config.us_bitrate),
-                        "pov": make_encoder("video/VP8", config.pov_bitrate)}  # fmt: skip
     us, pov = sender._encoders["us"], sender._encoders["pov"]
     for t, remb in ((1.0, (20, 70)), (2.0, (22, 75)), (3.0, (10, 60)), (4.0, (11, 62))):
         us.target_bitrate, pov.target_bitrate = remb[0] * 1000, remb[1] * 1000
