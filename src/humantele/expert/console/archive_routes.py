@@ -136,9 +136,9 @@ class ConsoleArchive:
             return
         k.outcome = "building"
         frames = list(k.frames)
-        geo = k.geometry or (0, 0, None, None)
-        scale = obj.Scale(geo[2], geo[3])
-        span = frames[-1][0] - frames[0][0] if frames else 0.0
+        _, _, px_spacing, depth0_px = k.geometry  # (set with its first frame)
+        scale = obj.Scale(px_spacing, depth0_px)
+        span = frames[-1][0] - frames[0][0]
         left_out = f"; {k.other_geometry} of another size or scale left out" if (
             k.other_geometry) else ""  # fmt: skip
 
