@@ -7,15 +7,27 @@ TURN server)::
                +--> [relay: client-facing port] --+
     client B --+      one upstream socket per client, so the server sees one 5-tuple each
 
-Every datagram, in each direction, is held for ``delay_s + N(0, jitter_s)`` (never less than 0)
-and dropped with probability ``loss`` (independent per datagram, from a seeded generator, so a
-run is repeatable given the same arrival order). With ``bandwidth_kbps`` each direction is
-also a link of that rate: a datagram waits for the ones before it to be sent (its size at the
-rate) before its delay starts, and one that would wait longer than ``queue_s`` for the link is
-dropped (a tail-drop queue; counted in ``overflow``), as netem's ``rate`` with a ``limit``.
-Without ``reorder`` the link is a FIFO: a datagram never leaves before the one that arrived
-before it (it waits for it, as in a real queue); with ``reorder`` jittered datagrams may
-overtake each other, as Linux netem does.
+Every datagram, in each direction, is held for ``delay_s + x(t)`` (never less than 0) and
+dropped with probability ``loss`` (independent per datagram, from a seeded generator, so a run
+is repeatable given the same arrival times). The jitter ``x(t)`` is a process in time, not a
+draw per datagram: an Ornstein-Uhlenbeck process (AR(1) sampled at each arrival,
+``x' = a x + jitter_s sqrt(1 - a^2) N(0, 1)`` with ``a = exp(-dt / jitter_corr_s)``) of
+stationary standard deviation ``jitter_s`` and correlation time ``jitter_corr_s`` (default
+50 ms): datagrams close together see nearly the same extra delay, as on a real link whose
+jitter is its queues' (Wi-Fi, cellular) and as netem's ``delay X Y Z%`` correlation intends
+(netem correlates successive draws per packet; this correlates them over time, so the
+figures do not depend on the packet rate). ``jitter_corr_s = 0`` draws each datagram
+independently (the old model: with FIFO order, a dense stream then waits for the running
+maximum of its predecessors' draws, e.g. held 111-211 ms on average for 60 +- 20 ms).
+With ``bandwidth_kbps`` each direction is also a link of that rate: a datagram waits for the
+ones before it to be sent (its size at the rate) before its delay starts, and one that would
+wait longer than ``queue_s`` for the link is dropped (a tail-drop queue; counted in
+``overflow``), as netem's ``rate`` with a ``limit``. Without ``reorder`` the link is a FIFO: a
+datagram never leaves before the one that arrived before it (it waits for it, as in a real
+queue, whose delay falls no faster than time passes; with the correlated jitter this adds
+about ``jitter_s^2 / jitter_corr_s`` to the mean hold: 8 ms at 60 +- 20 ms); with
+``reorder`` jittered datagrams may overtake each other, as Linux netem does.
+The model (:class:`LinkModel`) takes its clock as arguments, so it is tested by hand.
 
 A path through a TURN server that crosses the relay once each way (only one peer uses the
 relay's port, the other talks to the server directly) gets exactly one ``delay_s`` each way.
@@ -39,6 +51,7 @@ from __future__ import annotations
 import asyncio
 import heapq
 import logging
+import math
 import random
 import socket
 import threading
@@ -61,7 +74,8 @@ class NetemConfig(ConfigModel):
     """Impairment applied to every datagram in each direction (SI units: s, probability)."""
 
     delay_s: float = Field(0.0, ge=0.0, le=10.0)  # one-way delay added per crossing
-    jitter_s: float = Field(0.0, ge=0.0, le=10.0)  # std dev of a normal added to the delay
+    jitter_s: float = Field(0.0, ge=0.0, le=10.0)  # std dev of the delay's jitter process
+    jitter_corr_s: float = Field(0.05, ge=0.0, le=10.0)  # its correlation time; 0: independent
     loss: float = Field(0.0, ge=0.0, le=1.0)  # probability a datagram is dropped
     reorder: bool = False  # jittered datagrams may overtake each other
     seed: int = 0  # seeds the delay and loss generators
@@ -111,19 +125,69 @@ class RelayCounters:
         }
 
 
+class LinkModel:
+    """One direction's impairments as a model with its clock passed in (s, any monotonic
+    origin): whether a datagram is lost, and when it is due out (see the module docstring).
+    Seeded by ``config.seed`` and ``name``; no threads, no sockets."""
+
+    def __init__(self, config: NetemConfig, name: str) -> None:
+        self.config = config
+        self.rng = random.Random(f"{config.seed}:{name}")
+        self.jitter = 0.0  # the jitter process x(t) at jitter_t (s)
+        self.jitter_t: float | None = None  # when it was last drawn (s)
+        self.last_due = 0.0
+        self.link_free = 0.0  # when the rate-limited link has sent all it holds (s)
+
+    def lost(self) -> bool:
+        """Draw whether the next datagram is lost (probability ``config.loss``)."""
+        return self.config.loss > 0.0 and self.rng.random() < self.config.loss
+
+    def delay(self, t: float) -> float:
+        """The delay (s, >= 0) of a datagram leaving the link at ``t`` (s): ``delay_s`` plus
+        the jitter process at ``t``, advanced from its last draw (exact for any step)."""
+        cfg = self.config
+        if cfg.jitter_s <= 0.0:
+            return cfg.delay_s
+        tau, last = cfg.jitter_corr_s, self.jitter_t
+        if tau <= 0.0 or last is None:
+            self.jitter = self.rng.gauss(0.0, cfg.jitter_s)
+        else:
+            a = math.exp(-max(0.0, t - last) / tau)
+            self.jitter = a * self.jitter + cfg.jitter_s * math.sqrt(1.0 - a * a) * self.rng.gauss(
+                0.0, 1.0
+            )
+        self.jitter_t = t if last is None else max(t, last)
+        return max(0.0, cfg.delay_s + self.jitter)
+
+    def due(self, t: float, size: int) -> float | None:
+        """When a datagram of ``size`` bytes that arrived at ``t`` (s) leaves the relay, or
+        None if the rate-limited link's queue would hold it longer than ``queue_s`` (it is
+        dropped). Call only for datagrams not lost; arrivals in order of ``t``."""
+        cfg = self.config
+        sent = t
+        if cfg.bandwidth_kbps > 0.0:  # wait for the link, then the datagram's own time on it
+            start = max(t, self.link_free)
+            if start - t > cfg.queue_s:
+                return None
+            self.link_free = sent = start + size * 8.0 / (cfg.bandwidth_kbps * 1e3)
+        due = sent + self.delay(sent)
+        if not cfg.reorder:
+            due = max(due, self.last_due)
+            self.last_due = due
+        return due
+
+
 class _Direction:
-    """One direction: draws the fate of each datagram (on the event loop) and sends it when it
-    is due (from its own thread: asyncio timers wake only to the millisecond, a thread's
-    timed wait to ~0.1 ms)."""
+    """One direction: draws the fate of each datagram (on the event loop, :class:`LinkModel`)
+    and sends it when it is due (from its own thread: asyncio timers wake only to the
+    millisecond, a thread's timed wait to ~0.1 ms)."""
 
     def __init__(self, config: NetemConfig, counters: DirectionCounters, name: str) -> None:
         self.config = config
         self.counters = counters
-        self.rng = random.Random(f"{config.seed}:{name}")
+        self.model = LinkModel(config, name)
         self.heap: list[tuple[float, int, float, bytes, socket.socket, Address | None]] = []
         self.seq = 0
-        self.last_due = 0.0
-        self.link_free = 0.0  # when the rate-limited link has sent all it holds (monotonic, s)
         self.cond = threading.Condition()
         self.stopped = False
         self.thread = threading.Thread(target=self._run, name=f"netem-{name}", daemon=True)
@@ -132,29 +196,16 @@ class _Direction:
     def push(self, data: bytes, sock: socket.socket, addr: Address | None, t: float) -> None:
         """Take a datagram that arrived at ``t`` (time.monotonic, s); send it on ``sock`` (to
         ``addr``, or connected when None) once due, unless it is lost."""
-        cfg, c = self.config, self.counters
+        c = self.counters
         c.received += 1
-        if cfg.loss > 0.0 and self.rng.random() < cfg.loss:
+        if self.model.lost():
             c.lost += 1
             return
-        delay = cfg.delay_s
-        if cfg.jitter_s > 0.0:
-            delay = max(0.0, self.rng.gauss(delay, cfg.jitter_s))
         with self.cond:
-            if len(self.heap) >= cfg.max_queue:
+            due = None if len(self.heap) >= self.config.max_queue else self.model.due(t, len(data))
+            if due is None:
                 c.overflow += 1
                 return
-            sent = t
-            if cfg.bandwidth_kbps > 0.0:  # wait for the link, then the datagram's own time on it
-                start = max(t, self.link_free)
-                if start - t > cfg.queue_s:
-                    c.overflow += 1
-                    return
-                self.link_free = sent = start + len(data) * 8.0 / (cfg.bandwidth_kbps * 1e3)
-            due = sent + delay
-            if not cfg.reorder:
-                due = max(due, self.last_due)
-                self.last_due = due
             self.seq += 1
             heapq.heappush(self.heap, (due, self.seq, t, data, sock, addr))
             if self.heap[0][1] == self.seq:  # the new datagram is the next to leave
