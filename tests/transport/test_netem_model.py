@@ -4,11 +4,13 @@ order never reorders, and a rate-limited link drops what its queue cannot hold."
 
 import math
 import random
+import socket
 import statistics
+import time
 
 import pytest
 
-from humantele.transport.netem import LinkModel, NetemConfig
+from humantele.transport.netem import LinkModel, NetemConfig, receive, timestamp_arrivals
 
 RURAL = {"delay_s": 0.060, "jitter_s": 0.020}  # issue 31's rural link, one way
 
@@ -93,3 +95,23 @@ def test_the_rate_limited_link_queues_then_tail_drops():
     assert dues[:3] == pytest.approx([1.01, 1.02, 1.03])  # they wait 0, 10 and 20 ms
     assert dues[3:] == [None, None]  # they would wait 30 ms > 25 ms: dropped, not queued
     assert model.due(1.05, 1000) == pytest.approx(1.06)  # the link is free again
+
+
+def test_a_datagram_read_late_keeps_its_arrival_time():
+    # the relay's loop may be held up (the daemons' real-time threads preempt it): the
+    # kernel's receive timestamp, not the read, is when the datagram reached the link
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        timestamp_arrivals(rx)
+        rx.bind(("127.0.0.1", 0))
+        sent = time.monotonic()
+        tx.sendto(b"x" * 100, rx.getsockname())
+        time.sleep(0.25)  # not read meanwhile
+        data, addr, arrival, now = receive(rx)
+    finally:
+        rx.close()
+        tx.close()
+    assert data == b"x" * 100 and addr[0] == "127.0.0.1"
+    assert now - arrival >= 0.2  # read late, but stamped on arrival
+    assert arrival >= sent - 0.05  # (the wall clock mapped to the monotonic one)

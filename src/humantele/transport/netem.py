@@ -35,7 +35,12 @@ If both peers use the relay, a datagram crosses it twice and gets twice the dela
 
 Datagrams are read on the asyncio loop and sent, when due, by one thread per direction
 (asyncio's timers wake only to the whole millisecond; a thread's timed wait to ~0.1 ms). The
-counters record the hold actually given (``held_mean_s``, ``held_max_s``).
+counters record the hold actually given (``held_mean_s``, ``held_max_s``). A datagram's
+arrival is the kernel's receive timestamp (``SO_TIMESTAMPNS``; where there is none, the time
+it is read), so a loop held up for a while (the daemons' real-time threads preempt it on a
+busy machine) does not turn a smooth stream into a burst the rate-limited link then drops:
+the datagrams are read late but queued as they arrived (``read_lag_max_s`` says how late;
+the sockets ask for a 4 MiB receive buffer to hold them meanwhile).
 
 Usage::
 
@@ -49,11 +54,14 @@ Usage::
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import heapq
 import logging
 import math
 import random
 import socket
+import struct
+import sys
 import threading
 import time
 from dataclasses import asdict, dataclass, field
@@ -66,8 +74,38 @@ log = logging.getLogger(__name__)
 
 Address = tuple[str, int]
 _MAX_DATAGRAM = 65535
+_CMSG_SPACE = socket.CMSG_SPACE(16) if hasattr(socket, "CMSG_SPACE") else 0
 # a datagram due within this is sent now: a timed wait cannot be shorter than its wake-up
 _EARLY_S = 20e-6
+_RCVBUF = 4 << 20  # bytes asked for each socket's receive buffer (the kernel caps it)
+# Linux's receive timestamps (a timespec per datagram); Python does not name it: 35 on x86 and
+# ARM (asm-generic/socket.h); elsewhere none (the read time stands in)
+_STAMP = getattr(socket, "SO_TIMESTAMPNS", 35 if sys.platform == "linux" else None)
+_TIMESPEC = struct.Struct("@qq")  # tv_sec, tv_nsec (64-bit Linux)
+
+
+def timestamp_arrivals(sock: socket.socket) -> None:
+    """Ask the kernel to stamp each datagram ``sock`` receives, with a large receive buffer
+    (both best effort)."""
+    for opt, value in ((socket.SO_RCVBUF, _RCVBUF), (_STAMP, 1)):
+        if opt is not None:
+            with contextlib.suppress(OSError):
+                sock.setsockopt(socket.SOL_SOCKET, opt, value)
+
+
+def receive(sock: socket.socket) -> tuple[bytes, Address, float, float]:
+    """Read one datagram: (data, source address, arrival, now) on ``time.monotonic``'s clock
+    (s). The arrival is the kernel's receive timestamp (see :func:`timestamp_arrivals`)
+    mapped from the wall clock, never later than now; without one, now. Raises as
+    ``recvmsg``."""
+    data, ancillary, _flags, addr = sock.recvmsg(_MAX_DATAGRAM, _CMSG_SPACE)
+    now = time.monotonic()
+    for level, kind, raw in ancillary:
+        if level == socket.SOL_SOCKET and kind == _STAMP and len(raw) >= _TIMESPEC.size:
+            sec, nsec = _TIMESPEC.unpack_from(raw)
+            ago = time.time() - (sec + nsec * 1e-9)
+            return data, addr, now - min(max(ago, 0.0), 10.0), now
+    return data, addr, now, now
 
 
 class NetemConfig(ConfigModel):
@@ -97,6 +135,7 @@ class DirectionCounters:
     bytes_forwarded: int = 0
     held_sum_s: float = 0.0  # total time forwarded datagrams were held (s)
     held_max_s: float = 0.0
+    read_lag_max_s: float = 0.0  # longest a datagram waited to be read after it arrived
 
     @property
     def held_mean_s(self) -> float | None:
@@ -293,6 +332,7 @@ class UdpRelay:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             sock.setblocking(False)
+            timestamp_arrivals(sock)
             sock.bind((self.host, self.port))
         except OSError:
             sock.close()
@@ -329,7 +369,7 @@ class UdpRelay:
         assert sock is not None and loop is not None and up is not None
         while True:
             try:
-                data, addr = sock.recvfrom(_MAX_DATAGRAM)
+                data, addr, t, now = receive(sock)
             except (BlockingIOError, InterruptedError):
                 return
             except OSError as exc:  # e.g. ICMP port unreachable reported on this socket
@@ -341,7 +381,8 @@ class UdpRelay:
                 upstream = self._new_client(addr)
                 if upstream is None:
                     continue
-            up.push(data, upstream, None, time.monotonic())
+            up.counters.read_lag_max_s = max(up.counters.read_lag_max_s, now - t)
+            up.push(data, upstream, None, t)
 
     def _new_client(self, addr: Address) -> socket.socket | None:
         if len(self._clients) >= self.config.max_clients:
@@ -350,6 +391,7 @@ class UdpRelay:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             sock.setblocking(False)
+            timestamp_arrivals(sock)
             sock.bind((self.host, 0))
             sock.connect(self.upstream)
         except OSError as exc:
@@ -368,11 +410,12 @@ class UdpRelay:
         assert loop is not None and down is not None and front is not None
         while True:
             try:
-                data = sock.recv(_MAX_DATAGRAM)
+                data, _addr, t, now = receive(sock)
             except (BlockingIOError, InterruptedError):
                 return
             except OSError as exc:  # ECONNREFUSED: a datagram sent up found no listener
                 log.debug("relay upstream socket: %s", exc)
                 self.counters.up.send_errors += 1
                 return
-            down.push(data, front, client, time.monotonic())
+            down.counters.read_lag_max_s = max(down.counters.read_lag_max_s, now - t)
+            down.push(data, front, client, t)
