@@ -26,6 +26,8 @@ aiortc (1.16) has no supported way to do these three things, each needed for the
 6. :func:`request_retransmission`: send a NACK for packets still missing (aiortc's receiver
    NACKs a gap when it first shows and again only when a later gap shows; on a lossy link
    the NACK or its retransmission is often lost too).
+7. :func:`pace_sender`: pace what a sender's transport sends (``humantele.media.pacer``):
+   aiortc sends each frame's packets at once, and a thin link's queue drops the burst.
 
 ``tests/media/test_aiortc_hooks.py`` fails if aiortc renames or retypes what these touch.
 """
@@ -45,6 +47,8 @@ _RECEIVER_JITTER = "_RTCRtpReceiver__jitter_buffer"
 _TRACK_QUEUE = "_queue"
 _RECEIVER_PLI = "_send_rtcp_pli"
 _RECEIVER_NACK = "_send_rtcp_nack"
+_TRANSPORT_SEND_RTP = "_send_rtp"
+_PACER = "_humantele_pacer"
 log = logging.getLogger(__name__)
 
 
@@ -162,3 +166,23 @@ class EncodedFrameTap:
 
     def __len__(self) -> int:
         return len(self.buffer)
+
+
+def pace_sender(sender: RTCRtpSender, pacer: Any) -> None:
+    """Make every RTP and RTCP packet ``sender``'s transport sends (its own and any other
+    sender's on the same transport, as with BUNDLE) wait ``await pacer.before_send(data)``
+    first (the plain packet, before SRTP). Once per transport; a later call gives it this
+    ``pacer`` instead."""
+    transport = sender.transport
+    _check(transport, _TRANSPORT_SEND_RTP, None)
+    if getattr(transport, _PACER, None) is None:
+        send = getattr(transport, _TRANSPORT_SEND_RTP)
+
+        async def paced(data: bytes) -> None:
+            current = getattr(transport, _PACER, None)
+            if current is not None:
+                await current.before_send(data)
+            await send(data)
+
+        setattr(transport, _TRANSPORT_SEND_RTP, paced)
+    setattr(transport, _PACER, pacer)
