@@ -7,8 +7,9 @@ changes (the sim US from dark to the first image in contact: one 53 kB frame at 
 other track's packets overflow a thin link's queue (a 1500 kbit/s link with a 0.2 s tail-drop
 queue holds 37.5 kB): measured on the emulated link, 43-100 kB of one track in 100 ms before
 each run of tail drops, then bursts of retransmissions asked for them, dropped in turn. Paced
-at 2.5 times the tracks' summed target, a 53 kB frame leaves in ~0.15 s and the link's queue
-grows by what the link cannot carry meanwhile (~25 kB), which it holds.
+at 2.5 times the tracks' summed target, a 53 kB frame leaves in 0.14-0.23 s and the link's queue
+grows by what the link cannot carry meanwhile (11-28 kB at a 750-1250 kbit/s target), which
+it holds.
 
 Only new media packets wait. Retransmissions (an RTP packet whose sequence number is not
 newer than the last one of its stream: the expert offers no RTX, so a retransmission is the

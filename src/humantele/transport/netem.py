@@ -25,7 +25,7 @@ wait longer than ``queue_s`` for the link is dropped (a tail-drop queue; counted
 ``overflow``), as netem's ``rate`` with a ``limit``. Without ``reorder`` the link is a FIFO: a
 datagram never leaves before the one that arrived before it (it waits for it, as in a real
 queue, whose delay falls no faster than time passes; with the correlated jitter this adds
-about ``jitter_s^2 / jitter_corr_s`` to the mean hold: 8 ms at 60 +- 20 ms); with
+up to about ``jitter_s^2 / jitter_corr_s`` to the mean hold: 5-8 ms at 60 +- 20 ms); with
 ``reorder`` jittered datagrams may overtake each other, as Linux netem does.
 The model (:class:`LinkModel`) takes its clock as arguments, so it is tested by hand.
 
