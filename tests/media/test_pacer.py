@@ -71,6 +71,22 @@ async def test_retransmissions_and_rtcp_leave_at_once_but_count():
     assert clock.now == pytest.approx(before, abs=1e-9)
 
 
+async def test_a_retransmission_is_not_repeated_within_a_round_trip():
+    # aiortc's receiver lists every packet still missing in each NACK: at each new gap the
+    # same lost packet is asked for again before the first retransmission could arrive
+    clock = Clock()
+    pacer = Pacer(lambda: 10_000_000.0, clock=clock, sleep=clock.sleep, rtt_s=lambda: 0.12)
+    await _send(pacer, clock, [rtp(i) for i in range(10)])
+    assert await pacer.before_send(rtp(4)) is True
+    clock.now += 0.05
+    assert await pacer.before_send(rtp(4)) is False  # asked again within the round trip
+    assert await pacer.before_send(rtp(5)) is True  # another packet is another matter
+    clock.now += 0.08  # 130 ms after the first retransmission: it may have been lost
+    assert await pacer.before_send(rtp(4)) is True
+    assert pacer.resends_skipped == 1 and pacer.immediate == 3
+    assert await pacer.before_send(rtcp_rr()) is True  # RTCP is never held back
+
+
 async def test_streams_are_told_apart_and_sequence_numbers_wrap():
     clock = Clock()
     pacer = Pacer(lambda: 10_000_000.0, clock=clock, sleep=clock.sleep)
@@ -84,14 +100,14 @@ async def test_streams_are_told_apart_and_sequence_numbers_wrap():
 async def test_no_packet_waits_longer_than_the_bound_and_a_low_rate_is_floored():
     clock = Clock()
     pacer = Pacer(lambda: 0.0, clock=clock, sleep=clock.sleep, max_delay_s=0.2)
-    await _send(pacer, clock, [rtp(i) for i in range(3)])
+    await _send(pacer, clock, [rtp(i) for i in range(20)])
     # floored at MIN_RATE_BPS: 1200 B take 32 ms, not forever
     assert clock.sleeps[0] == pytest.approx(1200 * 8 / MIN_RATE_BPS)
     t = clock.now
-    await _send(pacer, clock, [rtp(i % 3) for i in range(20)])  # 20 retransmissions: 0.64 s
-    await pacer.before_send(rtp(3))  # new, but would wait 0.64 s: sent at once
+    await _send(pacer, clock, [rtp(i) for i in range(20)])  # 20 retransmissions: 0.64 s
+    await pacer.before_send(rtp(20))  # new, but would wait 0.64 s: sent at once
     assert clock.now == t and pacer.overdue == 1
-    await _send(pacer, clock, [rtp(i) for i in range(4, 40)])
+    await _send(pacer, clock, [rtp(i) for i in range(21, 60)])
     assert max(clock.sleeps) <= 0.2
 
 
@@ -120,12 +136,14 @@ async def test_the_hook_paces_what_a_real_sender_transport_sends():
         seen: list[bytes] = []
 
         class Recorder:
-            async def before_send(self, data: bytes) -> None:
+            async def before_send(self, data: bytes) -> bool:
                 seen.append(data)
+                return data != rtp(2)  # the pacer says not to send this one
 
         pace_sender(a, Recorder())
         pace_sender(b, Recorder())  # one transport (BUNDLE): wrapped once, pacer replaced
         await b.transport._send_rtp(rtp(1))
-        assert seen == [rtp(1)] and sent == [rtp(1)]
+        await b.transport._send_rtp(rtp(2))
+        assert seen == [rtp(1), rtp(2)] and sent == [rtp(1)]
     finally:
         await pc.close()

@@ -194,8 +194,8 @@ def forget_missing(receiver: RTCRtpReceiver, seqs: list[int]) -> int:
 def pace_sender(sender: RTCRtpSender, pacer: Any) -> None:
     """Make every RTP and RTCP packet ``sender``'s transport sends (its own and any other
     sender's on the same transport, as with BUNDLE) wait ``await pacer.before_send(data)``
-    first (the plain packet, before SRTP). Once per transport; a later call gives it this
-    ``pacer`` instead."""
+    first (the plain packet, before SRTP), and not be sent if that returns False. Once per
+    transport; a later call gives it this ``pacer`` instead."""
     transport = sender.transport
     _check(transport, _TRANSPORT_SEND_RTP, None)
     if getattr(transport, _PACER, None) is None:
@@ -203,8 +203,8 @@ def pace_sender(sender: RTCRtpSender, pacer: Any) -> None:
 
         async def paced(data: bytes) -> None:
             current = getattr(transport, _PACER, None)
-            if current is not None:
-                await current.before_send(data)
+            if current is not None and await current.before_send(data) is False:
+                return
             await send(data)
 
         setattr(transport, _TRANSPORT_SEND_RTP, paced)

@@ -17,6 +17,13 @@ original packet) and RTCP leave at once (they are late already, and aiortc sends
 its receive path, which must not wait), but their size counts against the rate. A packet
 never waits more than ``max_delay_s``: a pacer that falls that far behind sends at once
 rather than add latency without bound.
+
+A packet retransmitted less than a round trip ago (``rtt_s()``, at least
+:data:`MIN_RESEND_S`) is not sent again (as WebRTC's sender): aiortc's receiver lists every
+packet still missing in each NACK it sends, one at each new gap, so on a lossy link of 120
+ms or more each lost packet was asked for, and sent, several times in one round trip, all
+at once and unpaced (a 12 s run at 60 ms, 3 % loss, 1500 kbit/s: 773 packets sent at once
+against 253 paced, and 915 tail drops).
 """
 
 from __future__ import annotations
@@ -29,6 +36,8 @@ PACE_FACTOR = 2.5  # the pacing rate over the tracks' summed target bit rate (We
 MIN_RATE_BPS = 300_000.0  # never pace slower than this (a dark track's low target)
 BURST_S = 0.005  # packets due within this leave together (a sleep is ~1 ms at best)
 MAX_DELAY_S = 0.5
+MIN_RESEND_S = 0.02  # a retransmission is not repeated within this, whatever the round trip
+RESENT_KEPT = 1024  # retransmissions remembered (per pacer)
 
 
 def _rtp_stream(data: bytes) -> tuple[int, int] | None:
@@ -50,13 +59,17 @@ class Pacer:
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], Awaitable[object]] = asyncio.sleep,
         max_delay_s: float = MAX_DELAY_S,
+        rtt_s: Callable[[], float | None] = lambda: None,
     ) -> None:
         self.rate_bps = rate_bps
+        self.rtt_s = rtt_s
         self.clock = clock
         self.sleep = sleep
         self.max_delay_s = max_delay_s
         self.free_at = 0.0  # when the paced link has sent all it was given (clock, s)
         self._last_seq: dict[int, int] = {}
+        self._resent: dict[tuple[int, int], float] = {}  # (ssrc, seq) -> when last resent
+        self.resends_skipped = 0  # retransmissions not repeated within a round trip
         self.paced = 0  # new media packets that waited
         self.waited_s = 0.0  # their total wait (s)
         self.immediate = 0  # retransmissions and RTCP, sent at once
@@ -69,35 +82,60 @@ class Pacer:
             rate = 0.0
         return max(MIN_RATE_BPS, rate) if rate == rate else MIN_RATE_BPS
 
-    def _is_new(self, data: bytes) -> bool:
+    def _kind(self, data: bytes) -> tuple[str, tuple[int, int] | None]:
+        """``new`` (media), ``resend`` (with its (ssrc, seq)) or ``other`` (RTCP)."""
         stream = _rtp_stream(data)
         if stream is None:
-            return False
+            return "other", None
         ssrc, seq = stream
         last = self._last_seq.get(ssrc)
         if last is not None and not 0 < (seq - last) & 0xFFFF < 0x8000:
-            return False  # not newer than the last: a retransmission
+            return "resend", stream  # not newer than the last: a retransmission
         self._last_seq[ssrc] = seq
+        return "new", stream
+
+    def _resend_wanted(self, stream: tuple[int, int], now: float) -> bool:
+        """Whether to send this retransmission: not if sent again less than a round trip
+        ago (the receiver asked before the last one could arrive)."""
+        try:
+            rtt = self.rtt_s()
+        except Exception:  # noqa: BLE001 - no round trip known: the floor
+            rtt = None
+        every = max(MIN_RESEND_S, rtt) if isinstance(rtt, float | int) and rtt == rtt else 0.1
+        last = self._resent.get(stream)
+        if last is not None and now - last < every:
+            self.resends_skipped += 1
+            return False
+        self._resent.pop(stream, None)
+        self._resent[stream] = now
+        while len(self._resent) > RESENT_KEPT:
+            del self._resent[next(iter(self._resent))]
         return True
 
-    async def before_send(self, data: bytes) -> None:
-        """Wait, if ``data`` is a new media packet, until its turn; count its size."""
+    async def before_send(self, data: bytes) -> bool:
+        """Wait, if ``data`` is a new media packet, until its turn; count its size. False:
+        do not send it (a retransmission repeated within a round trip)."""
         now = self.clock()
+        kind, stream = self._kind(data)
+        if kind == "resend" and stream is not None and not self._resend_wanted(stream, now):
+            return False
         start = max(now, self.free_at)
         self.free_at = start + len(data) * 8.0 / self._rate()
-        if not self._is_new(data):
+        if kind != "new":
             self.immediate += 1
-            return
+            return True
         wait = start - now
         if wait > self.max_delay_s:
             self.overdue += 1
             self.free_at = now + len(data) * 8.0 / self._rate()
-            return
+            return True
         if wait > BURST_S:
             self.paced += 1
             self.waited_s += wait
             await self.sleep(wait)
+        return True
 
     def figures(self) -> dict[str, float | int]:
         return {"paced": self.paced, "waited_ms": round(1e3 * self.waited_s, 1),
-                "immediate": self.immediate, "overdue": self.overdue}  # fmt: skip
+                "immediate": self.immediate, "overdue": self.overdue,
+                "resends_skipped": self.resends_skipped}  # fmt: skip

@@ -256,7 +256,7 @@ class VideoSender:
             "video", negotiated=True, id=VIDEO_CHANNEL_ID, ordered=False, maxRetransmits=0
         )
         self._senders, self._encoders = {}, {}
-        self.pacer = Pacer(self._pace_rate)
+        self.pacer = Pacer(self._pace_rate, rtt_s=self._rtt_s)
         self._sent_at = None
         self._remb_kbps, self.remb_stale, self._asked_kbps = None, False, 0.0
         videos = [t for t in pc.getTransceivers() if t.kind == "video"]
@@ -272,6 +272,11 @@ class VideoSender:
                 use_encoder(transceiver.sender, self._encoders[name])
             pace_sender(transceiver.sender, self.pacer)
         self.attached += 1
+
+    def _rtt_s(self) -> float | None:
+        """The link's round trip (s) as the encoders were last told it, or None."""
+        rtts = [e.rtt_s for e in list(self._encoders.values()) if getattr(e, "rtt_s", None)]
+        return max(rtts) if rtts else None
 
     def _pace_rate(self) -> float:
         """The pacer's rate (bit/s): :data:`~humantele.media.pacer.PACE_FACTOR` times the
