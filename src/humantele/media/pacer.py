@@ -18,12 +18,14 @@ its receive path, which must not wait), but their size counts against the rate. 
 never waits more than ``max_delay_s``: a pacer that falls that far behind sends at once
 rather than add latency without bound.
 
-A packet retransmitted less than a round trip ago (``rtt_s()``, at least
-:data:`MIN_RESEND_S`) is not sent again (as WebRTC's sender): aiortc's receiver lists every
-packet still missing in each NACK it sends, one at each new gap, so on a lossy link of 120
-ms or more each lost packet was asked for, and sent, several times in one round trip, all
-at once and unpaced (a 12 s run at 60 ms, 3 % loss, 1500 kbit/s: 773 packets sent at once
-against 253 paced, and 915 tail drops).
+A packet retransmitted less than :data:`RESEND_RTT_SHARE` of a round trip ago (``rtt_s()``,
+the sender's smoothed RTCP estimate; at least :data:`MIN_RESEND_S`) is not sent again (as
+WebRTC's sender, which waits a whole round trip; less here, since the expert asks again a
+round trip of its own measure after its last request, which may be shorter): aiortc's
+receiver lists every packet still missing in each NACK it sends, one at each new gap, so on
+a lossy link of 120 ms or more each lost packet was asked for, and sent, several times in
+one round trip, all at once and unpaced (a 12 s run at 60 ms, 3 % loss, 1500 kbit/s: 773
+packets sent at once against 253 paced, and 915 tail drops).
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ MIN_RATE_BPS = 300_000.0  # never pace slower than this (a dark track's low targ
 BURST_S = 0.005  # packets due within this leave together (a sleep is ~1 ms at best)
 MAX_DELAY_S = 0.5
 MIN_RESEND_S = 0.02  # a retransmission is not repeated within this, whatever the round trip
+RESEND_RTT_SHARE = 0.75  # nor within this share of the round trip
 RESENT_KEPT = 1024  # retransmissions remembered (per pacer)
 
 
@@ -95,13 +98,15 @@ class Pacer:
         return "new", stream
 
     def _resend_wanted(self, stream: tuple[int, int], now: float) -> bool:
-        """Whether to send this retransmission: not if sent again less than a round trip
-        ago (the receiver asked before the last one could arrive)."""
+        """Whether to send this retransmission: not if sent again less than
+        :data:`RESEND_RTT_SHARE` of a round trip ago (the receiver asked before the last one
+        could arrive)."""
         try:
             rtt = self.rtt_s()
         except Exception:  # noqa: BLE001 - no round trip known: the floor
             rtt = None
-        every = max(MIN_RESEND_S, rtt) if isinstance(rtt, float | int) and rtt == rtt else 0.1
+        known = isinstance(rtt, float | int) and rtt == rtt
+        every = max(MIN_RESEND_S, RESEND_RTT_SHARE * rtt) if known else 0.1
         last = self._resent.get(stream)
         if last is not None and now - last < every:
             self.resends_skipped += 1
