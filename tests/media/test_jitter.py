@@ -397,3 +397,17 @@ def test_the_packets_given_up_are_handed_out_once_not_to_be_asked_for_again():
     clock.t += 2 * WAIT
     feed(buf, s.frame([b"dn", b"y"]))
     assert 65535 not in buf.take_nacks()  # nor asked for again by the buffer itself
+
+
+def test_the_packets_given_up_stay_bounded_if_nobody_takes_them():
+    from humantele.media.jitter import GONE_KEPT
+
+    clock, s = Clock(), Stream()
+    buf = make(clock)
+    feed(buf, s.frame([b"K0"]))
+    for _ in range(GONE_KEPT * 2):  # one packet of each frame lost for good
+        clock.t += 2 * WAIT
+        f = s.frame([b"d", b"x", b"y"])
+        feed(buf, [f[0], f[2]])
+    assert buf.counters.gaps_given_up > 0
+    assert 0 < len(buf.take_given_up()) <= GONE_KEPT

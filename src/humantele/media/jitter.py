@@ -339,6 +339,7 @@ class BoundedJitterBuffer:
             self._gone[seq] = self._missing_since.pop(seq)  # a late repair is counted
             self._nacked.pop(seq, None)
             self._given_up_out.append(seq % _SEQ_MOD)
+        del self._given_up_out[:-GONE_KEPT]  # bounded if nobody takes them
         while len(self._gone) > GONE_KEPT:
             self._gone.popitem(last=False)
         self._key_starts = {s for s in self._key_starts if s > last}
