@@ -97,6 +97,7 @@ def video_summary(e: dict[str, Any] | None, f: dict[str, Any] | None) -> dict[st
         out["us_level"] = f.get("us_level")
         out["pov_level_changes"] = f.get("pov_level_changes")
         out["process"] = f.get("process")
+        out["pacer"] = f.get("pacer")
         out["follower"] = {n: f.get(n) for n in ("us", "pov")}
     return out
 

@@ -78,3 +78,15 @@ def test_bench_video_quality_on_the_live_link(tmp_path, monkeypatch, capsys):
     assert 0 < p["kbps_sent"] < 2 * 400
     assert (tmp_path / "img" / "chart.png").stat().st_size > 10_000
     assert "## Video: speed against quality" in md.read_text()
+
+
+def test_a_thin_link_row_is_named_for_its_rate():
+    import argparse
+
+    from humantele.bench import video_link as vl
+
+    p = argparse.ArgumentParser()
+    vl.add_link_arguments(p)
+    args = p.parse_args(["--delay-ms", "60", "--jitter-ms", "20", "--loss", "3", "--kbps", "1500"])
+    assert "TURN +60±20 ms, 1500 kbit/s, 3 % loss" in vl.label(args)
+    assert "kbit/s," not in vl.label(p.parse_args(["--turn"]))  # uncapped: no rate named

@@ -156,3 +156,33 @@ async def test_a_lost_clock_sync_ping_does_not_stretch_the_video_waits():
             assert buf.renack_every_s() == pytest.approx(0.035)
     finally:
         await pc.close()
+
+
+async def test_forget_missing_stops_the_receivers_nacks_for_given_up_packets():
+    from aiortc.rtp import RtpPacket
+
+    from humantele.media.aiortc_hooks import EncodedFrameTap, forget_missing
+
+    pc = RTCPeerConnection()
+    try:
+        receiver = pc.addTransceiver("video").receiver
+        generator = receiver._RTCRtpReceiver__nack_generator
+        for seq in (10, 14):  # 11-13 missing
+            generator.add(RtpPacket(sequence_number=seq))
+        assert generator.missing == {11, 12, 13}
+        assert forget_missing(receiver, [11, 12, 99]) == 2
+        assert generator.missing == {13}
+
+        class GivesUp:  # a buffer that has just given up on 13
+            def add(self, packet):
+                return False, None
+
+            def take_given_up(self):
+                return [13]
+
+        tap = EncodedFrameTap(GivesUp(), None)
+        tap.on_give_up = lambda seqs: forget_missing(receiver, seqs)
+        tap.add(RtpPacket(sequence_number=15))
+        assert generator.missing == set()
+    finally:
+        await pc.close()

@@ -379,3 +379,35 @@ def test_a_backlog_that_drains_after_a_repair_asks_for_no_keyframe():
             released.append(frame)
     assert not any(pli for pli, _ in out) and buf.counters.plis == 0
     assert released[-1] == b"n7z"  # caught up: the newest frame leaves on its last packet
+
+
+def test_the_packets_given_up_are_handed_out_once_not_to_be_asked_for_again():
+    clock, s = Clock(), Stream(seq=65534)  # across the 16-bit wrap
+    buf = make(clock)
+    feed(buf, s.frame([b"K0"]))  # 65534
+    f1 = s.frame([b"d1", b"x"])  # 65535 (lost for good), 0
+    feed(buf, [f1[1]])
+    assert buf.take_given_up() == []  # still waited for
+    clock.t += 2 * WAIT
+    feed(buf, s.frame([b"dn", b"y"]))  # the wait has passed: given up
+    assert buf.counters.gaps_given_up == 1
+    assert buf.take_given_up() == [65535]  # its 16-bit number, as NACKs carry it
+    assert buf.take_given_up() == []  # once
+    buf.take_nacks()
+    clock.t += 2 * WAIT
+    feed(buf, s.frame([b"dn", b"y"]))
+    assert 65535 not in buf.take_nacks()  # nor asked for again by the buffer itself
+
+
+def test_the_packets_given_up_stay_bounded_if_nobody_takes_them():
+    from humantele.media.jitter import GONE_KEPT
+
+    clock, s = Clock(), Stream()
+    buf = make(clock)
+    feed(buf, s.frame([b"K0"]))
+    for _ in range(GONE_KEPT * 2):  # one packet of each frame lost for good
+        clock.t += 2 * WAIT
+        f = s.frame([b"d", b"x", b"y"])
+        feed(buf, [f[0], f[2]])
+    assert buf.counters.gaps_given_up > 0
+    assert 0 < len(buf.take_given_up()) <= GONE_KEPT

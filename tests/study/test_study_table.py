@@ -252,3 +252,27 @@ def test_the_thin_link_chart_is_drawn_from_capped_conditions(tmp_path):
     assert [p.name for p in paths][-1] == "study_us_thin_links.png"
     assert paths[-1].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "study_us_thin_links.png" not in [p.name for p in write_charts(summary[:1], tmp_path)]
+
+
+def test_a_track_turned_off_reads_off_not_live():
+    # the POV off sends one frame every 5 s: by the typical interval alone nothing froze
+    off = np.arange(0.0, 12.0, 5.0)
+    f = table.freezes(off, 0.0, 12.0)
+    assert f["off"] is True and f["frozen_pct"] is None and f["freezes_per_min"] is None
+    assert table.freezes(np.arange(0.0, 10.0, 0.25), 0.0, 10.0)["off"] is False  # 4 fps: live
+    row = {"us_frozen_pct": 2.0, "us_off": False, "pov_frozen_pct": None, "pov_off": True}
+    assert table._frozen(row, "us") == "2.0" and table._frozen(row, "pov") == "off"
+    # a condition: off in all its scans, or in some (the mean is of the others)
+    assert table._frozen({"scans": 2, "pov_off_scans": 2, "pov_frozen_pct": None}, "pov") == "off"
+    some = table._frozen({"scans": 2, "pov_off_scans": 1, "pov_frozen_pct": 10.0}, "pov")
+    assert some == "10.0 (off 1/2)"
+
+
+def test_bounded_figures_keep_their_error_bars_within_their_bounds():
+    from humantele.study.charts import clipped_errors
+
+    below, above = clipped_errors([0.95, 0.5], [0.08, 0.08], 0.0, 1.0)
+    assert above == pytest.approx([0.05, 0.08]) and below == pytest.approx([0.08, 0.08])
+    below, above = clipped_errors([3.0, 99.0], [5.0, 5.0], 0.0, 100.0)
+    assert below == pytest.approx([3.0, 5.0]) and above == pytest.approx([5.0, 1.0])
+    assert clipped_errors([300.0], [500.0], 0.0, None) == [[300.0], [500.0]]

@@ -12,7 +12,8 @@ generated configuration for ``--seconds`` and reads the daemons' figures:
   core).
 
 Links: loopback; ``--turn`` (relay through coturn) with ``--delay-ms``/``--jitter-ms``/
-``--loss`` (the user-space WAN emulator on the expert's side, as ``bench session``);
+``--loss``/``--kbps`` (the user-space WAN emulator on the expert's side, as ``bench session``;
+``--kbps`` caps its rate each way, a 0.2 s tail-drop queue: a thin link);
 ``--busy-core`` adds a process spinning on one core. ``--codec``, ``--us-size``, ``--pov-size``
 pick the encoder and sizes. ``--matrix`` runs the standard set of rows. Each row is merged
 into the "video-link" section of docs/benchmarks.md (rows of other settings are kept).
@@ -80,6 +81,9 @@ def add_link_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--delay-ms", type=float, default=0.0, help="one-way delay (ms; --turn)")
     p.add_argument("--jitter-ms", type=float, default=0.0, help="delay std dev (ms; --turn)")
     p.add_argument("--loss", type=float, default=0.0, help="percent lost each way (--turn)")
+    p.add_argument(
+        "--kbps", type=float, default=0.0, help="the link's rate each way (kbit/s; --turn)"
+    )
     p.add_argument("--busy-core", action="store_true", help="a process spins on one core")
     p.add_argument("--no-process", action="store_true", help="video sources in threads")
     p.add_argument(
@@ -108,11 +112,13 @@ def label(args: argparse.Namespace) -> str:
     parts = [args.codec, f"US {args.us_size}", f"POV {args.pov_size}"]
     if args.us_kbps or args.pov_kbps:
         parts.append(f"fixed {args.us_kbps or 'REMB'} / {args.pov_kbps or 'REMB'} kbit/s")
-    if args.turn or args.delay_ms or args.loss:
+    if args.turn or args.delay_ms or args.loss or args.kbps:
         link = "TURN"
         if args.delay_ms:
             link += f" +{args.delay_ms:g}" + (f"±{args.jitter_ms:g}" if args.jitter_ms else "")
             link += " ms"
+        if args.kbps:
+            link += f", {args.kbps:g} kbit/s"
         if args.loss:
             link += f", {args.loss:g} % loss"
             if args.loss_window:
@@ -172,7 +178,7 @@ async def measure(args: argparse.Namespace) -> dict:
     from humantele.transport.netem import NetemConfig, UdpRelay
     from humantele.transport.turnserver import TurnServer
 
-    impaired = bool(args.delay_ms or args.jitter_ms or args.loss)
+    impaired = bool(args.delay_ms or args.jitter_ms or args.loss or args.kbps)
     use_turn = args.turn or impaired
     busy = None
     with tempfile.TemporaryDirectory(prefix="humantele-bench-video-") as tmp:
@@ -187,6 +193,7 @@ async def measure(args: argparse.Namespace) -> dict:
                         delay_s=args.delay_ms * 1e-3,
                         jitter_s=args.jitter_ms * 1e-3,
                         loss=0.0 if args.loss_window else args.loss / 100.0,
+                        bandwidth_kbps=args.kbps,
                     )
                     relay = await stack.enter_async_context(UdpRelay((turn.host, turn.port), netem))
                     ice["expert"] = turn.ice_server(*relay.address)

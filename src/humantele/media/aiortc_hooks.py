@@ -26,6 +26,11 @@ aiortc (1.16) has no supported way to do these three things, each needed for the
 6. :func:`request_retransmission`: send a NACK for packets still missing (aiortc's receiver
    NACKs a gap when it first shows and again only when a later gap shows; on a lossy link
    the NACK or its retransmission is often lost too).
+7. :func:`forget_missing`: stop aiortc's receiver asking for packets the jitter buffer gave
+   up on (its NACK generator lists every packet still missing in each NACK, until 128 later
+   packets have come: retransmissions of frames already dropped, on a thin link).
+8. :func:`pace_sender`: pace what a sender's transport sends (``humantele.media.pacer``):
+   aiortc sends each frame's packets at once, and a thin link's queue drops the burst.
 
 ``tests/media/test_aiortc_hooks.py`` fails if aiortc renames or retypes what these touch.
 """
@@ -45,6 +50,9 @@ _RECEIVER_JITTER = "_RTCRtpReceiver__jitter_buffer"
 _TRACK_QUEUE = "_queue"
 _RECEIVER_PLI = "_send_rtcp_pli"
 _RECEIVER_NACK = "_send_rtcp_nack"
+_TRANSPORT_SEND_RTP = "_send_rtp"
+_RECEIVER_NACK_GENERATOR = "_RTCRtpReceiver__nack_generator"
+_PACER = "_humantele_pacer"
 log = logging.getLogger(__name__)
 
 
@@ -135,6 +143,7 @@ class EncodedFrameTap:
         self.tap_errors = 0
         self.ssrc: int | None = None
         self.on_nack: Callable[[int, list[int]], Any] | None = None  # (ssrc, lost seqs)
+        self.on_give_up: Callable[[list[int]], Any] | None = None  # (seqs given up)
 
     def add(self, packet: Any) -> tuple[bool, Any]:
         self.ssrc = getattr(packet, "ssrc", None)
@@ -144,6 +153,11 @@ class EncodedFrameTap:
             lost = take()
             if lost and self.on_nack is not None and self.ssrc is not None:
                 self.on_nack(self.ssrc, lost)
+        take = getattr(self.buffer, "take_given_up", None)
+        if take is not None:
+            gone = take()
+            if gone and self.on_give_up is not None:
+                self.on_give_up(gone)
         if frame is not None:
             try:
                 if self.on_release is not None:
@@ -162,3 +176,36 @@ class EncodedFrameTap:
 
     def __len__(self) -> int:
         return len(self.buffer)
+
+
+def forget_missing(receiver: RTCRtpReceiver, seqs: list[int]) -> int:
+    """Stop ``receiver`` asking (NACK) for packets ``seqs`` (16-bit sequence numbers); how
+    many it was still asking for."""
+    _check(receiver, _RECEIVER_NACK_GENERATOR, None)
+    generator = getattr(receiver, _RECEIVER_NACK_GENERATOR)
+    missing = getattr(generator, "missing", None)
+    if not isinstance(missing, set):
+        return 0
+    before = len(missing)
+    missing.difference_update(seqs)
+    return before - len(missing)
+
+
+def pace_sender(sender: RTCRtpSender, pacer: Any) -> None:
+    """Make every RTP and RTCP packet ``sender``'s transport sends (its own and any other
+    sender's on the same transport, as with BUNDLE) wait ``await pacer.before_send(data)``
+    first (the plain packet, before SRTP), and not be sent if that returns False. Once per
+    transport; a later call gives it this ``pacer`` instead."""
+    transport = sender.transport
+    _check(transport, _TRANSPORT_SEND_RTP, None)
+    if getattr(transport, _PACER, None) is None:
+        send = getattr(transport, _TRANSPORT_SEND_RTP)
+
+        async def paced(data: bytes) -> None:
+            current = getattr(transport, _PACER, None)
+            if current is not None and await current.before_send(data) is False:
+                return
+            await send(data)
+
+        setattr(transport, _TRANSPORT_SEND_RTP, paced)
+    setattr(transport, _PACER, pacer)

@@ -25,7 +25,9 @@ for every RTP packet, the payload already depayloaded into ``packet._data``):
   its reference would show a corrupt picture, a freeze is honest;
 - asks again for a packet still missing a round trip after the last request
   (:meth:`take_nacks`, sent by the receiver as an RTCP NACK): aiortc NACKs a gap once, and
-  again only when a later gap shows;
+  again only when a later gap shows; the packets it gave up on are handed out too
+  (:meth:`take_given_up`), so the receiver stops asking for them (aiortc's NACKs list every
+  packet still missing, given up or not, until 128 later packets have come);
 - at most one frame per ``add`` (the receiver's interface): frames completed together leave
   on the next packets; if that backlog does not drain (one-packet frames), it asks for a
   keyframe, whose many packets drain it.
@@ -140,6 +142,7 @@ class BoundedJitterBuffer:
         self._missing_since: dict[int, float] = {}  # extended seq -> when first seen missing
         self._nacked: dict[int, float] = {}  # extended seq -> when we last asked for it
         self._nack_out: list[int] = []  # 16-bit sequence numbers to ask for (take_nacks)
+        self._given_up_out: list[int] = []  # 16-bit sequence numbers given up (take_given_up)
         self._repairs: deque[float] = deque(maxlen=REPAIRS_KEPT)  # repair times (s)
         self._gone: OrderedDict[int, float] = OrderedDict()  # given up: seq -> first missing
         self._key_starts: set[int] = set()  # packets that start a keyframe (while wanted)
@@ -203,6 +206,12 @@ class BoundedJitterBuffer:
     def take_nacks(self) -> list[int]:
         """The 16-bit sequence numbers to ask the sender for again (a NACK), once each."""
         out, self._nack_out = self._nack_out, []
+        return out
+
+    def take_given_up(self) -> list[int]:
+        """The 16-bit sequence numbers of missing packets given up since the last call (the
+        frames they belonged to were dropped): not to be asked for any more."""
+        out, self._given_up_out = self._given_up_out, []
         return out
 
     def _renack(self, now: float) -> None:
@@ -329,6 +338,8 @@ class BoundedJitterBuffer:
         for seq in [s for s in self._missing_since if s <= last]:
             self._gone[seq] = self._missing_since.pop(seq)  # a late repair is counted
             self._nacked.pop(seq, None)
+            self._given_up_out.append(seq % _SEQ_MOD)
+        del self._given_up_out[:-GONE_KEPT]  # bounded if nobody takes them
         while len(self._gone) > GONE_KEPT:
             self._gone.popitem(last=False)
         self._key_starts = {s for s in self._key_starts if s > last}

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import math
 import threading
@@ -56,6 +57,7 @@ from aiortc.mediastreams import MediaStreamError
 
 from humantele.media.aiortc_hooks import (
     EncodedFrameTap,
+    forget_missing,
     newest_frame,
     request_keyframe,
     request_retransmission,
@@ -328,6 +330,7 @@ class VideoReceiver:
                 self._releaser(name),
             )
             tap.on_nack = self._renacker(transceiver.receiver)
+            tap.on_give_up = functools.partial(forget_missing, transceiver.receiver)
             use_jitter_buffer(transceiver.receiver, tap)
             self._taps[name] = tap
             self._receivers[name] = transceiver.receiver

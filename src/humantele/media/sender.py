@@ -27,7 +27,7 @@ import av
 from aiortc import MediaStreamTrack, RTCPeerConnection
 from aiortc.sdp import SessionDescription
 
-from humantele.media.aiortc_hooks import use_encoder
+from humantele.media.aiortc_hooks import pace_sender, use_encoder
 from humantele.media.capture import (
     CapturedFrame,
     Record,
@@ -36,6 +36,7 @@ from humantele.media.capture import (
 from humantele.media.config import TRACKS, FollowerVideoConfig
 from humantele.media.encoders import ENCODERS, make_encoder
 from humantele.media.frameinfo import FrameInfo
+from humantele.media.pacer import PACE_FACTOR, Pacer
 from humantele.media.policy import POV_OFF_PERIOD_S, DegradationPolicy, Health, split_budget
 from humantele.runtime.child import Restarter
 from humantele.video.sources import make_video_source
@@ -182,6 +183,7 @@ class VideoSender:
         self.link_trusted = False  # the last check measured the link (caps and levels)
         self._asked_kbps = 0.0  # the encoders' targets summed at the last check
         self._channel: Any = None
+        self.pacer: Pacer | None = None  # the current peer connection's
         self._senders: dict[str, Any] = {}
         self._encoders: dict[str, Any] = {}  # the current peer connection's, per track
         self._last_counts: dict[str, int] = {"captured": 0, "sent": 0}
@@ -254,6 +256,7 @@ class VideoSender:
             "video", negotiated=True, id=VIDEO_CHANNEL_ID, ordered=False, maxRetransmits=0
         )
         self._senders, self._encoders = {}, {}
+        self.pacer = Pacer(self._pace_rate, rtt_s=self._rtt_s)
         self._sent_at = None
         self._remb_kbps, self.remb_stale, self._asked_kbps = None, False, 0.0
         videos = [t for t in pc.getTransceivers() if t.kind == "video"]
@@ -267,7 +270,18 @@ class VideoSender:
                 size = (int(src.width), int(src.height))  # opened at it: smaller is live
                 self._encoders[name] = make_encoder(mime, limits[name], max_size=size)
                 use_encoder(transceiver.sender, self._encoders[name])
+            pace_sender(transceiver.sender, self.pacer)
         self.attached += 1
+
+    def _rtt_s(self) -> float | None:
+        """The link's round trip (s) as the encoders were last told it, or None."""
+        rtts = [e.rtt_s for e in list(self._encoders.values()) if getattr(e, "rtt_s", None)]
+        return max(rtts) if rtts else None
+
+    def _pace_rate(self) -> float:
+        """The pacer's rate (bit/s): :data:`~humantele.media.pacer.PACE_FACTOR` times the
+        encoders' targets summed."""
+        return PACE_FACTOR * sum(e.target_bitrate for e in list(self._encoders.values()))
 
     def _on_sent(self, name: str, cf: CapturedFrame) -> None:
         ch = self._channel
@@ -461,6 +475,7 @@ class VideoSender:
             "link_trusted": self.link_trusted,
             "infos_sent": self.infos_sent,
             "infos_dropped": self.infos_dropped,
+            "pacer": None if self.pacer is None else self.pacer.figures(),
         }
         for name, cap in self.captures.items():
             prep = sorted(cap.prepare_times)

@@ -81,18 +81,29 @@ def freezes_vs_loss(summary: list[dict], path: Path) -> Path:
     return path
 
 
-US_PANELS = (
-    ("us_live_pct", "US picture live (% of the scan)", (0, 102)),
-    ("us_age_p95_ms", "US glass-to-glass age p95 (ms)", None),
-    ("us_ssim", "US SSIM against the captured frame", None),
+US_PANELS = (  # key, title, axis range, the figure's own bounds (its SD bars clipped to them)
+    ("us_live_pct", "US picture live (% of the scan)", (0, 102), (0.0, 100.0)),
+    ("us_age_p95_ms", "US glass-to-glass age p95 (ms)", None, (0.0, None)),
+    ("us_ssim", "US SSIM against the captured frame", None, (0.0, 1.0)),
 )
+
+
+def clipped_errors(
+    y: list[float], sd: list[float], low: float | None, high: float | None
+) -> list[list[float]]:
+    """Error bars (below, above) of mean ± SD for a figure bounded to [low, high] (None: no
+    bound): each bar stops at the bound (a share live cannot pass 100 %, an SSIM 1)."""
+    below = [e if low is None else max(0.0, min(e, v - low)) for v, e in zip(y, sd, strict=True)]
+    above = [e if high is None else max(0.0, min(e, high - v)) for v, e in zip(y, sd, strict=True)]
+    return [below, above]
 
 
 def us_over_thin_links(summary: list[dict], path: Path) -> Path:
     """The US picture against the link's rate, one line per loss (mean ± SD over each
-    condition's scans): its share of the scan live (not frozen), its glass-to-glass age p95
-    and its quality (SSIM against the frame the follower captured). Conditions with a rate
-    cap only; the delay of each line in its legend."""
+    condition's scans, the SD bars clipped to each figure's bounds): its share of the scan
+    live (not frozen), its glass-to-glass age p95 and its quality (SSIM against the frame the
+    follower captured). Conditions with a rate cap only; the delay of each line in its
+    legend."""
     capped = [s for s in summary if s.get("bandwidth_kbps")]
     losses = sorted({s["loss_pct"] for s in capped})
     fig, axes = plt.subplots(1, 3, figsize=(12.0, 4.0))
@@ -103,10 +114,11 @@ def us_over_thin_links(summary: list[dict], path: Path) -> Path:
                          else "") for s in mine})  # fmt: skip
         label = f"{loss:g} % loss ({', '.join(delays)} ms)"
         colour = colours(i / max(1, len(losses) - 1) * 0.85)
-        for ax, (key, _, _) in zip(axes, US_PANELS, strict=True):
+        for ax, (key, _, _, bounds) in zip(axes, US_PANELS, strict=True):
             x, y, sd = _series(mine, "bandwidth_kbps", key)
-            ax.errorbar(x, y, yerr=sd, fmt="o-", color=colour, capsize=3, label=label)
-    for ax, (_key, title, ylim) in zip(axes, US_PANELS, strict=True):
+            err = clipped_errors(y, sd, *bounds)
+            ax.errorbar(x, y, yerr=err, fmt="o-", color=colour, capsize=3, label=label)
+    for ax, (_key, title, ylim, _bounds) in zip(axes, US_PANELS, strict=True):
         ax.set_xscale("log")
         ticks = sorted({s["bandwidth_kbps"] for s in capped})
         ax.set_xticks(ticks, [f"{t:g}" for t in ticks])
@@ -117,7 +129,8 @@ def us_over_thin_links(summary: list[dict], path: Path) -> Path:
             ax.set_ylim(*ylim)
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7, loc="lower right")
-    fig.suptitle("The ultrasound over thin, lossy links: speed against quality", fontsize=10)
+    fig.suptitle("The ultrasound over thin, lossy links: speed against quality (mean ± SD of "
+                 "the scans, clipped to each figure's range)", fontsize=10)  # fmt: skip
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -6,8 +6,9 @@
 
 - a coturn ``turnserver`` on loopback and the user-space WAN emulator
   (:class:`humantele.transport.netem.UdpRelay`) in front of it on the expert's side, so each
-  direction crosses the emulator once: the condition's one-way delay, jitter (FIFO), loss and
-  bandwidth cap each way, seeded by the run's seed; both daemons are ``relay_only``;
+  direction crosses the emulator once: the condition's one-way delay, jitter (correlated over
+  50 ms, FIFO), loss and bandwidth cap each way, seeded by the run's seed; both daemons are
+  ``relay_only``;
 - ``humantele demo`` (:func:`humantele.demo.run_demo`): the signaling server, the expert with
   its 1 kHz servo and the scripted sonographer, the follower with the simulated clinic, video
   on, recording to ``RUN_DIR/session.{expert,follower}.mcap``; the expert runs the study's

@@ -12,7 +12,9 @@ Per scan (complete scans 1..N of each run; :mod:`humantele.analysis` does the al
   p50/p95 (ms), frames per second, freezes per minute and the share of the scan frozen. A
   freeze is WebRTC's (webrtc-stats ``freezeCount``): a gap between two decoded frames longer
   than max(3 x the typical frame interval, that interval + 150 ms); a scan with no frame at
-  all is frozen throughout;
+  all is frozen throughout; a track whose typical interval is ``OFF_INTERVAL_S`` or longer
+  was off (the POV off sends a frame every 5 s), not live: its frozen share is none, said
+  ``off``;
 - the pose stream at the follower: median one-way age (``/follower/latency`` pose_one_way)
   and the share of the scan the virtual probe was stale (pose_stale_s);
 - the sim ultrasound's known-answer image quality (0-1);
@@ -54,6 +56,7 @@ BOUND = {"position_rmse_mm": 51.8, "centered_position_rmse_mm": 18.5}
 # 754 km of fibre at 4.9 us/km: the propagation floor of the study's one-way delay (ms).
 STUDY_ONE_WAY_MS = 754 * 4.9e-3
 STALE_BREAK_PCT = 50.0  # the virtual probe stale this share of a scan: it cannot be followed
+OFF_INTERVAL_S = 1.0  # frames this far apart (typically) are a track turned off, not video
 FROZEN_BREAK_PCT = 50.0  # the expert's picture frozen this share of a scan
 BASELINE_FROZEN_PCT = 10.0  # an unimpaired link's picture frozen more: the machine is busy
 START_AFTER_MODEL_S = 2.0  # as humantele.study.session
@@ -71,7 +74,9 @@ ALIGN = (
 
 def freezes(t: np.ndarray, start: float, stop: float) -> dict[str, float | int | None]:
     """Frames decoded at times ``t`` (s) in [start, stop]: fps, freezes (webrtc-stats
-    definition, see the module docstring) per minute and the share of the span frozen (%)."""
+    definition, see the module docstring) per minute and the share of the span frozen (%);
+    ``off``: the typical interval was :data:`OFF_INTERVAL_S` or more (the track was turned
+    off, not frozen nor live: no freeze figures)."""
     span = stop - start
     t = np.sort(t[(t >= start) & (t <= stop)])
     if span <= 0:
@@ -81,12 +86,16 @@ def freezes(t: np.ndarray, start: float, stop: float) -> dict[str, float | int |
                 "frames": int(t.size)}  # fmt: skip
     gaps = np.diff(np.concatenate([[start], t, [stop]]))
     typical = float(np.median(np.diff(t)))
+    if typical >= OFF_INTERVAL_S:
+        return {"fps": t.size / span, "freezes_per_min": None, "frozen_pct": None,
+                "frames": int(t.size), "off": True}  # fmt: skip
     frozen = gaps > max(3.0 * typical, typical + 0.150)
     return {
         "fps": t.size / span,
         "freezes_per_min": float(frozen.sum()) / span * 60.0,
         "frozen_pct": 100.0 * float(gaps[frozen].sum()) / span,
         "frames": int(t.size),
+        "off": False,
     }
 
 
@@ -194,6 +203,7 @@ def run_scans(run_dir: Path, summary: dict) -> list[dict[str, Any]]:
                 row[f"{name}_fps"] = fz.get("fps")
                 row[f"{name}_freezes_per_min"] = fz.get("freezes_per_min")
                 row[f"{name}_frozen_pct"] = fz.get("frozen_pct")
+                row[f"{name}_off"] = bool(fz.get("off"))
             qs = [v for t, _, v in quality if iv.start <= t <= iv.stop]
             row["us_ssim"] = float(np.mean(qs)) if qs else None
             us_frozen = row.get("us_frozen_pct")
@@ -239,6 +249,8 @@ def summarize(rows: list[dict], conditions: list[dict]) -> list[dict[str, Any]]:
         s: dict[str, Any] = {**c, "scans": len(mine), "runs": len({r["run"] for r in mine})}
         for k in SUMMARY_KEYS:
             s[k], s[f"{k}_sd"] = _mean_sd([r.get(k) for r in mine])
+        for name in ("us", "pov"):  # scans the track was off in (no freeze figures)
+            s[f"{name}_off_scans"] = sum(1 for r in mine if r.get(f"{name}_off"))
         s.update(verdict(s) if mine else {"follows": None, "cause": "no complete scan"})
         out.append(s)
     return out
@@ -308,6 +320,17 @@ COND_HEADER = [
 ]  # fmt: skip
 
 
+def _frozen(r: dict, name: str) -> str:
+    """A track's frozen share in a table: ``off`` for a scan it was off in (a condition's
+    mean over the other scans, and ``off n/m``)."""
+    if r.get(f"{name}_off"):
+        return "off"
+    n, scans = r.get(f"{name}_off_scans") or 0, r.get("scans") or 0
+    if n and n >= scans:
+        return "off"
+    return _f(r.get(f"{name}_frozen_pct")) + (f" (off {n}/{scans})" if n else "")
+
+
 def scan_table(rows: list[dict]) -> str:
     out = []
     for r in rows:
@@ -318,7 +341,7 @@ def scan_table(rows: list[dict]) -> str:
             f"{_f(r['us_age_p50_ms'], 0)} / {_f(r['us_age_p95_ms'], 0)}",
             f"{_f(r['pov_age_p50_ms'], 0)} / {_f(r['pov_age_p95_ms'], 0)}",
             f"{_f(r['us_freezes_per_min'])} / {_f(r['pov_freezes_per_min'])}",
-            f"{_f(r['us_frozen_pct'])} / {_f(r['pov_frozen_pct'])}",
+            f"{_frozen(r, 'us')} / {_frozen(r, 'pov')}",
             _f(r["stale_pct"]), _f(r["pose_age_p50_ms"], 0), _f(r["setup_s"]),
         ])  # fmt: skip
     return markdown_table(SCAN_HEADER, out)
@@ -334,7 +357,7 @@ def condition_table(summary: list[dict]) -> str:
             s["bandwidth_kbps"] else "-", str(s["scans"]),
             *(_ms(s[k], s[f"{k}_sd"], 1 if "position" in k else 2) for k, _ in ALIGN),
             _f(s["effective_lag_s"], 2), _f(s["us_age_p95_ms"], 0), _f(s["pov_age_p95_ms"], 0),
-            f"{_f(s['us_frozen_pct'])} / {_f(s['pov_frozen_pct'])}", _f(s.get("us_ssim"), 3),
+            f"{_frozen(s, 'us')} / {_frozen(s, 'pov')}", _f(s.get("us_ssim"), 3),
             _f(s["stale_pct"]), _f(s["link_drops"], 0), _f(s["setup_s"]), _f(s["load_1min"]),
             follows,
         ])  # fmt: skip

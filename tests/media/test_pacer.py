@@ -1,0 +1,149 @@
+"""The follower's RTP pacer on a hand-driven clock: new media packets leave spread at the
+rate, retransmissions and RTCP at once (their size counted), no packet waits without bound;
+and its hook on a real aiortc sender's transport."""
+
+from __future__ import annotations
+
+import struct
+
+import pytest
+from aiortc import RTCPeerConnection
+
+from humantele.media.aiortc_hooks import pace_sender
+from humantele.media.pacer import BURST_S, MIN_RATE_BPS, Pacer
+
+
+class Clock:
+    """A clock that moves only when a sleep is awaited."""
+
+    def __init__(self) -> None:
+        self.now = 100.0
+        self.sleeps: list[float] = []
+
+    def __call__(self) -> float:
+        return self.now
+
+    async def sleep(self, s: float) -> None:
+        self.sleeps.append(s)
+        self.now += s
+
+
+def rtp(seq: int, ssrc: int = 0x1234, size: int = 1200) -> bytes:
+    header = struct.pack("!BBHII", 0x80, 96, seq & 0xFFFF, 0, ssrc)
+    return header + bytes(size - len(header))
+
+
+def rtcp_rr(size: int = 60) -> bytes:
+    return struct.pack("!BBH", 0x81, 201, size // 4 - 1) + bytes(size - 4)
+
+
+async def _send(pacer: Pacer, clock: Clock, packets: list[bytes]) -> list[float]:
+    out = []
+    for p in packets:
+        await pacer.before_send(p)
+        out.append(clock.now)
+    return out
+
+
+async def test_a_burst_leaves_at_the_rate():
+    clock = Clock()
+    pacer = Pacer(lambda: 1_000_000.0, clock=clock, sleep=clock.sleep)
+    times = await _send(pacer, clock, [rtp(i) for i in range(40)])  # a 48 kB frame at once
+    per = 1200 * 8 / 1e6  # 9.6 ms a packet at 1 Mbit/s
+    assert times[0] == 100.0  # the first leaves at once
+    assert times[-1] - times[0] == pytest.approx(39 * per, abs=BURST_S)
+    gaps = [b - a for a, b in zip(times, times[1:], strict=False)]
+    assert min(gaps) >= 0.0 and max(gaps) <= per + BURST_S
+    assert pacer.paced >= 38 and pacer.waited_s > 0
+
+
+async def test_retransmissions_and_rtcp_leave_at_once_but_count():
+    clock = Clock()
+    pacer = Pacer(lambda: 1_000_000.0, clock=clock, sleep=clock.sleep)
+    await _send(pacer, clock, [rtp(i) for i in range(10)])
+    t = clock.now
+    await pacer.before_send(rtp(3))  # asked for again: older than the last sent
+    await pacer.before_send(rtcp_rr())
+    assert clock.now == t and pacer.immediate == 2
+    # the next new packet waits for them too
+    before = pacer.free_at
+    await pacer.before_send(rtp(10))
+    assert clock.now == pytest.approx(before, abs=1e-9)
+
+
+async def test_a_retransmission_is_not_repeated_within_a_round_trip():
+    # aiortc's receiver lists every packet still missing in each NACK: at each new gap the
+    # same lost packet is asked for again before the first retransmission could arrive
+    clock = Clock()
+    pacer = Pacer(lambda: 10_000_000.0, clock=clock, sleep=clock.sleep, rtt_s=lambda: 0.12)
+    await _send(pacer, clock, [rtp(i) for i in range(10)])
+    assert await pacer.before_send(rtp(4)) is True
+    clock.now += 0.05
+    assert await pacer.before_send(rtp(4)) is False  # asked again within the round trip
+    assert await pacer.before_send(rtp(5)) is True  # another packet is another matter
+    clock.now += 0.05  # 100 ms after the first: over 3/4 of the round trip, it may be lost
+    assert await pacer.before_send(rtp(4)) is True
+    assert pacer.resends_skipped == 1 and pacer.immediate == 3
+    assert await pacer.before_send(rtcp_rr()) is True  # RTCP is never held back
+
+
+async def test_streams_are_told_apart_and_sequence_numbers_wrap():
+    clock = Clock()
+    pacer = Pacer(lambda: 10_000_000.0, clock=clock, sleep=clock.sleep)
+    await _send(pacer, clock, [rtp(65534, ssrc=1), rtp(65535, ssrc=1), rtp(0, ssrc=1)])
+    await _send(pacer, clock, [rtp(5, ssrc=2)])  # another stream's first packet is new
+    assert pacer.immediate == 0
+    await pacer.before_send(rtp(65535, ssrc=1))
+    assert pacer.immediate == 1
+
+
+async def test_no_packet_waits_longer_than_the_bound_and_a_low_rate_is_floored():
+    clock = Clock()
+    pacer = Pacer(lambda: 0.0, clock=clock, sleep=clock.sleep, max_delay_s=0.2)
+    await _send(pacer, clock, [rtp(i) for i in range(20)])
+    # floored at MIN_RATE_BPS: 1200 B take 32 ms, not forever
+    assert clock.sleeps[0] == pytest.approx(1200 * 8 / MIN_RATE_BPS)
+    t = clock.now
+    await _send(pacer, clock, [rtp(i) for i in range(20)])  # 20 retransmissions: 0.64 s
+    await pacer.before_send(rtp(20))  # new, but would wait 0.64 s: sent at once
+    assert clock.now == t and pacer.overdue == 1
+    await _send(pacer, clock, [rtp(i) for i in range(21, 60)])
+    assert max(clock.sleeps) <= 0.2
+
+
+async def test_a_rate_that_fails_to_read_paces_at_the_floor():
+    clock = Clock()
+
+    def broken() -> float:
+        raise RuntimeError("no encoder")
+
+    pacer = Pacer(broken, clock=clock, sleep=clock.sleep)
+    await _send(pacer, clock, [rtp(0), rtp(1)])
+    assert clock.now - 100.0 == pytest.approx(1200 * 8 / MIN_RATE_BPS)
+
+
+async def test_the_hook_paces_what_a_real_sender_transport_sends():
+    pc = RTCPeerConnection()
+    try:
+        a = pc.addTransceiver("video").sender
+        b = pc.addTransceiver("video").sender
+        sent: list[bytes] = []
+
+        async def fake_send(data: bytes) -> None:  # in place of SRTP and the socket
+            sent.append(data)
+
+        a.transport._send_rtp = fake_send
+        seen: list[bytes] = []
+
+        class Recorder:
+            async def before_send(self, data: bytes) -> bool:
+                seen.append(data)
+                return data != rtp(2)  # the pacer says not to send this one
+
+        pace_sender(a, Recorder())
+        pace_sender(b, Recorder())  # one transport (BUNDLE): wrapped once, pacer replaced
+        await b.transport._send_rtp(rtp(1))
+        await b.transport._send_rtp(rtp(2))
+        assert seen == [rtp(1), rtp(2)] and sent == [rtp(1)]
+    finally:
+        await pc.close()
