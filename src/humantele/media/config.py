@@ -53,9 +53,12 @@ class UsBitrateConfig(BitrateConfig):
 
 
 class PovBitrateConfig(BitrateConfig):
-    """The POV track's (the published system's POV: 1-2 Mbit/s H.264)."""
+    """The POV track's (the published system's POV: 1-2 Mbit/s H.264). It starts at 300 kbit/s
+    (WebRTC's own start rate) and climbs as the expert's estimate allows: until that estimate
+    is trusted each encoder runs at its start rate, and the US's 1000 with the POV's 300 fit a
+    1500 kbit/s link, where 1000 + 800 filled its queue (docs/video.md, "Thin, lossy links")."""
 
-    start_kbps: int = _kbps(800, "target at start")
+    start_kbps: int = _kbps(300, "target at start")
     max_kbps: int = _kbps(2000, "REMB never goes above")
 
 
