@@ -318,6 +318,11 @@ class IgtlClient(threading.Thread):
         self.lines, self.stop, self.wait_s = lines, stop, wait_s
         self.result: dict = {"port": None, "shape": None, "error": None}
 
+    @property
+    def waiting(self) -> bool:
+        """Whether it waits for the probe's transform on the printed address."""
+        return self.is_alive() and self.result["port"] is not None
+
     def run(self) -> None:
         while self.result["port"] is None and not self.stop.wait(0.2):
             for line in list(self.lines):
@@ -366,8 +371,8 @@ def _run_demo(tmp: Path) -> DemoRun:
     igtl.start()
     seen: set[int] = set()
     try:
-        recorded = False
-        while proc.poll() is None and not (recorded and not igtl.is_alive()):
+        recorded = False  # then the client's end (not waited for if no address was printed)
+        while proc.poll() is None and not (recorded and not igtl.waiting):
             seen |= descendants(proc.pid)  # expert, follower, the servo process
             time.sleep(0.5)
             recorded = recorded or scan_recorded(tmp / "demo.follower.mcap")
