@@ -32,6 +32,15 @@ from pathlib import Path
 import pytest
 from hypothesis import settings
 
+from cpu_durations import (  # noqa: F401 - the hooks of --cpu-durations=N
+    pytest_addoption,
+    pytest_runtest_call,
+    pytest_runtest_logreport,
+    pytest_runtest_makereport,
+    pytest_runtest_setup,
+    pytest_runtest_teardown,
+    pytest_terminal_summary,
+)
 from procgroups import pytest_configure, pytest_unconfigure  # noqa: F401 - the hooks
 from session_slot import whole_session_slot
 from system_packages import system_packages_line

@@ -12,7 +12,7 @@ import pytest
 
 from humantele.cli import main
 from humantele.config import ConfigError
-from humantele.demo import recording_paths
+from humantele.demo_plan import recording_paths
 
 CMD = [sys.executable, "-m", "humantele"]
 

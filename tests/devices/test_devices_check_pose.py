@@ -24,9 +24,10 @@ def records(located: bool) -> list[AhatRecord]:
 def check(tmp_path, capsys, located: bool) -> tuple[int, str]:
     cal = Hl2ssAhatCalibration.pinhole(CameraIntrinsics(), Pose([0.0, -0.09, 0.0], [1, 0, 0, 0]))
     with Hl2ssReplayServer([records(located) * 20], calibration=cal, rate_hz=45.0) as srv:
+        # RAW AB: the check is about the camera's pose, not the codec (no x264 encode/decode)
         conf = tmp_path / "follower.toml"
         conf.write_text(f'[sensing.camera]\nbackend = "hl2ss"\nhost = "127.0.0.1"\n'
-                        f"port = {srv.port}\n")  # fmt: skip
+                        f'port = {srv.port}\nab_profile = "raw"\n')  # fmt: skip
         code = main(["devices", "check", "--follower-config", str(conf), "--only", "tracker",
                      "--samples", "4"])  # fmt: skip
     return code, capsys.readouterr().out

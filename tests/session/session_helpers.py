@@ -5,6 +5,7 @@ import contextlib
 import json
 import math
 import os
+import re
 import resource
 import secrets
 import signal
@@ -253,11 +254,12 @@ class DemoLines:
 
 @dataclass
 class DemoRun:
-    """One ``humantele demo --config configs/demo.toml --json --record`` run (with the video
-    tracks, recorded), ended by a terminal's Ctrl-C (SIGINT to its
-    process group: the demo, both daemons and the servo at once) once it has recorded a scan
-    long enough to analyse: what the tests of that run check. (The supervision test ends its
-    demo with SIGTERM to the demo alone.)"""
+    """One ``humantele demo --config configs/demo.toml --json --record --igtl-port 0`` run
+    (with the video tracks, recorded, OpenIGTLink served for 3D Slicer), ended by a terminal's
+    Ctrl-C (SIGINT to its process group: the demo, both daemons and the servo at once) once it
+    has recorded a scan long enough to analyse and an OpenIGTLink client has had the probe:
+    what the tests of that run check. (The supervision test ends its demo with SIGTERM to the
+    demo alone.)"""
 
     tmp: Path
     returncode: int | None
@@ -267,6 +269,7 @@ class DemoRun:
     status: list[str] = field(default_factory=list)
     seen: set[int] = field(default_factory=set)  # the demo's descendants while it ran
     stop_s: float = math.inf  # from Ctrl-C to the demo's exit
+    igtl: dict = field(default_factory=dict)  # the OpenIGTLink client's (IgtlClient.result)
 
     @property
     def recordings(self) -> tuple[Path, Path]:
@@ -301,12 +304,51 @@ def _read_lines(stream, lines: list[str]) -> None:
         lines.append(raw.decode())
 
 
+IGTL_LINE = re.compile(r"OpenIGTLink \(follower, 3D Slicer\): 127\.0\.0\.1:(\d+)")
+
+
+class IgtlClient(threading.Thread):
+    """3D Slicer's side of ``demo --igtl-port 0``: the address the demo prints (its status
+    lines), then a pyigtl client on it until the probe's ``ProbeToWorld`` transform comes.
+    ``result``: ``port`` (None: never printed), ``shape`` (the transform's matrix, None: no
+    message within ``wait_s``), ``error``."""
+
+    def __init__(self, lines: list[str], stop: threading.Event, wait_s: float = 60.0) -> None:
+        super().__init__(daemon=True)
+        self.lines, self.stop, self.wait_s = lines, stop, wait_s
+        self.result: dict = {"port": None, "shape": None, "error": None}
+
+    @property
+    def waiting(self) -> bool:
+        """Whether it waits for the probe's transform on the printed address."""
+        return self.is_alive() and self.result["port"] is not None
+
+    def run(self) -> None:
+        while self.result["port"] is None and not self.stop.wait(0.2):
+            for line in list(self.lines):
+                if m := IGTL_LINE.match(line):
+                    self.result["port"] = int(m.group(1))
+        if self.result["port"] is None:
+            return
+        import pyigtl
+
+        client = pyigtl.OpenIGTLinkClient("127.0.0.1", self.result["port"])
+        try:
+            msg = client.wait_for_message("ProbeToWorld", timeout=self.wait_s)
+            self.result["shape"] = None if msg is None else tuple(msg.matrix.shape)
+        except Exception as exc:  # noqa: BLE001 - the test says what went wrong
+            self.result["error"] = repr(exc)
+        finally:
+            client.stop()
+
+
 @pytest.fixture(scope="session")
 def demo_run(tmp_path_factory) -> DemoRun:
     """The demo run shared by the tests that check one run (the command, its recording and
-    the analysis, the video's export): it ends on its condition (scan 1 recorded, after the
-    calibration, for ``SCAN_S`` with ``SCAN_POSES`` tracked probe poses), not after a fixed
-    duration. One whole session at a time across the lanes (tests/session_slot.py)."""
+    the analysis, the video's export, OpenIGTLink for 3D Slicer): it ends on its condition
+    (scan 1 recorded, after the calibration, for ``SCAN_S`` with ``SCAN_POSES`` tracked probe
+    poses; the OpenIGTLink client done), not after a fixed duration. One whole session at a
+    time across the lanes (tests/session_slot.py)."""
     with whole_session_slot():
         return _run_demo(tmp_path_factory.mktemp("demo"))
 
@@ -316,7 +358,7 @@ def _run_demo(tmp: Path) -> DemoRun:
     env.pop("HUMANTELE_TOKEN", None)
     proc = subprocess.Popen(
         [sys.executable, "-m", "humantele", "demo", "--config", str(DEMO_CONFIG),
-         "--duration", "120", "--json", "--record", str(tmp / "demo.mcap")],
+         "--duration", "120", "--json", "--record", str(tmp / "demo.mcap"), "--igtl-port", "0"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, start_new_session=True,
     )  # fmt: skip
     watchdog = threading.Timer(180.0, os.killpg, (proc.pid, signal.SIGKILL))  # never hang
@@ -324,11 +366,16 @@ def _run_demo(tmp: Path) -> DemoRun:
     status: list[str] = []  # the status lines (stderr with --json, every 2 s)
     reader = threading.Thread(target=_read_lines, args=(proc.stderr, status), daemon=True)
     reader.start()
+    stop = threading.Event()
+    igtl = IgtlClient(status, stop)
+    igtl.start()
     seen: set[int] = set()
     try:
-        while proc.poll() is None and not scan_recorded(tmp / "demo.follower.mcap"):
+        recorded = False  # then the client's end (not waited for if no address was printed)
+        while proc.poll() is None and not (recorded and not igtl.waiting):
             seen |= descendants(proc.pid)  # expert, follower, the servo process
             time.sleep(0.5)
+            recorded = recorded or scan_recorded(tmp / "demo.follower.mcap")
         t_stop = time.monotonic()
         with contextlib.suppress(ProcessLookupError):  # the demo ended early: the tests say how
             os.killpg(proc.pid, signal.SIGINT)
@@ -338,6 +385,8 @@ def _run_demo(tmp: Path) -> DemoRun:
         reader.join(10)
     finally:
         watchdog.cancel()
+        stop.set()
+        igtl.join(70)
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
@@ -347,4 +396,5 @@ def _run_demo(tmp: Path) -> DemoRun:
         summary = json.loads(lines[-1]) if lines else {}
     except ValueError:
         summary = {}
-    return DemoRun(tmp, proc.returncode, summary, out_text, "".join(status), status, seen, stop_s)
+    return DemoRun(tmp, proc.returncode, summary, out_text, "".join(status), status, seen, stop_s,
+                   igtl.result)  # fmt: skip

@@ -1,16 +1,23 @@
 """The page protocol's replies, shared by the console's parts: what became of a click
-(``result``, with the click's ``id``), and JSON without NaN (the message types are in
-:mod:`.messages`; the dispatch of the page's messages is the server's ``on_page_message``)."""
+(``result``, with the click's ``id``), the session's commands (scan, clutch) and JSON without
+NaN (the message types are in :mod:`.messages`; the dispatch of the page's messages is the
+server's ``on_page_message``)."""
 
 from __future__ import annotations
 
 import json
+import logging
 import math
+from collections import Counter
 from typing import Any
 
 import numpy as np
 
+from humantele.expert.console.messages import ClutchCommand, ScanCommand
+from humantele.expert.console.session import ConsoleSession
 from humantele.web.pagesocket import PageClient
+
+log = logging.getLogger(__name__)
 
 
 def clean(obj: Any) -> Any:
@@ -44,3 +51,28 @@ def ack(client: PageClient, of: str, ok: bool, detail: str, cmd_id: int | None) 
     effect either way."""
     if cmd_id is not None:
         result(client, of, ok, detail, id=cmd_id)
+
+
+def session_command(
+    session: ConsoleSession, client: PageClient, m: ScanCommand | ClutchCommand, events: Counter
+) -> None:
+    """A click on the session's controls: a scan started or stopped, the clutch held or
+    released, done on ``session``, counted in ``events`` and answered to ``client``; a scan
+    that fails is said on the page (the daemon goes on)."""
+    if isinstance(m, ClutchCommand):
+        session.set_clutch(m.on)
+        events["clutch_on" if m.on else "clutch_off"] += 1
+        ack(client, "clutch", True, "held" if m.on else "released", m.id)
+        return
+    try:
+        if m.action == "start":
+            detail = f"scan {session.start_scan()} started"
+        else:
+            session.stop_scan()
+            detail = "scan stopped"
+    except Exception as exc:  # noqa: BLE001 - said on the page, the daemon goes on
+        log.exception("console: scan %s failed", m.action)
+        ack(client, "scan", False, f"not done: {exc}", m.id)
+        return
+    events[f"scan_{m.action}"] += 1
+    ack(client, "scan", True, detail, m.id)

@@ -15,9 +15,10 @@ by measurement (docs/console.md, "The video path"):
 
 The parts, each its own module: the page's heartbeat (:mod:`.heartbeat`), the ultrasound
 tools on the cine buffer (:mod:`.tools`), captures, clips and the session's list
-(:mod:`.captures`), the replies to clicks (:mod:`.protocol`). This module serves, subscribes,
-dispatches the page's messages and sends the session's state (``state_rate_hz`` times a
-second, each track's age with it, so the page shows stale data as stale).
+(:mod:`.captures`), the replies to clicks and the session's commands (:mod:`.protocol`).
+This module serves, subscribes, dispatches the page's messages and sends the session's state
+(``state_rate_hz`` times a second, each track's age with it, so the page shows stale data as
+stale).
 
 Served on loopback only, plain http (a loopback page is a secure context): the console drives
 the session (scans, clutch), so another machine reaches it through an SSH tunnel. Requests
@@ -68,7 +69,7 @@ from humantele.expert.console.messages import (
     ScanCommand,
 )
 from humantele.expert.console.pageclient import ConsolePage
-from humantele.expert.console.protocol import ack, clean
+from humantele.expert.console.protocol import ack, clean, session_command
 from humantele.expert.console.session import ConsoleSession
 from humantele.expert.console.tools import UltrasoundTools
 from humantele.expert.console.video import PageVideo
@@ -343,12 +344,8 @@ class ConsoleServer:
             self.video_out.on_drawn(client, m, arrival)
         elif isinstance(m, Ping):  # answered at once: the page measures how late we are
             client.post("pong", client.lag.on_ping(m, self.clock()))
-        elif isinstance(m, ScanCommand):
-            self._on_scan(client, m)
-        elif isinstance(m, ClutchCommand):
-            self.session.set_clutch(m.on)
-            self.events["clutch_on" if m.on else "clutch_off"] += 1
-            ack(client, "clutch", True, "held" if m.on else "released", m.id)
+        elif isinstance(m, ScanCommand | ClutchCommand):
+            session_command(self.session, client, m, self.events)
         elif isinstance(m, Freeze):
             self.tools.freeze(m.on)
             ack(client, "freeze", True, "frozen" if m.on else "live", m.id)
@@ -359,20 +356,6 @@ class ConsoleServer:
         elif isinstance(m, KeyframeRequest):
             self.events["keyframe_asked"] += 1
             self.video_out.keyframe_asked(client, m.track)
-
-    def _on_scan(self, client: ConsolePage, m: ScanCommand) -> None:
-        try:
-            if m.action == "start":
-                detail = f"scan {self.session.start_scan()} started"
-            else:
-                self.session.stop_scan()
-                detail = "scan stopped"
-        except Exception as exc:  # noqa: BLE001 - said on the page, the daemon goes on
-            log.exception("console: scan %s failed", m.action)
-            ack(client, "scan", False, f"not done: {exc}", m.id)
-            return
-        self.events[f"scan_{m.action}"] += 1
-        ack(client, "scan", True, detail, m.id)
 
     def _record(self, event: str, payload: dict[str, Any]) -> None:
         rec = self.session.recorder
