@@ -21,7 +21,9 @@ def test_bench_loop_prints_json_last_and_keeps_the_other_row(tmp_path, monkeypat
     assert r["load"] is True and r["ticks"] > 0 and r["period_max_us"] >= r["period_p50_us"]
     assert 0 <= r["periods_over_2ms"] <= r["overruns"]  # over 2 ms is also over 1.5 ms
     floor = r["floor"]  # the bare timing loop measured under the same load
-    assert 900.0 < floor["rate_hz"] < 1100.0 and floor["period_max_us"] >= floor["period_p99_us"]
+    # a deadline schedule never runs fast; how slow a loaded machine makes it is the bench's figure
+    assert 0.0 < floor["rate_hz"] < 1100.0 and floor["period_p50_us"] > 900.0
+    assert floor["period_max_us"] >= floor["period_p99_us"]
     for loop in (r, floor):  # both counted alike: over 1.5 ms, over 2 ms, each overrun's cause
         assert 0 <= loop["periods_over_2ms"] <= loop["overruns"]
         causes = ("overruns_work", "overruns_wake", "overruns_other")

@@ -60,7 +60,9 @@ from humantele.runtime.child import spawn, stop_process
 class ServoProcess:
     """The servo loop in its own process; the daemon's handle on it.
 
-    ``start()`` returns once the device is open and the loop runs (ServoError otherwise);
+    ``start()`` returns once the device is open and the loop runs (ServoError otherwise; a
+    child that exits is seen at once, one that is alive but slow is waited for ``timeout_s``,
+    120 s: its imports alone passed 30 s at load 20);
     ``set_model``/``set_registration`` take effect atomically at the next tick (with a force
     crossfade); ``latest()``/``stats()`` never block on the loop. Use as a context manager.
     """
@@ -78,7 +80,7 @@ class ServoProcess:
         self.set_model(model)
 
     # -- lifecycle --------------------------------------------------------------------------
-    def start(self, timeout_s: float = 30.0) -> None:
+    def start(self, timeout_s: float = 120.0) -> None:
         if self._proc is not None:
             raise ServoError("servo process already started")
         self._cmd = SeqlockArray(CMD_LEN)
