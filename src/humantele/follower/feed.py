@@ -40,7 +40,10 @@ pose: an upper bound on pose receipt to draw call that includes the echo's own t
 A page's ``registration`` and ``viewer_pose`` messages (:mod:`humantele.follower.registration`,
 validated here) go to ``page_handler``; the feed publishes ``registration`` objects for them.
 Anything else a page sends (malformed, unknown, a flood, an unknown or repeated id, a wrong
-``Origin``, too many pages) is refused and counted in ``refused``; the daemon goes on.
+``Origin``, too many pages) is refused and counted in ``refused``; the daemon goes on. A page
+lost (a reset, no answer to pings) is counted in ``lost``, and a client's TLS handshake that
+failed or timed out (a loaded machine's browser, or a scanner) in ``handshake_failed``: neither
+is a refusal.
 
 Who may read the feed: a page with the follower's pairing code (:mod:`humantele.web.credential`:
 eight digits, kept in the state dir, printed in :meth:`RendererFeed.banner`), which the page asks
@@ -408,6 +411,9 @@ class RendererFeed:
             "refused": dict(self.refused),
             "refused_total": sum(self.refused.values()),
             "disconnects": self.disconnects,
+            "lost": dict(self.pages.lost),  # pages lost (reset, no answer): not refusals
+            "handshake_failed": self.connections["closed:tls_failed"]
+            + self.connections["closed:handshake_timeout"],  # a client's, not a refusal
             "connections": dict(self.connections),
         }
 
