@@ -9,12 +9,14 @@ board's own parser (id, version, CRC, pairs, flags; drops counted by reason) and
 drain loop run as with the board. ``loop``: start again at the end; else the device goes quiet
 (reads give nothing, as an idle board).
 
-A report is due at the board's own time (its microsecond clock, in the report), anchored to
-the first receive time and never later than its own receive time (a board clock that runs
-fast or restarts is anchored again there). The receive times alone carry the recording
-machine's scheduling: a recorder starved for 0.5 s received half a second of reports in one
-burst, which replayed at those times is a board silent for 0.5 s (its force stale), though
-the board sent every 10 ms. A report that does not parse goes out with the one before it.
+A report is due at the board's own time (its microsecond clock, in the report) on the
+recording's timeline (:mod:`humantele.recording.replay_timeline`), shared with the tracker's
+replay of the same file: from ``open``, counted from the recording's first message, each loop
+the recording's span, so a press comes with the frames of its tip. The receive times alone
+carry the recording machine's scheduling: a recorder starved for 0.5 s received half a second
+of reports in one burst, which replayed at those times is a board silent for 0.5 s (its force
+stale), though the board sent every 10 ms. A report that does not parse goes out with the one
+before it.
 
 ``open`` raises :class:`~humantele.forcesense.base.ForceSensorUnavailable` (one line) for a
 file that is not a device recording or holds no HID report; a truncated file is replayed up to
@@ -40,6 +42,7 @@ from humantele.recording.device_file import (
     Sample,
     open_recording,
 )
+from humantele.recording.replay_timeline import DeviceClock, ReplayTimeline, shared_timeline
 
 
 class ReplayForceConfig(ConfigModel):
@@ -64,34 +67,29 @@ class _ReplayHidDevice:
     ) -> None:
         self.rec, self.config = rec, config
         self.clock, self.sleep = clock, sleep
+        self.timeline = shared_timeline(rec.path, rec.span(), clock)
+        self._loop = 0
         self._start()
 
     def _start(self) -> None:
         self._it: Iterator[Sample] = self.rec.samples({HID_REPORT})
-        self._board_us: int | None = None  # the last good report's board time (us)
-        self._good_due = 0.0  # and when it was due (s, the recording's clock)
-        self._due = 0.0  # when self._next is due
+        self._board = DeviceClock(1e6, 1 << 32)  # the board's microseconds
+        self._due = 0.0  # when self._next is due (s, this replay's clock)
         self._advance()
-        self._t0 = self.clock()
-        self._r0 = self._due
 
     def _advance(self) -> None:
         """The next report and when it is due (module docstring)."""
         s = self._next = next(self._it, None)
-        if s is None:
-            return
-        board = _board_time_us(bytes(s.blobs.get("report", b"")))
-        if board is None:  # not a good report: with the one before it
-            self._due = s.t if self._board_us is None else self._good_due
-            return
-        if self._board_us is None:
-            due = s.t
-        else:
-            due = min(s.t, self._good_due + ((board - self._board_us) % (1 << 32)) * 1e-6)
-        self._board_us, self._good_due, self._due = board, due, due
+        if s is not None:
+            t = self._board.time(s.t, _board_time_us(bytes(s.blobs.get("report", b""))))
+            self._due = self.timeline.due(t, self._loop)
 
     def read(self, size: int, timeout_ms: int = 0) -> list[int]:
         if self._next is None and self.config.loop:
+            if self.timeline.period is None:  # no span known: from where it ends, on its own
+                self.timeline, self._loop = ReplayTimeline(None, self.clock), 0
+            else:
+                self._loop += 1
             self._start()
         s = self._next
         if s is None:  # the end: an idle board
@@ -99,7 +97,7 @@ class _ReplayHidDevice:
                 self.sleep(timeout_ms / 1000.0)
             return []
         if self.config.pace:
-            wait = self._t0 + (self._due - self._r0) - self.clock()
+            wait = self._due - self.clock()
             if wait > timeout_ms / 1000.0:
                 if timeout_ms:
                     self.sleep(timeout_ms / 1000.0)
