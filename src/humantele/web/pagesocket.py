@@ -229,8 +229,9 @@ class PageSockets:
             while not client.ws.closed:
                 await asyncio.sleep(live.step_s)
                 verdict = live.step()
-                if verdict == "ping":
-                    await client.ws.ping()
+                if verdict == "ping":  # (a page that reads nothing may hold the drain)
+                    with contextlib.suppress(TimeoutError):
+                        await asyncio.wait_for(client.ws.ping(), live.step_s)
                 elif verdict == "gone":
                     self.lost["no_answer"] += 1
                     await client.ws.close(code=WSCloseCode.GOING_AWAY, message=b"no answer")
