@@ -17,9 +17,14 @@ browser starved for 2.5 s is not gone either.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import time
+from collections import Counter
 from collections.abc import Callable
-from typing import Literal
+from typing import Any, Literal
+
+from aiohttp import WSCloseCode, WSMsgType
 
 PING_EVERY_S = 5.0
 ANSWER_WITHIN_S = 10.0
@@ -70,3 +75,37 @@ class PageLiveness:
             self.pings += 1
             return "ping"
         return None
+
+
+async def receive_answering(ws: Any, live: PageLiveness) -> Any:
+    """The next message of ``ws`` (an aiohttp WebSocket opened with ``autoping=False``) that is
+    not a ping or a pong: pings are answered, and anything from the peer is noted in ``live``."""
+    while True:
+        msg = await ws.receive()
+        if msg.type in (WSMsgType.TEXT, WSMsgType.BINARY, WSMsgType.PING, WSMsgType.PONG):
+            live.heard()
+        if msg.type == WSMsgType.PING:
+            with contextlib.suppress(ConnectionError, RuntimeError):
+                await ws.pong(msg.data)
+            continue
+        if msg.type != WSMsgType.PONG:
+            return msg
+
+
+async def watch_socket(ws: Any, live: PageLiveness, counters: Counter[str] | None = None) -> None:
+    """Ping ``ws``'s peer when quiet, close it when it answers nothing (counted in
+    ``counters["lost:no_answer"]``), as ``live`` judges; until ``ws`` closes."""
+    try:
+        while not ws.closed:
+            await asyncio.sleep(live.step_s)
+            verdict = live.step()
+            if verdict == "ping":  # (a peer that reads nothing may hold the drain)
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(ws.ping(), live.step_s)
+            elif verdict == "gone":
+                if counters is not None:
+                    counters["lost:no_answer"] += 1
+                await ws.close(code=WSCloseCode.GOING_AWAY, message=b"no answer")
+                return
+    except (ConnectionError, RuntimeError):
+        pass
