@@ -38,6 +38,46 @@ def test_bench_loop_prints_json_last_and_keeps_the_other_row(tmp_path, monkeypat
     assert "| idle |" in text and "| one core busy |" in text  # each run kept the other's row
 
 
+def test_bench_loop_control_runs_two_bare_loops_and_keeps_the_servo_rows(
+    tmp_path, monkeypatch, capsys
+):
+    """``--control``: two identical bare loops side by side, counted as the bare loop is, each
+    with the CPU it ran on and that CPU's steal; written as "bare A" / "bare B" beside the
+    servo's rows of the same load, which it keeps (and a servo run keeps the control's)."""
+    md = tmp_path / "benchmarks.md"
+    monkeypatch.setattr(bench_loop, "BENCHMARKS_MD", md)
+    assert main(["bench", "loop", "--seconds", "0.3", "--json"]) == 0
+    capsys.readouterr()
+    assert main(["bench", "loop", "--seconds", "0.5", "--control"]) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    r = json.loads(out[-1])
+    assert r["control"] is True and r["load"] is False
+    for k in ("a", "b"):
+        loop = r[k]
+        assert (
+            900.0 < loop["rate_hz"] < 1100.0 and 0 <= loop["periods_over_2ms"] <= loop["overruns"]
+        )
+        causes = ("overruns_work", "overruns_wake", "overruns_other")
+        assert sum(loop[c] for c in causes) == loop["overruns"] and loop["gc_collections"] == 0
+        assert loop["cpu"] in bench_loop.steal_per_cpu()  # the CPU it ran on, whose steal is read
+        assert loop["cpu_steal_ms_per_s"] is not None and loop["cpu_steal_ms_per_s"] >= 0.0
+    assert r["a_minus_b_overruns"] == r["a"]["overruns"] - r["b"]["overruns"]
+    assert any(line.startswith("periods over 1.5 ms: bare A") for line in out)
+    rows = [line.split("|")[1:4] for line in md.read_text().splitlines() if "| idle |" in line]
+    assert [c[2].strip() for c in rows] == ["servo", "bare", "bare A", "bare B"]
+    assert main(["bench", "loop", "--seconds", "0.3", "--json"]) == 0  # the control's kept
+    rows = [
+        line.split("|")[3].strip() for line in md.read_text().splitlines() if "| idle |" in line
+    ]
+    assert rows == ["servo", "bare", "bare A", "bare B"]
+
+
+def test_per_cpu_steal_and_the_cpu_are_read_from_proc():
+    steal = bench_loop.steal_per_cpu()
+    assert steal and all(v >= 0.0 for v in steal.values())
+    assert bench_loop.current_cpu() in steal
+
+
 def test_periods_over_two_ticks_are_counted():
     from humantele.haptics.servo_child import PeriodTiming
 

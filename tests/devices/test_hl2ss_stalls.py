@@ -13,7 +13,7 @@ import time
 import numpy as np
 
 from humantele.tracking.hl2ss_protocol import encode_ahat_packet, read_configuration
-from humantele.tracking.hl2ss_replay import Hl2ssReplayServer
+from humantele.tracking.hl2ss_replay import AhatRecord, Hl2ssReplayServer
 from humantele.tracking.hl2ss_source import Hl2ssFrameConfig, Hl2ssFrameSource
 
 
@@ -176,3 +176,31 @@ def test_a_trickling_server_cannot_hold_a_read_and_is_dropped_as_a_stall():
         assert src.read() is None and src.stalls == 1 and src.dropped["stalled"] == 1
         assert srv.left.wait(10)
         src.close()
+
+
+def test_a_replayed_headset_runs_on_from_its_epoch_and_drops_what_it_could_not_send():
+    """With an epoch the replayed headset's world runs on as a real one's (and as the board's
+    replay from the same epoch): a client joins at the frame of now, and frames that could not
+    be sent in their time (a server starved under load, a client reading late) are dropped at
+    the sensor, never sent late: the frames keep time with the board's reports."""
+    depth = np.full((512, 512), 600, np.uint16)
+    ir = np.zeros((512, 512), np.uint16)
+    records = [AhatRecord(k, depth, ir, k) for k in range(450)]  # 10 s at 45 Hz
+    epoch = time.monotonic() - 3.0  # the clinic has run for 3 s
+    with Hl2ssReplayServer([records], rate_hz=45.0, repeat=True, epoch=epoch) as srv:
+        src = Hl2ssFrameSource(cfg(srv.port, read_timeout_s=5.0, stall_s=30.0))
+        src.open()
+        try:
+            first = first_frame(src)
+            assert first is not None
+            joined = src.last_timestamp
+            assert joined >= 3.0 * 45 - 1  # the frame of now, not the first
+            time.sleep(1.0)  # the client reads late: the server cannot send meanwhile
+            stamps = []
+            for _ in range(30):
+                if src.read() is not None:
+                    stamps.append(src.last_timestamp)
+            assert srv.dropped_late >= 20, srv.dropped_late  # not sent late, dropped
+            assert max(stamps) >= joined + 45  # the frames went on with the clock
+        finally:
+            src.close()

@@ -172,6 +172,29 @@ async def test_drawn_echoes_give_the_latency_from_pose_receipt():
         await feed.stop()
 
 
+async def test_a_page_that_drew_a_pose_late_is_counted_apart_not_refused():
+    """A browser starved on a loaded machine drew a pose 12 s after its receipt: counted in
+    ``late_echoes``, not a refusal (the demo's test asks for none) and not in the figures; a
+    page saying it drew a pose before it was received is refused (``implausible``)."""
+    feed = plain()
+    await feed.start()
+    try:
+        async with aiohttp.ClientSession() as s, s.ws_connect(feed.url) as ws:
+            feed.publish("virtual_probe", {"position": [1, 0, 0]}, t_origin=time.monotonic() - 12)
+            first = await receive_json(ws)
+            feed.publish("virtual_probe", {"position": [2, 0, 0]}, t_origin=time.monotonic())
+            second = await receive_json(ws)
+            for msg, d_ms in ((first, 5.0), (second, 5_000.0)):
+                echo = {"type": "drawn", "pose_id": msg["pose_id"], "draw_to_send_ms": d_ms}
+                await ws.send_str(json.dumps(echo))
+            await until(lambda: feed.late_echoes + feed.refused["implausible"] == 2)
+            stats = feed.stats()
+            assert stats["late_echoes"] == 1 and stats["refused"] == {"implausible": 1}
+            assert stats["echoes"] == 0 and stats["draw_latency_p50_ms"] is None
+    finally:
+        await feed.stop()
+
+
 async def test_bad_page_input_is_refused_counted_and_the_feed_goes_on():
     feed = plain(page_rate_hz=50.0, max_clients=2)
     await feed.start()

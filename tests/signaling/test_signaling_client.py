@@ -151,3 +151,58 @@ async def test_link_leaves_unreachable_once_the_server_is_up():
             await server.stop()
     finally:
         await asyncio.wait_for(task, 5)
+
+
+async def test_a_stalled_loop_keeps_the_signaling_connection_and_a_silent_peer_is_dropped():
+    """Pings judged on running time (web.liveness) on both sides: 1 s stalls of the whole loop
+    (a starved process) with a 0.2 s heartbeat keep the connections, also when a stall comes
+    right after the server's ping (aiohttp's heartbeat, its pong awaited 0.1 s of wall time,
+    closed the connection then: its timer ran before the pong was read), while a peer that
+    answers no ping is dropped and counted (``lost:no_answer``), not refused."""
+    import time
+
+    import aiohttp
+
+    server = SignalingServer(SignalConfig(port=0, heartbeat_s=0.2), TOKEN)
+    await server.start()
+    try:
+        client = SignalingClient(server.url, "r", "expert", TOKEN, heartbeat_s=0.2)
+        await client.join()
+        heard = []
+
+        async def listen():  # as the link does: always reading (pings are answered there)
+            while True:
+                heard.append((await client.receive()).type)
+
+        listening = asyncio.create_task(listen())
+        for _ in range(3):
+            time.sleep(1.0)  # the loop stalls: server and client alike
+            await asyncio.sleep(0.5)
+        assert client._ws is not None and not client._ws.closed
+        assert server.counters["lost:no_answer"] == 0
+        assert not any(k.startswith("refused:") for k in server.counters)
+        # a follower that joins and then answers nothing (its process hung)
+        async with aiohttp.ClientSession() as s, s.ws_connect(server.url, autoping=False) as ws:
+            join = {"type": "join", "room": "r", "role": "follower", "token": TOKEN,
+                    "protocol": 1}  # fmt: skip
+            await ws.send_json(join)
+            for _ in range(2):  # the server's ping comes, and the whole loop stalls at once
+                while (m := await ws.receive(timeout=30)).type != aiohttp.WSMsgType.PING:
+                    assert m.type == aiohttp.WSMsgType.TEXT, m  # (joined)
+                time.sleep(1.0)
+                await ws.pong(m.data)  # answered, after the stall: read after the timers
+            await asyncio.sleep(0.3)
+            assert not ws.closed and server.counters["lost:no_answer"] == 0
+            while (await ws.receive(timeout=30)).type not in (
+                aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSED
+            ):  # fmt: skip
+                pass
+        await until("the silent follower dropped", lambda: server.counters["lost:no_answer"] == 1,
+                    30.0)  # fmt: skip
+        assert not any(k.startswith("refused:") for k in server.counters), server.counters
+        assert not client._ws.closed  # the expert stays, told the follower came and left
+        await until("peer_left", lambda: heard == ["peer_joined", "peer_left"], 30.0)
+        listening.cancel()
+        await client.close()
+    finally:
+        await server.stop()

@@ -165,3 +165,26 @@ async def test_bye_on_close_and_wrong_token_fails(server):
     with pytest.raises(SignalingRefused, match="token"):
         await asyncio.wait_for(bad.run(), 10)
     assert bad.state == "failed"
+
+
+async def test_a_stalled_daemon_does_not_take_its_own_stall_for_a_silent_peer():
+    """Both daemons' loop stalls (here one loop: the whole process starved) longer than the
+    heartbeat timeout: the watchdog's first tick after it comes late, and the messages sent
+    meanwhile are read before the silence is judged; the link stays up. (The signaling
+    server's own heartbeat is taken out of this test: it has its own.)"""
+    s = SignalingServer(SignalConfig(port=0, heartbeat_s=30.0), TOKEN)
+    await s.start()
+    try:
+        cfg = _config(s, heartbeat_interval_s=0.1, heartbeat_timeout_s=0.5)
+        states = []
+        expert = PeerLink("expert", cfg, on_link_state=states.append)
+        follower = PeerLink("follower", cfg, on_pose=lambda m: None)
+        async with running_links(expert, follower, timeout=20):
+            await asyncio.sleep(0.5)  # heartbeats flowing
+            for _ in range(3):
+                time.sleep(0.9)  # the loop stalls (under the signaling client's 1 s pong wait)
+                await asyncio.sleep(1.0)
+            assert expert.state == "connected" and follower.state == "connected"
+            assert expert.counters.connections == 1 and "disconnected" not in states
+    finally:
+        await s.stop()

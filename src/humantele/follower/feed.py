@@ -36,11 +36,16 @@ backlog); ``coalesced`` counts those. A new client first gets the latest object 
 A page may send ``{"type": "drawn", "pose_id": N, "draw_to_send_ms": D}``:
 it drew pose N (first time) and sent this D ms after its draw call. The feed's added latency
 is then ``arrival - t_origin(N) - D``, where ``t_origin`` is when the follower received the
-pose: an upper bound on pose receipt to draw call that includes the echo's own transit.
+pose: an upper bound on pose receipt to draw call that includes the echo's own transit. An
+echo later than ``LATE_ECHO_S`` (a starved browser) is counted in ``late_echoes``, apart from
+the figures; one drawn before it was received is refused (``implausible``).
 A page's ``registration`` and ``viewer_pose`` messages (:mod:`humantele.follower.registration`,
 validated here) go to ``page_handler``; the feed publishes ``registration`` objects for them.
 Anything else a page sends (malformed, unknown, a flood, an unknown or repeated id, a wrong
-``Origin``, too many pages) is refused and counted in ``refused``; the daemon goes on.
+``Origin``, too many pages) is refused and counted in ``refused``; the daemon goes on. A page
+lost (a reset, no answer to pings) is counted in ``lost``, and a client's TLS handshake that
+failed or timed out (a loaded machine's browser, or a scanner) in ``handshake_failed``: neither
+is a refusal.
 
 Who may read the feed: a page with the follower's pairing code (:mod:`humantele.web.credential`:
 eight digits, kept in the state dir, printed in :meth:`RendererFeed.banner`), which the page asks
@@ -94,6 +99,7 @@ TLS_SUBDIR = "tls"
 MAX_PAGE_MESSAGE = 512  # bytes: a "drawn" echo is ~60
 ORIGINS_KEPT = 1024  # pose ids whose receipt time is kept for the echoes
 LATENCIES_KEPT = 20000
+LATE_ECHO_S = 10.0  # an echo later than this: a stalled page, counted apart from the figures
 
 
 class FeedConfig(ConfigModel):
@@ -206,6 +212,7 @@ class RendererFeed:
         self.connections: Counter[str] = Counter()  # the connection guard's counts
         self.site = GuardedPages("headset page", log, self.connections)
         self.echoes = 0
+        self.late_echoes = 0  # echoes over LATE_ECHO_S (not in the latency figures)
         self.latencies: deque[float] = deque(maxlen=LATENCIES_KEPT)  # s, receipt to draw
         self.pose_id = 0
         self._pose_key: str | None = None
@@ -384,10 +391,13 @@ class RendererFeed:
             self.refused["repeated_pose"] += 1
             return
         latency = arrival - t_origin - echo.draw_to_send_ms / 1000.0
-        if not 0.0 <= latency <= 10.0:
+        if latency < 0.0:  # drawn before it was received: a page that lies
             self.refused["implausible"] += 1
             return
         client.last_echo = echo.pose_id
+        if latency > LATE_ECHO_S:  # a page stalled that long (a starved browser): said apart
+            self.late_echoes += 1
+            return
         self.echoes += 1
         self.latencies.append(latency)
 
@@ -403,11 +413,15 @@ class RendererFeed:
             "sent": self.pages.sent,
             "coalesced": self.coalesced,
             "echoes": self.echoes,
+            "late_echoes": self.late_echoes,
             "draw_latency_p50_ms": percentile_ms(self.latencies, 50),
             "draw_latency_p95_ms": percentile_ms(self.latencies, 95),
             "refused": dict(self.refused),
             "refused_total": sum(self.refused.values()),
             "disconnects": self.disconnects,
+            "lost": dict(self.pages.lost),  # pages lost (reset, no answer): not refusals
+            "handshake_failed": self.connections["closed:tls_failed"]
+            + self.connections["closed:handshake_timeout"],  # a client's, not a refusal
             "connections": dict(self.connections),
         }
 

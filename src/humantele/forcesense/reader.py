@@ -9,10 +9,20 @@ sampled at the board's rate whatever the camera does (the hand tracker's 5 Hz sp
 stalled headset stream); without it (the sim clinic's board, which shows the force of the
 frame's simulated world), the caller polls once per frame.
 
-A force older than ``stale_s`` (no good reading since: the board unplugged, silent or sending
-garbage) is *stale*: :meth:`ForceReader.sample` says so, the contact detector is not fed and
-is reset (a press is not carried across an unplug), and the follower sends and uses no force
-while it lasts (zero, ``force_tip`` None, no contact, not fed to the calibration).
+A force is *stale* when a read of the board gives no good reading ``stale_s`` after the last
+good one (the board unplugged, silent or sending garbage): :meth:`ForceReader.sample` says so,
+the contact detector is not fed and is reset (a press is not carried across an unplug), and the
+follower sends and uses no force while it lasts (zero, ``force_tip`` None, no contact, not fed
+to the calibration).
+
+Staleness is decided by the reads, from the board's own evidence, not by the clock of whoever
+asks: a reader thread starved by a loaded machine (it did not run for 0.2 s) finds, when it
+wakes, the reports the board queued meanwhile (the HID buffer), and those are fresh evidence
+that the board is alive; only a read that comes back empty past the deadline makes the force
+stale (counted: ``late_polls``, reads that came more than ``stale_s`` after the previous one,
+``caught_up``, those of them that found the board alive). :meth:`ForceReader.sample` between
+reads gives the last read's verdict; only a reader thread that has died, or that has not read
+for ``reader_silent_s`` (a wedged thread, not a busy machine's scheduling), makes it stale.
 """
 
 from __future__ import annotations
@@ -59,23 +69,28 @@ class ForceReader:
         rate_hz: float = 100.0,
         stale_s: float = 0.2,
         clock: Callable[[], float] = time.monotonic,
+        reader_silent_s: float = 2.0,
     ) -> None:
         self.sensor = sensor
         self.calibration = calibration
         self.contact = ContactDetector(contact)
         self.rate_hz = rate_hz
         self.stale_s = stale_s
+        self.reader_silent_s = max(reader_silent_s, stale_s)
         self.clock = clock
         self.reads = 0
         self.readings = 0  # good readings
         self.bad_force = 0  # readings the calibration made non-finite
         self.errors = 0  # a backend that raised (counted; the thread goes on)
         self.stale_spells = 0  # times the force went stale
+        self.late_polls = 0  # reads more than stale_s after the previous one (reader starved)
+        self.caught_up = 0  # late reads that found a good report: the board was alive
         self._force = np.zeros(3)
         self._good_at: float | None = None
         self._started_at = clock()
         self._event: ContactEvent | None = None
         self._was_stale = False
+        self._polled_at: float | None = None
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -94,31 +109,50 @@ class ForceReader:
         now = self.clock()
         with self._lock:
             self.reads += 1
+            late = self._polled_at is not None and now - self._polled_at > self.stale_s
+            self.late_polls += late
+            self._polled_at = now
+            good = False
             if reading is not None:
                 f = self.calibration.force(reading)
                 if np.all(np.isfinite(f)):
+                    good = True
                     self.readings += 1
+                    self.caught_up += late
                     self._force, self._good_at = f, now
                     event = self.contact.update(now if t is None else t, f)
                     self._event = event or self._event
                 else:
                     self.bad_force += 1
-            self._check_stale(now)
+            since = self._good_at if self._good_at is not None else self._started_at
+            self._set_stale(not good and now - since > self.stale_s)
 
-    def _check_stale(self, now: float) -> bool:
-        since = self._good_at if self._good_at is not None else self._started_at
-        stale = now - since > self.stale_s
+    def _set_stale(self, stale: bool) -> bool:
         if stale and not self._was_stale:
             self.stale_spells += self._good_at is not None
             self.contact.reset()
         self._was_stale = stale
         return stale
 
+    def _stale_now(self, now: float) -> bool:
+        """The last read's verdict; stale too when the reader thread is gone or has not read
+        for ``reader_silent_s`` (its reads, not its scheduling, decide otherwise)."""
+        if self._good_at is None:
+            return True
+        if self._thread is not None and (
+            not self._thread.is_alive()
+            or self._polled_at is None
+            or now - self._polled_at > self.reader_silent_s
+        ):
+            return self._set_stale(True)
+        return self._was_stale
+
     def sample(self) -> ForceSample:
-        """The force now, and whether it is fresh (the last event taken)."""
+        """The force as the last read left it, and whether it is fresh (the last event
+        taken)."""
         now = self.clock()
         with self._lock:
-            stale = self._good_at is None or self._check_stale(now)
+            stale = self._stale_now(now)
             event, self._event = self._event, None
             age = None if self._good_at is None else now - self._good_at
             return ForceSample(self._force.copy(), stale, age,
@@ -161,8 +195,9 @@ class ForceReader:
             age = None if self._good_at is None else now - self._good_at
             out = {"reads": self.reads, "readings": self.readings, "bad_force": self.bad_force,
                    "errors": self.errors, "stale_spells": self.stale_spells,
+                   "late_polls": self.late_polls, "caught_up": self.caught_up,
                    "age_s": None if age is None else round(age, 3),
-                   "stale": self._good_at is None or age > self.stale_s}  # fmt: skip
+                   "stale": self._stale_now(now)}  # fmt: skip
         sensor_stats = getattr(self.sensor, "stats", None)
         if callable(sensor_stats):
             with contextlib.suppress(Exception):

@@ -4,10 +4,19 @@ HID reader.
 Reads ``/force/hid_report`` of a file written by ``humantele devices record``
 (:mod:`humantele.recording.device_file`). :class:`ReplayForceSensor` is a
 :class:`~humantele.forcesense.hid.HidForceSensor` whose device hands out the recorded reports
-(the bytes as the board sent them) at their recorded receive times (relative to ``open``), so
-the board's own parser (id, version, CRC, pairs, flags; drops counted by reason) and the
-reader's drain loop run as with the board. ``loop``: start again at the end; else the device
-goes quiet (reads give nothing, as an idle board).
+(the bytes as the board sent them) as the board sent them (relative to ``open``), so the
+board's own parser (id, version, CRC, pairs, flags; drops counted by reason) and the reader's
+drain loop run as with the board. ``loop``: start again at the end; else the device goes quiet
+(reads give nothing, as an idle board).
+
+A report is due at the board's own time (its microsecond clock, in the report) on the
+recording's timeline (:mod:`humantele.recording.replay_timeline`), shared with the tracker's
+replay of the same file: from ``open``, counted from the recording's first message, each loop
+the recording's span, so a press comes with the frames of its tip. The receive times alone
+carry the recording machine's scheduling: a recorder starved for 0.5 s received half a second
+of reports in one burst, which replayed at those times is a board silent for 0.5 s (its force
+stale), though the board sent every 10 ms. A report that does not parse goes out with the one
+before it.
 
 ``open`` raises :class:`~humantele.forcesense.base.ForceSensorUnavailable` (one line) for a
 file that is not a device recording or holds no HID report; a truncated file is replayed up to
@@ -16,6 +25,7 @@ its torn tail, logged.
 
 from __future__ import annotations
 
+import struct
 import time
 from collections.abc import Callable, Iterator
 from typing import Literal
@@ -24,7 +34,7 @@ from pydantic import Field
 
 from humantele.config import ConfigModel
 from humantele.forcesense.base import ForceSensorUnavailable
-from humantele.forcesense.hid import HidForceConfig, HidForceSensor
+from humantele.forcesense.hid import HidForceConfig, HidForceSensor, ReportError, parse_report
 from humantele.recording.device_file import (
     HID_REPORT,
     DeviceRecording,
@@ -32,6 +42,7 @@ from humantele.recording.device_file import (
     Sample,
     open_recording,
 )
+from humantele.recording.replay_timeline import DeviceClock, ReplayTimeline, shared_timeline
 
 
 class ReplayForceConfig(ConfigModel):
@@ -56,16 +67,29 @@ class _ReplayHidDevice:
     ) -> None:
         self.rec, self.config = rec, config
         self.clock, self.sleep = clock, sleep
+        self.timeline = shared_timeline(rec.path, rec.span(), clock)
+        self._loop = 0
         self._start()
 
     def _start(self) -> None:
         self._it: Iterator[Sample] = self.rec.samples({HID_REPORT})
-        self._next = next(self._it, None)
-        self._t0 = self.clock()
-        self._r0 = None if self._next is None else self._next.t
+        self._board = DeviceClock(1e6, 1 << 32)  # the board's microseconds
+        self._due = 0.0  # when self._next is due (s, this replay's clock)
+        self._advance()
+
+    def _advance(self) -> None:
+        """The next report and when it is due (module docstring)."""
+        s = self._next = next(self._it, None)
+        if s is not None:
+            t = self._board.time(s.t, _board_time_us(bytes(s.blobs.get("report", b""))))
+            self._due = self.timeline.due(t, self._loop)
 
     def read(self, size: int, timeout_ms: int = 0) -> list[int]:
         if self._next is None and self.config.loop:
+            if self.timeline.period is None:  # no span known: from where it ends, on its own
+                self.timeline, self._loop = ReplayTimeline(None, self.clock), 0
+            else:
+                self._loop += 1
             self._start()
         s = self._next
         if s is None:  # the end: an idle board
@@ -73,14 +97,14 @@ class _ReplayHidDevice:
                 self.sleep(timeout_ms / 1000.0)
             return []
         if self.config.pace:
-            wait = self._t0 + (s.t - (self._r0 or 0.0)) - self.clock()
+            wait = self._due - self.clock()
             if wait > timeout_ms / 1000.0:
                 if timeout_ms:
                     self.sleep(timeout_ms / 1000.0)
                 return []
             if wait > 0:
                 self.sleep(wait)
-        self._next = next(self._it, None)
+        self._advance()
         return list(bytes(s.blobs.get("report", b""))[:size])
 
     def close(self) -> None:
@@ -88,6 +112,15 @@ class _ReplayHidDevice:
         if close is not None:
             close()
         self._next = None
+
+
+def _board_time_us(report: bytes) -> int | None:
+    """A good report's board time (us, wrapping at 2**32); None if it does not parse."""
+    try:
+        parse_report(report)
+    except ReportError:
+        return None
+    return struct.unpack_from("<I", report, 4)[0]
 
 
 class ReplayForceSensor(HidForceSensor):

@@ -39,8 +39,8 @@ class ForceSensorConfig(ConfigModel):
         100.0, ge=5, le=2000, description="a real board is read at this rate, apart from "
         "the camera (the board sends 100 Hz)")  # fmt: skip
     stale_s: float = Field(
-        0.2, gt=0, le=5, description="no good reading for this long: the force is stale "
-        "(not sent, not used for contact or calibration)")  # fmt: skip
+        0.2, gt=0, le=5, description="a read with no good report this long after the last "
+        "good one: the force is stale (not sent, not used for contact or calibration)")  # fmt: skip
 
 
 def make_force_sensor(

@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
+from mcap.reader import make_reader
 from mcap.records import Channel, Footer, Header, Message, Metadata
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
@@ -316,6 +317,21 @@ class DeviceRecording:
                 f"{info.get('version')!r}, this reads {FORMAT_VERSION}"
             )
         return info
+
+    def span(self) -> tuple[float, float] | None:
+        """The first and last message's times (s, the recorder's ``time.monotonic``), from the
+        file's summary; None for a file without one (cut short) or with no message."""
+        if not self.complete:
+            return None
+        try:
+            with open(self.path, "rb") as f:
+                summary = make_reader(f).get_summary()
+        except Exception:  # noqa: BLE001 - a summary we cannot read: no span
+            return None
+        stats = None if summary is None else summary.statistics
+        if stats is None or stats.message_count == 0:
+            return None
+        return stats.message_start_time * 1e-9, stats.message_end_time * 1e-9
 
     def warn_once(self, what: str = "") -> None:
         """Log :attr:`problem` once per recording (the replays call it at open and at the

@@ -36,6 +36,7 @@ from humantele.signaling.messages import (
     parse,
     printable,
 )
+from humantele.web.liveness import PageLiveness, receive_answering, watch_socket
 
 
 def _loadable_ca(path: Path) -> Path:
@@ -97,6 +98,8 @@ class SignalingClient:
         self._session: aiohttp.ClientSession | None = None
         self._ws: aiohttp.ClientWebSocketResponse | None = None
         self._joining: asyncio.Task[Joined] | None = None
+        self._live = PageLiveness()
+        self._watch: asyncio.Task | None = None
 
     def __repr__(self) -> str:
         return f"SignalingClient({self.url!r}, room={self.room!r}, role={self.role!r})"
@@ -140,13 +143,16 @@ class SignalingClient:
             self._ws = await self._session.ws_connect(
                 self.url,
                 ssl=self._ssl,
-                heartbeat=self._heartbeat_s,
+                autoping=False,  # pings: our watch (web.liveness), on running time
                 max_msg_size=self._max,
                 timeout=aiohttp.ClientWSTimeout(ws_close=2.0),
             )
         except (aiohttp.ClientError, OSError) as exc:
             await self.close()
             raise SignalingError(f"cannot reach signaling server {self.url}: {exc}") from None
+        hb = self._heartbeat_s
+        self._live = PageLiveness(hb, 2.0 * hb, min(0.5, hb / 4))
+        self._watch = asyncio.create_task(watch_socket(self._ws, self._live))
         join = Join(room=self.room, role=self.role, token=self._token, protocol=SIGNALING_PROTOCOL)
         await self._ws.send_str(join.model_dump_json())
         reply = await self.receive()
@@ -168,7 +174,7 @@ class SignalingClient:
         the connection closes or the server sends garbage."""
         if self._ws is None:
             raise SignalingError("not connected")
-        m = await self._ws.receive()
+        m = await receive_answering(self._ws, self._live)
         if m.type != aiohttp.WSMsgType.TEXT:
             code = self._ws.close_code
             await self.close()
@@ -182,7 +188,7 @@ class SignalingClient:
             ) from None
         if isinstance(msg, Error):
             # the close frame carries the code; read it
-            close = await self._ws.receive()
+            close = await receive_answering(self._ws, self._live)
             code = close.data if close.type == aiohttp.WSMsgType.CLOSE else self._ws.close_code
             await self.close()
             raise SignalingRefused(msg.reason, code)
@@ -193,6 +199,9 @@ class SignalingClient:
         SignalingError."""
         if self._joining is not None and self._joining is not asyncio.current_task():
             self._joining.cancel()
+        if self._watch is not None:
+            self._watch.cancel()
+            self._watch = None
         if self._ws is not None and not self._ws.closed:
             await self._ws.close()
         if self._session is not None:

@@ -5,8 +5,10 @@ A bad peer only loses its own connection: a wrong or missing token, a full room,
 oversized or out-of-order message each close that socket with a reason; every other room keeps
 working. Every connection has a deadline at each stage: the WebSocket handshake (TLS included)
 within ``handshake_timeout_s`` of accept, the join within ``join_timeout_s`` of the upgrade,
-then WebSocket pings every ``heartbeat_s`` find dead or silent peers. Open connections are capped
-in total and per client address (:mod:`humantele.web.connguard`).
+then a peer quiet for ``heartbeat_s`` is pinged and one that answers nothing for twice as long
+is dropped, judged on the server's running time (:mod:`humantele.web.liveness`: aiohttp's own
+heartbeat closed answering peers after a loop stall on a loaded machine). Open connections are
+capped in total and per client address (:mod:`humantele.web.connguard`).
 
 With ``tls_cert`` (and ``tls_key``) it serves ``wss://``; a non-loopback host without TLS is
 refused unless ``insecure`` (for a server behind a TLS proxy, see docs/signaling.md). Logs quote
@@ -65,6 +67,7 @@ from humantele.signaling.messages import (
     token_matches,
 )
 from humantele.signaling.turn import TurnConfig, TurnIssuer
+from humantele.web.liveness import PageLiveness, receive_answering, watch_socket
 from humantele.web.loopback import is_loopback
 from humantele.web.text import printable
 
@@ -252,9 +255,11 @@ class SignalingServer:
         if request.method != "GET":
             return web.Response(status=405, text="method not allowed\n")
         ws = web.WebSocketResponse(
-            max_msg_size=cfg.max_message_bytes, heartbeat=cfg.heartbeat_s, timeout=2.0
-        )  # timeout: for the close handshake
+            max_msg_size=cfg.max_message_bytes, autoping=False, timeout=2.0
+        )  # timeout: for the close handshake; pings: our watch (web.liveness)
         await ws.prepare(request)
+        live = PageLiveness(cfg.heartbeat_s, 2.0 * cfg.heartbeat_s, min(0.5, cfg.heartbeat_s / 4))
+        watch = asyncio.create_task(watch_socket(ws, live, self.counters))
         if self.guard is not None:
             self.guard.handshake_done(request.protocol)
         self._sockets.add(ws)
@@ -263,7 +268,7 @@ class SignalingServer:
         refresher: asyncio.Task | None = None
         try:
             try:
-                first = await asyncio.wait_for(ws.receive(), cfg.join_timeout_s)
+                first = await asyncio.wait_for(receive_answering(ws, live), cfg.join_timeout_s)
             except TimeoutError:
                 raise _Refuse(CLOSE_JOIN_TIMEOUT, "no join message in time") from None
             msg = self._message(first)
@@ -285,7 +290,7 @@ class SignalingServer:
             if other is not None:
                 await self._send_quietly(other, PeerJoined(role=msg.role).model_dump_json())
             while True:
-                msg = self._message(await ws.receive())
+                msg = self._message(await receive_answering(ws, live))
                 if msg is None:
                     break
                 await self._relay(msg, *joined)
@@ -300,6 +305,7 @@ class SignalingServer:
                 close_reason = clip_utf8(refusal.reason, MAX_CLOSE_REASON_BYTES)
                 await ws.close(code=refusal.code, message=close_reason.encode())
         finally:
+            watch.cancel()
             if refresher is not None:
                 refresher.cancel()
             self._sockets.discard(ws)

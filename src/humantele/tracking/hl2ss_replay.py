@@ -24,6 +24,17 @@ as the headset stamps its own clock, so a client on the same machine knows each 
 ``spells``: (start, end) s from the connection's start where the headset's hand tracker
 sees no hand and the AHAT camera runs at 5 Hz (:func:`sensor_frames`).
 
+``epoch`` (a ``time.monotonic`` value, which every process of a machine shares; with
+``rate_hz`` and a turn given as a list of records): the headset's world runs on from it whether
+or not a client reads it, as a real one's does, and as another replay of the same clinic (the
+force board's, started from the same epoch) does: record ``n`` (looped) is captured at ``epoch
++ n / rate_hz``, a client that connects (or reconnects after a stall) gets the frame of now,
+and a frame whose time passed by more than a period before it could be sent (a server starved
+on a loaded machine, a client that reads late) is dropped, as the headset's sensor drops what
+its sender could not take (counted in ``dropped_late``). Without it, each connection starts the
+turn from its first record and sends every frame, however late: a replay that falls behind
+the force board's for good, and starts again from the start at each reconnection.
+
 In its own process, serving records saved with :func:`save_records` (``.npz``) or a device
 recording made by ``humantele devices record`` (``.mcap``: the frames and rig poses exactly as
 the headset sent them, and its calibration; a truncated one is served up to its torn tail,
@@ -41,6 +52,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import signal
 import socket
 import sys
@@ -150,6 +162,7 @@ class Hl2ssReplayServer:
         recorded_times: bool = False,
         live: bool = False,
         spells: list[tuple[float, float]] = (),
+        epoch: float | None = None,
     ):
         self.turns = list(turns)
         self.repeat = repeat
@@ -158,6 +171,8 @@ class Hl2ssReplayServer:
         self.recorded_times = recorded_times
         self.live = live
         self.spells = list(spells)
+        self.epoch = epoch
+        self.dropped_late = 0  # frames past their time by over a period (with an epoch)
         self.sent = 0  # frames sent, all connections
         self.calibration = calibration
         self._calibration_bytes = None if calibration is None else calibration.to_bytes()
@@ -214,6 +229,9 @@ class Hl2ssReplayServer:
             return
         self.configs.append(cfg)
         items = self.turns[0] if self.repeat else self.turns.pop(0)
+        if self.epoch is not None and self.rate_hz and isinstance(items, list) and items:
+            self._serve_from_epoch(conn, cfg, items)
+            return
         encoder: AhatEncoder | None = None
         k = 0
         step = max(1, round((self.rate_hz or 45.0) / SPELL_RATE_HZ))
@@ -277,6 +295,51 @@ class Hl2ssReplayServer:
                     return
             except TimeoutError:
                 continue
+
+    def _serve_from_epoch(
+        self, conn: socket.socket, cfg: AhatConfiguration, records: list[TurnItem]
+    ) -> None:
+        """The headset's world from ``epoch`` (class docstring): the frame of now, then each at
+        its time; one past its time by more than a period is dropped."""
+        assert self.epoch is not None and self.rate_hz
+        period = 1.0 / self.rate_hz
+        encoder: AhatEncoder | None = None
+        n = max(0, math.ceil((time.monotonic() - self.epoch) / period))
+        while self.loop or n < len(records):
+            due = self.epoch + n * period
+            delay = due - time.monotonic()
+            if delay > 0 and self._stop.wait(delay):
+                return
+            if delay < -period:  # past its time: not captured, as the headset's sensor drops
+                now_n = math.ceil((time.monotonic() - self.epoch) / period)
+                self.dropped_late += max(1, now_n - n)
+                n = max(n + 1, now_n)
+                continue
+            item = records[n % len(records)]
+            n += 1
+            if (n - 1) % cfg.divisor:
+                continue
+            if item is None:
+                return
+            if isinstance(item, AhatRecord):
+                if encoder is None:
+                    encoder = AhatEncoder(cfg)
+                if cfg.profile_ab == VIDEO_PROFILE_RAW and not self.live:
+                    data = item.packet(cfg.mode)
+                else:
+                    payload = encoder.payload(item.depth_mm, item.ab, item.sensor_ticks)
+                    data = self._packet(due if self.live else None, payload,
+                                        item.hl2ss_pose(), cfg.mode, item.timestamp)  # fmt: skip
+            elif isinstance(item, bytes):
+                data = item
+            else:
+                self.refusals.append("an epoch replays records, not encoded frames")
+                return
+            try:
+                conn.sendall(data)
+            except OSError:  # the client left
+                return
+            self.sent += 1
 
     def _packet(self, due: float | None, payload: bytes, pose: NDArray[np.float32] | None,
                 mode: int, timestamp: int = 0) -> bytes:  # fmt: skip
@@ -427,6 +490,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--host", default="127.0.0.1")
     ap.add_argument("--port", type=int, default=0, help="0: any free port (printed)")
     ap.add_argument("--loop", action="store_true", help="start again at the end (per client)")
+    ap.add_argument("--epoch", type=float, default=None,
+                    help="a time.monotonic() value: the headset's world runs from it (.npz "
+                    "at a rate; see Hl2ssReplayServer)")  # fmt: skip
     ap.add_argument("--rate", type=float, default=None,
                     help="frames per second (0: unpaced; default: 45 for .npz, the recorded "
                     "times for .mcap)")  # fmt: skip
@@ -453,7 +519,8 @@ def main(argv: list[str] | None = None) -> int:
         signal.signal(sig, lambda *_: stop.set())
     with Hl2ssReplayServer([records], cal, args.host, args.port, repeat=True, loop=args.loop,
                            rate_hz=(45.0 if args.rate is None and not mcap else args.rate) or None,
-                           recorded_times=mcap and args.rate is None) as srv:  # fmt: skip
+                           recorded_times=mcap and args.rate is None,
+                           epoch=args.epoch) as srv:  # fmt: skip
         print(f"hl2ss replay listening on {args.host}:{srv.port}", flush=True)
         stop.wait()
     return 0

@@ -9,9 +9,12 @@ T_rig_camera`` (the AHAT extrinsics). A frame without a usable pose is returned 
 counted in ``no_pose``, as the hl2ss backend does.
 
 Pacing (``pace = true``): ``read`` blocks until the frame's recorded time (its hl2ss
-timestamp, 100 ns ticks, relative to the first frame and to the first ``read``), as the stream
-would. A reader that fell behind skips to the newest frame already due, the older ones counted
-in ``dropped["stale"]``, as the hl2ss backend does (``newest = false``: every frame in order).
+timestamp, 100 ns ticks) on the recording's timeline
+(:mod:`humantele.recording.replay_timeline`), shared with the force board's replay of the same
+file: from ``open``, counted from the recording's first message, each loop the recording's
+span; so a press comes with the frames of its tip, however late the first ``read`` comes. A
+reader that fell behind skips to the newest frame already due, the older ones counted in
+``dropped["stale"]``, as the hl2ss backend does (``newest = false``: every frame in order).
 One ``read`` waits at most ``MAX_WAIT_S`` (a recording with a pause, e.g. a stalled stream,
 must not hold a read longer than the headset's would be held: the follower takes a sensing
 process that gives no answer for seconds as hung); the frame is then given by a later read.
@@ -41,6 +44,7 @@ from humantele.recording.device_file import (
     Sample,
     open_recording,
 )
+from humantele.recording.replay_timeline import DeviceClock, ReplayTimeline, shared_timeline
 from humantele.tracking.camera import CameraIntrinsics
 from humantele.tracking.frames import FrameSource, FrameSourceUnavailable, TrackingFrame
 from humantele.tracking.hl2ss_calibration import Hl2ssAhatCalibration
@@ -84,12 +88,14 @@ class ReplayFrameSource(FrameSource):
         self.last_sensor_ticks: int | None = None
         self.problem: str | None = None
         self._clock, self._sleep = clock, sleep
-        self._held: Sample | None = None  # a frame a read stopped waiting for
+        self._held: tuple[Sample, float] | None = None  # a frame a read stopped waiting for
         self._rec: DeviceRecording | None = None
         self._it: Iterator[Sample] | None = None
         self._next: Sample | None = None
-        self._t0: float | None = None  # clock time of the first frame's replay
-        self._ts0 = 0
+        self._next_due = 0.0  # when it is due (s, the clock)
+        self._timeline: ReplayTimeline | None = None
+        self._loop = 0
+        self._device = DeviceClock(TICKS_PER_S)
         self._seq = 0
         self._undistort = False
 
@@ -101,6 +107,7 @@ class ReplayFrameSource(FrameSource):
         except DeviceRecordingError as exc:
             raise FrameSourceUnavailable(f"replay tracker: {exc}") from None
         self._rec = rec
+        self._timeline, self._loop = shared_timeline(rec.path, rec.span(), self._clock), 0
         self._restart()
         if self._next is None:
             self._rec = None
@@ -112,8 +119,8 @@ class ReplayFrameSource(FrameSource):
     def _restart(self) -> None:
         assert self._rec is not None
         self._it = self._rec.samples({AHAT_CALIBRATION, AHAT_FRAME})
+        self._device = DeviceClock(TICKS_PER_S)  # hl2ss's 100 ns ticks
         self._next = self._advance()
-        self._t0 = None
 
     def _advance(self) -> Sample | None:
         """The next frame sample (taking the calibration on the way)."""
@@ -123,6 +130,10 @@ class ReplayFrameSource(FrameSource):
                 if self.calibration is None:
                     self._set_calibration(s)
                 continue
+            assert self._timeline is not None
+            ts = s.fields.get("timestamp")
+            t = self._device.time(s.t, int(ts) if isinstance(ts, int | float) else None)
+            self._next_due = self._timeline.due(t, self._loop)
             return s
         self.problem = self._rec.problem
         return None
@@ -145,37 +156,37 @@ class ReplayFrameSource(FrameSource):
         if self._rec is None:
             self.dropped["not_open"] = self.dropped.get("not_open", 0) + 1
             return None
-        if self._next is None and self.config.loop:
+        if self._held is None and self._next is None and self.config.loop:
+            assert self._timeline is not None
+            if self._timeline.period is None:  # no span known: from where it ends, on its own
+                self._timeline, self._loop = ReplayTimeline(None, self._clock), 0
+            else:
+                self._loop += 1
             self._restart()
         held, self._held = self._held, None
-        s = held or self._next
-        if s is None:
+        if held is not None:
+            s, due = held
+        elif self._next is None:
             self.dropped["end"] = self.dropped.get("end", 0) + 1
             return None
-        if held is None:
+        else:
+            s, due = self._next, self._next_due
             self._next = self._advance()
-        ts = int(s.fields.get("timestamp", 0))
         if self.config.pace:
             now = self._clock()
-            if self._t0 is None:
-                self._t0, self._ts0 = now, ts
-            while self.config.newest and self._next is not None and self._due(self._next) <= now:
-                s, self._next = self._next, self._advance()  # behind: the newer one is due
-                ts = int(s.fields.get("timestamp", 0))
+            while self.config.newest and self._next is not None and self._next_due <= now:
+                s, due = self._next, self._next_due  # behind: the newer one is due
+                self._next = self._advance()
                 self.dropped["stale"] = self.dropped.get("stale", 0) + 1
-            wait = self._t0 + (ts - self._ts0) / TICKS_PER_S - now
+            wait = due - now
             if wait > MAX_WAIT_S:  # a pause in the recording: this read ends, the frame waits
                 self._sleep(MAX_WAIT_S)
-                self._held = s
+                self._held = (s, due)
                 self.dropped["timeout"] = self.dropped.get("timeout", 0) + 1
                 return None
             if wait > 0:
                 self._sleep(wait)
-        return self._frame(s, ts, t)
-
-    def _due(self, s: Sample) -> float:
-        assert self._t0 is not None
-        return self._t0 + (int(s.fields.get("timestamp", 0)) - self._ts0) / TICKS_PER_S
+        return self._frame(s, int(s.fields.get("timestamp", 0)), t)
 
     def _frame(self, s: Sample, ts: int, t: float | None) -> TrackingFrame | None:
         try:

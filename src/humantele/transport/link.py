@@ -27,7 +27,9 @@ Behaviour:
   not answer; retried with backoff), ``"failed"`` (refused: bad token or protocol) or
   ``"closed"``; ``on_link_state(state)`` is called on every change.
 - Heartbeats every ``heartbeat_interval_s`` on ``control``; with no message at all from the
-  peer for ``heartbeat_timeout_s`` the link is declared lost, even when ICE has not noticed.
+  peer for ``heartbeat_timeout_s`` the link is declared lost, even when ICE has not noticed
+  (judged on a watchdog tick that came on time: after this daemon stalled, what the peer sent
+  meanwhile is read first).
 - Clock sync: ping/pong on ``control`` (``clock``: a :class:`ClockSync`, offset and rtt).
 - Poses and states never queue behind a stall: once aiortc holds more than
   ``newest_only_above_bytes`` of unsent ones (SCTP's congestion window is full, e.g. after a
@@ -110,6 +112,7 @@ LinkState = Literal[
 CHANNEL_IDS = {"pose": 0, "state": 1, "control": 2}
 FAST_SYNC_PINGS = 8  # first pings after connecting go every 0.1 s, to sync quickly
 _TICK_S = 0.1
+_LATE_TICK_S = 5 * _TICK_S  # a watchdog tick this long after the last: the daemon stalled
 
 
 @dataclass
@@ -697,12 +700,17 @@ class PeerLink:
 
     async def _watchdog(self) -> None:
         cfg = self.config
+        last_tick = self.now()
         while True:
             await asyncio.sleep(_TICK_S)
             peer = self._peer
             now = self.now()
+            # A tick that came late: this daemon did not run (a loaded machine, the host's
+            # steal), and what the peer sent meanwhile waits in the socket, read after this
+            # tick in the loop's turn: judge the silence at the next tick, not now.
+            late, last_tick = now - last_tick > _LATE_TICK_S, now
             if self._state == "connected" and peer is not None and peer.open:
-                if now - self._last_rx > cfg.heartbeat_timeout_s:
+                if now - self._last_rx > cfg.heartbeat_timeout_s and not late:
                     await self._lost(peer, f"no message for {cfg.heartbeat_timeout_s:.1f} s")
                     continue
                 if now - self._last_heartbeat >= cfg.heartbeat_interval_s:

@@ -7,9 +7,15 @@ waits to be sent to it, latest per key: a slow page gets the newest, never a bac
 sender task per page, and reads what the page sends. A message over the budget is dropped
 (``flood``; a page flooding ``FLOOD_CLOSE`` times in a row is closed), a binary one is
 ``malformed``, one over ``max_message`` bytes closes the page (``too_big``); a text message
-goes to the server's handler, whose exception is counted (``failed``), never raised. When a
-page goes (closed tab, network gone) its sender is cancelled and ``disconnects`` counts it.
-Everything refused is counted in the server's ``refused`` counter; the daemon goes on.
+goes to the server's handler, whose exception is counted (``failed``), never raised; a frame
+that breaks the WebSocket protocol closes the page (``bad_frame``). When a page goes (closed
+tab, network gone) its sender is cancelled and ``disconnects`` counts it. Everything refused is
+counted in the server's ``refused`` counter; the daemon goes on.
+
+A page lost is not a page refused: a connection reset, a TLS error on an open page, or a page
+that answered no ping (:mod:`humantele.web.liveness`: judged on the daemon's own running time,
+so a loaded machine's stalls do not close answering pages) is counted in ``lost`` by reason
+(``reset``, ``tls``, ``no_answer``, ``socket_error``), apart from the refusals.
 
 With an :class:`Access`, a page must carry the server's credential on its WebSocket's URL
 (:mod:`humantele.web.credential`): without it, or with a wrong one, the socket is closed at once
@@ -23,22 +29,24 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import ssl
 from collections import Counter
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
 
-from aiohttp import WSCloseCode, WSMsgType, web
+from aiohttp import WebSocketError, WSCloseCode, WSMsgType, web
 from pydantic import BaseModel, TypeAdapter, ValidationError
 
 from humantele.web.connguard import GuardedServer
 from humantele.web.credential import CLOSE_THROTTLED, CLOSE_UNAUTHORIZED, Credential, Verdict
 from humantele.web.guard import MessageBudget, origin_allowed
+from humantele.web.liveness import ANSWER_WITHIN_S, PING_EVERY_S, STEP_S, PageLiveness
 
 log = logging.getLogger(__name__)
 
 FLOOD_CLOSE = 600  # a page refused this many times in a row for flooding is closed
-HEARTBEAT_S = 5.0  # a page that answers no ping for this long is gone
+CLOSE_TIMEOUT_S = 5.0  # a page judged gone is closed without its answer after this long
 
 
 @dataclass(frozen=True)
@@ -75,6 +83,7 @@ class PageClient:
         self.pending: dict[str, str | bytes] = {}
         self.wake = asyncio.Event()
         self.flooding = 0
+        self.liveness = PageLiveness()
 
     def post(self, key: str, data: str | bytes) -> None:
         """Send ``data`` to this page (replacing unsent data of the same ``key``)."""
@@ -86,7 +95,9 @@ class PageSockets:
     """The pages of one server (see the module docstring). ``refused``: the server's refusal
     counter; ``make_client(ws, budget)``: a :class:`PageClient` (or a subclass with the
     server's per-page state). ``sent`` counts messages sent, ``coalesced`` unsent ones
-    replaced by newer ones."""
+    replaced by newer ones; ``lost`` counts pages lost by reason (not refusals). Each page is
+    pinged after ``ping_every_s`` of silence and gone after ``answer_within_s`` more (of the
+    daemon's running time, watched every ``step_s``: :mod:`humantele.web.liveness`)."""
 
     def __init__(
         self,
@@ -105,6 +116,10 @@ class PageSockets:
         self.sent = 0
         self.coalesced = 0
         self.disconnects = 0
+        self.lost: Counter[str] = Counter()
+        self.ping_every_s = PING_EVERY_S
+        self.answer_within_s = ANSWER_WITHIN_S
+        self.step_s = STEP_S
 
     def post(self, key: str, data: str | bytes) -> None:
         """Send ``data`` to every page (latest per ``key`` wins)."""
@@ -139,20 +154,25 @@ class PageSockets:
         if len(self.clients) >= lim.max_clients:
             self.refused[lim.full_reason] += 1
             return web.Response(status=lim.full_status, text=lim.full_text)
-        ws = web.WebSocketResponse(heartbeat=HEARTBEAT_S, max_msg_size=lim.max_message)
+        ws = web.WebSocketResponse(
+            autoping=False, max_msg_size=lim.max_message, timeout=CLOSE_TIMEOUT_S
+        )
         await ws.prepare(request)
         if self.guard is not None and self.access is not None:
             self.guard.established(request.protocol)  # type: ignore[arg-type]
         client = self.make_client(ws, MessageBudget(lim.rate_hz, max(1, int(2 * lim.rate_hz))))
+        client.liveness = PageLiveness(self.ping_every_s, self.answer_within_s, self.step_s)
         self.clients.add(client)
-        sender = None
+        sender = watch = None
         try:
             if on_open is not None:
                 on_open(client)
             sender = asyncio.create_task(self.send_loop(client, hold, wake_every_s))
+            watch = asyncio.create_task(self._watch(client))
             async for msg in ws:
+                client.liveness.heard()
                 if msg.type == WSMsgType.ERROR:
-                    self.refused["too_big" if _too_big(ws) else "socket_error"] += 1
+                    self._ended_by_error(ws)
                     break
                 if not client.budget.take():
                     self.refused["flood"] += 1
@@ -163,6 +183,11 @@ class PageSockets:
                         break
                     continue
                 client.flooding = 0
+                if msg.type == WSMsgType.PING:
+                    await ws.pong(msg.data)
+                    continue
+                if msg.type == WSMsgType.PONG:
+                    continue
                 if msg.type != WSMsgType.TEXT:
                     self.refused["malformed"] += 1
                     continue
@@ -174,12 +199,45 @@ class PageSockets:
         finally:
             self.clients.discard(client)
             self.disconnects += 1
-            if sender is not None:
-                sender.cancel()
-                await asyncio.gather(sender, return_exceptions=True)
+            for task in (sender, watch):
+                if task is not None:
+                    task.cancel()
+            await asyncio.gather(*(t for t in (sender, watch) if t), return_exceptions=True)
             if on_close is not None:
                 await on_close(client)
         return ws
+
+    def _ended_by_error(self, ws: web.WebSocketResponse) -> None:
+        """Count why a page's socket failed: a refusal if the page broke the protocol (a frame
+        too big, a bad frame), else a page lost (reset, TLS, other)."""
+        exc = ws.exception()
+        if _too_big(ws):
+            self.refused["too_big"] += 1
+        elif isinstance(exc, WebSocketError):
+            self.refused["bad_frame"] += 1
+        elif isinstance(exc, ssl.SSLError):
+            self.lost["tls"] += 1
+        elif isinstance(exc, ConnectionError):
+            self.lost["reset"] += 1
+        else:
+            self.lost["socket_error"] += 1
+
+    async def _watch(self, client: PageClient) -> None:
+        """Ping a quiet page, close one that answers nothing (:mod:`humantele.web.liveness`)."""
+        live = client.liveness
+        try:
+            while not client.ws.closed:
+                await asyncio.sleep(live.step_s)
+                verdict = live.step()
+                if verdict == "ping":  # (a page that reads nothing may hold the drain)
+                    with contextlib.suppress(TimeoutError):
+                        await asyncio.wait_for(client.ws.ping(), live.step_s)
+                elif verdict == "gone":
+                    self.lost["no_answer"] += 1
+                    await client.ws.close(code=WSCloseCode.GOING_AWAY, message=b"no answer")
+                    return
+        except (ConnectionError, RuntimeError) as exc:
+            log.debug("page gone: %s", exc)
 
     async def _check_access(
         self, request: web.Request, access: Access
