@@ -71,6 +71,7 @@ from humantele.haptics.servo_layout import (
 )
 from humantele.haptics.shm import SeqlockArray
 from humantele.runtime.child import Priority, set_priority
+from humantele.runtime.cpu_latency import hold_cpu_latency
 
 log = logging.getLogger(__name__)
 
@@ -198,8 +199,12 @@ class PeriodTiming:
 
 def try_realtime(config: ServoConfig) -> bool:
     """SCHED_FIFO at ``realtime_priority`` (the first of :data:`humantele.runtime.child.
-    PRIORITY`), the CPU affinity, 1 ns timer slack; True when the real-time policy was had."""
+    PRIORITY`), the CPU affinity, 1 ns timer slack, the CPUs' wake-up latency request
+    (``cpu_latency_us``, :mod:`humantele.runtime.cpu_latency`); True when the real-time policy
+    was had."""
     ok = False
+    if config.cpu_latency_us is not None:
+        hold_cpu_latency(config.cpu_latency_us)
     if config.realtime_priority > 0:
         got = set_priority(Priority(fifo=config.realtime_priority))
         ok = "refused" not in got

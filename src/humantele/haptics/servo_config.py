@@ -55,6 +55,10 @@ class ServoConfig(ConfigModel):
     velocity_cutoff_hz: float = Field(100.0, gt=0.0, le=2000.0)
     realtime_priority: int = Field(80, ge=0, le=99, description="SCHED_FIFO priority; 0 = off")
     cpu_affinity: list[int] | None = None
+    cpu_latency_us: int | None = Field(
+        0, ge=0, le=10_000, description="us, the CPUs' longest wake-up from idle while the "
+        "servo runs (/dev/cpu_dma_latency, runtime.cpu_latency); None: no request",
+    )  # fmt: skip
     spin_s: float = Field(
         0.0002, ge=0.0, le=0.001, description="s, the most spun before a tick (SpinBudget)"
     )
