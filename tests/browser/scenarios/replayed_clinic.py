@@ -126,11 +126,11 @@ async def run(ctx) -> dict:
     (ctx.out / "truth.json").write_text(json.dumps(truth))
     ctx.mark("recorded")
     # Looped, frames and force board alike: a press the follower was not yet measuring comes
-    # round again, as a technician re-presses. One epoch for both: the clinic runs on from it
-    # in real time (a server starved under load drops frames rather than lag the board, and a
-    # reconnection after a stall does not start the frames again from the first).
-    epoch = time.monotonic()
-    server, port = start_hl2ss_server(rec.dir / "ahat.npz", loop=True, epoch=epoch)
+    # round again, as a technician re-presses. Each from the follower's first read, not from
+    # one epoch (hl2ss_replay --epoch): joined mid-turn, the frames' recorded timestamps jump
+    # back by the turn's length at its wrap, sooner than the presses end, and the presses
+    # were refused on a quiet machine ('only 0 mm from the xiphoid', 2 runs of 2).
+    server, port = start_hl2ss_server(rec.dir / "ahat.npz", loop=True)
     s = await ctx.daemons()
     try:
         expert_cfg = expert_on_fake_touchx(ctx.out, s.env)
@@ -139,7 +139,7 @@ async def run(ctx) -> dict:
         registration = "[follower.registration]\nwatch_samples = 5\n"
         follower_cfg = ctx.out / "follower.toml"
         follower_cfg.write_text(follower_config(rec.dir, port, s.state_dir, extra=registration))
-        s.env.update(replay_env(rec.dir, loop=True, epoch=epoch))
+        s.env.update(replay_env(rec.dir, loop=True))
         await s.start("follower", "--config", str(follower_cfg),
                       "--record", str(ctx.out / "f.mcap"))  # fmt: skip
         await s.wait("the follower calibrated from the replayed presses",
