@@ -273,14 +273,7 @@ class Hl2ssReplayServer:
                     delay = due - time.monotonic()
                     if delay > 0 and self._stop.wait(delay):
                         return
-                if encoder is None:
-                    encoder = AhatEncoder(cfg)
-                if cfg.profile_ab == VIDEO_PROFILE_RAW and not self.live:
-                    data = item.packet(cfg.mode)
-                else:
-                    payload = encoder.payload(item.depth_mm, item.ab, item.sensor_ticks)
-                    data = self._packet(due if self.live else None, payload,
-                                        item.hl2ss_pose(), cfg.mode, item.timestamp)  # fmt: skip
+                data, encoder = self._record_packet(item, cfg, encoder, due)
             else:
                 data = item
             try:
@@ -322,14 +315,7 @@ class Hl2ssReplayServer:
             if item is None:
                 return
             if isinstance(item, AhatRecord):
-                if encoder is None:
-                    encoder = AhatEncoder(cfg)
-                if cfg.profile_ab == VIDEO_PROFILE_RAW and not self.live:
-                    data = item.packet(cfg.mode)
-                else:
-                    payload = encoder.payload(item.depth_mm, item.ab, item.sensor_ticks)
-                    data = self._packet(due if self.live else None, payload,
-                                        item.hl2ss_pose(), cfg.mode, item.timestamp)  # fmt: skip
+                data, encoder = self._record_packet(item, cfg, encoder, due)
             elif isinstance(item, bytes):
                 data = item
             else:
@@ -340,6 +326,22 @@ class Hl2ssReplayServer:
             except OSError:  # the client left
                 return
             self.sent += 1
+
+    def _record_packet(
+        self,
+        item: AhatRecord,
+        cfg: AhatConfiguration,
+        encoder: AhatEncoder | None,
+        due: float | None,
+    ) -> tuple[bytes, AhatEncoder | None]:
+        """``item``'s packet for this connection (RAW as recorded, unless stamped live; else
+        through ``encoder``, made on the first frame that needs it), and the encoder."""
+        if cfg.profile_ab == VIDEO_PROFILE_RAW and not self.live:
+            return item.packet(cfg.mode), encoder
+        encoder = encoder or AhatEncoder(cfg)
+        payload = encoder.payload(item.depth_mm, item.ab, item.sensor_ticks)
+        return self._packet(due if self.live else None, payload, item.hl2ss_pose(), cfg.mode,
+                            item.timestamp), encoder  # fmt: skip
 
     def _packet(self, due: float | None, payload: bytes, pose: NDArray[np.float32] | None,
                 mode: int, timestamp: int = 0) -> bytes:  # fmt: skip
