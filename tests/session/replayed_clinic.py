@@ -193,32 +193,26 @@ backend = "hid"
 {extra}"""
 
 
-def replay_env(rec: Path, loop: bool = False, epoch: float | None = None) -> dict[str, str]:
+def replay_env(rec: Path, loop: bool = False) -> dict[str, str]:
     """Environment additions for the follower: the replayed ``hid`` module and its reports
-    (``loop``: again and again, as the frames with the server's ``--loop``; ``epoch``: the
-    board sending since then, with the frames of :func:`start_hl2ss_server`'s ``epoch``)."""
+    (``loop``: again and again, as the frames with the server's ``--loop``)."""
     import os
 
     path = os.pathsep.join([str(REPLAY_HID), os.environ.get("PYTHONPATH", "")])
-    env = {"PYTHONPATH": path, "HUMANTELE_HID_REPLAY": str(rec / "board.hex"),
-           "HUMANTELE_HID_LOOP": "1" if loop else "0"}  # fmt: skip
-    if epoch is not None:
-        env["HUMANTELE_HID_EPOCH"] = repr(epoch)
-    return env
+    return {"PYTHONPATH": path, "HUMANTELE_HID_REPLAY": str(rec / "board.hex"),
+            "HUMANTELE_HID_LOOP": "1" if loop else "0"}  # fmt: skip
 
 
-def start_hl2ss_server(npz: Path, loop: bool = False, epoch: float | None = None):
+def start_hl2ss_server(npz: Path, loop: bool = False):  # -> (subprocess.Popen, port)
     """The hl2ss replay server in its own process (paced at 45 Hz, as the headset sends;
-    ``loop``: the recording again at its end; ``epoch``: a ``time.monotonic`` value from which
-    the headset's world runs, whatever the server's load or the follower's reconnections, as
-    the board's replay with the same epoch does): (subprocess.Popen, port)."""
+    ``loop``: the recording again at its end)."""
     import subprocess
     import sys
 
     # (in the caller's process group: a scenario killed at its timeout takes it along)
     server = subprocess.Popen(
         [sys.executable, "-m", "humantele.tracking.hl2ss_replay", str(npz),
-         *(["--loop"] if loop else []), *([] if epoch is None else ["--epoch", repr(epoch)])],
+         *(["--loop"] if loop else [])],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     line = server.stdout.readline()

@@ -3,9 +3,6 @@ recording, ``HUMANTELE_HID_REPLAY``) replayed at the board's rate (``HUMANTELE_H
 default 100; ``HUMANTELE_HID_LOOP=1``: again and again) from the moment it is opened, so the
 follower's real HID reader (open by USB id,
 drain, parse, CRC) reads it as it reads the board. Put this folder first on ``PYTHONPATH``.
-``HUMANTELE_HID_EPOCH`` (a ``time.monotonic`` value): the board has been sending since then
-(the hl2ss replay server's ``--epoch``: the same clinic's frames), not from the open; reports
-more than ``BUFFER`` behind are gone, as a HID buffer holds only so many.
 """
 
 from __future__ import annotations
@@ -15,7 +12,6 @@ import time
 from pathlib import Path
 
 VENDOR_ID, PRODUCT_ID = 0x1209, 0x4854  # the board's (HidForceConfig's defaults)
-BUFFER = 64  # reports a reader that fell behind finds waiting (hidraw's buffer)
 PATH = b"/dev/hidraw-replay"
 
 
@@ -38,16 +34,11 @@ class device:  # noqa: N801 (hidapi's name)
         self._next = 0
         self._rate = float(os.environ.get("HUMANTELE_HID_RATE_HZ", "100"))
         self._loop = os.environ.get("HUMANTELE_HID_LOOP") == "1"  # again at the end
-        self._buffered = False
 
     def open_path(self, path: bytes) -> None:
         if path != PATH:
             raise OSError("open failed")
         self._reports, self._t0 = _reports(), time.monotonic()
-        epoch = os.environ.get("HUMANTELE_HID_EPOCH")
-        self._buffered = bool(epoch)  # a reader behind finds only BUFFER waiting
-        if epoch:
-            self._t0 = min(self._t0, float(epoch))
 
     def set_nonblocking(self, flag: bool) -> None:
         pass
@@ -56,11 +47,8 @@ class device:  # noqa: N801 (hidapi's name)
         """The next report once the board has sent it (waiting up to ``timeout_ms``)."""
         if not self._reports or (self._next >= len(self._reports) and not self._loop):
             return []
-        now = time.monotonic()
-        if self._buffered:
-            self._next = max(self._next, int((now - self._t0) * self._rate) + 1 - BUFFER)
         due = self._t0 + self._next / self._rate
-        wait = due - now
+        wait = due - time.monotonic()
         if wait > timeout_ms / 1000.0:
             time.sleep(timeout_ms / 1000.0)
             return []
