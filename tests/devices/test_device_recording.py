@@ -41,13 +41,14 @@ from humantele.recording.device_file import (
     VIDEO,
     DeviceRecording,
 )
+from humantele.recording.replay_timeline import DeviceClock
 from humantele.recording.writer import McapLog
 from humantele.tracking.frames import FrameSourceUnavailable
 from humantele.tracking.hl2ss_calibration import Hl2ssAhatCalibration
 from humantele.tracking.hl2ss_protocol import AHAT_DEPTH_MASK
 from humantele.tracking.hl2ss_replay import AhatRecord, Hl2ssReplayServer, load_mcap_records
 from humantele.tracking.hl2ss_replay import main as hl2ss_replay_main
-from humantele.tracking.replay_source import ReplayFrameConfig, ReplayFrameSource
+from humantele.tracking.replay_source import TICKS_PER_S, ReplayFrameConfig, ReplayFrameSource
 from humantele.tracking.sim import SimFrameConfig, SimFrameSource, default_sim_pose
 from humantele.tracking.tool import load_tool
 from humantele.video.base import VideoSourceError, VideoSourceUnavailable
@@ -295,9 +296,13 @@ def test_replay_is_paced_at_the_recorded_times(recorded):
     while (f := src.read()) is not None:
         times.append(f.t)
     src.close()
-    assert len(times) == FRAMES
-    assert np.allclose(np.diff(times), DTS / 1e7, atol=1e-9)
-    assert src.dropped.get("stale", 0) == 0
+    assert len(times) == FRAMES and src.dropped.get("stale", 0) == 0
+    # At the hl2ss timestamps' spacing, but where the device clock was anchored again on a
+    # frame received sooner than that (the recorder's first read came late: the server's
+    # queue then came quicker than 45 Hz); never back in time.
+    gaps = np.diff(times)
+    assert np.all(gaps >= 0.0), gaps
+    assert np.sum(~np.isclose(gaps, DTS / 1e7, atol=1e-9)) <= src._device.reanchored, gaps
     # a reader 10 frame periods late skips to the newest frame due, as the hl2ss client does
     src = ReplayFrameSource(ReplayFrameConfig(file=str(recorded["file"])), lambda: now[0], sleep)
     src.open()
@@ -625,3 +630,17 @@ def test_a_pause_in_the_recording_does_not_hold_one_read(recorded):
     second = src.read()  # the frame it waited for, not one after it
     assert second is not None and second.device_time_s == pytest.approx((TS0 + DTS) / 1e7)
     src.close()
+
+
+def test_a_device_clock_anchored_on_a_late_first_sample_never_goes_back():
+    """The first sample received 80 ms late, the device's queue then read quicker than its
+    45 Hz clock: each sample at its device spacing while that stays within 50 ms of its
+    receive time, then anchored again, no earlier than the sample before it."""
+    clock = DeviceClock(TICKS_PER_S)
+    dt = DTS / 1e7
+    receive = [0.08 + 0.01 * k for k in range(8)]  # 100/s until the queue is empty
+    times = [clock.time(r, TS0 + k * DTS) for k, r in enumerate(receive)]
+    assert np.all(np.diff(times) >= 0.0), times
+    assert times[:3] == pytest.approx([0.08, 0.08 + dt, 0.08 + 2 * dt])
+    assert clock.reanchored >= 1
+    assert all(t <= r + 0.05 + 1e-9 for t, r in zip(times, receive, strict=True)), times

@@ -20,7 +20,10 @@ summary (cut short) has no known span: each replay then loops from where it ends
 hl2ss's 100 ns ticks), anchored to the first receive time, and anchored again when a sample
 would come more than ``tolerance_s`` after its own receive time (a first sample received late,
 a clock that restarts): the receive times alone carry the recorder's scheduling (a recorder
-starved 0.5 s received half a second of reports in one burst).
+starved 0.5 s received half a second of reports in one burst). Anchored again, a sample is
+never before the one before it (a first sample received 80 ms late, and the next ones, sent
+from the device's queue, quicker than its clock: time does not go back, nothing is skipped
+as stale); ``reanchored`` counts these.
 """
 
 from __future__ import annotations
@@ -80,6 +83,7 @@ class DeviceClock:
         self.tolerance_s = tolerance_s
         self._ticks: int | None = None
         self._t = 0.0
+        self.reanchored = 0
 
     def time(self, t_receive: float, ticks: int | None) -> float:
         """A sample received at ``t_receive`` (s) with the device's ``ticks`` (None: unknown,
@@ -91,5 +95,8 @@ class DeviceClock:
             ahead = self._t + ((ticks - self._ticks) % self.wrap) / self.ticks_per_s
             if ahead <= t_receive + self.tolerance_s:
                 t = ahead
+            else:
+                t = max(t_receive, self._t)
+                self.reanchored += 1
         self._ticks, self._t = ticks, t
         return t

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import math
-import time
 
 from humantele.expert.console.messages import Ping
 
@@ -29,10 +28,11 @@ class PageLag:
         self.behind_at = -math.inf  # when that ping came
         self.trickle: dict[str, float] = {}  # message key -> when last sent while behind
 
-    def on_ping(self, m: Ping, expert_now: float) -> str:
-        """Note the ping's lag; the ``pong`` to send back at once (``t``: the expert's clock)."""
+    def on_ping(self, m: Ping, expert_now: float, now: float) -> str:
+        """Note the ping's lag (``now``: when it came, ``time.monotonic``); the ``pong`` to
+        send back at once (``t``: the expert's clock)."""
         if m.behind_ms is not None:
-            self.behind_s, self.behind_at = m.behind_ms / 1000.0, time.monotonic()
+            self.behind_s, self.behind_at = m.behind_ms / 1000.0, now
         return json.dumps({"type": "pong", "n": m.n, "t": expert_now})
 
     def behind(self, now: float) -> bool:

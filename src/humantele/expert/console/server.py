@@ -93,7 +93,8 @@ _CSP = (
 
 class ConsoleServer:
     """The console's server. ``frames``: the video; ``session``: the session's state and
-    commands; ``clock``: the expert's clock (the frames' ``t_capture`` are on it)."""
+    commands; ``clock``: the expert's clock (the frames' ``t_capture`` are on it);
+    ``monotonic``: this process's own (s), for how late a page reads (tests hold it still)."""
 
     def __init__(
         self,
@@ -104,8 +105,10 @@ class ConsoleServer:
         video: str | None = None,
         on_demand: Any = None,
         key: str | None = None,
+        monotonic=time.monotonic,
     ) -> None:
         self.config = config
+        self.monotonic = monotonic
         self.key = key or key_from_env() or new_key()
         self.video = "none" if frames is None else (video or config.video)
         # Sources that run only while a page is open (sim video: no CPU without a viewer):
@@ -254,7 +257,7 @@ class ConsoleServer:
         and the page has frames of the track in flight."""
         if not isinstance(client, ConsolePage):
             return False
-        now = time.monotonic()
+        now = self.monotonic()
         if client.lag.holds(key, now):
             self.events["held_page_behind"] += 1
             return True
@@ -343,7 +346,7 @@ class ConsoleServer:
         if isinstance(m, Drawn):
             self.video_out.on_drawn(client, m, arrival)
         elif isinstance(m, Ping):  # answered at once: the page measures how late we are
-            client.post("pong", client.lag.on_ping(m, self.clock()))
+            client.post("pong", client.lag.on_ping(m, self.clock(), self.monotonic()))
         elif isinstance(m, ScanCommand | ClutchCommand):
             session_command(self.session, client, m, self.events)
         elif isinstance(m, Freeze):
