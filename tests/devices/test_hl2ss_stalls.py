@@ -13,7 +13,7 @@ import time
 import numpy as np
 
 from humantele.tracking.hl2ss_protocol import encode_ahat_packet, read_configuration
-from humantele.tracking.hl2ss_replay import AhatRecord, Hl2ssReplayServer
+from humantele.tracking.hl2ss_replay import AhatRecord, Hl2ssReplayServer, round_ticks
 from humantele.tracking.hl2ss_source import Hl2ssFrameConfig, Hl2ssFrameSource
 
 
@@ -204,3 +204,28 @@ def test_a_replayed_headset_runs_on_from_its_epoch_and_drops_what_it_could_not_s
             assert max(stamps) >= joined + 45  # the frames went on with the clock
         finally:
             src.close()
+
+
+def test_a_looped_replay_from_its_epoch_keeps_its_clock_running_across_the_loop():
+    """Looped from an epoch, the replayed headset's timestamps go on at the recording's
+    spacing past the turn's end (a headset's clock never goes back: a press replayed after the
+    loop would otherwise be stamped before the frames it follows)."""
+    depth = np.full((512, 512), 600, np.uint16)
+    ir = np.zeros((512, 512), np.uint16)
+    step = 222_222  # 45 Hz in 100 ns ticks
+    records = [AhatRecord(5_000_000 + k * step, depth, ir, k) for k in range(10)]
+    assert round_ticks(records) == 10 * step
+    with Hl2ssReplayServer([records], rate_hz=45.0, repeat=True, loop=True,
+                           epoch=time.monotonic()) as srv:  # fmt: skip
+        src = Hl2ssFrameSource(cfg(srv.port, read_timeout_s=5.0, stall_s=30.0))
+        src.open()
+        try:
+            stamps = []
+            while len(stamps) < 25:  # two and a half rounds
+                if src.read() is not None:
+                    stamps.append(src.last_timestamp)
+        finally:
+            src.close()
+    gaps = np.diff(stamps)
+    assert np.all(gaps > 0), stamps  # never back, at the loop's start neither
+    assert np.all(gaps % step == 0), gaps  # the recording's spacing (a frame dropped late: 2)

@@ -31,7 +31,9 @@ force board's, started from the same epoch) does: record ``n`` (looped) is captu
 + n / rate_hz``, a client that connects (or reconnects after a stall) gets the frame of now,
 and a frame whose time passed by more than a period before it could be sent (a server starved
 on a loaded machine, a client that reads late) is dropped, as the headset's sensor drops what
-its sender could not take (counted in ``dropped_late``). Without it, each connection starts the
+its sender could not take (counted in ``dropped_late``); looped, the timestamps run on (each
+round's are its records' plus the rounds before it, at the recording's own spacing), as a
+headset's clock never goes back. Without it, each connection starts the
 turn from its first record and sends every frame, however late: a replay that falls behind
 the force board's for good, and starts again from the start at each reconnection.
 
@@ -60,7 +62,7 @@ import threading
 import time
 import zipfile
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -108,6 +110,15 @@ class AhatRecord:
         """The RAW packet of this record for a client in ``mode``."""
         pose = self.hl2ss_pose() if mode == MODE_FRAMES_POSE else None
         return encode_ahat_packet(self.timestamp, self.depth_mm, self.ab, self.sensor_ticks, pose)
+
+
+def round_ticks(records: list[TurnItem]) -> int:
+    """One round of a looped turn in timestamp ticks (100 ns): its records' first to last
+    timestamp and one mean spacing more; 0 with fewer than two records."""
+    stamps = [r.timestamp for r in records if isinstance(r, AhatRecord)]
+    if len(stamps) < 2:
+        return 0
+    return round((stamps[-1] - stamps[0]) * len(stamps) / (len(stamps) - 1))
 
 
 @dataclass
@@ -297,6 +308,7 @@ class Hl2ssReplayServer:
         assert self.epoch is not None and self.rate_hz
         period = 1.0 / self.rate_hz
         encoder: AhatEncoder | None = None
+        lap = round_ticks(records)
         n = max(0, math.ceil((time.monotonic() - self.epoch) / period))
         while self.loop or n < len(records):
             due = self.epoch + n * period
@@ -315,6 +327,9 @@ class Hl2ssReplayServer:
             if item is None:
                 return
             if isinstance(item, AhatRecord):
+                rounds = (n - 1) // len(records)
+                if rounds and lap:  # the clock runs on: never back at the loop's start
+                    item = replace(item, timestamp=item.timestamp + rounds * lap)
                 data, encoder = self._record_packet(item, cfg, encoder, due)
             elif isinstance(item, bytes):
                 data = item
