@@ -33,6 +33,7 @@ from netns import chromium_path  # noqa: E402
 from session_helpers import CONSOLE_KEY, PAIRING_CODE, Session, read_json  # noqa: E402
 
 from session_slot import scaled  # noqa: E402
+from waits import until  # noqa: E402
 
 IWER = HERE / "vendor" / "iwer" / "iwer.min.js"
 CHROMIUM_ARGS = [
@@ -192,12 +193,7 @@ class Ctx:
 
     async def wait(self, what: str, pred, timeout: float = 30.0) -> None:
         """Poll ``pred()`` (here, in the scenario) until it is true; ``timeout`` scaled."""
-        timeout = scaled(timeout)
-        end = time.monotonic() + timeout
-        while not pred():
-            if time.monotonic() > end:
-                raise AssertionError(f"still waiting for {what} after {timeout:.0f} s")
-            await asyncio.sleep(0.02)
+        await until(pred, scaled(timeout), what=what, poll=0.02)
 
     async def close_page(self, page: Page) -> None:
         """Close a page as a user closing the tab would."""
