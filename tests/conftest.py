@@ -29,8 +29,23 @@ import os
 import sys
 from pathlib import Path
 
-import pytest
-from hypothesis import settings
+# Where PYTHONDONTWRITEBYTECODE is set (this machine's images set it), pytest rewrote every
+# test module's asserts again on each run, in each worker (2.1 of the 3.6 s a worker spends
+# collecting), and each daemon and child the tests start compiled every module it imported
+# again (0.1-0.2 CPU-s a process, some 300 processes in a whole run). Their bytecode is cached
+# in pytest's cache folder instead, never beside the sources (the variable's intent): here
+# through sys.pycache_prefix, in the processes the tests start (xdist's workers included)
+# through the environment they inherit. Set before anything else is imported: pytest rewrites
+# the asserts of every module of a plugin's distribution (hypothesis's ~90), which were
+# rewritten again in each process when imported before this (1-1.5 CPU-s a worker).
+if sys.dont_write_bytecode:
+    sys.pycache_prefix = str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "pycache")
+    sys.dont_write_bytecode = False
+    os.environ["PYTHONPYCACHEPREFIX"] = sys.pycache_prefix
+    os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
+
+import pytest  # noqa: E402 - after the bytecode cache is set
+from hypothesis import settings  # noqa: E402
 
 from cpu_durations import (  # noqa: F401 - the hooks of --cpu-durations=N
     pytest_addoption,
@@ -44,19 +59,6 @@ from cpu_durations import (  # noqa: F401 - the hooks of --cpu-durations=N
 from procgroups import pytest_configure, pytest_unconfigure  # noqa: F401 - the hooks
 from session_slot import whole_session_slot
 from system_packages import system_packages_line
-
-# Where PYTHONDONTWRITEBYTECODE is set (this machine's images set it), pytest rewrote every
-# test module's asserts again on each run, in each worker (2.1 of the 3.6 s a worker spends
-# collecting), and each daemon and child the tests start compiled every module it imported
-# again (0.1-0.2 CPU-s a process, some 300 processes in a whole run). Their bytecode is cached
-# in pytest's cache folder instead, never beside the sources (the variable's intent): here
-# through sys.pycache_prefix, in the processes the tests start (xdist's workers included)
-# through the environment they inherit.
-if sys.dont_write_bytecode:
-    sys.pycache_prefix = str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "pycache")
-    sys.dont_write_bytecode = False
-    os.environ["PYTHONPYCACHEPREFIX"] = sys.pycache_prefix
-    os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 
 FAST_LANE_WORKERS = 3  # -m "not e2e": its tests wait on timers and sockets a third of the time
 SUITE_WORKERS = 2  # with the e2e tests: their real-time loops need the two cores

@@ -6,7 +6,6 @@ file or stats, only in the objects and their queue."""
 
 from __future__ import annotations
 
-import asyncio
 import json
 import logging
 import sys
@@ -25,13 +24,7 @@ from humantele.recording import Recorder
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "expert"))
 from test_console_server import FakeClock, ManualFrames, Session, next_message  # noqa: E402
 
-
-async def until(check, timeout_s: float = 30.0):
-    for _ in range(int(timeout_s / 0.02)):
-        if check():
-            return
-        await asyncio.sleep(0.02)
-    raise AssertionError("not in time")
+from waits import until
 
 
 @pytest.fixture

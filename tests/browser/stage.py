@@ -33,6 +33,7 @@ from netns import chromium_path  # noqa: E402
 from session_helpers import CONSOLE_KEY, PAIRING_CODE, Session, read_json  # noqa: E402
 
 from session_slot import scaled  # noqa: E402
+from waits import until  # noqa: E402
 
 IWER = HERE / "vendor" / "iwer" / "iwer.min.js"
 CHROMIUM_ARGS = [
@@ -55,6 +56,38 @@ SOFTWARE_COMPOSITING = ["--disable-gpu-compositing"]
 # the daemons of the tests running beside it. (scenarios/pages_bench.py keeps 1280 x 800.)
 CONSOLE_WINDOW = (1280, 800)
 HEADSET_WINDOW = (960, 600)
+# A headset page (not in WebXR) draws at most every 200 ms in the tests. Its WebGL scene is
+# rendered in SwiftShader on the CPU, about 0.14 CPU-s a frame in Chromium's GPU process: the
+# page drew as fast as that process could (6 frames a second at load 7), which took 59 % of
+# headset_feed's CPU (41-46 of 71-77 CPU-s). No check needs a rate: they wait for frames drawn
+# (``headset.frames``) and states shown, and the draw latency is a figure, not a bound.
+# headset_feed at load 7-9: 60-77 CPU-s at Chromium's rate, 49 at this one (3 frames a second).
+# scenarios/pages_bench.py measures the page at Chromium's own rate
+# (``ctx.headset_frame_ms = 0``); under IWER the XR session's frames are left as they come.
+HEADSET_FRAME_MS = 200
+# The page's requestAnimationFrame, answered on every animation frame at least ``every`` ms
+# after the last one answered (all callbacks of one frame together); its ids kept so that
+# cancelAnimationFrame (three.js's loop stopping) still cancels.
+FRAME_EVERY = """(() => {
+  const every = %d, raf = window.requestAnimationFrame.bind(window);
+  const caf = window.cancelAnimationFrame.bind(window), pending = new Map();
+  let next = 1, open = -Infinity;
+  window.requestAnimationFrame = (cb) => {
+    const id = next++;
+    const tick = (t) => {
+      if (t !== open && t - open < every - 1) { pending.set(id, raf(tick)); return; }
+      open = t;
+      pending.delete(id);
+      cb(t);
+    };
+    pending.set(id, raf(tick));
+    return id;
+  };
+  window.cancelAnimationFrame = (id) => {
+    if (pending.has(id)) caf(pending.get(id));
+    pending.delete(id);
+  };
+})();"""
 # Meta's emulator as a Quest 3, installed before any page script runs.
 IWER_INSTALL = (  # the device kept as window.xrDevice: a scenario may move the headset
     "globalThis.xrDevice = new IWER.XRDevice(IWER.metaQuest3);"
@@ -76,6 +109,7 @@ class Ctx:
         self._contexts: list[BrowserContext] = []
         self._services = contextlib.AsyncExitStack()
         self._pw = None
+        self.headset_frame_ms = HEADSET_FRAME_MS  # 0: Chromium's own rate (the bench)
 
     async def __aenter__(self) -> Ctx:
         self._pw = await async_playwright().start()
@@ -132,6 +166,8 @@ class Ctx:
         self._contexts.append(context)
         if iwer:
             await context.add_init_script(IWER.read_text() + "\n" + IWER_INSTALL)
+        elif headset and self.headset_frame_ms:
+            await context.add_init_script(FRAME_EVERY % self.headset_frame_ms)
         if init_script:
             await context.add_init_script(init_script)
         # Playwright's own waits (a navigation, a click's target) 30 s by default: scaled, as
@@ -192,12 +228,7 @@ class Ctx:
 
     async def wait(self, what: str, pred, timeout: float = 30.0) -> None:
         """Poll ``pred()`` (here, in the scenario) until it is true; ``timeout`` scaled."""
-        timeout = scaled(timeout)
-        end = time.monotonic() + timeout
-        while not pred():
-            if time.monotonic() > end:
-                raise AssertionError(f"still waiting for {what} after {timeout:.0f} s")
-            await asyncio.sleep(0.02)
+        await until(pred, scaled(timeout), what=what, poll=0.02)
 
     async def close_page(self, page: Page) -> None:
         """Close a page as a user closing the tab would."""

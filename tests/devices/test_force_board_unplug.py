@@ -24,6 +24,7 @@ from humantele.forcesense.reader import ForceReader
 from humantele.forcesense.sim import SimForceSensor
 from humantele.forcesense.sim_config import SimForceConfig
 from humantele.tracking.frames import FrameSource
+from waits import wait_for
 
 VID, PID = 0x1209, 0x4854
 PRESS_N = np.array([0.0, 0.0, -6.0])  # probe frame: above the contact threshold (3 N)
@@ -163,15 +164,6 @@ class NoFrames(FrameSource):
 
     def close(self) -> None:
         pass
-
-
-def wait_for(cond, timeout_s: float = 30.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.01)
-    return False
 
 
 def test_the_follower_reads_the_board_at_its_own_rate_and_sends_no_stale_force(

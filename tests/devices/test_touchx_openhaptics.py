@@ -23,6 +23,7 @@ from humantele.haptics.devices.touchx_reset import main as touchx_main
 from humantele.haptics.devices.touchx_reset import reset_encoders
 from humantele.haptics.renderer import ForceRenderer
 from humantele.haptics.servo_config import ServoConfig
+from waits import wait_for
 
 TICKS, FRAMES, WRITES, FRAME_VIOL, THREAD_VIOL, RATE, PRIO, STATE, UPD_STYLE, CAL = range(10)
 WARM_EVENTS, EXCEEDED, WATCHDOG, ENC_RESET_RUNNING, UPDATES, SAFETY_CAPS, WARM = range(10, 17)
@@ -741,14 +742,6 @@ def test_the_servo_says_the_device_is_lost_and_runs_again_after_a_replug(
     re-initialised, no force reaches it, and once replugged it is initialised again in the same
     process (no restart) and runs."""
     from humantele.haptics.supervisor import SupervisedServo
-
-    def wait_for(pred, timeout):
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            if v := pred():
-                return v
-            time.sleep(0.01)
-        raise AssertionError("condition not reached in time")
 
     (tmp_path / "3DSystems" / "config").mkdir(parents=True)
     monkeypatch.setenv("GTDD_HOME", str(tmp_path / "3DSystems"))

@@ -616,13 +616,6 @@ async def test_pings_clicks_and_their_answers(tmp_path):
     assert server.refused["malformed"] == 2  # a clip of over 60 s is not asked for
 
 
-async def wait_for(pred, timeout: float = 20.0) -> None:
-    end = time.monotonic() + timeout
-    while not pred():
-        assert time.monotonic() < end, "timed out"
-        await asyncio.sleep(0.02)
-
-
 async def test_capture_keeps_a_clip_listed_with_the_measurements(tmp_path):
     """Capture with clip_s: the still, then the cine's last seconds up to that frame as an MP4
     beside it (written off the loop), listed with the session's calipers and notes; the page

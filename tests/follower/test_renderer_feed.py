@@ -17,6 +17,7 @@ from pydantic import ValidationError
 from humantele.follower.feed import WEB_DIR, FeedConfig, RendererFeed, model_fields
 from humantele.geometry import Pose, quat_from_axis_angle
 from humantele.haptics.ellipsoid import Ellipsoid
+from waits import until
 
 
 def plain(**kw):
@@ -35,13 +36,6 @@ async def closed(ws, timeout=5.0):
         aiohttp.WSMsgType.CLOSING,
     ):
         pass
-
-
-async def until(pred, timeout=5.0):
-    end = time.monotonic() + timeout
-    while not pred():
-        assert time.monotonic() < end, "condition not met in time"
-        await asyncio.sleep(0.01)
 
 
 async def test_feed_sends_latest_per_type_and_survives_bad_clients():

@@ -22,6 +22,7 @@ from humantele.follower.sensing_worker import (
     UnmeasuredWindow,
     unmeasured_frames,
 )
+from waits import until
 
 WAIT_S = 120.0  # a spawned child importing on a loaded machine
 
@@ -129,23 +130,16 @@ def test_the_status_line_and_json_say_stalls_stale_force_and_the_dominant_reason
     assert s["unmeasured"]["no_pose"] == 50 and s["sensing_hangs"] == 1
 
 
-async def _until(cond, timeout=WAIT_S):
-    deadline = asyncio.get_running_loop().time() + timeout
-    while not cond():
-        assert asyncio.get_running_loop().time() < deadline, "timed out"
-        await asyncio.sleep(0.02)
-
-
 async def test_a_hung_sensing_child_is_killed_and_restarted():
     results = []
     proc = SensingProcess(None, None, lambda *r: results.append(r[0]), hung_s=1.0,
                           target=hanging_sensing_main)  # fmt: skip
     proc.start()
     try:
-        await _until(lambda: proc.ready)
+        await until(lambda: proc.ready, WAIT_S)
         first = proc.pid
         assert proc.submit(1, (0.0, None))
-        await _until(lambda: results == [1])
+        await until(lambda: results == [1], WAIT_S)
         assert proc.device_stats == {"frames": 1}
         assert proc.submit(2, (0.0, None))
         sent = asyncio.get_running_loop().time()
@@ -154,10 +148,10 @@ async def test_a_hung_sensing_child_is_killed_and_restarted():
             await asyncio.sleep(0.05)
         assert asyncio.get_running_loop().time() - sent >= 1.0  # not before hung_s
         assert "hung" in proc.restarter.down or proc.restarts == 1
-        await _until(lambda: proc.ready and proc.restarts == 1)
+        await until(lambda: proc.ready and proc.restarts == 1, WAIT_S)
         assert proc.pid != first
         assert proc.submit(4, (0.0, None))  # the replacement measures
-        await _until(lambda: results == [1, 4])
+        await until(lambda: results == [1, 4], WAIT_S)
     finally:
         proc.close()
     assert proc.hangs == 1

@@ -15,15 +15,9 @@ from humantele.follower.sim_human import probe_down_quat
 from humantele.follower.sim_world import SimWorld
 from humantele.geometry import Pose
 from humantele.wire import TrackingStatus
+from waits import until
 
 WAIT_S = 120.0  # upper bound for a spawned child to import and calibrate on a loaded machine
-
-
-async def _until(cond, timeout=WAIT_S):
-    deadline = asyncio.get_running_loop().time() + timeout
-    while not cond():
-        assert asyncio.get_running_loop().time() < deadline, "timed out"
-        await asyncio.sleep(0.01)
 
 
 def _held_probe_world() -> SimWorld:
@@ -39,13 +33,13 @@ async def test_the_child_measures_frames_restarts_when_killed_and_stops_cleanly(
     proc.start()
     world = _held_probe_world()
     try:
-        await _until(lambda: proc.ready)
+        await until(lambda: proc.ready, WAIT_S)
         first_pid = proc.pid
         assert first_pid != os.getpid()
         truth = world.truth(0.1)
         assert proc.submit(1, (0.1, truth))
         assert not proc.submit(2, (0.1, truth))  # one frame in flight at most
-        await _until(lambda: results)
+        await until(lambda: results, WAIT_S)
         job, m, seconds = results[0]
         assert job == 1 and seconds > 0
         assert m.status == TrackingStatus.TRACKED
@@ -54,15 +48,15 @@ async def test_the_child_measures_frames_restarts_when_killed_and_stops_cleanly(
         assert dp > 0.0
         t_kill = asyncio.get_running_loop().time()
         os.kill(first_pid, signal.SIGKILL)
-        await _until(lambda: proc.restarter.due_at is not None)  # its back-off
+        await until(lambda: proc.restarter.due_at is not None, WAIT_S)  # its back-off
         assert proc.running and not proc.ready and not proc.submit(3, None)  # being replaced
         assert _state_of(proc) == "restarting (1)"  # as the status line shows it
-        await _until(lambda: proc.restarts == 1 and proc.ready)
+        await until(lambda: proc.restarts == 1 and proc.ready, WAIT_S)
         assert _state_of(proc) == "running"
         assert asyncio.get_running_loop().time() - t_kill >= RESTART_FIRST_S
         assert proc.pid != first_pid and not proc.failed
         assert proc.submit(3, (0.2, world.truth(0.2)))
-        await _until(lambda: len(results) == 2)
+        await until(lambda: len(results) == 2, WAIT_S)
         assert results[1][0] == 3 and results[1][1].status == TrackingStatus.TRACKED
     finally:
         pid = proc.pid
@@ -82,9 +76,9 @@ async def test_a_child_that_dies_too_often_is_given_up_and_the_daemon_measures_i
     proc = SensingProcess(FollowerConfig(), None, lambda *r: None, max_restarts=0)
     proc.start()
     try:
-        await _until(lambda: proc.ready)
+        await until(lambda: proc.ready, WAIT_S)
         os.kill(proc.pid, signal.SIGKILL)
-        await _until(lambda: proc.failed)
+        await until(lambda: proc.failed, WAIT_S)
         await asyncio.sleep(2 * RESTART_FIRST_S)  # past a back-off: nothing started
         assert proc.restarts == 0 and not proc.running and not _sensing_children()
         assert not proc.submit(1, None)
@@ -95,9 +89,9 @@ async def test_a_child_that_dies_too_often_is_given_up_and_the_daemon_measures_i
 async def _killed_into_its_back_off(proc: SensingProcess) -> None:
     """Start ``proc``, SIGKILL its child once it is ready; back once the replacement is timed."""
     proc.start()
-    await _until(lambda: proc.ready)
+    await until(lambda: proc.ready, WAIT_S)
     os.kill(proc.pid, signal.SIGKILL)
-    await _until(lambda: proc.restarter.due_at is not None)
+    await until(lambda: proc.restarter.due_at is not None, WAIT_S)
 
 
 async def test_a_close_during_the_back_off_starts_no_replacement():
@@ -130,10 +124,10 @@ async def test_a_replacement_that_cannot_start_is_tried_again_after_a_longer_wai
     monkeypatch.setattr(sp, "spawn", spawn_refused_once)
     proc.start()
     try:
-        await _until(lambda: proc.ready)
+        await until(lambda: proc.ready, WAIT_S)
         t_kill = asyncio.get_running_loop().time()
         os.kill(proc.pid, signal.SIGKILL)
-        await _until(lambda: proc.restarts == 1 and proc.ready)
+        await until(lambda: proc.restarts == 1 and proc.ready, WAIT_S)
         assert len(spawns) == 3 and not proc.failed
         assert spawns[2] - spawns[1] >= 2 * 0.05 and spawns[1] - t_kill >= 0.05
         assert "Resource temporarily unavailable" in caplog.text
@@ -152,7 +146,7 @@ async def test_a_back_off_timer_that_fires_early_still_starts_the_replacement(mo
         await _killed_into_its_back_off(proc)
         proc._restart_at.cancel()  # noqa: SLF001 - the loop's timer, run early instead
         proc._restart_due()  # noqa: SLF001
-        await _until(lambda: proc.restarts == 1, timeout=4.0)
+        await until(lambda: proc.restarts == 1, 4.0)
     finally:
         proc.close()
 
@@ -173,7 +167,7 @@ async def test_a_config_the_child_refuses_is_reported_once_and_not_restarted():
     proc = SensingProcess(FollowerConfig(tool="no_such_tool"), None, lambda *r: None, errors.append)
     proc.start()
     try:
-        await _until(lambda: errors)
+        await until(lambda: errors, WAIT_S)
     finally:
         proc.close()
     assert proc.failed and proc.restarts == 0 and not proc.running
@@ -204,7 +198,7 @@ async def test_the_daemon_streams_what_the_child_measured(tmp_path):
     )
     d.worker.proc.start()
     try:
-        await _until(lambda: d.worker.proc.ready)
+        await until(lambda: d.worker.proc.ready, WAIT_S)
         t = 0.0
         while d.measurements < 10:
             d.tick(t)

@@ -1,19 +1,7 @@
 """What the servo tests share: a sim hand that presses and holds, and a condition wait."""
 
-import time
-
 from humantele.haptics.devices.sim import SimDeviceConfig, SimHandConfig
 from humantele.haptics.servo_config import ServoConfig
-
-
-def wait_for(pred, timeout=10.0):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        v = pred()
-        if v:
-            return v
-        time.sleep(0.01)
-    raise AssertionError("condition not reached in time")
 
 
 def pressing_config(**kw) -> ServoConfig:

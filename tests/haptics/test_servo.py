@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from servo_helpers import pressing_config, wait_for
+from servo_helpers import pressing_config
 
 from humantele.config import ConfigError, validate_config
 from humantele.geometry import Pose, quat_from_axis_angle
@@ -30,6 +30,7 @@ from humantele.haptics.renderer import (
 from humantele.haptics.servo import ServoProcess
 from humantele.haptics.servo_config import ServoConfig
 from humantele.haptics.servo_layout import ServoError
+from waits import wait_for
 
 MODEL = demo_model()
 INSIDE = (0.0, -0.035, 0.0)  # device frame: 5 mm into the model with the auto registration

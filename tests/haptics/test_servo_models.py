@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from servo_helpers import pressing_config, wait_for
+from servo_helpers import pressing_config
 
 from humantele.demo_status import status_line
 from humantele.expert.config import ExpertConfig
@@ -31,6 +31,7 @@ from humantele.haptics.servo_child import apply_commands
 from humantele.haptics.servo_config import ServoConfig
 from humantele.haptics.servo_layout import C_MODEL, C_MODEL_GEN, C_MODEL_ON, CMD_LEN, ServoError
 from humantele.wire import EllipsoidModel, EllipsoidParams, WireError, parse_control
+from waits import wait_for
 
 MODEL = demo_model()
 TINY = (1e-160, 0.11, 0.15)  # the semi-axis: 1/s^2 overflows, the old servo died

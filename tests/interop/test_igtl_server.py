@@ -20,6 +20,7 @@ from humantele.interop.igtl import (
     world_from_ras,
 )
 from humantele.video.scan import ScanGeometry
+from waits import until
 
 
 async def started(**kw) -> IgtlServer:
@@ -174,14 +175,6 @@ async def test_client_that_leaves_and_returns_is_served_again():
     await srv.stop()
 
 
-async def until(cond, what: str, timeout_s: float = 10.0) -> None:
-    loop = asyncio.get_running_loop()
-    end = loop.time() + timeout_s
-    while not cond():
-        assert loop.time() < end, f"{what} still not true after {timeout_s} s"
-        await asyncio.sleep(0.005)
-
-
 async def test_idle_clients_never_keep_slicer_out_the_idlest_gives_way():
     """Four idle connections fill the places; a fifth (Slicer) still gets in and is served:
     the one idle longest is closed. One that sent bytes since is not the idlest."""
@@ -189,16 +182,16 @@ async def test_idle_clients_never_keep_slicer_out_the_idlest_gives_way():
     idle = []
     for i in range(4):
         idle.append(await asyncio.open_connection("127.0.0.1", srv.port))
-        await until(lambda n=i + 1: srv.clients == n, f"{i + 1} clients")
+        await until(lambda n=i + 1: srv.clients == n, what=f"{i + 1} clients")
     # The first one speaks (as Slicer's STATUS would): the second is now the idlest.
     idle[0][1].write(b"x" * 58)
-    await until(lambda: any(c.bytes_in for c in srv._clients), "bytes read")  # noqa: SLF001
+    await until(lambda: any(c.bytes_in for c in srv._clients), what="bytes read")  # noqa: SLF001
     slicer_r, slicer_w = await asyncio.open_connection("127.0.0.1", srv.port)
-    await until(lambda: srv.stats()["evicted"] == 1, "an eviction")
+    await until(lambda: srv.stats()["evicted"] == 1, what="an eviction")
     assert await asyncio.wait_for(idle[1][0].read(10), 5) == b""  # the idlest: closed
     got: list = []
     task = asyncio.create_task(read_messages(slicer_r, got, stop_after=1))
-    await until(lambda: srv.clients == 4, "4 clients")
+    await until(lambda: srv.clients == 4, what="4 clients")
     assert srv.publish_transform("ProbeToPatient", np.eye(4), 1.0)
     await asyncio.wait_for(task, 5)
     assert [m.device_name for _, m in got] == ["ProbeToPatient"]

@@ -2,7 +2,6 @@
 
 import asyncio
 import contextlib
-import time
 
 from humantele.media.config import FollowerVideoConfig
 from humantele.media.sender import VideoSender
@@ -23,14 +22,6 @@ def small_video_config(**kw) -> FollowerVideoConfig:
     )
     base.update(kw)
     return FollowerVideoConfig(**base)
-
-
-async def until(cond, timeout: float = 20.0, poll: float = 0.05) -> None:
-    end = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > end:
-            raise TimeoutError("condition not met")
-        await asyncio.sleep(poll)
 
 
 def video_follower(url: str, room: str, token: str, config=None, scene=None, record=None):

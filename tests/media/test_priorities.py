@@ -5,7 +5,6 @@ system has them."""
 
 import asyncio
 import os
-import time
 from pathlib import Path
 
 import pytest
@@ -17,6 +16,7 @@ from humantele.media.policy import DegradationPolicy, Health
 from humantele.runtime.child import PRIORITY, child_priority
 from humantele.transport import LinkConfig
 from sched_privilege import fifo_allowed
+from waits import until
 
 GOOD = Health(us_delivery=1.0, loss=0.0, late_ticks_per_s=0.0, tracker_ratio=1.0)
 CPU_SHORT = Health(us_delivery=1.0, loss=0.0, late_ticks_per_s=0.0, tracker_ratio=0.6)
@@ -84,13 +84,6 @@ def _thread_nices(pid: int) -> list[int]:
     return out
 
 
-async def _until(cond, timeout_s: float = 120.0) -> None:
-    end = time.monotonic() + timeout_s
-    while not cond():
-        assert time.monotonic() < end, "condition not met in time"
-        await asyncio.sleep(0.05)
-
-
 @pytest.mark.e2e
 @pytest.mark.slow
 async def test_the_spawned_children_run_in_that_order(tmp_path):
@@ -118,12 +111,12 @@ async def test_the_spawned_children_run_in_that_order(tmp_path):
         nice_us = base + video.config.process_nice
         fifo = fifo_allowed()
         want = ("fifo", base) if fifo else ("other", nice_s)
-        await _until(lambda: child_priority(sensing.pid) == want)
+        await until(lambda: child_priority(sensing.pid) == want, 120.0)
         if fifo:
             param = os.sched_getparam(sensing.pid).sched_priority
             assert param == config.sensing_realtime_priority
         assert child_priority(vpid) == ("other", nice_us)
-        await _until(lambda: base + PRIORITY["video_pov"].nice in _thread_nices(vpid))
+        await until(lambda: base + PRIORITY["video_pov"].nice in _thread_nices(vpid), 120.0)
         nices = set(_thread_nices(vpid))
         assert nice_us in nices  # the US capture thread (and the process's own)
         assert base < nice_s < nice_us < base + PRIORITY["video_pov"].nice

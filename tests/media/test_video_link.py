@@ -8,13 +8,14 @@ import sys
 from pathlib import Path
 
 import pytest
-from media_helpers import close_video_link, small_video_config, until, video_follower
+from media_helpers import close_video_link, small_video_config, video_follower
 
 from humantele.media.config import ExpertVideoConfig
 from humantele.media.receiver import VideoReceiver
 from humantele.signaling.messages import TOKEN_ENV
 from humantele.signaling.server import SignalConfig, SignalingServer
 from humantele.transport import LinkConfig, PeerLink
+from waits import until
 
 TOKEN = "video-test-token"
 

@@ -5,10 +5,11 @@ import asyncio
 
 import av
 import pytest
-from media_helpers import close_video_link, until, video_follower
+from media_helpers import close_video_link, video_follower
 from test_video_link import TOKEN, expert_with_video, server  # noqa: F401 - the fixture
 
 from humantele.media.jitter import KEYFRAME_TESTS
+from waits import until
 
 
 @pytest.mark.parametrize("codec", ["vp8", "h264"])

@@ -7,7 +7,6 @@ import contextlib
 import datetime
 import ipaddress
 import logging
-import time
 from pathlib import Path
 
 import aiohttp
@@ -45,14 +44,6 @@ async def closed_with(ws: aiohttp.ClientWebSocketResponse) -> int | None:
         m = await asyncio.wait_for(ws.receive(), 5)
         if m.type in CLOSED:
             return ws.close_code
-
-
-async def until(what: str, condition, timeout: float = 10.0) -> None:
-    """Wait until ``condition()`` is true; AssertionError naming ``what`` after ``timeout``."""
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        await asyncio.sleep(0.01)
 
 
 def assert_clean_logs(records: list[logging.LogRecord], *secrets: str) -> None:

@@ -8,11 +8,12 @@ import re
 
 import pytest
 from aiohttp import web
-from signaling_helpers import assert_clean_logs, until
+from signaling_helpers import assert_clean_logs
 
 from humantele.signaling.client import SignalingClient, SignalingError, SignalingRefused
 from humantele.signaling.server import SignalConfig, SignalingServer
 from humantele.transport import LinkConfig, PeerLink
+from waits import until
 
 TOKEN = "client-token"
 
@@ -108,7 +109,7 @@ async def test_link_says_unreachable_retries_with_backoff_and_stops_at_once(capl
         link = _link(url)
         task = asyncio.create_task(link.run())
         await link.wait_state("unreachable", timeout=20)
-        await until("4 retries", lambda: len(_retry_delays(caplog.records)) >= 4, timeout=30)
+        await until(lambda: len(_retry_delays(caplog.records)) >= 4, 30, what="4 retries")
         await asyncio.wait_for(link.close(), 5)  # today: stuck "connecting" until killed
         await asyncio.wait_for(task, 5)
     assert link.state == "closed"
@@ -124,7 +125,7 @@ async def test_link_to_an_unresolvable_host_warns_and_retries_without_traceback(
     link = _link("ws://signaling.invalid:8765/ws")  # RFC 2606: never resolves
     task = asyncio.create_task(link.run())
     await link.wait_state("unreachable", timeout=20)
-    await until("a retry", lambda: len(_retry_delays(caplog.records)) >= 2, timeout=30)
+    await until(lambda: len(_retry_delays(caplog.records)) >= 2, 30, what="a retry")
     await asyncio.wait_for(link.close(), 5)
     await asyncio.wait_for(task, 5)
     lines = [r.getMessage() for r in caplog.records if "retrying in" in r.getMessage()]
@@ -145,7 +146,7 @@ async def test_link_leaves_unreachable_once_the_server_is_up():
         await server.start()
         try:
             await link.wait_state("connecting", timeout=30)  # joined; waiting for the expert
-            await until("the room", lambda: "demo" in server.rooms)
+            await until(lambda: "demo" in server.rooms, what="the room")
         finally:
             await link.close()
             await server.stop()
@@ -197,11 +198,11 @@ async def test_a_stalled_loop_keeps_the_signaling_connection_and_a_silent_peer_i
                 aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSED
             ):  # fmt: skip
                 pass
-        await until("the silent follower dropped", lambda: server.counters["lost:no_answer"] == 1,
-                    30.0)  # fmt: skip
+        dropped = "the silent follower dropped"
+        await until(lambda: server.counters["lost:no_answer"] == 1, 30.0, what=dropped)
         assert not any(k.startswith("refused:") for k in server.counters), server.counters
         assert not client._ws.closed  # the expert stays, told the follower came and left
-        await until("peer_left", lambda: heard == ["peer_joined", "peer_left"], 30.0)
+        await until(lambda: heard == ["peer_joined", "peer_left"], 30.0, what="peer_left")
         listening.cancel()
         await client.close()
     finally:

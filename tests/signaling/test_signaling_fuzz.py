@@ -19,11 +19,12 @@ import aiohttp
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from signaling_helpers import CLOSED, assert_clean_logs, raw_ws, running_server, until
+from signaling_helpers import CLOSED, assert_clean_logs, raw_ws, running_server
 
 from humantele.signaling.client import SignalingClient
 from humantele.signaling.messages import Offer
 from humantele.signaling.server import SignalingServer
+from waits import until
 
 TOKEN = "fuzz-token-never-logged"
 WRONG = "wrong-token-never-logged-either"
@@ -165,8 +166,8 @@ async def _read_until_closed(ws: aiohttp.ClientWebSocketResponse) -> int | None:
 
 
 async def _still_serves_and_leaks_nothing(server: SignalingServer) -> None:
-    await until("rooms and connections to be freed", lambda: not server.rooms, 10)
-    await until("connections to close", lambda: server.guard.open_connections == 0, 10)
+    await until(lambda: not server.rooms, 10, what="rooms and connections to be freed")
+    await until(lambda: server.guard.open_connections == 0, 10, what="connections to close")
     room = f"check{next(rooms)}"
     expert = SignalingClient(server.url, room, "expert", TOKEN)
     follower = SignalingClient(server.url, room, "follower", TOKEN)
@@ -177,7 +178,7 @@ async def _still_serves_and_leaks_nothing(server: SignalingServer) -> None:
     assert await asyncio.wait_for(follower.receive(), 5) == Offer(sdp="v=0", id=1)
     await expert.close()
     await follower.close()
-    await until("the check room to go", lambda: not server.rooms, 10)
+    await until(lambda: not server.rooms, 10, what="the check room to go")
 
 
 @FUZZ

@@ -8,12 +8,13 @@ import secrets
 import tempfile
 
 import pytest
-from signaling_helpers import assert_clean_logs, running_server, until
+from signaling_helpers import assert_clean_logs, running_server
 
 from humantele.signaling.client import SignalingClient
 from humantele.signaling.guard import RateLimitedLog
 from humantele.signaling.messages import Offer
 from humantele.signaling.slowloris import hold_sockets, measure, start_server
+from waits import until
 
 TOKEN = "limits-token"
 
@@ -45,7 +46,7 @@ async def test_a_connection_without_a_websocket_handshake_is_closed_after_the_de
         assert await asyncio.wait_for(trickle(), 15) == b""
         assert server.counters["closed:handshake_timeout"] == 1
         writer.close()
-        await until("the server to forget it", lambda: server.guard.open_connections == 0)
+        await until(lambda: server.guard.open_connections == 0, what="the server to forget it")
         expert, follower = await _pair(server)  # and it still serves
         await expert.close()
         await follower.close()
@@ -58,7 +59,7 @@ async def test_per_address_cap_refuses_the_excess_and_spares_other_addresses(cap
         TOKEN, max_connections_per_address=3, handshake_timeout_s=60
     ) as server:
         held = await hold_sockets("127.0.0.1", server.port, 8, sources=1, interval_s=0.5)
-        await until("the excess to be refused", lambda: held.closed_by_server >= 5)
+        await until(lambda: held.closed_by_server >= 5, what="the excess to be refused")
         assert server.guard.per_address["127.0.0.2"] == 3
         expert, follower = await _pair(server)  # from 127.0.0.1: not affected
         assert held.open == 3
@@ -75,12 +76,12 @@ async def test_total_cap_makes_room_from_handshakes_never_from_joined_peers(capl
     async with running_server(TOKEN, max_connections=4, handshake_timeout_s=60) as server:
         expert, follower = await _pair(server)
         held = await hold_sockets("127.0.0.1", server.port, 6, sources=6, interval_s=0.5)
-        await until("the oldest handshakes to make room", lambda: held.closed_by_server >= 4)
+        await until(lambda: held.closed_by_server >= 4, what="the oldest handshakes to make room")
         assert server.counters["closed:evicted"] == 4 and held.open == 2
         await expert.send(Offer(sdp="v=0", id=1))  # the joined pair was spared
         assert await asyncio.wait_for(follower.receive(), 5) == Offer(sdp="v=0", id=1)
         await held.close()
-        await until("the held ones to go", lambda: server.guard.open_connections == 2)
+        await until(lambda: server.guard.open_connections == 2, what="the held ones to go")
         # a third WebSocket when every slot is a WebSocket is refused, not the pair
         other = await _pair(server, room="r2")
         third = SignalingClient(server.url, "r3", "expert", TOKEN, connect_timeout_s=2)

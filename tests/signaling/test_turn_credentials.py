@@ -29,6 +29,7 @@ from humantele.signaling.turn import (
     rest_credential,
     rest_username,
 )
+from waits import until
 
 SECRET = "north-humantele-test-secret"
 URL = "turn:127.0.0.1:3478?transport=udp"
@@ -363,7 +364,7 @@ async def test_a_link_takes_the_issued_credentials_and_their_renewals_and_drops_
     link._wall_clock = lambda: t[0]
     task = asyncio.create_task(link.run())
     try:
-        await _until(lambda: link._issued)
+        await until(lambda: link._issued)
         first = link._issued[0]
         assert first.expires == 2_000_000_600
         (ice,) = link._ice_servers()  # what the next RTCPeerConnection gets
@@ -373,7 +374,7 @@ async def test_a_link_takes_the_issued_credentials_and_their_renewals_and_drops_
             rest_credential(SECRET, first.username),
         )
         t[0] += 300
-        await _until(lambda: link._issued[0].expires == 2_000_000_900)
+        await until(lambda: link._issued[0].expires == 2_000_000_900)
         # a renewal whose entries are all bad: dropped with an error, the last good ones kept
         good = link._issued
         link._take_issued([{"urls": ["http://x"], "username": "u", "credential": "c"}])
@@ -390,12 +391,6 @@ async def test_a_link_takes_the_issued_credentials_and_their_renewals_and_drops_
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
         await server.stop()
-
-
-async def _until(cond, timeout: float = 10.0) -> None:
-    async with asyncio.timeout(timeout):
-        while not cond():
-            await asyncio.sleep(0.02)
 
 
 def test_a_joined_message_with_garbage_ice_servers_still_parses():

@@ -2,18 +2,8 @@
 
 import asyncio
 import contextlib
-import time
 
 from humantele.transport import PeerLink
-
-
-async def until(cond, timeout: float = 10.0, poll: float = 0.02) -> None:
-    """Wait until ``cond()`` is true; TimeoutError after ``timeout`` s."""
-    end = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > end:
-            raise TimeoutError("condition not met")
-        await asyncio.sleep(poll)
 
 
 @contextlib.asynccontextmanager

@@ -8,12 +8,12 @@ import signal
 import sys
 
 import pytest
-from link_helpers import until
 
 from humantele.signaling.messages import TOKEN_ENV
 from humantele.signaling.server import SignalConfig, SignalingServer
 from humantele.transport import LinkConfig, PeerLink
 from humantele.wire import PoseMessage, StateMessage
+from waits import until
 
 TOKEN = "process-test-token"
 Q = (0.0, 0.0, 0.0, 1.0)

@@ -7,10 +7,10 @@ import struct
 import time
 
 import pytest
-from link_helpers import until
 from pydantic import ValidationError
 
 from humantele.transport.netem import NetemConfig, UdpRelay
+from waits import until
 
 
 class _Endpoint(asyncio.DatagramProtocol):

@@ -6,11 +6,11 @@ import struct
 import time
 
 import pytest
-from link_helpers import until
 from pydantic import ValidationError
 from test_netem import _endpoint, _seqs
 
 from humantele.transport.netem import NetemConfig, UdpRelay
+from waits import until
 
 _until = functools.partial(until, timeout=10.0, poll=0.01)
 SIZE = 1000  # bytes per datagram

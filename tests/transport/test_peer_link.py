@@ -5,7 +5,7 @@ import struct
 import time
 
 import pytest
-from link_helpers import running_links, until
+from link_helpers import running_links
 
 from humantele.signaling.client import SignalingRefused
 from humantele.signaling.server import SignalConfig, SignalingServer
@@ -18,6 +18,7 @@ from humantele.wire import (
     StateMessage,
     TrackingStatus,
 )
+from waits import until
 
 TOKEN = "link-test-token"
 Q = (0.0, 0.0, 0.0, 1.0)

@@ -7,13 +7,14 @@ import statistics
 import time
 
 import pytest
-from link_helpers import running_links, until
+from link_helpers import running_links
 
 from humantele.signaling.server import SignalConfig, SignalingServer
 from humantele.transport import LinkConfig, PeerLink
 from humantele.transport.netem import NetemConfig, UdpRelay
 from humantele.transport.turnserver import TurnServer, TurnServerError
 from humantele.wire import PoseMessage
+from waits import until
 
 TOKEN = "turn-test-token"
 Q = (0.0, 0.0, 0.0, 1.0)

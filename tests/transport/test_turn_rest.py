@@ -10,12 +10,13 @@ import time
 import pytest
 from aioice.stun import TransactionFailed
 from aioice.turn import create_turn_endpoint
-from link_helpers import running_links, until
+from link_helpers import running_links
 
 from humantele.signaling.server import SignalConfig, SignalingServer
 from humantele.signaling.turn import TurnConfig, TurnIssuer
 from humantele.transport import LinkConfig, PeerLink
 from humantele.transport.turnserver import TurnServer
+from waits import until
 
 TOKEN = "turn-rest-test-token"
 SECRET = "4f0c9d1e7a2b6c3d8e5f0a1b2c3d4e5f"  # the deployment's shared secret (tests only)

@@ -16,6 +16,7 @@ import pytest
 from humantele.expert.console import ConsoleConfig, ConsoleServer
 from humantele.follower.feed import FeedConfig, RendererFeed
 from humantele.signaling.slowloris import PARTIAL_REQUEST, HeldSockets, hold_sockets
+from waits import until
 
 
 class Session:
@@ -40,14 +41,6 @@ class Session:
         self.commands.append(("clutch", on))
 
 
-async def until(what: str, pred, timeout: float = 30.0) -> None:
-    end = time.monotonic() + timeout
-    while not pred():
-        if time.monotonic() > end:
-            raise AssertionError(f"still waiting for {what}")
-        await asyncio.sleep(0.02)
-
-
 async def hold_from_own_address(port: int, n: int) -> tuple[HeldSockets, list]:
     """``n`` partial requests from 127.0.0.1, the address the sonographer's browser uses."""
     held = HeldSockets()
@@ -69,7 +62,7 @@ async def hold_from_own_address(port: int, n: int) -> tuple[HeldSockets, list]:
         held.closed_by_server += 1
 
     held._tasks = [asyncio.create_task(one()) for _ in range(n)]
-    await until("the connections", lambda: held.opened + held.failed == n)
+    await until(lambda: held.opened + held.failed == n, what="the connections")
     return held, writers
 
 
@@ -105,11 +98,11 @@ async def test_console_page_gets_in_past_half_open_sockets_from_its_own_address(
             assert (await next_json(ws, "hello"))["type"] == "hello"
             assert len(guard.held_back) == 1  # the page's socket: outside the caps
             # The half-open ones are closed after the header deadline; the page stays.
-            await until("the half-open sockets closed", lambda: held.open == 0)
+            await until(lambda: held.open == 0, what="the half-open sockets closed")
             assert server.connections["closed:handshake_timeout"] >= 1
             await next_json(ws, "state")
             assert not ws.closed
-        await until("the server to forget them all", lambda: guard.open_connections == 0)
+        await until(lambda: guard.open_connections == 0, what="the server to forget them all")
         c = server.connections
         assert c["closed:evicted"] + c["closed:handshake_timeout"] == 40
     finally:
@@ -128,7 +121,7 @@ async def test_console_keep_alive_connection_gets_the_deadline_again(tmp_path):
         assert head.startswith(b"HTTP/1.1 200")
         writer.write(PARTIAL_REQUEST)
         await asyncio.wait_for(reader.read(), 30)  # to EOF: the server closed it
-        await until("the slot freed", lambda: server.pages.guard.open_connections == 0)
+        await until(lambda: server.pages.guard.open_connections == 0, what="the slot freed")
         writer.close()
     finally:
         await server.stop()
@@ -146,19 +139,19 @@ async def test_headset_page_counts_tls_handshakes_and_closes_stalled_ones(tmp_pa
     try:
         silent = await hold_sockets("127.0.0.1", feed.port, 12, sources=12, mode="tcp")
         # Counted before any byte of TLS: asyncio's own TLS server would not show them.
-        await until("the silent ones admitted", lambda: guard.open_connections >= 12)
+        await until(lambda: guard.open_connections >= 12, what="the silent ones admitted")
         slow = await hold_sockets("127.0.0.1", feed.port, 12, sources=3, mode="tls")
         assert guard.open_connections <= 16
         async with aiohttp.ClientSession() as http, http.ws_connect(feed.url, ssl=False) as ws:
             feed.publish("link", {"state": "connected"})
             assert (await next_json(ws, "link"))["state"] == "connected"
-            await until("the half-open sockets closed", lambda: silent.open + slow.open == 0)
+            await until(lambda: silent.open + slow.open == 0, what="the half-open sockets closed")
             feed.publish("link", {"state": "disconnected"})
             assert (await next_json(ws, "link"))["state"] == "disconnected"
         c = feed.connections
         assert c["closed:handshake_timeout"] >= 1  # the admitted ones, at the deadline
         assert c["closed:handshake_timeout"] + c["closed:evicted"] >= 12
-        await until("the server to forget them all", lambda: guard.open_connections == 0)
+        await until(lambda: guard.open_connections == 0, what="the server to forget them all")
         await silent.close()
         await slow.close()
     finally:
@@ -233,8 +226,8 @@ async def test_a_slow_reader_is_closed_after_the_response_timeout(tmp_path, monk
         await loop.sock_sendall(
             sock, b"GET /web/vendor/three/three.core.js HTTP/1.1\r\nHost: x\r\n\r\n"
         )
-        await until("its place freed", lambda: feed.pages.guard.open_connections == 0)
-        await until("its descriptor closed", lambda: not feed.pages.guard.connections)
+        await until(lambda: feed.pages.guard.open_connections == 0, what="its place freed")
+        await until(lambda: not feed.pages.guard.connections, what="its descriptor closed")
     finally:
         sock.close()
         await feed.stop()

@@ -8,7 +8,6 @@ page that answers nothing (gone), and a page that breaks the protocol (refused).
 
 from __future__ import annotations
 
-import asyncio
 import time
 
 import aiohttp
@@ -17,6 +16,7 @@ import pytest
 from humantele.follower.feed import FeedConfig, RendererFeed
 from humantele.web import pagesocket
 from humantele.web.liveness import PageLiveness
+from waits import until
 
 
 class Clock:
@@ -66,13 +66,6 @@ def plain_feed() -> RendererFeed:
     feed = RendererFeed(FeedConfig(port=0, host="127.0.0.1", tls=False))
     feed.pages.ping_every_s, feed.pages.answer_within_s, feed.pages.step_s = 0.2, 1.0, 0.05
     return feed
-
-
-async def until(pred, timeout: float = 30.0) -> None:
-    end = time.monotonic() + timeout
-    while not pred():
-        assert time.monotonic() < end, "condition not met in time"
-        await asyncio.sleep(0.01)
 
 
 async def next_ping(ws) -> aiohttp.WSMessage:

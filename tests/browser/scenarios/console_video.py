@@ -16,6 +16,9 @@ from stage import console_url
 REPO = Path(__file__).resolve().parents[3]
 CANVAS_PNG = "document.getElementById('us').toDataURL('image/png')"
 CONTACT_MEAN = 8.0  # the US canvas's mean grey with an image (no contact: black, ~1)
+# US frames received with no page open, over which the console must take none (1.5 s of the
+# demo's 20 fps; was a fixed 3 s, 60 frames on a quiet machine, fewer on a loaded one)
+IDLE_FRAMES = 30
 
 
 def console_frames(demo) -> dict:
@@ -24,12 +27,18 @@ def console_frames(demo) -> dict:
             "subscribed": c.get("subscribed"), "clients": c.get("clients")}  # fmt: skip
 
 
-async def idle(demo, seconds: float = 3.0) -> dict:
-    """The console's frame counters over ``seconds`` with no page (and the receiver's)."""
-    a, ra = console_frames(demo), (demo.stats("expert").get("video") or {}).get("us", {})
-    await asyncio.sleep(seconds)
-    b, rb = console_frames(demo), (demo.stats("expert").get("video") or {}).get("us", {})
-    return {"before": a, "after": b, "received": [ra.get("frames"), rb.get("frames")]}
+def received(expert_stats: dict) -> int:
+    """US frames the expert has received (its video receiver's count)."""
+    return ((expert_stats.get("video") or {}).get("us") or {}).get("frames") or 0
+
+
+async def idle(demo, frames: int = IDLE_FRAMES) -> dict:
+    """The console's frame counters while the expert receives ``frames`` US frames with no page
+    open (and the receiver's count): each one a frame the console could have taken."""
+    a, ra = console_frames(demo), received(demo.stats("expert"))
+    await demo.wait(f"{frames} more US frames received", lambda e, f: received(e) >= ra + frames)
+    b, rb = console_frames(demo), received(demo.stats("expert"))
+    return {"before": a, "after": b, "received": [ra, rb]}
 
 
 async def visit(ctx, demo, transport: str | None) -> dict:
@@ -47,6 +56,7 @@ async def visit(ctx, demo, transport: str | None) -> dict:
         stall_s=90,
     )
     out: dict = {"transport": await page.evaluate("consoleApp.transport")}
+    ctx.mark(f"{name}: drawing")
     out["pixels"] = {t: await pixels(page, t) for t in ("us", "pov")}
     out["open"] = console_frames(demo)
     await ctx.shot(page, f"console_video_{name}_live")
@@ -65,6 +75,7 @@ async def visit(ctx, demo, transport: str | None) -> dict:
             await page.click("#freeze")  # live again
             await ctx.until(page, "!consoleApp.frozen", 5)
         await asyncio.sleep(0.3)
+    ctx.mark(f"{name}: frozen in contact")
     await asyncio.sleep(0.5)  # frames keep coming: none may replace the frozen one
     out["shown"] = await page.evaluate("consoleApp.shown")
     png = await page.evaluate(CANVAS_PNG)
@@ -89,8 +100,10 @@ async def run(ctx) -> dict:
         return (e.get("console") or {}).get("url") and us.get("frames", 0) > 20
 
     await demo.wait("video received", ready, timeout=240)
+    ctx.mark("video received")
     data: dict = {"idle_before": await idle(demo)}
     for transport in ctx.args.get("transports", [None, "jpeg"]):
         data[transport or "default"] = await visit(ctx, demo, transport)
+        ctx.mark(f"visit {transport or 'default'}")
     data["idle_after"] = await idle(demo)
     return data

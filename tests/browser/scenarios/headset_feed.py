@@ -91,6 +91,7 @@ async def run(ctx) -> dict:
     url = f"https://127.0.0.1:{feed.port}/#code={feed.code}"
     page = await ctx.page(url, headset=True)
     data["first_hud"] = await hud_when(ctx, page, "h.cue === 'red'")
+    t_page = time.monotonic()
 
     # 1. Where things are drawn, and with which objects.
     data["red"] = await capture(ctx, page, "feed_red")
@@ -188,6 +189,8 @@ async def run(ctx) -> dict:
     data["paired_after_reload"] = await fresh.evaluate("document.getElementById('pairing').hidden")
     await ctx.close_page(fresh)
     data["code_address"] = await page.evaluate("location.href")
+    # the page's frame rate (a figure: stage.HEADSET_FRAME_MS, and the machine)
+    data["page_fps"] = round(await page.evaluate("headset.frames") / (time.monotonic() - t_page), 1)
     data["feed"] = feed.stats()
     data["latencies_ms"] = [round(v * 1000.0, 3) for v in feed.latencies]
     pub.task.cancel()
