@@ -411,3 +411,55 @@ def test_the_packets_given_up_stay_bounded_if_nobody_takes_them():
         feed(buf, [f[0], f[2]])
     assert buf.counters.gaps_given_up > 0
     assert 0 < len(buf.take_given_up()) <= GONE_KEPT
+
+
+def test_a_give_up_while_the_keyframe_asked_for_is_on_its_way_asks_no_second_one():
+    """Waiting for the keyframe asked for, an older frame given up asks for none (the encoder
+    would send a second keyframe behind the first: the burst a thin link drops, a PLI storm);
+    the request is repeated on its interval, and at once when the keyframe itself is lost."""
+    clock, s = Clock(), Stream()
+    buf = make(clock, pli_interval_s=0.5)
+    feed(buf, s.frame([b"K0"]))
+    feed(buf, s.frame([b"d1", b"x"])[1:])
+    clock.t += 2 * WAIT
+    assert any(p for p, _ in feed(buf, s.frame([b"d2", b"y"])))  # d1 given up: asked
+    feed(buf, s.frame([b"d3", b"z"])[1:])  # d3's first packet lost too
+    clock.t += 2 * WAIT
+    assert not any(p for p, _ in feed(buf, s.frame([b"d4", b"w"])))  # d3 given up: held
+    assert buf.counters.gaps_given_up == 2 and buf.counters.plis_held == 1
+    clock.t += 0.5  # the repeat
+    assert any(p for p, _ in feed(buf, s.frame([b"d5", b"v"])))
+    key = s.frame([b"K6", b"a", b"b"])
+    feed(buf, [key[0], key[2]])  # the keyframe arrives, one packet lost
+    clock.t += 2 * WAIT
+    assert any(p for p, _ in feed(buf, s.frame([b"d7", b"u"])))  # the keyframe lost: at once
+    assert buf.counters.plis == 3 and buf.counters.plis_held == 1
+    assert feed(buf, s.frame([b"K8", b"c"]))[-1] == (False, b"K8c")
+
+
+def test_late_repairs_set_the_wait_too():
+    """On a thin link the retransmissions queue behind the media: they came after the wait
+    (83 late, 25 in time on the rural link), and timed only within it, the wait never grew to
+    cover them. Late ones are timed too (up to LATE_REPAIR_MAX_S): the wait follows."""
+    clock, s = Clock(), Stream()
+    buf = make(clock, rtt=lambda: 0.03)
+    feed(buf, s.frame([b"K0"]))
+    for _ in range(MIN_REPAIRS):  # three repairs in 60 ms
+        f1, f2 = s.frame([b"d1", b"x"]), s.frame([b"d2", b"y"])
+        feed(buf, [f1[1], *f2])
+        clock.t += 0.06
+        feed(buf, [f1[0]])
+    assert buf.wait_s() == WAIT
+    f1, f2 = s.frame([b"d1", b"x"]), s.frame([b"d2", b"y"])  # then one takes 250 ms:
+    feed(buf, [f1[1], *f2])
+    clock.t += 0.25
+    feed(buf, s.frame([b"K", b"k"]))  # the wait ran out: d1 given up (a keyframe came)
+    feed(buf, [f1[0]])  # its retransmission, late
+    assert buf.counters.late_repairs == 1 and buf.counters.gaps_given_up == 1
+    assert buf.wait_s() == pytest.approx(0.25 + RTX_MARGIN_S)
+    for _ in range(3):  # the next ones taking as long are waited for
+        f1, f2 = s.frame([b"d1", b"x"]), s.frame([b"d2", b"y"])
+        feed(buf, [f1[1], *f2])
+        clock.t += 0.25
+        assert feed(buf, [f1[0]]) == [(False, b"d1x")]
+    assert buf.counters.gaps_given_up == 1

@@ -59,14 +59,15 @@ MIN_RENACK_S = 0.025  # a missing packet asked for again at most this often (s)
 RENACK_MARGIN_S = 0.015  # beyond the round trip before asking again (s)
 MAX_RENACK_SPAN = 512  # packets between the head and the newest: past it, no re-asking
 # The round trip of a repair, measured here: from a gap's first sight (when aiortc NACKs it)
-# to its retransmission's arrival within the wait. One after the wait is not timed: aiortc
-# asks again for every packet still missing at each new gap, given up or not, so it answers
-# a later request (measured at 15 % loss, such times up to 1 s stretched the wait to 1 s).
-# The wait still grows when repairs take longer: its quantile plus the margin.
+# to its retransmission's arrival, within the wait or after it (a late repair: the packets
+# given up are taken out of aiortc's NACK list, so it answers a request made before the give
+# up). Measured only within the wait, the wait never grew to a thin link's repair time (the
+# rural link: 25 repairs in time, 83 late); late ones over LATE_REPAIR_MAX_S are not timed.
 REPAIRS_KEPT = 32  # the recent repair times the waits follow
 MIN_REPAIRS = 3  # repairs measured before they set the waits (until then: the given rtt)
 REPAIR_WAIT_QUANTILE = 0.9  # the wait covers this share of recent repairs (and a margin)
 GONE_KEPT = 256  # given-up packets remembered, so a late retransmission is counted
+LATE_REPAIR_MAX_S = 0.6  # a late repair slower than this sets no wait (the freeze budget, s)
 
 
 def vp8_is_keyframe(data: bytes) -> bool:
@@ -101,6 +102,7 @@ class JitterCounters:
     renacks: int = 0  # missing packets asked for again (their NACK or retransmission lost)
     repairs: int = 0  # missing packets that came (a retransmission) within the wait
     late_repairs: int = 0  # missing packets that came after their frame was given up
+    plis_held: int = 0  # give-ups while the keyframe asked for was still on its way
     skipped_to_keyframe: int = 0  # waiting for a keyframe, older frames skipped when it came
     repair_ms: float = 0.0  # the round trip of a repair in force (ms; 0: none known)
     wait_ms: float = 0.0  # the wait for a lost packet in force at the last look (ms)
@@ -252,8 +254,11 @@ class BoundedJitterBuffer:
             self._next, self._started = seq, now
         if seq < self._next:
             self.counters.late_packets += 1
-            if self._gone.pop(seq, None) is not None:  # came after its frame was given up
-                self.counters.late_repairs += 1  # not timed: aiortc asked for it again since
+            first = self._gone.pop(seq, None)
+            if first is not None:  # came after its frame was given up: timed too
+                self.counters.late_repairs += 1
+                if now - first <= LATE_REPAIR_MAX_S:
+                    self._repairs.append(now - first)
         elif seq in self._packets:
             self.counters.duplicates += 1
         else:
@@ -396,9 +401,17 @@ class BoundedJitterBuffer:
             self._behind += 1
 
     def _give_up(self) -> None:
+        """Drop the head frame (its gap waited for in vain) and wait for a keyframe: asked for
+        at once, unless one asked for is still on its way (waiting already, the frame given up
+        older than any keyframe seen starting): then at the next repeat (:meth:`pli_every_s`).
+        Asked again at once, the encoder made a second keyframe behind the first, a burst that
+        a thin link's queue drops, and so on (a PLI storm)."""
         self.counters.gaps_given_up += 1
+        if self._want_key and self._pli_at is not None and self._next not in self._key_starts:
+            self.counters.plis_held += 1
+        else:
+            self._pli_at = None
         self._want_key = True
-        self._pli_at = None
         self._skip_to_next_start()
         self._key_starts = {s for s, p in self._packets.items()
                             if self.is_keyframe(getattr(p, "_data", b""))}  # fmt: skip
