@@ -289,8 +289,8 @@ def test_the_waits_follow_the_repairs_measured_not_only_the_given_round_trip():
     """Retransmissions take 90 ms, then 125 ms (a queue on the link) where the given round
     trip says 30 ms: the wait grows with the repairs measured (so the picture does not freeze
     on each lost packet) and re-asking follows them too (no duplicate NACKs every 45 ms). A
-    retransmission after its frame was given up is counted, not timed (aiortc asks for every
-    missing packet again at each new gap: it answers a later request)."""
+    retransmission 2 s after its frame was given up is counted, not timed (over
+    LATE_REPAIR_MAX_S: the freeze budget)."""
     clock, s = Clock(), Stream()
     buf = make(clock, rtt=lambda: 0.03)
     assert buf.wait_s() == WAIT and buf.renack_every_s() == pytest.approx(0.045)

@@ -15,8 +15,9 @@ for every RTP packet, the payload already depayloaded into ``packet._data``):
 - releases a frame as soon as its last packet (RTP marker bit) is in and no packet since the
   previous frame is missing;
 - lets a missing packet be waited for ``max_wait_s`` after the first later packet arrived (time
-  for a NACK and its retransmission), or longer when the repairs it measures take longer (or,
-  until it has measured some, the given round trip ``rtt``), plus a margin: at 60 ms each way
+  for a NACK and its retransmission), or longer when the repairs it measures (late ones
+  too) take longer (or, until it has measured some, the given round trip ``rtt``), plus a
+  margin: at 60 ms each way
   a retransmission takes ~130 ms and a fixed 100 ms gave up on every one of them; waiting for
   a keyframe, it skips the frames before one that has started to arrive; after the wait, or
   beyond ``capacity`` packets, it
@@ -172,9 +173,10 @@ class BoundedJitterBuffer:
     def wait_s(self) -> float:
         """How long a missing packet is waited for (s): ``max_wait_s``, or longer on a link
         whose repairs take longer: :data:`REPAIR_WAIT_QUANTILE` of the repairs measured
-        here (re-asks included) or the given round trip, plus :data:`RTX_MARGIN_S`; at most
-        :data:`MAX_WAIT_S`. A clock-sync exchange over the reliable control channel is no
-        measure of it: one lost ping waits for SCTP's retransmission (at least 1 s)."""
+        here (re-asks and late repairs included) or the given round trip, plus
+        :data:`RTX_MARGIN_S`; at most :data:`MAX_WAIT_S`. A clock-sync exchange over the
+        reliable control channel is no measure of it: one lost ping waits for SCTP's
+        retransmission (at least 1 s)."""
         wait = self.max_wait_s
         rtt, high = self._given_rtt(), self._repair_quantile(REPAIR_WAIT_QUANTILE)
         for r in (rtt, high):
