@@ -32,9 +32,13 @@ decoded frame of a track, in order, including those the loop skipped for a newer
 the encoded frame it was decoded from (:class:`Encoded`, the tap's bytes: what a page's own
 decoder takes). With no listener nothing is kept or called beyond the recording's tap.
 
-Frame age (``age_s``) is capture to decoded-at-the-expert ("glass to glass" without the
-display). Frames whose counter does not read or whose record was lost are kept (they are the
-latest picture) with an unknown age, and counted.
+Each decoded frame is shown (made the latest, timed, recorded as ``received``) when due
+(:mod:`humantele.media.playout`): at once on a link that repairs no loss; while the jitter
+buffer repairs packets, at a steady delay after its RTP time that covers the repairs (a
+repaired frame is otherwise a gap between pictures, a freeze on a 120 ms round trip). Frame
+age (``age_s``) is capture to shown at the expert ("glass to glass" without the display).
+Frames whose counter does not read or whose record was lost are kept (they are the latest
+picture) with an unknown age, and counted.
 """
 
 from __future__ import annotations
