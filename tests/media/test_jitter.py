@@ -463,3 +463,24 @@ def test_late_repairs_set_the_wait_too():
         clock.t += 0.25
         assert feed(buf, [f1[0]]) == [(False, b"d1x")]
     assert buf.counters.gaps_given_up == 1
+
+
+def test_a_missing_packet_is_asked_for_again_between_packets_when_polled():
+    """At 15 % loss the US's packets came 50-160 ms apart: asked again only on a packet's
+    arrival, a lost retransmission got one more try or none within the wait. Polled between
+    packets, the buffer asks again every round trip and a little, packets or not."""
+    clock, s = Clock(), Stream()
+    buf = make(clock, rtt=lambda: 0.03)
+    every = buf.renack_every_s()
+    feed(buf, s.frame([b"K0"]))
+    f1 = s.frame([b"d1", b"x"])
+    feed(buf, [f1[1]])  # the gap shows (aiortc's own NACK)
+    asked = 0
+    for _ in range(int(2 * every / 0.01) + 2):  # no packet for two round trips and more
+        clock.t += 0.01
+        buf.poll()
+        asked += len(buf.take_nacks())
+    assert asked == 2 and buf.counters.renacks == 2
+    assert feed(buf, [f1[0]]) == [(False, b"d1x")]
+    buf.poll()
+    assert buf.take_nacks() == []

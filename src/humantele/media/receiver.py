@@ -82,6 +82,7 @@ log = logging.getLogger(__name__)
 Record = Callable[[str, float, dict], Any]
 INFO_KEEP = 256  # frame records kept per track for matching
 VIDEO_RATE = 90000  # RTP video clock, Hz
+POLL_S = 0.01  # the jitter buffers' re-asks are looked at this often between packets (s)
 
 
 KEYFRAME_EVERY_S = 0.5  # keyframe requests of a track (PLI) at most this often
@@ -353,6 +354,20 @@ class VideoReceiver:
                     self._spawn(self._consume(pc, names[id(t.receiver)], track))
 
         pc.on("track", on_track)
+        with contextlib.suppress(RuntimeError):  # no running loop: no re-asks between packets
+            asyncio.get_running_loop()
+            self._spawn(self._poll_taps(pc))
+
+    async def _poll_taps(self, pc: RTCPeerConnection) -> None:
+        """Every :data:`POLL_S` while ``pc`` is the connection: each jitter buffer's timed
+        work between packets (its re-asks for packets still missing)."""
+        while pc is self._pc:
+            for tap in list(self._taps.values()):
+                try:
+                    tap.poll()
+                except Exception:
+                    log.exception("video: jitter buffer poll failed")
+            await asyncio.sleep(POLL_S)
 
     def _releaser(self, name: str) -> Callable[[Any], None]:
         """The tap's ``on_release`` for track ``name``: keep the released frame for the
