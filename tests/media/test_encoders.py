@@ -220,7 +220,8 @@ def test_the_first_picture_after_a_dark_run_stays_near_its_budget(us_frames):
     sizes, pts = [], 0
     seq = frames[:20] + [dark_frame(frames[0], 0)] * 40 + frames[20:60]
     for frame in seq:
-        frame.pts, pts = pts, pts + 4500
+        frame.pts, frame.time_base = pts, fractions.Fraction(1, 90000)
+        pts += 4500
         payloads, _ = enc.encode(frame)
         sizes.append(sum(len(p) for p in payloads))
     budget = 500_000 / 8 / 20
