@@ -80,3 +80,57 @@ def test_a_frame_later_than_its_due_time_is_due_at_once_and_no_pts_is_now():
         playout.due(i * INTERVAL, i * 0.05 + 0.06 + (0.1 if i % 10 == 0 else 0.0))
     assert playout.due(50 * INTERVAL, 50 * 0.05 + 5.0) == 50 * 0.05 + 5.0
     assert playout.due(None, 9.0) == 9.0
+
+
+async def test_the_receiver_shows_each_frame_when_its_playout_says():
+    """The wiring (media.receiver): decoded frames are shown (timed, made the latest) at the
+    playout's due time on the expert's clock, not when decoded, once the jitter buffer has
+    repaired a packet. The clock is driven by hand; the loop only has to wake up."""
+    import asyncio
+    from types import SimpleNamespace
+
+    import av
+    from aiortc.mediastreams import MediaStreamError
+
+    from humantele.media.config import ExpertVideoConfig
+    from humantele.media.receiver import VideoReceiver
+    from media_helpers import until
+
+    class Track:
+        def __init__(self):
+            self._queue = asyncio.Queue()
+
+        async def recv(self):
+            frame = await self._queue.get()
+            if frame is None:
+                raise MediaStreamError
+            return frame
+
+    clock = {"t": 100.0}
+    rx = VideoReceiver(ExpertVideoConfig(enabled=True), SimpleNamespace(to_local=lambda t: None),
+                       now=lambda: clock["t"])  # fmt: skip
+    rx._pc = pc = object()
+    rx._jitter["us"] = SimpleNamespace(counters=SimpleNamespace(repairs=1, late_repairs=0))
+    track = Track()
+    task = asyncio.ensure_future(rx._consume(pc, "us", track))
+    expected = Playout()
+    expected.note_repairs(1, clock["t"])
+    arrivals = link(12, 0.06, {8: 0.2})  # frame 8 waits 200 ms; 9 and 10 come with it
+    st = rx.stats_by_track["us"]
+    try:
+        for i, t in enumerate(arrivals):
+            frame = av.VideoFrame(width=64, height=48, format="yuv420p")
+            frame.pts = i * INTERVAL
+            clock["t"] = 100.0 + t
+            due = expected.due(frame.pts, clock["t"])
+            shown = st.frames
+            await track._queue.put(frame)
+            if due > clock["t"]:  # held: not shown until the clock reaches its due time
+                await asyncio.sleep(0.05)
+                assert st.frames == shown
+                clock["t"] = due
+            await until(lambda n=shown: st.frames == n + 1, 10)
+            assert st.arrivals[-1] == pytest.approx(due)
+        assert expected.delay_max_s > 0.1  # the repair set a delay, and frames were held
+    finally:
+        task.cancel()
