@@ -4,9 +4,17 @@ frame behind it waiting with it) is no gap between pictures. Times are passed in
 
 from __future__ import annotations
 
-import pytest
+import asyncio
+from types import SimpleNamespace
 
+import av
+import pytest
+from aiortc.mediastreams import MediaStreamError
+from media_helpers import until
+
+from humantele.media.config import ExpertVideoConfig
 from humantele.media.playout import MAX_DELAY_S, REPAIR_HOLD_S, Playout
+from humantele.media.receiver import VideoReceiver
 
 INTERVAL = 4500  # 90 kHz ticks a frame (20 fps)
 
@@ -86,15 +94,6 @@ async def test_the_receiver_shows_each_frame_when_its_playout_says():
     """The wiring (media.receiver): decoded frames are shown (timed, made the latest) at the
     playout's due time on the expert's clock, not when decoded, once the jitter buffer has
     repaired a packet. The clock is driven by hand; the loop only has to wake up."""
-    import asyncio
-    from types import SimpleNamespace
-
-    import av
-    from aiortc.mediastreams import MediaStreamError
-
-    from humantele.media.config import ExpertVideoConfig
-    from humantele.media.receiver import VideoReceiver
-    from media_helpers import until
 
     class Track:
         def __init__(self):
