@@ -82,13 +82,14 @@ def devices_summary(f: dict[str, Any]) -> dict[str, Any]:
 
 
 def video_summary(e: dict[str, Any] | None, f: dict[str, Any] | None) -> dict[str, Any] | None:
-    """Per track at the expert: frames, rate, age (capture to decoded) p50/p95/max; the
-    follower's POV degradation level. None when video is off."""
+    """Per track at the expert: frames, rate, age (capture to shown) p50/p95/max, the playout
+    delay (media.playout); the follower's POV degradation level. None when video is off."""
     if not e:
         return None
     out: dict[str, Any] = {}
     keys = ("frames", "fps", "fps_mean", "gap_max_ms", "age_p50_ms", "age_p95_ms", "age_max_ms",
-            "unreadable", "no_info", "stale_dropped", "jitter")  # fmt: skip
+            "unreadable", "no_info", "stale_dropped", "jitter", "playout_ms",
+            "playout_max_ms")  # fmt: skip
     for name in ("us", "pov"):
         t = e.get(name) or {}
         out[name] = {k: t.get(k) for k in (*keys, "size")}

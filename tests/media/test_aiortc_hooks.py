@@ -186,3 +186,33 @@ async def test_forget_missing_stops_the_receivers_nacks_for_given_up_packets():
         assert generator.missing == set()
     finally:
         await pc.close()
+
+
+def test_the_tap_sends_the_nacks_its_buffer_asks_for_between_packets():
+    from aiortc.rtp import RtpPacket
+
+    from humantele.media.aiortc_hooks import EncodedFrameTap
+
+    class Renacks:  # a buffer whose poll asks again for 7
+        def __init__(self):
+            self.polled, self.out = 0, []
+
+        def add(self, packet):
+            return False, None
+
+        def poll(self):
+            self.polled += 1
+            self.out = [7]
+
+        def take_nacks(self):
+            out, self.out = self.out, []
+            return out
+
+    sent = []
+    tap = EncodedFrameTap(Renacks(), None)
+    tap.on_nack = lambda ssrc, lost: sent.append((ssrc, lost))
+    tap.poll()
+    assert sent == []  # no stream known yet: nothing to send to
+    tap.add(RtpPacket(sequence_number=5, ssrc=1234))
+    tap.poll()
+    assert sent == [(1234, [7])] and tap.buffer.polled == 2

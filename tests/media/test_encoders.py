@@ -199,3 +199,35 @@ def test_bad_bit_rates_are_refused_with_the_field_name(data, field):
 def test_an_unknown_codec_has_no_encoder():
     with pytest.raises(ValueError, match="video/AV1"):
         make_encoder("video/AV1", BitrateConfig())
+
+
+def dark_frame(like: av.VideoFrame, pts: int) -> av.VideoFrame:
+    """A black I420 frame (the sim US before the probe touches the patient)."""
+    y = np.full((like.height, like.width), 16, np.uint8)
+    uv = np.full((like.height // 2, like.width), 128, np.uint8)
+    frame = av.VideoFrame.from_ndarray(np.concatenate([y, uv]), format="yuv420p")
+    frame.pts, frame.time_base = pts, fractions.Fraction(1, 90000)
+    return frame
+
+
+def test_the_first_picture_after_a_dark_run_stays_near_its_budget(us_frames):
+    """libvpx lowers the quantizer to qmin on frames that cannot spend their budget (black):
+    the first picture after them came out at about 51 kB at 500 kbit/s (a frame's budget is
+    3.1 kB), a burst a thin link's queue drops. The quantizer floor holds it near the last
+    picture's; steady frames are unchanged (they spend their budget)."""
+    enc = make_encoder("video/VP8", BitrateConfig(start_kbps=500, min_kbps=500, max_kbps=500))
+    frames = [f for _, f in us_frames]
+    sizes, pts = [], 0
+    seq = frames[:20] + [dark_frame(frames[0], 0)] * 40 + frames[20:60]
+    for frame in seq:
+        frame.pts, frame.time_base = pts, fractions.Fraction(1, 90000)
+        pts += 4500
+        payloads, _ = enc.encode(frame)
+        sizes.append(sum(len(p) for p in payloads))
+    budget = 500_000 / 8 / 20
+    assert enc.figures()["libvpx"]
+    assert max(sizes[50:60]) < 200  # dark frames cost next to nothing
+    assert sizes[60] < 3 * budget  # was ~16 x
+    assert sum(sizes[60:64]) < 4 * 3 * budget
+    assert np.mean(sizes[70:]) == pytest.approx(budget, rel=0.3)  # the steady rate as before
+    assert enc.oversized == 0 and enc.q_floor > 2

@@ -289,8 +289,8 @@ def test_the_waits_follow_the_repairs_measured_not_only_the_given_round_trip():
     """Retransmissions take 90 ms, then 125 ms (a queue on the link) where the given round
     trip says 30 ms: the wait grows with the repairs measured (so the picture does not freeze
     on each lost packet) and re-asking follows them too (no duplicate NACKs every 45 ms). A
-    retransmission after its frame was given up is counted, not timed (aiortc asks for every
-    missing packet again at each new gap: it answers a later request)."""
+    retransmission 2 s after its frame was given up is counted, not timed (over
+    LATE_REPAIR_MAX_S: the freeze budget)."""
     clock, s = Clock(), Stream()
     buf = make(clock, rtt=lambda: 0.03)
     assert buf.wait_s() == WAIT and buf.renack_every_s() == pytest.approx(0.045)
@@ -411,3 +411,76 @@ def test_the_packets_given_up_stay_bounded_if_nobody_takes_them():
         feed(buf, [f[0], f[2]])
     assert buf.counters.gaps_given_up > 0
     assert 0 < len(buf.take_given_up()) <= GONE_KEPT
+
+
+def test_a_give_up_while_the_keyframe_asked_for_is_on_its_way_asks_no_second_one():
+    """Waiting for the keyframe asked for, an older frame given up asks for none (the encoder
+    would send a second keyframe behind the first: the burst a thin link drops, a PLI storm);
+    the request is repeated on its interval, and at once when the keyframe itself is lost."""
+    clock, s = Clock(), Stream()
+    buf = make(clock, pli_interval_s=0.5)
+    feed(buf, s.frame([b"K0"]))
+    feed(buf, s.frame([b"d1", b"x"])[1:])
+    clock.t += 2 * WAIT
+    assert any(p for p, _ in feed(buf, s.frame([b"d2", b"y"])))  # d1 given up: asked
+    feed(buf, s.frame([b"d3", b"z"])[1:])  # d3's first packet lost too
+    clock.t += 2 * WAIT
+    assert not any(p for p, _ in feed(buf, s.frame([b"d4", b"w"])))  # d3 given up: held
+    assert buf.counters.gaps_given_up == 2 and buf.counters.plis_held == 1
+    clock.t += 0.5  # the repeat
+    assert any(p for p, _ in feed(buf, s.frame([b"d5", b"v"])))
+    key = s.frame([b"K6", b"a", b"b"])
+    feed(buf, [key[0], key[2]])  # the keyframe arrives, one packet lost
+    clock.t += 2 * WAIT
+    assert any(p for p, _ in feed(buf, s.frame([b"d7", b"u"])))  # the keyframe lost: at once
+    assert buf.counters.plis == 3 and buf.counters.plis_held == 1
+    assert feed(buf, s.frame([b"K8", b"c"]))[-1] == (False, b"K8c")
+
+
+def test_late_repairs_set_the_wait_too():
+    """On a thin link the retransmissions queue behind the media: they came after the wait
+    (83 late, 25 in time on the rural link), and timed only within it, the wait never grew to
+    cover them. Late ones are timed too (up to LATE_REPAIR_MAX_S): the wait follows."""
+    clock, s = Clock(), Stream()
+    buf = make(clock, rtt=lambda: 0.03)
+    feed(buf, s.frame([b"K0"]))
+    for _ in range(MIN_REPAIRS):  # three repairs in 60 ms
+        f1, f2 = s.frame([b"d1", b"x"]), s.frame([b"d2", b"y"])
+        feed(buf, [f1[1], *f2])
+        clock.t += 0.06
+        feed(buf, [f1[0]])
+    assert buf.wait_s() == WAIT
+    f1, f2 = s.frame([b"d1", b"x"]), s.frame([b"d2", b"y"])  # then one takes 250 ms:
+    feed(buf, [f1[1], *f2])
+    clock.t += 0.25
+    feed(buf, s.frame([b"K", b"k"]))  # the wait ran out: d1 given up (a keyframe came)
+    feed(buf, [f1[0]])  # its retransmission, late
+    assert buf.counters.late_repairs == 1 and buf.counters.gaps_given_up == 1
+    assert buf.wait_s() == pytest.approx(0.25 + RTX_MARGIN_S)
+    for _ in range(3):  # the next ones taking as long are waited for
+        f1, f2 = s.frame([b"d1", b"x"]), s.frame([b"d2", b"y"])
+        feed(buf, [f1[1], *f2])
+        clock.t += 0.25
+        assert feed(buf, [f1[0]]) == [(False, b"d1x")]
+    assert buf.counters.gaps_given_up == 1
+
+
+def test_a_missing_packet_is_asked_for_again_between_packets_when_polled():
+    """At 15 % loss the US's packets came 50-160 ms apart: asked again only on a packet's
+    arrival, a lost retransmission got one more try or none within the wait. Polled between
+    packets, the buffer asks again every round trip and a little, packets or not."""
+    clock, s = Clock(), Stream()
+    buf = make(clock, rtt=lambda: 0.03)
+    every = buf.renack_every_s()
+    feed(buf, s.frame([b"K0"]))
+    f1 = s.frame([b"d1", b"x"])
+    feed(buf, [f1[1]])  # the gap shows (aiortc's own NACK)
+    asked = 0
+    for _ in range(int(2 * every / 0.01) + 2):  # no packet for two round trips and more
+        clock.t += 0.01
+        buf.poll()
+        asked += len(buf.take_nacks())
+    assert asked == 2 and buf.counters.renacks == 2
+    assert feed(buf, [f1[0]]) == [(False, b"d1x")]
+    buf.poll()
+    assert buf.take_nacks() == []

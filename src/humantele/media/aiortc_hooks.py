@@ -145,19 +145,18 @@ class EncodedFrameTap:
         self.on_nack: Callable[[int, list[int]], Any] | None = None  # (ssrc, lost seqs)
         self.on_give_up: Callable[[list[int]], Any] | None = None  # (seqs given up)
 
+    def poll(self) -> None:
+        """Between packets: the buffer's own timed work (its re-asks, if it has a ``poll``),
+        and the NACKs it gives sent."""
+        poll = getattr(self.buffer, "poll", None)
+        if poll is not None:
+            poll()
+            self._flush()
+
     def add(self, packet: Any) -> tuple[bool, Any]:
         self.ssrc = getattr(packet, "ssrc", None)
         pli, frame = self.buffer.add(packet)
-        take = getattr(self.buffer, "take_nacks", None)
-        if take is not None:
-            lost = take()
-            if lost and self.on_nack is not None and self.ssrc is not None:
-                self.on_nack(self.ssrc, lost)
-        take = getattr(self.buffer, "take_given_up", None)
-        if take is not None:
-            gone = take()
-            if gone and self.on_give_up is not None:
-                self.on_give_up(gone)
+        self._flush()
         if frame is not None:
             try:
                 if self.on_release is not None:
@@ -170,6 +169,19 @@ class EncodedFrameTap:
                     log.exception("encoded frame tap failed (counting the rest)")
                 self.tap_errors += 1
         return pli, frame
+
+    def _flush(self) -> None:
+        """Send the NACKs the buffer asks for and hand on the packets it gave up."""
+        take = getattr(self.buffer, "take_nacks", None)
+        if take is not None:
+            lost = take()
+            if lost and self.on_nack is not None and self.ssrc is not None:
+                self.on_nack(self.ssrc, lost)
+        take = getattr(self.buffer, "take_given_up", None)
+        if take is not None:
+            gone = take()
+            if gone and self.on_give_up is not None:
+                self.on_give_up(gone)
 
     def __getattr__(self, name: str) -> Any:  # counters, capacity... of the wrapped buffer
         return getattr(self.__dict__["buffer"], name)

@@ -43,6 +43,15 @@ VIDEO_CLOCK_HZ = 90_000  # RTP video clock
 MIN_KEYFRAME_GAP_S = 0.15  # keyframes asked for: at most one per round trip, within these (s)
 MAX_KEYFRAME_GAP_S = 0.45  # below the receiver's 0.5 s repeat, so a repeat is always answered
 MAX_INTRA_PCT = 300  # a keyframe at most this % of an average frame's budget (WebRTC's floor)
+# The quantizer floor (libvpx, VP8 on libvpx itself; docs/video.md, "Thin, lossy links"): a
+# frame that spends under SPENT_SHARE of its budget (a dark or still picture) says nothing of
+# the quantizer the picture needs, yet libvpx lowers it to qmin for it; the first frame in
+# contact was then 51 kB at a 500 kbit/s target (budget 3 kB). The quantizer may fall at most
+# Q_FALL below the last frame that spent its budget (Q_START before one has).
+SPENT_SHARE = 0.25
+Q_FALL = 8
+Q_START = 40
+OVERSIZED = 4.0  # a frame over this many times its budget is counted (``oversized``)
 
 VP8_OPTIONS = {  # aiortc 1.16's, less the denoiser and the encode breakout (module doc)
     "cpu-used": "-6",
@@ -149,6 +158,9 @@ class Vp8Encoder(_Limits, vpx.Vp8Encoder):
         self._key_pending = False  # a request not yet answered (it came within the interval)
         self.keyframes = 0  # keyframes sent (any cause)
         self.rtt_s: float | None = None  # the link's round trip (s), set by the sender
+        self.q_ref = Q_START  # the quantizer of the last frame that spent its budget (0-63)
+        self.q_floor = 0  # the quantizer floor in force (0-63; libvpx only)
+        self.oversized = 0  # frames over OVERSIZED times their budget (libvpx only)
         self._last_key_pts: int | None = None  # 90 kHz
         self._last_pts: int | None = None
 
@@ -183,6 +195,8 @@ class Vp8Encoder(_Limits, vpx.Vp8Encoder):
             "keyframes": self.keyframes,
             "keyframes_suppressed": self.keyframes_suppressed,
             "keyframes_deferred": self.keyframes_deferred,
+            "oversized": self.oversized,
+            "q_floor": self.q_floor,
             "libvpx": self.live is not None,
         }
 
@@ -232,7 +246,13 @@ class Vp8Encoder(_Limits, vpx.Vp8Encoder):
             duration = 3000
         self._last_pts = pts
         key = self._want_key(force_keyframe, pts)
+        self.q_floor = max(int(LIBVPX_OPTIONS["qmin"]), self.q_ref - Q_FALL)
+        self.live.set_min_quantizer(self.q_floor)
         data, is_key = self.live.encode(i420_array(frame), pts, duration, key)
+        budget = self._target / 8 * duration / VIDEO_CLOCK_HZ  # bytes
+        if len(data) >= SPENT_SHARE * budget:
+            self.q_ref = self.live.last_quantizer()
+        self.oversized += len(data) > OVERSIZED * budget
         return data, is_key
 
     def _encode_ffmpeg(self, frame: Any, force_keyframe: bool) -> tuple[bytes, bool]:

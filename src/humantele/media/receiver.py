@@ -32,9 +32,13 @@ decoded frame of a track, in order, including those the loop skipped for a newer
 the encoded frame it was decoded from (:class:`Encoded`, the tap's bytes: what a page's own
 decoder takes). With no listener nothing is kept or called beyond the recording's tap.
 
-Frame age (``age_s``) is capture to decoded-at-the-expert ("glass to glass" without the
-display). Frames whose counter does not read or whose record was lost are kept (they are the
-latest picture) with an unknown age, and counted.
+Each decoded frame is shown (made the latest, timed, recorded as ``received``) when due
+(:mod:`humantele.media.playout`): at once on a link that repairs no loss; while the jitter
+buffer repairs packets, at a steady delay after its RTP time that covers the repairs (a
+repaired frame is otherwise a gap between pictures, a freeze on a 120 ms round trip). Frame
+age (``age_s``) is capture to shown at the expert ("glass to glass" without the display).
+Frames whose counter does not read or whose record was lost are kept (they are the latest
+picture) with an unknown age, and counted.
 """
 
 from __future__ import annotations
@@ -66,6 +70,7 @@ from humantele.media.aiortc_hooks import (
 from humantele.media.config import TRACKS, ExpertVideoConfig
 from humantele.media.frameinfo import FrameInfo, FrameInfoError
 from humantele.media.jitter import KEYFRAME_TESTS, BoundedJitterBuffer
+from humantele.media.playout import Playout
 from humantele.media.sender import VIDEO_CHANNEL_ID
 from humantele.recording.schemas import VIDEO_TOPICS
 from humantele.runtime.stats import percentile_ms
@@ -77,6 +82,7 @@ log = logging.getLogger(__name__)
 Record = Callable[[str, float, dict], Any]
 INFO_KEEP = 256  # frame records kept per track for matching
 VIDEO_RATE = 90000  # RTP video clock, Hz
+POLL_S = 0.01  # the jitter buffers' re-asks are looked at this often between packets (s)
 
 
 KEYFRAME_EVERY_S = 0.5  # keyframe requests of a track (PLI) at most this often
@@ -239,6 +245,7 @@ class VideoReceiver:
         self._events = {name: asyncio.Event() for name in TRACKS}
         self._pc: RTCPeerConnection | None = None
         self._jitter: dict[str, BoundedJitterBuffer] = {}  # the current connection's
+        self._playout: dict[str, Playout] = {}  # the current connection's
         self._tasks: set[asyncio.Task] = set()
         self.listeners: dict[str, list[Listener]] = {n: [] for n in TRACKS}
         self._released: dict[str, deque[Any]] = {n: deque(maxlen=ENCODED_KEPT) for n in TRACKS}
@@ -347,6 +354,20 @@ class VideoReceiver:
                     self._spawn(self._consume(pc, names[id(t.receiver)], track))
 
         pc.on("track", on_track)
+        with contextlib.suppress(RuntimeError):  # no running loop: no re-asks between packets
+            asyncio.get_running_loop()
+            self._spawn(self._poll_taps(pc))
+
+    async def _poll_taps(self, pc: RTCPeerConnection) -> None:
+        """Every :data:`POLL_S` while ``pc`` is the connection: each jitter buffer's timed
+        work between packets (its re-asks for packets still missing)."""
+        while pc is self._pc:
+            for tap in list(self._taps.values()):
+                try:
+                    tap.poll()
+                except Exception:
+                    log.exception("video: jitter buffer poll failed")
+            await asyncio.sleep(POLL_S)
 
     def _releaser(self, name: str) -> Callable[[Any], None]:
         """The tap's ``on_release`` for track ``name``: keep the released frame for the
@@ -470,26 +491,60 @@ class VideoReceiver:
             self.stats_by_track[f.track].ages.append(f.age_s)
 
     async def _consume(self, pc: RTCPeerConnection, name: str, track: Any) -> None:
+        """Take the decoded frames of ``track`` and show each when due
+        (:class:`~humantele.media.playout.Playout`: at once on a link that repairs nothing,
+        else at a steady delay); of frames due together (the loop was held up) only the newest
+        (the older ones to the listeners alone, if any)."""
         self.tracks_started += 1
-        while pc is self._pc:
-            try:
-                # decoded frames that waited while this loop was held up: only the newest
-                # (the older ones to the listeners alone, if any)
-                older: list[Any] | None = [] if self.listeners[name] else None
-                frame, skipped = newest_frame(track, await track.recv(), older)
-            except MediaStreamError:
-                return
-            self.stats_by_track[name].stale_dropped += skipped
-            if frame is None:  # the track ended
-                return
-            if pc is not self._pc:
-                return
-            try:
-                for old in older or ():
-                    self._on_frame(name, old, skipped=True)
-                self._on_frame(name, frame)
-            except Exception:
-                log.exception("video %s: frame handling failed", name)
+        playout = self._playout[name] = Playout()
+        pending: deque[tuple[float, Any]] = deque()  # (due, frame), in order
+        recv: asyncio.Future | None = None  # kept across waits: no frame lost to a timeout
+        try:
+            while pc is self._pc:
+                wait = None if not pending else max(0.0, pending[0][0] - self.now())
+                if wait is None or wait > 0:
+                    if recv is None:
+                        recv = asyncio.ensure_future(track.recv())
+                    done, _ = await asyncio.wait({recv}, timeout=wait)
+                    if recv in done:
+                        try:
+                            got = recv.result()
+                        except MediaStreamError:
+                            return
+                        recv = None
+                        older: list[Any] = []
+                        frame, _ = newest_frame(track, got, older)
+                        if frame is None:  # the track ended
+                            return
+                        now = self.now()
+                        buffer = self._jitter.get(name)
+                        if buffer is not None:
+                            c = buffer.counters
+                            playout.note_repairs(c.repairs + c.late_repairs, now)
+                        for f in (*older, frame):
+                            pending.append((playout.due(f.pts, now), f))
+                if pc is not self._pc:
+                    return
+                self._show_due(name, pending)
+        finally:
+            if recv is not None:
+                recv.cancel()
+
+    def _show_due(self, name: str, pending: deque[tuple[float, Any]]) -> None:
+        """Show the newest of the ``pending`` frames now due; the older due ones go to the
+        listeners alone (if any)."""
+        now, due = self.now(), []
+        while pending and pending[0][0] <= now:
+            due.append(pending.popleft()[1])
+        if not due:
+            return
+        self.stats_by_track[name].stale_dropped += len(due) - 1
+        try:
+            for old in due[:-1] if self.listeners[name] else ():
+                self._on_frame(name, old, skipped=True)
+            self._on_frame(name, due[-1])
+        except Exception:
+            log.exception("video %s: frame handling failed", name)
 
     def _on_frame(self, name: str, frame: av.VideoFrame, skipped: bool = False) -> None:
         """Number and time a decoded frame; the newest of the track unless ``skipped`` (a
@@ -558,6 +613,9 @@ class VideoReceiver:
         out: dict[str, Any] = {name: s.as_dict(now) for name, s in self.stats_by_track.items()}
         for name, buffer in self._jitter.items():
             out[name]["jitter"] = buffer.counters.as_dict()
+        for name, playout in self._playout.items():
+            out[name]["playout_ms"] = round(playout.delay_s * 1e3, 1)
+            out[name]["playout_max_ms"] = round(playout.delay_max_s * 1e3, 1)
         out["infos_bad"] = self.infos_bad
         out["tracks_started"] = self.tracks_started
         return out

@@ -43,6 +43,7 @@ VP8E_SET_CPUUSED = 13
 VP8E_SET_NOISE_SENSITIVITY = 15
 VP8E_SET_STATIC_THRESHOLD = 17
 VP8E_SET_TOKEN_PARTITIONS = 18
+VP8E_GET_LAST_QUANTIZER_64 = 20
 VP8E_SET_MAX_INTRA_BITRATE_PCT = 26
 
 # vpx_codec_enc_cfg_t field offsets (bytes; x86-64 and aarch64 alike) and its size
@@ -251,6 +252,20 @@ class LiveVp8:
             put(self._cfg, "rc_target_bitrate", kbps)
             self._apply()
             self.kbps = kbps
+
+    def set_min_quantizer(self, q: int) -> None:
+        """The rate control's best quantizer (0-63) from the next frame on; no keyframe."""
+        q = max(0, min(63, int(q)))
+        if q != get(self._cfg, "rc_min_quantizer"):
+            put(self._cfg, "rc_min_quantizer", q)
+            self._apply()
+
+    def last_quantizer(self) -> int:
+        """The quantizer (0-63) of the last frame encoded."""
+        q = ctypes.c_int(0)
+        self.vpx.lib.vpx_codec_control_(self._ctx, ctypes.c_int(VP8E_GET_LAST_QUANTIZER_64),
+                                        ctypes.byref(q))  # fmt: skip
+        return int(q.value)
 
     def fits(self, width: int, height: int) -> bool:
         """A frame of this size can be encoded without reopening (not larger than the first)."""
