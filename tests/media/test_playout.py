@@ -10,11 +10,11 @@ from types import SimpleNamespace
 import av
 import pytest
 from aiortc.mediastreams import MediaStreamError
-from media_helpers import until
 
 from humantele.media.config import ExpertVideoConfig
 from humantele.media.playout import MAX_DELAY_S, REPAIR_HOLD_S, Playout
 from humantele.media.receiver import VideoReceiver
+from waits import until
 
 INTERVAL = 4500  # 90 kHz ticks a frame (20 fps)
 

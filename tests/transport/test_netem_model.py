@@ -105,6 +105,16 @@ def test_a_datagram_read_late_keeps_its_arrival_time():
     try:
         timestamp_arrivals(rx)
         rx.bind(("127.0.0.1", 0))
+        # The kernel turns receive timestamps on for the whole machine a moment after the first
+        # socket asks (a deferred static key; until then it stamps a datagram when it is read):
+        # wait until it stamps on arrival, as it does once the relay has run a moment.
+        deadline = time.monotonic() + 30.0
+        while True:
+            tx.sendto(b"w", rx.getsockname())
+            time.sleep(0.05)
+            _, _, early, read_at = receive(rx)
+            if read_at - early >= 0.03 or time.monotonic() > deadline:
+                break
         sent = time.monotonic()
         tx.sendto(b"x" * 100, rx.getsockname())
         time.sleep(0.25)  # not read meanwhile
