@@ -26,6 +26,7 @@ In the xdist controller (whose children are the workers) each worker does it for
 """
 
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -78,6 +79,24 @@ def pytest_collection_modifyitems(items):
             netns = "browser_scenario" in item.fixturenames
             item.add_marker(pytest.mark.xdist_group("processes-netns" if netns else "processes"))
             item.add_marker(pytest.mark.e2e)  # the fast lane, -m "not e2e", leaves them out
+
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+@pytest.fixture(autouse=True)
+def _stop_signals_as_they_were():
+    """A daemon or demo run in the test's process ignores SIGINT and SIGTERM once it has
+    stopped (``runtime.process.ignore_stop_signals``, right for a process that then exits):
+    the worker would then ignore a CI runner's SIGTERM, procgroups' net with it, and pass the
+    ignoring on to every process it starts. Each test leaves them as it found them."""
+    before = {s: signal.getsignal(s) for s in STOP_SIGNALS}
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    yield
+    for s, handler in before.items():
+        if handler is not None and signal.getsignal(s) != handler:
+            signal.signal(s, handler)
+    signal.pthread_sigmask(signal.SIG_SETMASK, mask)
 
 
 @pytest.fixture(autouse=True)

@@ -39,6 +39,14 @@ time.sleep(600)
 """
 
 
+def as_a_shell_starts_it() -> None:
+    """The stop signals at their defaults and none blocked, as a terminal's pytest has them
+    (this worker's may not be: a test ran a daemon in it; the full suite's run hung on it)."""
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_SETMASK, [])
+
+
 def alive(pid: int) -> bool:
     try:
         stat = Path(f"/proc/{pid}/stat").read_text()
@@ -58,7 +66,7 @@ def test_stopping_pytest_kills_what_its_tests_started(tmp_path, sig):
         [sys.executable, "-m", "pytest", "-q", "-p", "procgroups", "-p", "no:cacheprovider",
          "-n", "0", "-o", "addopts=", str(tmp_path / "test_hang.py")],
         cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-        start_new_session=True,
+        start_new_session=True, preexec_fn=as_a_shell_starts_it,
     )  # fmt: skip
     try:
         t_end = time.monotonic() + 120
@@ -72,7 +80,14 @@ def test_stopping_pytest_kills_what_its_tests_started(tmp_path, sig):
         leader = int(pidfile.read_text())
         assert leader in started
         os.kill(pytest_proc.pid, sig)
-        pytest_proc.wait(60)
+        try:
+            pytest_proc.wait(60)
+        except subprocess.TimeoutExpired:  # say why: its signal state, as the kernel has it
+            status = Path(f"/proc/{pytest_proc.pid}/status").read_text().splitlines()
+            raise AssertionError(
+                f"pytest did not stop on {sig.name}: "
+                + "; ".join(x for x in status if x.startswith(("State", "Sig", "ShdPnd")))
+            ) from None
         t_end = time.monotonic() + 30
         while any(alive(p) for p in started) and time.monotonic() < t_end:
             time.sleep(0.1)
