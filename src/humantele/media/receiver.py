@@ -70,7 +70,7 @@ from humantele.media.aiortc_hooks import (
 from humantele.media.config import TRACKS, ExpertVideoConfig
 from humantele.media.frameinfo import FrameInfo, FrameInfoError
 from humantele.media.jitter import KEYFRAME_TESTS, BoundedJitterBuffer
-from humantele.media.playout import Playout
+from humantele.media.playout import VIDEO_RATE, Playout
 from humantele.media.sender import VIDEO_CHANNEL_ID
 from humantele.recording.schemas import VIDEO_TOPICS
 from humantele.runtime.stats import percentile_ms
@@ -81,7 +81,6 @@ log = logging.getLogger(__name__)
 
 Record = Callable[[str, float, dict], Any]
 INFO_KEEP = 256  # frame records kept per track for matching
-VIDEO_RATE = 90000  # RTP video clock, Hz
 POLL_S = 0.01  # the jitter buffers' re-asks are looked at this often between packets (s)
 
 
