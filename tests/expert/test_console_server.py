@@ -19,6 +19,7 @@ from humantele.expert.console import ConsoleConfig, ConsoleServer, SourceFrames
 from humantele.expert.console.cine import CineBuffer, CineFrame
 from humantele.expert.console.expert_view import PoseHistory
 from humantele.expert.console.frames import _Subscribers
+from humantele.expert.console.heartbeat import LoopStalls
 from humantele.expert.console.hook import alignment, pressing_n
 from humantele.expert.console.messages import HEADER_SIZE, parse_header
 from humantele.geometry import Pose, quat_from_axis_angle
@@ -590,6 +591,7 @@ async def test_pings_clicks_and_their_answers(tmp_path):
             assert state["t"] == 123.5
             await ws.send_json({"type": "ping", "n": 7})
             pong = await next_message(ws, lambda k, d: k == "json" and d["type"] == "pong")
+            assert pong.pop("stall_ms") >= 0  # how long the loop was held: below
             assert pong == {"type": "pong", "n": 7, "t": 123.5}
             await ws.send_json({"type": "scan", "action": "start", "id": 1})
             await ws.send_json({"type": "clutch", "on": True, "id": 2})
@@ -614,6 +616,38 @@ async def test_pings_clicks_and_their_answers(tmp_path):
         4: ("freeze", True, "frozen"),
     }
     assert server.refused["malformed"] == 2  # a clip of over 60 s is not asked for
+
+
+def test_loop_stalls_keep_the_longest_hold_of_the_last_second():
+    """The daemon's own measure of its loop's holds (s, its monotonic clock): the longest of
+    the last second, a hold going on now included; forgotten a second after."""
+    stalls = LoopStalls(monotonic=lambda: 0.0)
+    stalls.due = 10.05  # the watcher slept at 10.0 for 50 ms
+    assert stalls.longest(10.02) == 0.0
+    assert stalls.longest(10.75) == pytest.approx(0.7)  # held now, not yet noted
+    stalls.note(0.7, 10.75)  # the watcher woke 0.7 s late
+    stalls.note(0.004, 10.804)
+    stalls.due = 11.85  # (the watcher woke on time since)
+    assert stalls.longest(11.3) == pytest.approx(0.7)
+    assert stalls.longest(11.76) == pytest.approx(0.004)  # the hold was more than 1 s ago
+    assert stalls.longest(12.9) == pytest.approx(1.05)  # the watcher has not woken since
+
+
+async def test_a_pong_after_a_hold_between_two_pings_says_how_long_it_was(tmp_path):
+    """A loop held 0.4 s between two pings: the next pong says so (a page pinging twice a
+    second would otherwise see the daemon as quick as ever)."""
+    clock = FakeClock(5.0)
+    server = await serve(ManualFrames(clock), Session(), tmp_path, clock=clock)
+    try:
+        async with aiohttp.ClientSession() as http, http.ws_connect(server.ws_url) as ws:
+            await next_message(ws, lambda k, d: k == "json" and d["type"] == "state")
+            await asyncio.sleep(0.2)  # the watcher runs
+            time.sleep(0.4)  # the loop held, no ping waiting
+            await ws.send_json({"type": "ping", "n": 1})
+            pong = await next_message(ws, lambda k, d: k == "json" and d["type"] == "pong")
+            assert pong["n"] == 1 and pong["stall_ms"] >= 350, pong
+    finally:
+        await server.stop()
 
 
 async def test_capture_keeps_a_clip_listed_with_the_measurements(tmp_path):

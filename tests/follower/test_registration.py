@@ -169,6 +169,21 @@ def test_touching_the_targets_registers_saves_and_offers_again(tmp_path):
     assert json.loads((tmp_path / "headsets.json").read_text())[ID]["points"] == 4
 
 
+def test_a_press_that_crossed_the_dwells_last_take_is_not_a_bad_message(tmp_path):
+    """The technician presses as the dwell takes the last target (the page still showed
+    'collecting'): counted as late, not as a bad message; a press long after still is."""
+    c = Clinic(tmp_path)
+    c.register(np.random.default_rng(3))
+    assert c.last["state"] == "registered"
+    c.t += 0.5
+    c.send("take")
+    assert c.reg.counts["press_after_done"] == 1 and not c.reg.bad_messages
+    assert c.last["state"] == "registered"
+    c.t += 5.0
+    c.send("take")
+    assert c.reg.bad_messages["take_not_collecting"] == 1
+
+
 def test_a_touch_at_the_wrong_place_or_untracked_is_refused_with_the_reason(tmp_path):
     c = Clinic(tmp_path)
     c.send("start", targets=TARGETS.tolist())

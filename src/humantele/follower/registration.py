@@ -51,6 +51,7 @@ log = logging.getLogger(__name__)
 HEADSETS_FILE = "headsets.json"
 UP = np.array([0.0, 1.0, 0.0])
 TIP_KEPT_S = 3.0  # tip and rig poses kept this long (s)
+LATE_PRESS_S = 2.0  # a press this soon after the dwell took the last target: crossed it (s)
 STATES_KEPT = 16  # headsets whose last state is kept (a page may send any id)
 
 
@@ -383,6 +384,7 @@ class HeadsetRegistration:
         self.tips: deque[tuple[float, NDArray[np.float64]]] = deque()
         self.rigs: deque[tuple[float, Pose]] = deque()
         self.collecting: _Collecting | None = None
+        self.finished: tuple[str, float] | None = None  # (headset, when) the last collection ended
         self.active: dict[str, Pose] = {}  # headset -> T_world_xr in use this session
         self.drift: dict[str, deque[tuple[float, float]]] = {}  # (m, rad) per headset
         self.offset_pairs: dict[str, list[tuple[Pose, Pose]]] = {}
@@ -509,10 +511,14 @@ class HeadsetRegistration:
     def _take_now(self, headset: str) -> None:
         """The technician pressed: the tip of the last few frames, if recent."""
         c = self.collecting
+        now = self.clock()
+        if c is None and self.finished is not None and self.finished[0] == headset:
+            if now - self.finished[1] < LATE_PRESS_S:  # pressed as the dwell took the last
+                self.counts["press_after_done"] += 1  # target: the page had not heard yet
+                return
         if c is None or c.headset != headset:
             self.bad_messages["take_not_collecting"] += 1
             return
-        now = self.clock()
         if not self.tips or now - self.tips[-1][0] > self.config.tip_max_age_s:
             self._progress("the probe's tip is not tracked: keep its markers in view")
             return
@@ -548,7 +554,7 @@ class HeadsetRegistration:
     def _solve(self) -> None:
         c = self.collecting
         assert c is not None
-        self.collecting = None
+        self.collecting, self.finished = None, (c.headset, self.clock())
         try:
             fit = fit_rigid(c.targets, np.array(c.taken), self.config.min_spread_mm / 1000.0)
         except DegenerateRegistration as exc:

@@ -54,6 +54,7 @@ from humantele.expert.console.captures import Captures
 from humantele.expert.console.cine import CineBuffer
 from humantele.expert.console.config import ConsoleConfig
 from humantele.expert.console.frames import FrameProvider
+from humantele.expert.console.heartbeat import LoopStalls
 from humantele.expert.console.messages import (
     MAX_PAGE_MESSAGE,
     PAGE_MESSAGE,
@@ -146,6 +147,7 @@ class ConsoleServer:
         )
         self.tracks = self.video_out.tracks  # each track's last frame and figures
         self._tasks: set[asyncio.Future] = set()
+        self.stalls = LoopStalls(monotonic)  # how long our event loop was held up, for pongs
         self._index = (WEB_DIR / "index.html").read_bytes()
 
     @property
@@ -208,6 +210,7 @@ class ConsoleServer:
         self.port = await self.site.start(routes, cfg, (self._host_guard,))
         self.pages.guard = self.site.guard
         self._spawn(self._pump_state())
+        self._spawn(self.stalls.run())
         if self.archive is not None:
             await self.archive.start()
 
@@ -346,7 +349,9 @@ class ConsoleServer:
         if isinstance(m, Drawn):
             self.video_out.on_drawn(client, m, arrival)
         elif isinstance(m, Ping):  # answered at once: the page measures how late we are
-            client.post("pong", client.lag.on_ping(m, self.clock(), self.monotonic()))
+            now = self.monotonic()
+            pong = client.lag.on_ping(m, self.clock(), now, self.stalls.longest(now))
+            client.post("pong", pong)
         elif isinstance(m, ScanCommand | ClutchCommand):
             session_command(self.session, client, m, self.events)
         elif isinstance(m, Freeze):

@@ -2,9 +2,10 @@
 //
 // Heartbeat: the page pings the daemon twice a second; the daemon answers at once with its
 // clock (``pong``: ``n``, ``t`` in s). The oldest unanswered ping's age (else the last round
-// trip) is how late the daemon answers now: a daemon whose event loop is held up is "slow
-// (N ms)" (the longest of the last 3 s) while its socket is open, and lost only when the
-// socket closes. The answers also
+// trip) is how late the daemon answers now, and each pong says the longest its event loop
+// was held of the last second (``stall_ms``, which a hold between two pings would escape the
+// pings): a daemon held up is "slow (N ms)" (the longest of the last 3 s) while its socket is
+// open, and lost only when the socket closes. The answers also
 // map the daemon's clock onto this page's (the offset of the fastest round trip of the last
 // minute, +- half of it): a frame's capture time and a state's time become ages on this page,
 // so "live" means a picture captured less than the stale bound ago, whatever the page did
@@ -78,6 +79,9 @@ export class Heartbeat {
     let best = this.samples[0];
     for (const s of this.samples) if (s.rtt < best.rtt) best = s;
     this.offset = best.off;
+    // The daemon's own measure of how long its loop was held (the last second): a hold that
+    // fell between two pings is as slow as one a ping waited through.
+    if (typeof m.stall_ms === "number" && Number.isFinite(m.stall_ms)) this.peaks.push([now, m.stall_ms]);
     this.saw(m.t, now);
   }
 
