@@ -57,6 +57,7 @@ LATERAL_BLUR_PX = 2.0
 SPECKLE_GAMMA = 0.6  # of the half-width image: the beam's width
 NOISE_BANK = 4  # precomputed electronic-noise images, one picked at random per frame (never
 # the last frame's: electronic noise is never the same twice)
+SPECKLE_BANDS = 6  # the speckle is made in this many bands of rows, each as wide as the fan
 CONTACT_RAMP_M = 0.002
 MID_GREY = 95.0  # display level of soft tissue (echo 1, speckle mean)
 DB_PER_NEPER = 20.0 / math.log(10.0)
@@ -89,14 +90,10 @@ class SimUltrasound(SimVideoSource):
         )
         diag = math.hypot(c.width, c.height) * g.spacing_m
         self.speckle = SpeckleField(c.speckle_m, diag, c.seed)
-        # Unit mean speckle after the lateral blur, measured on one plane.
-        ref = self.speckle.envelope(
-            np.zeros(3), np.array([1e-3, 0, 0]), np.array([0, 3e-4, 0]), 200, 200, LATERAL_BLUR_PX
-        )
-        self._speckle_gain = 1.0 / float(np.mean(ref**SPECKLE_GAMMA))
         rng = np.random.default_rng(c.seed + 1)
         self._rng = np.random.default_rng(c.seed + 2)
         mask = g.fov_mask_at(STEP).astype(np.float32)
+        self._bands = _bands(mask > 0, SPECKLE_BANDS, int(math.ceil(2.5 * LATERAL_BLUR_PX)) + 1)
         self._noise = []
         for _ in range(NOISE_BANK):
             n = rng.standard_normal((*mask.shape, 2)).astype(np.float32)
@@ -115,8 +112,9 @@ class SimUltrasound(SimVideoSource):
         nb, ns = -(-g.beams // 2), -(-g.samples // 4)
         bi = np.minimum(np.arange(nb) * 2, g.beams - 1)
         si = np.minimum(np.arange(ns) * 4, g.samples - 1)
-        self._blob_index = (bi[:, None] * g.samples + si[None, :]).reshape(-1)
+        self._blob_rows = (bi, si)
         self._blob_shape = (nb, ns)
+        self._cell_area = g.cell_area_m2.reshape(g.beams, g.samples).astype(np.float64)
         self._phantom: Phantom | None = None
         self._phantom_key: bytes | None = None
         overlay = self._make_overlay()
@@ -173,51 +171,53 @@ class SimUltrasound(SimVideoSource):
         """The echo along every beam: (diffuse, specular) (beams, samples) amplitude grids and
         the image quality (module docstring). ``R``, ``t``: ``T_patient_tip``."""
         c, g = self.config, self.geometry
-        pts = tuple(
-            g.x * np.float32(R[i, 0]) + g.z * np.float32(R[i, 2]) + np.float32(t[i])
-            for i in range(3)
-        )
-        reach = c.depth_m + 2.0 * c.radius_m + c.aperture_m  # no sample is farther from the tip
-        labels = phantom.labels(pts, near=(t, R[:, 1], reach)).reshape(g.beams, g.samples)
-        echo = phantom.echo[labels]
-        self._texture(phantom, labels, echo, pts)
+        starts = g.face.astype(np.float64) @ R.T + t  # each beam's start and direction, patient
+        dirs = g.direction.astype(np.float64) @ R.T
+        labels, _ = phantom.along_rays(starts, dirs, g.range_m)
+        echo = np.take(phantom.echo, labels)
+        self._texture(phantom, labels, echo, starts, dirs)
         # Specular echoes where a beam crosses from one region into another.
-        bound = phantom.boundary[labels]
+        bound = np.take(phantom.boundary, labels)
         spec = np.zeros_like(bound)
-        change = labels[:, 1:] != labels[:, :-1]
-        spec[:, 1:] = np.where(change, np.maximum(bound[:, 1:], bound[:, :-1]), 0.0)
+        np.maximum(bound[:, 1:], bound[:, :-1], out=spec[:, 1:])
+        spec[:, 1:] *= labels[:, 1:] != labels[:, :-1]
         # Round-trip loss down to each sample (half of its own), less what the TGC restores.
-        loss = phantom.attenuation[labels] * np.float32(self._loss_per_atten)
-        excess = np.cumsum(loss, axis=1) - 0.5 * loss - self._tgc_db
-        gain = np.power(np.float32(10.0), -np.clip(excess, -20.0, 120.0) / 20.0)
+        loss = np.take(phantom.attenuation, labels)
+        loss *= np.float32(self._loss_per_atten)
+        excess = np.cumsum(loss, axis=1, dtype=np.float32)
+        excess -= 0.5 * loss
+        excess -= self._tgc_db
+        gain = cv2.exp(np.clip(excess, -20.0, 120.0) * np.float32(-math.log(10.0) / 20.0))
         gain *= coupling[:, None]
         # The pulse's length and the beam's width: a point echo spreads over ~2 samples
         # along and across the beams (bone surfaces and capsules become lines, not dots).
         psf = {"ksize": (5, 5), "sigmaX": PSF_SAMPLES, "sigmaY": PSF_BEAMS}
         diffuse = cv2.GaussianBlur(echo * gain, **psf)
         specular = cv2.GaussianBlur(spec * gain, **psf)
-        visible = (excess < c.shadow_db) & phantom.inside(c.target, pts).reshape(labels.shape)
-        weight = np.where(visible, coupling[:, None], 0.0).reshape(-1)
+        visible = excess < c.shadow_db
+        visible &= phantom.inside_along(c.target, starts, dirs, g.range_m)
+        area = np.sum(self._cell_area, axis=1, where=visible)
         _, axes = phantom.organ(c.target)
         a_max = math.pi * float(np.prod(np.sort(axes)[1:]))
-        quality = float(np.clip(weight @ g.cell_area_m2 / a_max, 0.0, 1.0))
+        quality = float(np.clip(float(area @ coupling) / a_max, 0.0, 1.0))
         return diffuse, specular, quality
 
-    def _texture(self, phantom: Phantom, labels, echo, pts) -> None:
+    def _texture(self, phantom: Phantom, labels, echo, starts, dirs) -> None:
         """Multiply ``echo`` (beams, samples) in place by the phantom's blob texture,
         evaluated on every 2nd beam and 4th sample (the blobs are coarse) and interpolated."""
-        tex = phantom.texture[labels]
-        if not tex.any():
+        if not phantom.texture.any():
             return
         g = self.geometry
-        sub = self._blob_index
-        field = phantom.blobs(tuple(p[sub] for p in pts))
+        bi, si = self._blob_rows
+        pts = starts[bi, None, :] + g.range_m[si].astype(np.float64)[None, :, None] * dirs[bi, None]
+        field = phantom.blobs(tuple(pts[..., k].astype(np.float32).reshape(-1) for k in range(3)))
         if field is None:
             return
         field = cv2.resize(
             field.reshape(self._blob_shape), (g.samples, g.beams), interpolation=cv2.INTER_LINEAR
         )
-        echo *= np.exp(tex * field)
+        field *= np.take(phantom.texture, labels)
+        echo *= cv2.exp(field)
 
     def _coupling(self, phantom: Phantom, R: np.ndarray, t: np.ndarray, force: float) -> np.ndarray:
         c, g = self.config, self.geometry
@@ -239,12 +239,18 @@ class SimUltrasound(SimVideoSource):
         ex, ey = R[:, 0] * g.spacing_m, R[:, 2] * g.spacing_m
         x0, z0 = g.origin_m
         origin = t + R[:, 0] * x0 + R[:, 2] * z0 + ex * (STEP - 1) / 2.0
-        env = self.speckle.envelope(
-            origin, STEP * ex, ey, diffuse.shape[1], c.height, LATERAL_BLUR_PX
-        )
         # Speckle contrast as a scanner shows it after its speckle reduction: env ** gamma.
-        env = cv2.pow(env, SPECKLE_GAMMA)
-        amp = cv2.multiply(diffuse, env, scale=self._speckle_gain)
+        speckle = self.speckle.contrast(
+            origin,
+            STEP * ex,
+            ey,
+            diffuse.shape[1],
+            c.height,
+            LATERAL_BLUR_PX,
+            SPECKLE_GAMMA,
+            self._bands,
+        )
+        amp = cv2.multiply(diffuse, speckle)
         amp += specular
         amp += self._next_noise()
         return self._display(amp)
@@ -284,3 +290,19 @@ class SimUltrasound(SimVideoSource):
         cv2.circle(ov, (int(round(col)), int(round(row))), 3, 200, -1)
         ov[g.fov_mask] = 0
         return ov
+
+
+def _bands(mask: np.ndarray, n: int, margin: int) -> list[tuple[int, int, int, int]]:
+    """``n`` bands of rows (row0, row1, col0, col1) covering the True pixels of ``mask`` and
+    ``margin`` columns beside them."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        return [(0, mask.shape[0], 0, mask.shape[1])]
+    edges = np.linspace(rows[0], rows[-1] + 1, n + 1).round().astype(int)
+    out = []
+    for r0, r1 in zip(edges[:-1], edges[1:], strict=True):
+        cols = np.flatnonzero(mask[r0:r1].any(axis=0))
+        if r1 > r0 and cols.size:
+            c0, c1 = max(int(cols[0]) - margin, 0), min(int(cols[-1]) + 1 + margin, mask.shape[1])
+            out.append((int(r0), int(r1), c0, c1))
+    return out

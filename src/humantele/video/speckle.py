@@ -20,19 +20,26 @@ from numpy.typing import NDArray
 from humantele.geometry import quat_from_axis_angle, quat_to_matrix
 
 PERIOD = 256  # texels of the periodic texture
-_STD = 40.0  # grey levels per standard deviation of the uint8 texture (mean 128)
+# The uint8 texture holds I and Q at 42.5 + 13 per standard deviation in [0, 85], so the sum
+# of the three projections fits a uint8 (no 16-bit sums: the envelope costs a third as much).
+_MEAN, _STD, _MAX = 42.5, 13.0, 85
 # A generic fixed rotation: no texture direction lies along a patient axis.
 _B = quat_to_matrix(quat_from_axis_angle((0.41, 0.77, 0.49), 0.93))
 _PLANES = [(_B[0], _B[1]), (_B[1], _B[2]), (_B[2], _B[0])]
 _OFFSETS = [(0.0, 0.0), (0.37 * PERIOD, 0.61 * PERIOD), (0.71 * PERIOD, 0.19 * PERIOD)]
+# The plane on which ``contrast`` is scaled to mean 1 (patient frame, m; 200 x 200 px).
+Regions = list[tuple[int, int, int, int]]
+_REF_PLANE = (np.zeros(3), np.array([1e-3, 0.0, 0.0]), np.array([0.0, 3e-4, 0.0]), 200, 200)
 
 
 class SpeckleField:
-    """The speckle envelope (mean 1) at any plane's pixels; ``texel_m`` sets the grain.
+    """The speckle at any plane's pixels; ``texel_m`` sets the grain.
 
     ``max_extent_m``: the largest distance across any image it will be asked for (the
     texture is tiled that much beyond one period, so no lookup falls off it). The texture is
     uint8 with 4 channels (I, Q and two unused), the layout ``cv2.warpAffine`` is fastest on.
+    A frame's speckle is three ``cv2.warpAffine`` summed in uint8, the lateral blur in uint8,
+    and one table lookup from (I, Q) to the displayed contrast ``|I + jQ| ** gamma``.
     """
 
     def __init__(self, texel_m: float, max_extent_m: float, seed: int = 0) -> None:
@@ -46,10 +53,10 @@ class SpeckleField:
         margin = int(math.ceil(max_extent_m / self.texel_m)) + 4
         tiled = np.pad(smooth, ((0, margin), (0, margin), (0, 0)), mode="wrap")
         tex = np.zeros((*tiled.shape[:2], 4), dtype=np.uint8)
-        tex[..., :2] = np.clip(np.rint(tiled * _STD + 128.0), 0, 255)
+        tex[..., :2] = np.clip(np.rint(tiled * _STD + _MEAN), 0, _MAX)
         self._tex = tex
-        # E|I + jQ| for I, Q ~ N(0, 3 STD^2): normalise the envelope to mean 1.
-        self._norm = 1.0 / (math.sqrt(3.0) * _STD * math.sqrt(math.pi / 2.0))
+        self._luts: dict[tuple[float, float], NDArray[np.float32]] = {}
+        self._buffers: dict[tuple[int, int], list[NDArray[np.uint8]]] = {}
 
     def gaussian(self, points: tuple[NDArray[np.float32], ...]) -> NDArray[np.float32]:
         """The smooth Gaussian field (mean 0, std about 1) at patient-frame points (x, y, z
@@ -74,7 +81,99 @@ class SpeckleField:
                 borderMode=cv2.BORDER_REPLICATE,
             )[0, :, 0].astype(np.float32)
             acc = s if acc is None else acc + s
-        return (acc - 3 * 128.0) * np.float32(1.0 / (math.sqrt(3.0) * _STD))
+        return (acc - np.float32(3 * _MEAN)) * np.float32(1.0 / (math.sqrt(3.0) * _STD))
+
+    def _iq(
+        self,
+        origin,
+        ex,
+        ey,
+        width: int,
+        height: int,
+        lateral_blur_px: float,
+        regions: Regions | None = None,
+    ) -> NDArray[np.uint8]:
+        """(height, width, 4) uint8: I and Q (channels 0, 1; 3 * _MEAN at zero) of the field at
+        the pixels ``origin + col * ex + row * ey``, blurred along the rows; only inside
+        ``regions`` (row0, row1, col0, col1) when given (the rest is left as it was). A buffer
+        reused by the next call of the same size."""
+        h = self.texel_m
+        bufs = self._buffers.get((width, height))
+        if bufs is None:
+            bufs = [np.zeros((height, width, 4), dtype=np.uint8) for _ in range(3)]
+            self._buffers[(width, height)] = bufs
+        regions = regions or [(0, height, 0, width)]
+        box = np.array(regions, dtype=float)  # (n, 4): row0, row1, col0, col1
+        corner = box[:, [2, 0]]  # (n, 2): the band's first (col, row)
+        extent = box[:, [3, 1]] - corner  # (n, 2): its (cols, rows)
+        # The texture coordinates of each projection: A @ (col, row) + t, (3, 2, 2) and (3, 2).
+        ax = np.stack([np.stack([u, v]) for u, v in _PLANES])  # (3, 2, 3)
+        lin = np.stack([ax @ ex, ax @ ey], axis=-1) / h  # (3, 2, 2)
+        off = ax @ origin / h + np.array(_OFFSETS)  # (3, 2)
+        # Per band: its first pixel's coordinates; then shifted by whole periods so the band's
+        # corners fall on the tiled texture (its lowest corner in the first period).
+        t = off[:, None, :] + np.einsum("kij,nj->kni", lin, corner)  # (3, n, 2)
+        low = np.minimum(lin[:, None, :, :] * extent[None, :, None, :], 0.0).sum(-1)
+        t -= np.floor((t + low) / PERIOD) * PERIOD
+        mats = np.concatenate(
+            [np.broadcast_to(lin[:, None], (3, len(regions), 2, 2)), t[..., None]], axis=-1
+        ).astype(np.float32)  # (3, n, 2, 3)
+        for k in range(3):
+            for n, (r0, r1, c0, c1) in enumerate(regions):  # a band at a time: stays in cache
+                cv2.warpAffine(
+                    self._tex,
+                    mats[k, n],
+                    (c1 - c0, r1 - r0),
+                    dst=bufs[k][r0:r1, c0:c1],
+                    flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                    borderMode=cv2.BORDER_REPLICATE,
+                )
+        kb = 2 * int(math.ceil(2.5 * lateral_blur_px)) + 1
+        for r0, r1, c0, c1 in regions:
+            roi = [buf[r0:r1, c0:c1] for buf in bufs]
+            cv2.add(roi[0], roi[1], dst=roi[0])  # at most 3 * _MAX = 255: no saturation
+            cv2.add(roi[0], roi[2], dst=roi[0])
+            if lateral_blur_px > 0.0:  # the beam's width: speckle longer across the beam
+                cv2.GaussianBlur(roi[0], (kb, 1), sigmaX=lateral_blur_px, sigmaY=0, dst=roi[1])
+        return bufs[1] if lateral_blur_px > 0.0 else bufs[0]
+
+    def _lut(self, gamma: float, lateral_blur_px: float) -> NDArray[np.float32]:
+        """``|I + jQ| ** gamma`` by the uint16 ``I + 256 Q`` of :meth:`_iq`, scaled to mean 1 on
+        the reference plane at this blur."""
+        key = (float(gamma), float(lateral_blur_px))
+        lut = self._luts.get(key)
+        if lut is None:
+            i = np.arange(256, dtype=np.float64) - 3 * _MEAN
+            mag2 = i[None, :] ** 2 + i[:, None] ** 2  # [q, i]
+            lut = (mag2 ** (gamma / 2.0)).astype(np.float32).reshape(-1)
+            ref = self._iq(*_REF_PLANE, lateral_blur_px)
+            lut /= float(np.mean(lut[ref.view(np.uint16)[..., 0]]))
+            self._luts[key] = lut
+        return lut
+
+    def contrast(
+        self,
+        origin: NDArray[np.float64],
+        ex: NDArray[np.float64],
+        ey: NDArray[np.float64],
+        width: int,
+        height: int,
+        lateral_blur_px: float = 0.0,
+        gamma: float = 1.0,
+        regions: Regions | None = None,
+    ) -> NDArray[np.float32]:
+        """(height, width) float32 ``envelope ** gamma`` at the pixels ``origin + col * ex + row
+        * ey`` (patient frame, m; ``ex``, ``ey``: the step per column and per row), scaled to
+        mean 1 on a reference plane. The envelope is ``|I + jQ|`` of the two Gaussian fields,
+        Rayleigh distributed, its I and Q blurred along the rows by a Gaussian of
+        ``lateral_blur_px`` (the beam's width); ``gamma`` < 1 lowers its contrast as a
+        scanner's speckle reduction does. ``regions``: (row0, row1, col0, col1) bands of the
+        image that are needed (the rest is undefined), e.g. a field of view and the blur's
+        margin, which costs two thirds of the rectangle's time."""
+        lut = self._lut(gamma, lateral_blur_px)
+        iq = self._iq(origin, ex, ey, width, height, lateral_blur_px, regions)
+        index = iq.view(np.uint16)[..., 0]  # I + 256 Q (or Q + 256 I: the table is symmetric)
+        return np.take(lut, index)
 
     def envelope(
         self,
@@ -85,37 +184,6 @@ class SpeckleField:
         height: int,
         lateral_blur_px: float = 0.0,
     ) -> NDArray[np.float32]:
-        """(height, width) float32 speckle at the pixels ``origin + col * ex + row * ey``
-        (patient frame, m; ``ex``, ``ey``: the step per column and per row), its I and Q
-        blurred along the rows by a Gaussian of ``lateral_blur_px`` (the beam's width; the
-        blur lowers the mean, which the caller scales back)."""
-        h = self.texel_m
-        quad = np.array([[0, width, 0, width], [0, 0, height, height]], dtype=float)
-        acc = None
-        for (u, v), (ou, ov) in zip(_PLANES, _OFFSETS, strict=True):
-            a = np.array(
-                [
-                    [u @ ex / h, u @ ey / h, u @ origin / h + ou],
-                    [v @ ex / h, v @ ey / h, v @ origin / h + ov],
-                ]
-            )
-            # Shift by whole periods so the image's corners fall on the tiled texture.
-            corners = a[:, :2] @ quad + a[:, 2:]
-            a[:, 2] -= np.floor(corners.min(axis=1) / PERIOD) * PERIOD
-            s = cv2.warpAffine(
-                self._tex,
-                a.astype(np.float32),
-                (width, height),
-                flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                borderMode=cv2.BORDER_REPLICATE,
-            )
-            acc = s if acc is None else cv2.add(acc, s, dtype=cv2.CV_16S)
-        i, q, _, _ = cv2.split(acc)
-        i = cv2.subtract(i, 3 * 128, dtype=cv2.CV_32F)
-        q = cv2.subtract(q, 3 * 128, dtype=cv2.CV_32F)
-        if lateral_blur_px > 0.0:  # the beam's width: speckle longer across the beam
-            i = cv2.GaussianBlur(i, (0, 0), sigmaX=lateral_blur_px, sigmaY=0.01)
-            q = cv2.GaussianBlur(q, (0, 0), sigmaX=lateral_blur_px, sigmaY=0.01)
-        env = cv2.magnitude(i, q)
-        env *= self._norm
-        return env
+        """The envelope ``|I + jQ|`` (mean 1 on the reference plane): :meth:`contrast` with
+        ``gamma`` 1."""
+        return self.contrast(origin, ex, ey, width, height, lateral_blur_px, 1.0)
