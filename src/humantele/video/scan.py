@@ -152,13 +152,34 @@ class ScanGeometry:
         self._maps[step] = maps
         return maps
 
-    def to_image(self, grid: NDArray[np.float32], step: int = 1) -> NDArray[np.float32]:
+    def to_image(
+        self,
+        grid: NDArray[np.float32],
+        step: int = 1,
+        regions: list[tuple[int, int, int, int]] | None = None,
+        out: NDArray[np.float32] | None = None,
+    ) -> NDArray[np.float32]:
         """Scan conversion: a (beams, samples) float32 grid to the (H, W) image (every
-        ``step``-th column, see :meth:`_maps_for`), bilinear; zero outside the field of view."""
+        ``step``-th column, see :meth:`_maps_for`), bilinear; zero outside the field of view.
+        ``regions`` (row0, row1, col0, col1) that hold the whole field of view: only those are
+        computed, into ``out`` (zero elsewhere, which the caller keeps so)."""
         mb, ms, _ = self._maps_for(step)
         buf = self._buffer
         buf[: self.samples, : self.beams] = grid.T  # rows = samples; the padding stays 0
-        return cv2.remap(buf, mb, ms, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        if regions is None:
+            return cv2.remap(buf, mb, ms, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        if out is None:
+            out = np.zeros(mb.shape[:2], dtype=np.float32)
+        for r0, r1, c0, c1 in regions:
+            cv2.remap(
+                buf,
+                mb[r0:r1, c0:c1],
+                ms[r0:r1, c0:c1],
+                cv2.INTER_LINEAR,
+                dst=out[r0:r1, c0:c1],
+                borderMode=cv2.BORDER_CONSTANT,
+            )
+        return out
 
     def fov_mask_at(self, step: int) -> NDArray[np.bool_]:
         """The field-of-view mask of the ``step``-decimated image."""

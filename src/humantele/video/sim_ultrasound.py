@@ -94,6 +94,8 @@ class SimUltrasound(SimVideoSource):
         self._rng = np.random.default_rng(c.seed + 2)
         mask = g.fov_mask_at(STEP).astype(np.float32)
         self._bands = _bands(mask > 0, SPECKLE_BANDS, int(math.ceil(2.5 * LATERAL_BLUR_PX)) + 1)
+        self._diffuse = np.zeros(mask.shape, dtype=np.float32)  # scan-converted in the bands
+        self._specular = np.zeros(mask.shape, dtype=np.float32)
         self._noise = []
         for _ in range(NOISE_BANK):
             n = rng.standard_normal((*mask.shape, 2)).astype(np.float32)
@@ -118,8 +120,8 @@ class SimUltrasound(SimVideoSource):
         self._phantom: Phantom | None = None
         self._phantom_key: bytes | None = None
         overlay = self._make_overlay()
-        self._overlay_at = overlay > 0
-        self._overlay_val = overlay[self._overlay_at]
+        self._overlay_at = np.flatnonzero(overlay)
+        self._overlay_val = overlay.reshape(-1)[self._overlay_at]
 
     def _spacing_mm(self) -> tuple[float, float]:
         return self.geometry.pixel_spacing_mm
@@ -234,8 +236,8 @@ class SimUltrasound(SimVideoSource):
         """Scan conversion, speckle, noise, log compression, at every other column (lateral
         resolution is coarser than axial), then stretched to the full width."""
         c, g = self.config, self.geometry
-        diffuse = g.to_image(diffuse_grid, STEP)
-        specular = g.to_image(specular_grid, STEP)
+        diffuse = g.to_image(diffuse_grid, STEP, self._bands, self._diffuse)
+        specular = g.to_image(specular_grid, STEP, self._bands, self._specular)
         ex, ey = R[:, 0] * g.spacing_m, R[:, 2] * g.spacing_m
         x0, z0 = g.origin_m
         origin = t + R[:, 0] * x0 + R[:, 2] * z0 + ex * (STEP - 1) / 2.0
@@ -250,7 +252,7 @@ class SimUltrasound(SimVideoSource):
             SPECKLE_GAMMA,
             self._bands,
         )
-        amp = cv2.multiply(diffuse, speckle)
+        amp = cv2.multiply(diffuse, speckle, dst=speckle)
         amp += specular
         amp += self._next_noise()
         return self._display(amp)
@@ -262,7 +264,7 @@ class SimUltrasound(SimVideoSource):
         cv2.log(amp, amp)
         gray = cv2.convertScaleAbs(amp, alpha=self._a, beta=self._b)
         gray = cv2.resize(gray, (c.width, c.height), interpolation=cv2.INTER_LINEAR)
-        gray[self._overlay_at] = self._overlay_val
+        gray.reshape(-1)[self._overlay_at] = self._overlay_val
         return cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
 
     def _next_noise(self) -> np.ndarray:

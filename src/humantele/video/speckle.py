@@ -61,25 +61,17 @@ class SpeckleField:
     def gaussian(self, points: tuple[NDArray[np.float32], ...]) -> NDArray[np.float32]:
         """The smooth Gaussian field (mean 0, std about 1) at patient-frame points (x, y, z
         float32 arrays, m), e.g. a coarse field (a large ``texel_m``) for organ texture."""
-        x, y, z = points
+        pts = np.stack([np.asarray(p, dtype=np.float32).reshape(-1) for p in points], -1)
         acc = None
         h = self.texel_m
         for (u, v), (ou, ov) in zip(_PLANES, _OFFSETS, strict=True):
-            mu = (
-                (x * np.float32(u[0] / h) + y * np.float32(u[1] / h) + z * np.float32(u[2] / h))
-                + np.float32(ou)
-            ) % PERIOD
-            mv = (
-                (x * np.float32(v[0] / h) + y * np.float32(v[1] / h) + z * np.float32(v[2] / h))
-                + np.float32(ov)
-            ) % PERIOD
+            m = np.array([[*(u / h), ou], [*(v / h), ov]], dtype=np.float32)
+            uv = cv2.transform(pts[:, None, :], m)  # (N, 1, 2) texture coordinates
+            np.mod(uv, PERIOD, out=uv)
             s = cv2.remap(
-                self._tex,
-                mu.reshape(1, -1),
-                mv.reshape(1, -1),
-                cv2.INTER_LINEAR,
+                self._tex, uv.reshape(1, -1, 2), None, cv2.INTER_LINEAR,
                 borderMode=cv2.BORDER_REPLICATE,
-            )[0, :, 0].astype(np.float32)
+            )[0, :, 0].astype(np.float32)  # fmt: skip
             acc = s if acc is None else acc + s
         return (acc - np.float32(3 * _MEAN)) * np.float32(1.0 / (math.sqrt(3.0) * _STD))
 
@@ -118,19 +110,18 @@ class SpeckleField:
         mats = np.concatenate(
             [np.broadcast_to(lin[:, None], (3, len(regions), 2, 2)), t[..., None]], axis=-1
         ).astype(np.float32)  # (3, n, 2, 3)
-        for k in range(3):
-            for n, (r0, r1, c0, c1) in enumerate(regions):  # a band at a time: stays in cache
+        kb = 2 * int(math.ceil(2.5 * lateral_blur_px)) + 1
+        for n, (r0, r1, c0, c1) in enumerate(regions):  # a band at a time: stays in cache
+            roi = [buf[r0:r1, c0:c1] for buf in bufs]
+            for k in range(3):
                 cv2.warpAffine(
                     self._tex,
                     mats[k, n],
                     (c1 - c0, r1 - r0),
-                    dst=bufs[k][r0:r1, c0:c1],
+                    dst=roi[k],
                     flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                     borderMode=cv2.BORDER_REPLICATE,
                 )
-        kb = 2 * int(math.ceil(2.5 * lateral_blur_px)) + 1
-        for r0, r1, c0, c1 in regions:
-            roi = [buf[r0:r1, c0:c1] for buf in bufs]
             cv2.add(roi[0], roi[1], dst=roi[0])  # at most 3 * _MAX = 255: no saturation
             cv2.add(roi[0], roi[2], dst=roi[0])
             if lateral_blur_px > 0.0:  # the beam's width: speckle longer across the beam
