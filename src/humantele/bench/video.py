@@ -1,12 +1,15 @@
 """``humantele bench video``: the video sources' figures.
 
 Part ``link``: glass to glass over the link in the whole session
-(:mod:`humantele.bench.video_link`). Part ``quality``: the US image's latency and fidelity
+(:mod:`humantele.bench.video_link`). Part ``render``: only the sim sources' render cost per
+frame (wall and CPU ms, one OpenCV thread; quick, writes nothing: ``--frames`` sets the
+length). Part ``quality``: the US image's latency and fidelity
 against its bit rate and size on the live link (:mod:`humantele.bench.video_quality`). Part
 ``sources`` (the default):
 
 - render cost of each sim source per frame at a few sizes (median and p90 ms, one OpenCV
-  thread: the cost on one core), over the demo scene's moving probe;
+  thread: the cost on one core; and the CPU ms per frame, which a busy machine does not
+  inflate as much), over the demo scene's moving probe;
 - the frame counter read back after VP8 at a few bit rates, through aiortc's own encoder and
   through ours (humantele.media.encoders): the share of frames whose counter reads exactly,
   with PSNR and SSIM of our decoded frames against their sources (the counter's rows left
@@ -19,6 +22,7 @@ docs/benchmarks.md. Deterministic images (seeded); times depend on the machine.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import time
 
@@ -42,7 +46,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from humantele.bench.video_link import add_link_arguments
     from humantele.bench.video_quality import add_quality_arguments
 
-    p.add_argument("part", nargs="?", default="sources", choices=["sources", "link", "quality"])
+    p.add_argument(
+        "part", nargs="?", default="sources", choices=["sources", "render", "link", "quality"]
+    )
     p.add_argument("--frames", type=int, default=60, help="sources: frames per measurement")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", action="store_true", help="print only the JSON summary line")
@@ -58,20 +64,44 @@ def make_source(kind: str, size: tuple[int, int], seed: int, scene: DemoScene):
     return SimPov(SimPovConfig(width=w, height=h), scene)
 
 
-def render_frames(kind: str, size: tuple[int, int], n: int, seed: int):
-    """``n`` frames of the demo scene at 20 fps of scene time; (frames, seconds per frame)."""
+def render_frames(kind: str, size: tuple[int, int], n: int, seed: int, cpu: list | None = None):
+    """``n`` frames of the demo scene at 20 fps of scene time; (frames, seconds per frame).
+    ``cpu``: a list given gets the CPU seconds per frame (the process's, in the renders)."""
     t = {"now": 0.0}
     scene = DemoScene(clock=lambda: t["now"])
     src = make_source(kind, size, seed, scene)
     src.render(scene())  # warm up (first-use allocations)
-    frames, times = [], []
+    frames, times, spent = [], [], 0.0
     for i in range(n):
         t["now"] = i / 20.0
         snapshot = scene()
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         frames.append(src.render(snapshot))
         times.append(time.perf_counter() - t0)
+        spent += time.process_time() - c0
+    if cpu is not None:
+        cpu.append(spent / max(n, 1))
     return frames, np.asarray(times)
+
+
+def render_costs(sizes, n: int, seed: int, echo: bool) -> tuple[dict, list]:
+    """Render cost per frame of each (kind, size): ({name: figures}, table rows)."""
+    renders, rows = {}, []
+    for kind, size in sizes:
+        cpu: list[float] = []
+        _, times = render_frames(kind, size, n, seed, cpu)
+        r = {
+            "median_ms": float(np.median(times) * 1e3),
+            "p90_ms": float(np.percentile(times, 90) * 1e3),
+            "cpu_ms": cpu[0] * 1e3,
+        }
+        renders[f"{kind} {size[0]}x{size[1]}"] = r
+        rows.append([f"sim {kind}", f"{size[0]}x{size[1]}", f"{r['median_ms']:.2f}",
+                     f"{r['p90_ms']:.2f}", f"{r['cpu_ms']:.2f}"])  # fmt: skip
+        if echo:
+            print(f"render {kind:3s} {size[0]:4d}x{size[1]:<4d} {r['median_ms']:6.2f} ms "
+                  f"(p90 {r['p90_ms']:.2f}), CPU {r['cpu_ms']:.2f} ms per frame")  # fmt: skip
+    return renders, rows
 
 
 def through_encoder(encoder, frames) -> tuple[list[np.ndarray], float]:
@@ -147,19 +177,14 @@ def run(args: argparse.Namespace) -> int:
     cv2.setNumThreads(1)
     load = os.getloadavg()[0]
     n, seed = max(args.frames, 5), args.seed
-    renders, rows = {}, []
-    for kind, sizes in (("us", US_SIZES), ("pov", POV_SIZES)):
-        for size in sizes:
-            _, times = render_frames(kind, size, n, seed)
-            r = {
-                "median_ms": float(np.median(times) * 1e3),
-                "p90_ms": float(np.percentile(times, 90) * 1e3),
-            }
-            renders[f"{kind} {size[0]}x{size[1]}"] = r
-            rows.append([f"sim {kind}", f"{size[0]}x{size[1]}", f"{r['median_ms']:.2f}",
-                         f"{r['p90_ms']:.2f}"])  # fmt: skip
-            if not args.json:
-                print(f"render {kind:3s} {size[0]:4d}x{size[1]:<4d} {r['median_ms']:6.2f} ms")
+    if args.part == "render":
+        sizes = [("us", DEFAULT_US), ("pov", DEFAULT_POV)]
+        renders, _ = render_costs(sizes, n, seed, not args.json)
+        print(json.dumps({"part": "render", "frames": n, "seed": seed, "load": load,
+                          "render": renders}))  # fmt: skip
+        return 0
+    sizes = [("us", s) for s in US_SIZES] + [("pov", s) for s in POV_SIZES]
+    renders, rows = render_costs(sizes, n, seed, not args.json)
     counters, crow = {}, []
     for kind, size in (("us", DEFAULT_US), ("pov", DEFAULT_POV)):
         frames, _ = render_frames(kind, size, n, seed)
@@ -184,7 +209,7 @@ def run(args: argparse.Namespace) -> int:
             "Render cost of the sim sources per frame (one OpenCV thread, the demo scene's "
             "probe sweeping; the US image at 20 fps and the POV at 25 fps beside the 1 kHz "
             "servo). Default sizes: US 640x480, POV 960x540.",
-            markdown_table(["source", "size", "median ms", "p90 ms"], rows),
+            markdown_table(["source", "size", "median ms", "p90 ms", "CPU ms"], rows),
             "The frame counter (24 bits + 8-bit check, 8 px cells) read back after VP8, "
             "the frames sent as the follower sends them (I420, 20 fps) and decoded by "
             "aiortc's decoder: through aiortc's own VP8 encoder (its libvpx settings: "

@@ -187,11 +187,16 @@ class Phantom:
 
     # ------------------------------------------------------------------ along rays
     def along_rays(
-        self, starts: NDArray[np.float64], dirs: NDArray[np.float64], ranges: NDArray[np.float32]
-    ) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
+        self,
+        starts: NDArray[np.float64],
+        dirs: NDArray[np.float64],
+        ranges: NDArray[np.float32],
+        target: str | None = None,
+    ) -> tuple[NDArray[np.uint8], NDArray[np.float32], NDArray[np.bool_] | None]:
         """Region labels and :meth:`depth_below_skin` at the points ``starts[b] + ranges[j] *
         dirs[b]`` (patient frame, m; ``starts``, ``dirs`` (B, 3), ``dirs`` unit, ``ranges``
-        (S,) increasing): ((B, S) uint8 labels as :meth:`labels` gives, (B, S) float32 m).
+        (S,) increasing): ((B, S) uint8 labels as :meth:`labels` gives, (B, S) float32 m,
+        and with ``target`` (an organ's name) :meth:`inside_along` of it, else None).
 
         The same answer as :meth:`labels` of those points (to float rounding on a surface), at
         a fraction of its cost: the skin's depth is a ratio of two quadratics in the range
@@ -219,9 +224,13 @@ class Phantom:
         lab = inside_body.view(np.uint8).copy()
         for d in (d1, d2, d3):
             lab += depth >= d
+        t = None if target is None else self._organ_label(target)
+        inside = None if t is None else np.zeros(lab.shape, dtype=np.uint8)
         for label, lo, hi in self._intervals(starts, dirs):
             self._paint(lab, label, lo, hi, ranges, inside_body)
-        return lab, depth
+            if inside is not None and label == t:
+                self._paint(inside, 1, lo, hi, ranges, None)
+        return lab, depth, None if inside is None else inside.view(np.bool_)
 
     def inside_along(
         self,
@@ -231,14 +240,17 @@ class Phantom:
         ranges: NDArray[np.float32],
     ) -> NDArray[np.bool_]:
         """:meth:`inside` at the points of :meth:`along_rays`: (B, S) bool."""
+        i = self._organ_label(name)
+        out = np.zeros((len(starts), len(ranges)), dtype=np.uint8)
+        lo, hi = self._intervals(starts, dirs, only=i)[0][1:]
+        self._paint(out, 1, lo, hi, np.asarray(ranges, dtype=np.float32), None)
+        return out.view(np.bool_)
+
+    def _organ_label(self, name: str) -> int:
         i = self.names.index(name) if name in self.names else -1
-        for shape in self._shapes:
-            if shape.label == i and shape.inv_axes is not None:
-                out = np.zeros((len(starts), len(ranges)), dtype=np.uint8)
-                lo, hi = self._intervals(starts, dirs, only=i)[0][1:]
-                self._paint(out, 1, lo, hi, np.asarray(ranges, dtype=np.float32), None)
-                return out.view(np.bool_)
-        raise KeyError(f"{name!r} is not an organ (an ellipsoid) of the phantom")
+        if not any(s.label == i and s.inv_axes is not None for s in self._shapes):
+            raise KeyError(f"{name!r} is not an organ (an ellipsoid) of the phantom")
+        return i
 
     def _intervals(self, starts, dirs, only: int | None = None) -> list[tuple[int, Any, Any]]:
         """(label, lo, hi) of every organ then tube (or of label ``only``), in the order they

@@ -175,7 +175,8 @@ class SimUltrasound(SimVideoSource):
         c, g = self.config, self.geometry
         starts = g.face.astype(np.float64) @ R.T + t  # each beam's start and direction, patient
         dirs = g.direction.astype(np.float64) @ R.T
-        labels, _ = phantom.along_rays(starts, dirs, g.range_m)
+        labels, _, target = phantom.along_rays(starts, dirs, g.range_m, c.target)
+        assert target is not None
         echo = np.take(phantom.echo, labels)
         self._texture(phantom, labels, echo, starts, dirs)
         # Specular echoes where a beam crosses from one region into another.
@@ -197,7 +198,7 @@ class SimUltrasound(SimVideoSource):
         diffuse = cv2.GaussianBlur(echo * gain, **psf)
         specular = cv2.GaussianBlur(spec * gain, **psf)
         visible = excess < c.shadow_db
-        visible &= phantom.inside_along(c.target, starts, dirs, g.range_m)
+        visible &= target
         area = np.sum(self._cell_area, axis=1, where=visible)
         _, axes = phantom.organ(c.target)
         a_max = math.pi * float(np.prod(np.sort(axes)[1:]))
