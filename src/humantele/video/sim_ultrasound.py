@@ -42,7 +42,7 @@ import math
 import cv2
 import numpy as np
 
-from humantele.geometry import Pose
+from humantele.geometry import quat_to_matrix
 from humantele.haptics.ellipsoid import Ellipsoid
 from humantele.video.phantom import Phantom
 from humantele.video.scan import ScanGeometry
@@ -153,9 +153,11 @@ class SimUltrasound(SimVideoSource):
             image, _ = self._blank()
             return image, {**meta, "valid": True}
         phantom = self.phantom_for(s.patient)
-        T_patient_tip: Pose = s.patient.T_world_patient.inverse() @ s.T_world_tip
-        R = T_patient_tip.rotation_matrix
-        t = T_patient_tip.position
+        # T_patient_tip = T_world_patient^-1 @ T_world_tip, as matrices (the Pose algebra in
+        # pure Python cost as much as the phantom's labels).
+        R_wp, centre = s.patient.rotation, s.patient.center
+        R = R_wp.T @ quat_to_matrix(s.T_world_tip.quaternion)
+        t = (np.asarray(s.T_world_tip.position, dtype=float) - centre) @ R_wp
         if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
             raise ValueError("non-finite probe pose in the patient frame")
         coupling = self._coupling(phantom, R, t, float(s.force_n))

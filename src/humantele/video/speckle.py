@@ -6,7 +6,9 @@ texture seen along three oblique directions of the patient frame: ``T(B_k p)`` f
 ``B_k`` the rows of a fixed rotation taken two at a time. A function of the patient-frame point
 only, so the speckle moves with the anatomy when the probe moves; any image plane cuts at
 least two of the three projections at a slant, so there are no streaks. The image plane maps
-affinely to each texture, so a frame costs three ``cv2.warpAffine``.
+affinely to each texture, so a frame costs three ``cv2.warpAffine`` (in bands of rows that
+hold what the caller needs, each band's three warps, their uint8 sum and its blur while they
+are in cache), then one table lookup from (I, Q) to the displayed contrast.
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ _MEAN, _STD, _MAX = 42.5, 13.0, 85
 _B = quat_to_matrix(quat_from_axis_angle((0.41, 0.77, 0.49), 0.93))
 _PLANES = [(_B[0], _B[1]), (_B[1], _B[2]), (_B[2], _B[0])]
 _OFFSETS = [(0.0, 0.0), (0.37 * PERIOD, 0.61 * PERIOD), (0.71 * PERIOD, 0.19 * PERIOD)]
+_AXES = np.array([[u, v] for u, v in _PLANES])  # (3, 2, 3): each texture's (u, v) axes
+_OFFSET = np.array(_OFFSETS)  # (3, 2)
 # The plane on which ``contrast`` is scaled to mean 1 (patient frame, m; 200 x 200 px).
 Regions = list[tuple[int, int, int, int]]
 _REF_PLANE = (np.zeros(3), np.array([1e-3, 0.0, 0.0]), np.array([0.0, 3e-4, 0.0]), 200, 200)
@@ -55,6 +59,13 @@ class SpeckleField:
         tex = np.zeros((*tiled.shape[:2], 4), dtype=np.uint8)
         tex[..., :2] = np.clip(np.rint(tiled * _STD + _MEAN), 0, _MAX)
         self._tex = tex
+        # Patient frame (m) to each texture's (u, v) texels, 2 x 4 affine matrices.
+        self._maps = [
+            np.concatenate([_AXES[k] / self.texel_m, _OFFSET[k][:, None]], axis=1).astype(
+                np.float32
+            )
+            for k in range(3)
+        ]
         self._luts: dict[tuple[float, float], NDArray[np.float32]] = {}
         self._buffers: dict[tuple[int, int], list[NDArray[np.uint8]]] = {}
 
@@ -63,9 +74,7 @@ class SpeckleField:
         float32 arrays, m), e.g. a coarse field (a large ``texel_m``) for organ texture."""
         pts = np.stack([np.asarray(p, dtype=np.float32).reshape(-1) for p in points], -1)
         acc = None
-        h = self.texel_m
-        for (u, v), (ou, ov) in zip(_PLANES, _OFFSETS, strict=True):
-            m = np.array([[*(u / h), ou], [*(v / h), ov]], dtype=np.float32)
+        for m in self._maps:
             uv = cv2.transform(pts[:, None, :], m)  # (N, 1, 2) texture coordinates
             uv -= np.floor(uv * np.float32(1.0 / PERIOD)) * np.float32(PERIOD)  # (np.mod: 5x)
             s = cv2.remap(
@@ -99,9 +108,8 @@ class SpeckleField:
         corner = box[:, [2, 0]]  # (n, 2): the band's first (col, row)
         extent = box[:, [3, 1]] - corner  # (n, 2): its (cols, rows)
         # The texture coordinates of each projection: A @ (col, row) + t, (3, 2, 2) and (3, 2).
-        ax = np.stack([np.stack([u, v]) for u, v in _PLANES])  # (3, 2, 3)
-        lin = np.stack([ax @ ex, ax @ ey], axis=-1) / h  # (3, 2, 2)
-        off = ax @ origin / h + np.array(_OFFSETS)  # (3, 2)
+        lin = np.stack([_AXES @ ex, _AXES @ ey], axis=-1) / h  # (3, 2, 2)
+        off = _AXES @ origin / h + _OFFSET  # (3, 2)
         # Per band: its first pixel's coordinates; then shifted by whole periods so the band's
         # corners fall on the tiled texture (its lowest corner in the first period).
         t = off[:, None, :] + np.einsum("kij,nj->kni", lin, corner)  # (3, n, 2)
