@@ -23,6 +23,7 @@ def test_bench_video_sources(tmp_path, monkeypatch, capsys):
     assert r["part"] == "sources" and r["frames"] == 6
     for key in ("us 320x240", "pov 320x180"):
         assert 0.0 < r["render"][key]["median_ms"] <= r["render"][key]["p90_ms"]
+        assert r["render"][key]["cpu_ms"] > 0.0
     for key in ("us 250000", "pov 250000"):
         c = r["vp8"][key]
         assert c["decoded"] == 6 and c["read_exact_pct"] == 100.0
@@ -30,6 +31,23 @@ def test_bench_video_sources(tmp_path, monkeypatch, capsys):
     text = md.read_text()
     assert "## Video sources" in text and "loop figures" in text
     assert "| sim us | 320x240 |" in text
+
+
+def test_bench_video_render_prints_the_cost_per_frame_and_writes_nothing(
+    tmp_path, monkeypatch, capsys
+):
+    md = tmp_path / "benchmarks.md"
+    md.write_text("# Benchmarks\n")
+    monkeypatch.setattr(bench_video, "BENCHMARKS_MD", md)
+    assert main(["bench", "video", "render", "--frames", "5"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[0].startswith("render us ") and "CPU" in lines[0] and "per frame" in lines[0]
+    r = json.loads(lines[-1])
+    assert r["part"] == "render" and r["frames"] == 5
+    for key in ("us 640x480", "pov 960x540"):
+        f = r["render"][key]
+        assert 0.0 < f["median_ms"] <= f["p90_ms"] and f["cpu_ms"] > 0.0
+    assert md.read_text() == "# Benchmarks\n"
 
 
 def test_phase_figures_split_a_run_at_the_loss_window():
