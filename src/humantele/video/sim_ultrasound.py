@@ -141,8 +141,12 @@ class SimUltrasound(SimVideoSource):
         """The phantom placed in ``patient`` (cached while the patient stays the same)."""
         key = patient.as_array().tobytes()
         if self._phantom is None or key != self._phantom_key:
-            self._phantom = Phantom(self.config.phantom, patient, self.config.seed)
+            self._phantom = phantom = Phantom(self.config.phantom, patient, self.config.seed)
             self._phantom_key = key
+            # Per sample: dB of round-trip loss by label; the target's largest section (m^2).
+            self._loss_table = phantom.attenuation * np.float32(self._loss_per_atten)
+            _, axes = phantom.organ(self.config.target)
+            self._a_max = math.pi * float(np.prod(np.sort(axes)[1:]))
         return self._phantom
 
     # ------------------------------------------------------------------ rendering
@@ -187,8 +191,7 @@ class SimUltrasound(SimVideoSource):
         np.maximum(bound[:, 1:], bound[:, :-1], out=spec[:, 1:])
         spec[:, 1:] *= labels[:, 1:] != labels[:, :-1]
         # Round-trip loss down to each sample (half of its own), less what the TGC restores.
-        loss = np.take(phantom.attenuation, labels)
-        loss *= np.float32(self._loss_per_atten)
+        loss = np.take(self._loss_table, labels)
         excess = np.cumsum(loss, axis=1, dtype=np.float32)
         excess -= 0.5 * loss
         excess -= self._tgc_db
@@ -202,9 +205,7 @@ class SimUltrasound(SimVideoSource):
         visible = excess < c.shadow_db
         visible &= target
         area = np.sum(self._cell_area, axis=1, where=visible)
-        _, axes = phantom.organ(c.target)
-        a_max = math.pi * float(np.prod(np.sort(axes)[1:]))
-        quality = float(np.clip(float(area @ coupling) / a_max, 0.0, 1.0))
+        quality = float(np.clip(float(area @ coupling) / self._a_max, 0.0, 1.0))
         return diffuse, specular, quality
 
     def _texture(self, phantom: Phantom, labels, echo, starts, dirs) -> None:
