@@ -226,10 +226,19 @@ class Phantom:
             lab += depth >= d
         t = None if target is None else self._organ_label(target)
         inside = None if t is None else np.zeros(lab.shape, dtype=np.uint8)
-        for label, lo, hi in self._intervals(starts, dirs):
-            self._paint(lab, label, lo, hi, ranges, inside_body)
-            if inside is not None and label == t:
-                self._paint(inside, 1, lo, hi, ranges, None)
+        shapes = self._intervals(starts, dirs)
+        if shapes:
+            # Each shape's first and last sample inside, per ray, all at once.
+            j0 = np.searchsorted(ranges, np.stack([lo for _, lo, _ in shapes]), side="right")
+            j1 = np.searchsorted(ranges, np.stack([hi for _, _, hi in shapes]), side="left")
+            hits = (j1 > j0).any(axis=1)
+            for k in np.flatnonzero(hits):
+                label = shapes[k][0]
+                self._paint_rows(lab, label, j0[k], j1[k])
+                if inside is not None and label == t:
+                    self._paint_rows(inside, 1, j0[k], j1[k])
+            if hits.any():
+                lab *= inside_body  # nothing outside the body, whatever a tube does there
         return lab, depth, None if inside is None else inside.view(np.bool_)
 
     def inside_along(
@@ -290,6 +299,11 @@ class Phantom:
         """Set ``lab[b, j] = label`` where lo[b] < ranges[j] < hi[b] (and inside the body)."""
         j0 = np.searchsorted(ranges, lo, side="right")
         j1 = np.searchsorted(ranges, hi, side="left")
+        Phantom._paint_rows(lab, label, j0, j1, inside_body)
+
+    @staticmethod
+    def _paint_rows(lab, label: int, j0, j1, inside_body=None) -> None:
+        """Set ``lab[b, j] = label`` for j0[b] <= j < j1[b] (and inside the body)."""
         rows = np.flatnonzero(j1 > j0)
         if rows.size == 0:
             return
