@@ -74,9 +74,11 @@ class SpeckleField:
         # The three textures' (u, v) of every point in one pass, then one lookup of all 3 n.
         uv = cv2.transform(pts[:, None, :], self._maps).reshape(n, 3, 2)
         uv -= np.floor(uv * np.float32(1.0 / PERIOD)) * np.float32(PERIOD)  # (np.mod: 5x)
-        uv = np.ascontiguousarray(uv.transpose(1, 0, 2)).reshape(1, 3 * n, 2)
-        s = cv2.remap(self._tex, uv, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        acc = s[0, :, 0].reshape(3, n).sum(axis=0, dtype=np.float32)
+        s = cv2.remap(
+            self._tex, uv.reshape(1, 3 * n, 2), None, cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        )  # fmt: skip
+        acc = s[0, :, 0].reshape(n, 3).sum(axis=1, dtype=np.float32)
         return (acc - np.float32(3 * _MEAN)) * np.float32(1.0 / (math.sqrt(3.0) * _STD))
 
     def _iq(
