@@ -138,3 +138,16 @@ def test_depth_attenuation_and_its_tgc():
     assert shallow - deep == pytest.approx(12.6 * 255 / 55, rel=0.1)
     assert shallow < 240  # not clipped
     assert abs(means[0.6][0] - means[0.6][1]) < 12
+
+
+def test_a_phantom_holds_at_most_250_shapes():
+    """The renderer's labels are one byte (five layers, then the shapes): a config with more
+    is refused when read, not counted as a bad frame at every render."""
+    from pydantic import ValidationError
+
+    from humantele.video.sim_config import MAX_SHAPES, Tube
+
+    tubes = [Tube(name=f"vessel {i}", point=(0.0, 0.0, 0.0)) for i in range(MAX_SHAPES)]
+    with pytest.raises(ValidationError, match="at most 250 organs and tubes"):
+        PhantomConfig(tubes=tubes)  # 250 tubes and the 3 default organs
+    assert len(PhantomConfig(organs=[], tubes=tubes).tubes) == MAX_SHAPES

@@ -86,8 +86,7 @@ class Phantom:
             self.names.append(tube.name)
             mats.append(tube)
         self._shapes = shapes
-        if len(self.names) > 255:
-            raise ValueError(f"at most 250 organs and tubes, got {len(self.names) - len(LAYERS)}")
+        assert len(self.names) <= 256, "PhantomConfig holds at most MAX_SHAPES shapes"
         ell = [sh for sh in shapes if sh.inv_axes is not None]
         tub = [sh for sh in shapes if sh.inv_axes is None]
         self._ell = (

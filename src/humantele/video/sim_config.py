@@ -14,6 +14,7 @@ from humantele.config import ConfigModel
 from humantele.video.counter import patch_size
 
 BGR = tuple[int, int, int]
+MAX_SHAPES = 250  # organs and tubes of a phantom
 Placement = tuple[float, float, float]  # (along the body, depth below the skin, lateral), m
 
 
@@ -145,6 +146,8 @@ class PhantomConfig(ConfigModel):
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
             raise ValueError(f"organs and tubes need distinct names; repeated: {dup}")
+        if len(names) > MAX_SHAPES:  # the renderer's labels are uint8, with 5 for the layers
+            raise ValueError(f"at most {MAX_SHAPES} organs and tubes, got {len(names)}")
         return self
 
     def names(self) -> list[str]:
