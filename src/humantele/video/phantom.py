@@ -203,21 +203,16 @@ class Phantom:
         entry and exit (two roots per ray), painted in its rows of the grid."""
         ranges = np.asarray(ranges, dtype=np.float32)
         inv = 1.0 / np.asarray(self.semi_axes)
-        # r^2 = |(p / s)|^2 and |grad r^2|^2 / 4 = |p / s^2|^2, each a quadratic along the ray.
-        depth = None
-        for k, w in enumerate((inv, inv * inv)):
-            fs, ds = starts * w, dirs * w
-            a, b, c = (ds * ds).sum(1), 2.0 * (fs * ds).sum(1), (fs * fs).sum(1)
-            q = _quadratic(a, b, c, ranges)
-            if k == 0:
-                r2 = q
-            else:
-                np.sqrt(q, out=q)
-                q *= 2.0
-                np.maximum(q, 1e-6, out=q)
-                depth = np.subtract(1.0, r2, out=r2)
-                depth /= q
-        assert depth is not None
+        # r^2 = |p / s|^2 and |grad r^2|^2 / 4 = |p / s^2|^2, each a quadratic along the ray.
+        fs, ds = starts * inv, dirs * inv
+        r2 = _quadratic((ds * ds).sum(1), 2.0 * (fs * ds).sum(1), (fs * fs).sum(1), ranges)
+        fs, ds = fs * inv, ds * inv
+        grad = _quadratic((ds * ds).sum(1), 2.0 * (fs * ds).sum(1), (fs * fs).sum(1), ranges)
+        np.sqrt(grad, out=grad)
+        grad *= 2.0
+        np.maximum(grad, 1e-6, out=grad)
+        depth = np.subtract(1.0, r2, out=r2)
+        depth /= grad
         d1, d2, d3 = (np.float32(v) for v in self._layer_depths)
         inside_body = depth >= 0.0
         lab = inside_body.view(np.uint8).copy()
