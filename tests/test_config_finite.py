@@ -14,6 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import humantele
+from fuzz_examples import examples
 from humantele.config import ConfigError, ConfigModel, load_config, validate_config
 from humantele.expert.config import ExpertConfig
 from humantele.haptics.servo_config import RegistrationConfig, ServoConfig
@@ -81,7 +82,7 @@ def test_the_walk_finds_the_fields_named_in_the_issue():
     assert len(FLOAT_FIELDS) > 100  # every configuration module was walked
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(field=st.sampled_from(FLOAT_FIELDS), bad=st.sampled_from(BAD), pick=st.integers(0, 3))
 def test_every_float_field_refuses_non_finite_values_by_name(field, bad, pick):
     cls, name, annotation = field
@@ -93,14 +94,14 @@ def test_every_float_field_refuses_non_finite_values_by_name(field, bad, pick):
     assert lines and any("finite" in ln for ln in lines), str(err.value)
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(q=st.tuples(*[st.floats(-1e-7, 1e-7)] * 4))
 def test_a_quaternion_that_is_not_a_rotation_is_refused(q):
     with pytest.raises(ConfigError, match=r"quaternion: .*not a rotation"):
         validate_config(RegistrationConfig, {"quaternion": q})
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(q=st.tuples(*[st.floats(-10, 10)] * 4).filter(lambda q: math.hypot(*q) > 1e-3))
 def test_a_normalisable_quaternion_is_stored_as_a_unit_rotation(q):
     stored = validate_config(RegistrationConfig, {"quaternion": q}).quaternion

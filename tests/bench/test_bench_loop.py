@@ -6,6 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from fuzz_examples import examples
 from humantele.bench import loop as bench_loop
 from humantele.cli import main
 
@@ -92,7 +93,7 @@ def test_periods_over_two_ticks_are_counted():
     assert timing.max_us == pytest.approx(5000.0)
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(st.lists(st.floats(1e-6, 0.019), min_size=1, max_size=50), st.floats(0.0, 1.0))
 def test_period_percentiles_stay_within_the_measured_min_and_max(periods, q):
     from humantele.haptics.servo_child import PeriodTiming

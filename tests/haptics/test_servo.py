@@ -14,6 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from servo_helpers import pressing_config
 
+from fuzz_examples import examples
 from humantele.config import ConfigError, validate_config
 from humantele.geometry import Pose, quat_from_axis_angle
 from humantele.haptics.demo_patient import demo_model
@@ -134,7 +135,7 @@ def test_bad_data_and_device_errors_give_zero_force():
 finite = st.floats(allow_nan=True, allow_infinity=True, width=64)
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(p=st.tuples(finite, finite, finite), v=st.tuples(finite, finite, finite), dt=st.floats(0, 1))
 def test_never_nan_never_over_limit(p, v, dt):
     r = ForceRenderer(ServoConfig(force_limit_n=2.0))

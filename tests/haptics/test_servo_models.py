@@ -19,6 +19,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from servo_helpers import pressing_config
 
+from fuzz_examples import examples
 from humantele.demo_status import status_line
 from humantele.expert.config import ExpertConfig
 from humantele.expert.daemon import ExpertDaemon
@@ -61,7 +62,7 @@ def test_the_schema_accepts_the_paper_s_model_and_a_finite_heading_only():
         parse_control(_msg(center=(0.0, 9.0, 0.0)))
 
 
-@settings(max_examples=400, deadline=None)
+@settings(max_examples=examples(400), deadline=None)
 @given(
     c=st.tuples(*[st.floats(-20, 20)] * 3),
     s=st.tuples(*[st.floats(1e-300, 1e4)] * 3),
@@ -137,7 +138,7 @@ def test_a_tick_that_raises_zeroes_the_force_and_falls_back_to_the_last_good_mod
     assert np.linalg.norm(f[-1]) > 0.5 and r.counts["tick_errors"] == 1
 
 
-@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=examples(300), deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     v=st.lists(
         st.one_of(
@@ -189,7 +190,7 @@ def _control_texts():
     return st.one_of(structured, mangled, special)
 
 
-@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=examples(300), deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(texts=st.lists(_control_texts(), min_size=1, max_size=4))
 def test_fuzz_control_message_to_expert_to_servo(texts):
     d = ExpertDaemon(ExpertConfig(), pressing_config())  # its servo process is not started
