@@ -295,6 +295,7 @@ NOT_LOADED = {
 }
 
 
+@pytest.mark.e2e  # runs a Python process per module (the fast lane leaves it out)
 @pytest.mark.parametrize("module", sorted(NOT_LOADED))
 def test_a_module_loads_only_what_it_needs(module: str) -> None:
     code = (

@@ -11,6 +11,7 @@ from humantele.bench import loop as bench_loop
 from humantele.cli import main
 
 
+@pytest.mark.e2e  # starts the servo, bare-loop and busy-core processes (not in the fast lane)
 def test_bench_loop_prints_json_last_and_keeps_the_other_row(tmp_path, monkeypatch, capsys):
     md = tmp_path / "benchmarks.md"
     monkeypatch.setattr(bench_loop, "BENCHMARKS_MD", md)
@@ -39,6 +40,7 @@ def test_bench_loop_prints_json_last_and_keeps_the_other_row(tmp_path, monkeypat
     assert "| idle |" in text and "| one core busy |" in text  # each run kept the other's row
 
 
+@pytest.mark.e2e  # starts the servo, bare-loop and busy-core processes (not in the fast lane)
 def test_bench_loop_control_runs_two_bare_loops_and_keeps_the_servo_rows(
     tmp_path, monkeypatch, capsys
 ):

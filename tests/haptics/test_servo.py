@@ -160,6 +160,7 @@ def test_config_errors_name_the_field():
 # ------------------------------------------------------------------ the servo process
 
 
+@pytest.mark.e2e  # starts the servo process (the fast lane leaves it out)
 def test_process_runs_swaps_model_and_stops_cleanly():
     sp = ServoProcess(pressing_config(), MODEL)
     sp.start()
@@ -183,6 +184,7 @@ def test_process_runs_swaps_model_and_stops_cleanly():
     assert sp.stats().ticks > 300
 
 
+@pytest.mark.e2e  # starts the servo process (the fast lane leaves it out)
 def test_process_stale_fault_zeroes_force_then_recovers():
     # 2 s of stale readings: a test process descheduled for a while (a busy machine) still
     # sees them (0.4 s was missed once with the suite's other worker busy)
@@ -196,12 +198,14 @@ def test_process_stale_fault_zeroes_force_then_recovers():
         assert sp.stats().stale_ticks > 0
 
 
+@pytest.mark.e2e  # starts the servo process (the fast lane leaves it out)
 def test_process_reports_device_errors_at_start():
     cfg = ServoConfig(device={"backend": "touchx", "library": "/nonexistent/libHD.so"})
     with pytest.raises(ServoError, match="libHD"):
         ServoProcess(cfg).start()
 
 
+@pytest.mark.e2e  # starts the servo process (the fast lane leaves it out)
 def test_sigterm_stops_the_servo_with_force_zeroed():
     sp = ServoProcess(pressing_config(), MODEL)
     sp.start()
@@ -265,6 +269,7 @@ def _seqlock_writer(name: str, n: int, stop) -> None:
     w.close()
 
 
+@pytest.mark.e2e  # forks a writer process (the fast lane leaves it out)
 def test_seqlock_readers_never_see_a_torn_write():
     """Writer and reader in two processes over shared memory, as the servo and daemon are."""
     import multiprocessing
@@ -316,6 +321,7 @@ def test_seqlock_try_read_never_waits_on_a_write_in_progress():
         w.unlink()
 
 
+@pytest.mark.e2e  # starts the servo process (the fast lane leaves it out)
 def test_servo_survives_a_daemon_preempted_mid_write():
     """A normal-priority daemon can be preempted inside a command write; the SCHED_FIFO servo
     keeps its last command (it used to spin 10 ms, then die with TimeoutError)."""
@@ -336,6 +342,7 @@ def test_servo_survives_a_daemon_preempted_mid_write():
     assert not sp.alive
 
 
+@pytest.mark.e2e  # starts the servo process (the fast lane leaves it out)
 def test_daemon_side_reads_survive_a_servo_killed_mid_write():
     sp = ServoProcess(pressing_config(), MODEL)
     sp.start()

@@ -230,6 +230,7 @@ def test_expert_refuses_the_issue_s_models_that_bypass_the_schema():
 # --- the servo process -----------------------------------------------------------------------
 
 
+@pytest.mark.e2e  # starts the servo process (the fast lane leaves it out)
 def test_servo_process_survives_the_tiny_model_and_keeps_pressing():
     # Late or stale ticks on a loaded machine are not what this test is about: tolerate them.
     cfg = pressing_config().model_copy(update={"late_after_s": 1.0, "stale_after_s": 1.0})
@@ -265,6 +266,7 @@ def _servo_blocks(monkeypatch) -> list[str]:
     return names
 
 
+@pytest.mark.e2e  # starts the servo process (the fast lane leaves it out)
 def test_no_shared_memory_leaks_when_the_servo_fails_at_start(monkeypatch):
     names = _servo_blocks(monkeypatch)
     cfg = ServoConfig(device={"backend": "touchx", "library": "/nonexistent/libHD"})
@@ -290,6 +292,7 @@ def test_no_shared_memory_leaks_when_the_process_cannot_be_spawned(monkeypatch):
     assert [n for n in names if os.path.exists(f"/dev/shm/{n.lstrip('/')}")] == []
 
 
+@pytest.mark.e2e  # starts the servo process (the fast lane leaves it out)
 async def test_a_servo_that_cannot_run_is_a_fault_in_the_status_not_force_none():
     d = ExpertDaemon(ExpertConfig(), ServoConfig(device={"backend": "touchx", "library": "/x"}))
     d.servo.check(0.0)  # not running: noticed
@@ -306,6 +309,7 @@ async def test_a_servo_that_cannot_run_is_a_fault_in_the_status_not_force_none()
     assert math.isfinite(s["force_n"])
 
 
+@pytest.mark.e2e  # starts the servo process (the fast lane leaves it out)
 async def test_a_dead_servo_is_restarted_off_the_event_loop(monkeypatch):
     """Starting a servo process takes 0.5-2 s (spawn, device): the expert's loop (link
     heartbeats, console, the follower's state) goes on meanwhile; the new servo gets the
