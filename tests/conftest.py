@@ -98,6 +98,20 @@ def pytest_collection_modifyitems(items):
             netns = "browser_scenario" in item.fixturenames
             item.add_marker(pytest.mark.xdist_group("processes-netns" if netns else "processes"))
             item.add_marker(pytest.mark.e2e)  # the fast lane, -m "not e2e", leaves them out
+        elif not item.get_closest_marker("e2e") and _uses_a_module_fixture(item):
+            item.add_marker(pytest.mark.xdist_group(f"module {item.nodeid.split('::')[0]}"))
+
+
+def _uses_a_module_fixture(item: pytest.Item) -> bool:
+    """Whether ``item`` shares a module-scoped fixture (a recording, encoded video, a fitted
+    calibration) with its module's other tests. Those tests go to one xdist worker (one group
+    each module), which builds the fixture once: spread over the workers, each built it again
+    (the device recording's three times, 9 CPU-s a time on a loaded machine)."""
+    info = getattr(item, "_fixtureinfo", None)
+    if info is None:
+        return False
+    defs = info.name2fixturedefs
+    return any(d.scope == "module" for name in item.fixturenames for d in defs.get(name, ()))
 
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
