@@ -14,7 +14,10 @@ demo in the other put the load at 19 on 2 cores): such tests hold one slot betwe
 (``tests/session_slot.py``), the lighter ones of each lane run beside.
 Such a test is marked ``slow`` or uses a fixture that starts those processes; it is also
 marked ``e2e``, so ``python -m pytest -q -m "not e2e"`` is the fast lane for everyday work
-(the README's command runs everything).
+(the README's command runs everything). A shorter test that starts any process (a child, the
+CLI, a Python interpreter, a compiler) is marked ``e2e`` itself, saying which. The fast lane
+draws fewer property-test examples (``fuzz_examples``), and a module whose tests share a
+module-scoped fixture runs on one worker (its own xdist group), which builds it once.
 
 Tests that need a Debian package beyond Python (Chromium, coturn, OpenIGTLink's library, ...)
 skip without it, their reason naming it (``system_packages``); the run's last line counts them
