@@ -126,7 +126,6 @@ def test_measurement_gaps_are_counted_after_the_first_measurement():
     assert abs(s["measurement_gap_s"] - (11.8 + 3.0)) < 0.1 and s["measurement_age_s"] == 3.0
 
 
-@pytest.mark.e2e  # spawns a child process (the fast lane leaves it out)
 @pytest.mark.e2e
 @pytest.mark.slow
 def test_a_ctrl_c_while_the_child_imports_its_target_does_not_kill_it(tmp_path, monkeypatch):
