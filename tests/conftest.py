@@ -14,7 +14,10 @@ demo in the other put the load at 19 on 2 cores): such tests hold one slot betwe
 (``tests/session_slot.py``), the lighter ones of each lane run beside.
 Such a test is marked ``slow`` or uses a fixture that starts those processes; it is also
 marked ``e2e``, so ``python -m pytest -q -m "not e2e"`` is the fast lane for everyday work
-(the README's command runs everything).
+(the README's command runs everything). A shorter test that starts any process (a child, the
+CLI, a Python interpreter, a compiler) is marked ``e2e`` itself, saying which. The fast lane
+draws fewer property-test examples (``fuzz_examples``), and a module whose tests share a
+module-scoped fixture runs on one worker (its own xdist group), which builds it once.
 
 Tests that need a Debian package beyond Python (Chromium, coturn, OpenIGTLink's library, ...)
 skip without it, their reason naming it (``system_packages``); the run's last line counts them
@@ -57,7 +60,9 @@ from cpu_durations import (  # noqa: F401 - the hooks of --cpu-durations=N
     pytest_runtest_teardown,
     pytest_terminal_summary,
 )
-from procgroups import pytest_configure, pytest_unconfigure  # noqa: F401 - the hooks
+from fuzz_examples import set_fast_lane
+from procgroups import pytest_configure as procgroups_configure
+from procgroups import pytest_unconfigure  # noqa: F401 - the hook
 from session_slot import whole_session_slot
 from system_packages import system_packages_line
 
@@ -67,9 +72,26 @@ SUITE_WORKERS = 2  # with the e2e tests: their real-time loops need the two core
 PROCESS_FIXTURES = {"session", "demo_run", "browser_scenario"}
 
 # Property tests check behaviour, not speed: no per-example deadline (hypothesis's 200 ms
-# default failed a wire round trip once on a busy machine).
+# default failed a wire round trip once on a busy machine). The whole suite draws each test's
+# full count of examples; the fast lane a tenth (``fast``, and tests/fuzz_examples.py for the
+# tests that set their own count): its budget is 60 s on 2 cores (issue 33).
 settings.register_profile("suite", deadline=None)
+settings.register_profile("fast", deadline=None, max_examples=10)
 settings.load_profile("suite")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """The fast lane (``-m "not e2e"``) draws fewer examples (tests/fuzz_examples.py; an
+    explicit ``--hypothesis-profile`` wins), then procgroups' hook."""
+    fast = _fast_lane(config)
+    share = set_fast_lane(fast)
+    if not config.getoption("hypothesis_profile", None):
+        settings.load_profile("fast" if share < 1.0 else "suite")
+    procgroups_configure(config)
+
+
+def _fast_lane(config: pytest.Config) -> bool:
+    return "not e2e" in (config.getoption("markexpr") or "")
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
@@ -79,6 +101,20 @@ def pytest_collection_modifyitems(items):
             netns = "browser_scenario" in item.fixturenames
             item.add_marker(pytest.mark.xdist_group("processes-netns" if netns else "processes"))
             item.add_marker(pytest.mark.e2e)  # the fast lane, -m "not e2e", leaves them out
+        elif not item.get_closest_marker("e2e") and _uses_a_module_fixture(item):
+            item.add_marker(pytest.mark.xdist_group(f"module {item.nodeid.split('::')[0]}"))
+
+
+def _uses_a_module_fixture(item: pytest.Item) -> bool:
+    """Whether ``item`` shares a module-scoped fixture (a recording, encoded video, a fitted
+    calibration) with its module's other tests. Those tests go to one xdist worker (one group
+    each module), which builds the fixture once: spread over the workers, each built it again
+    (the device recording's three times, 9 CPU-s a time on a loaded machine)."""
+    info = getattr(item, "_fixtureinfo", None)
+    if info is None:
+        return False
+    defs = info.name2fixturedefs
+    return any(d.scope == "module" for name in item.fixturenames for d in defs.get(name, ()))
 
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
@@ -115,8 +151,7 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     """``-n auto`` (pyproject.toml's addopts): three workers for the fast lane, two for a run
     with the e2e tests (their slow ones run one at a time in two xdist groups, beside the
     rest). An explicit ``-n N`` wins."""
-    fast = "not e2e" in (config.getoption("markexpr") or "")
-    return FAST_LANE_WORKERS if fast else SUITE_WORKERS
+    return FAST_LANE_WORKERS if _fast_lane(config) else SUITE_WORKERS
 
 
 @pytest.hookimpl(wrapper=True, tryfirst=True)  # around the terminal's, so after its last line

@@ -106,6 +106,7 @@ def test_signal_port_in_use_and_unknown_host():
     _one_clear_line(r.stderr)
 
 
+@pytest.mark.e2e  # runs the expert daemon's CLI (the fast lane leaves it out)
 def test_a_bad_console_key_is_refused_before_the_servo_starts():
     r = subprocess.run([*CMD, "expert", "--duration", "5"], capture_output=True, text=True,
                        timeout=90, env=_env(HUMANTELE_CONSOLE_KEY="short"))  # fmt: skip

@@ -101,6 +101,7 @@ def test_the_hololens_example_is_a_real_clinic_with_every_device_it_needs():
     assert follower.video.pov.backend == "opencv"
 
 
+@pytest.mark.e2e  # runs a Python process (the fast lane leaves it out)
 def test_loading_the_hololens_example_imports_nothing_of_the_simulator():
     """Reading a real clinic's file builds no simulated world (checked in a fresh process:
     this one has the simulator loaded by other tests)."""

@@ -3,6 +3,7 @@ bad value is refused at load with the field's name (issue 9 §2)."""
 
 from __future__ import annotations
 
+import functools
 import importlib
 import math
 import pkgutil
@@ -14,6 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import humantele
+from fuzz_examples import examples
 from humantele.config import ConfigError, ConfigModel, load_config, validate_config
 from humantele.expert.config import ExpertConfig
 from humantele.haptics.servo_config import RegistrationConfig, ServoConfig
@@ -62,27 +64,36 @@ def _bad_values(tp: object, bad: float) -> list[object]:
     return []
 
 
-FLOAT_FIELDS = [
-    (cls, name, info.annotation)
-    for cls in _all_config_models()
-    for name, info in cls.model_fields.items()
-    if _bad_values(info.annotation, math.nan)
-]
+@functools.cache
+def float_fields() -> list[tuple[type[ConfigModel], str, object]]:
+    """(model, field, annotation) of every field holding a float. Walked when a test first
+    needs it, not at collection: the walk imports every module of humantele (matplotlib, the
+    DICOM and bench modules with them), which each xdist worker paid again to collect."""
+    return [
+        (cls, name, info.annotation)
+        for cls in _all_config_models()
+        for name, info in cls.model_fields.items()
+        if _bad_values(info.annotation, math.nan)
+    ]
 
 
 def test_the_walk_finds_the_fields_named_in_the_issue():
-    found = {(c.__name__, n) for c, n, _ in FLOAT_FIELDS}
+    found = {(c.__name__, n) for c, n, _ in float_fields()}
     assert {
         ("MappingConfig", "origin_offset_m"),
         ("MappingConfig", "stylus_to_probe_deg"),
         ("RegistrationConfig", "position_m"),
         ("ServoConfig", "kp"),
     } <= found
-    assert len(FLOAT_FIELDS) > 100  # every configuration module was walked
+    assert len(float_fields()) > 100  # every configuration module was walked
 
 
-@settings(max_examples=300, deadline=None)
-@given(field=st.sampled_from(FLOAT_FIELDS), bad=st.sampled_from(BAD), pick=st.integers(0, 3))
+@settings(max_examples=examples(300), deadline=None)
+@given(
+    field=st.deferred(lambda: st.sampled_from(float_fields())),
+    bad=st.sampled_from(BAD),
+    pick=st.integers(0, 3),
+)
 def test_every_float_field_refuses_non_finite_values_by_name(field, bad, pick):
     cls, name, annotation = field
     values = _bad_values(annotation, bad)
@@ -93,14 +104,14 @@ def test_every_float_field_refuses_non_finite_values_by_name(field, bad, pick):
     assert lines and any("finite" in ln for ln in lines), str(err.value)
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(q=st.tuples(*[st.floats(-1e-7, 1e-7)] * 4))
 def test_a_quaternion_that_is_not_a_rotation_is_refused(q):
     with pytest.raises(ConfigError, match=r"quaternion: .*not a rotation"):
         validate_config(RegistrationConfig, {"quaternion": q})
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(q=st.tuples(*[st.floats(-10, 10)] * 4).filter(lambda q: math.hypot(*q) > 1e-3))
 def test_a_normalisable_quaternion_is_stored_as_a_unit_rotation(q):
     stored = validate_config(RegistrationConfig, {"quaternion": q}).quaternion

@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 TESTS = Path(__file__).resolve().parent
 BURN_S = 0.3
 
@@ -27,6 +29,7 @@ def test_a_child_burns():  # a child it waits for: reaped, so counted
 """
 
 
+@pytest.mark.e2e  # runs pytest in a process (the fast lane leaves it out)
 def test_tests_are_listed_by_the_cpu_they_used_with_their_reaped_children(tmp_path):
     (tmp_path / "test_example.py").write_text(EXAMPLE)
     env = dict(

@@ -4,6 +4,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
+from fuzz_examples import examples
 from humantele.geometry import (
     Pose,
     matrix_to_quat,
@@ -20,7 +21,7 @@ quats = st.tuples(finite, finite, finite, finite).filter(lambda q: np.linalg.nor
 vecs = st.tuples(finite, finite, finite)
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(quats, vecs)
 def test_rotation_matches_scipy(q, v):
     q = quat_normalize(q)
@@ -29,7 +30,7 @@ def test_rotation_matches_scipy(q, v):
     np.testing.assert_allclose(quat_to_matrix(q), r.as_matrix(), atol=1e-12)
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(quats, quats)
 def test_multiply_matches_scipy_composition(q1, q2):
     q1, q2 = quat_normalize(q1), quat_normalize(q2)
@@ -37,7 +38,7 @@ def test_multiply_matches_scipy_composition(q1, q2):
     np.testing.assert_allclose(quat_to_matrix(quat_multiply(q1, q2)), expected, atol=1e-12)
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(quats)
 def test_matrix_roundtrip_and_sign(q):
     q = quat_normalize(q)
@@ -48,7 +49,7 @@ def test_matrix_roundtrip_and_sign(q):
     np.testing.assert_allclose(back, sign * q, atol=1e-9)
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(quats, quats)
 def test_rotation_angle_is_geodesic(q1, q2):
     q1, q2 = quat_normalize(q1), quat_normalize(q2)
@@ -94,7 +95,7 @@ def test_distance_to():
     assert np.rad2deg(ang) == pytest.approx(10.0)
 
 
-@settings(max_examples=100, deadline=None)
+@settings(max_examples=examples(100), deadline=None)
 @given(quats, quats)
 def test_tuple_product_matches_array_product(q1, q2):
     from humantele.geometry import quat_multiply_tuple
@@ -104,7 +105,7 @@ def test_tuple_product_matches_array_product(q1, q2):
     np.testing.assert_allclose(fast, quat_multiply(q1, q2), atol=1e-12)
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(quats, quats, vecs)
 def test_single_vectors_match_the_batch_path(q1, q2, v):
     """The scalar fast paths (one quaternion, one vector) give what broadcasting gives."""

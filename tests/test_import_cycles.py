@@ -196,8 +196,14 @@ def describe(cycles: list[list[str]], edges: list[Edge]) -> str:
     return "\n".join(lines) if lines else "no import circles"
 
 
-def test_no_import_cycles() -> None:
-    edges = import_edges()
+@pytest.fixture(scope="module")
+def edges() -> list[Edge]:
+    """humantele's import edges, read once for the two checks of the real sources (1.7 CPU-s
+    each)."""
+    return import_edges()
+
+
+def test_no_import_cycles(edges: list[Edge]) -> None:
     cycles = import_cycles(edges)
     assert not cycles, describe(cycles, edges)
 
@@ -260,7 +266,7 @@ def layer_violations(edges: list[Edge], layers: list[list[str]]) -> list[str]:
     return out
 
 
-def test_imports_point_down_the_layers() -> None:
+def test_imports_point_down_the_layers(edges: list[Edge]) -> None:
     """Every package is on one line of the layers, and imports only packages below it."""
     layers = read_layers(ARCHITECTURE.read_text(encoding="utf-8"))
     listed = [p for line in layers for p in line]
@@ -270,7 +276,7 @@ def test_imports_point_down_the_layers() -> None:
         f"not in the layers: {sorted(packages - set(listed))}; "
         f"no such package: {sorted(set(listed) - packages)}"
     )
-    bad = layer_violations(import_edges(), layers)
+    bad = layer_violations(edges, layers)
     assert not bad, "imports that point up or sideways:\n" + "\n".join(bad)
 
 
@@ -295,6 +301,7 @@ NOT_LOADED = {
 }
 
 
+@pytest.mark.e2e  # runs a Python process per module (the fast lane leaves it out)
 @pytest.mark.parametrize("module", sorted(NOT_LOADED))
 def test_a_module_loads_only_what_it_needs(module: str) -> None:
     code = (

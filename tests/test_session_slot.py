@@ -6,6 +6,8 @@ import sys
 import threading
 from pathlib import Path
 
+import pytest
+
 import session_slot
 from session_slot import scaled, time_scale, whole_session_slot
 
@@ -17,6 +19,7 @@ HOLDER = (
 )
 
 
+@pytest.mark.e2e  # runs a Python process holding the slot (the fast lane leaves it out)
 def test_another_process_waits_for_the_slot_until_its_holder_lets_it_go(
     tmp_path: Path, monkeypatch
 ):

@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 TOOL = Path(__file__).resolve().parents[1] / "tools" / "suite_cpu.py"
 sys.path.insert(0, str(TOOL.parent))
 
@@ -42,6 +44,7 @@ def test_kinds_from_names_and_command_lines():
     assert k("turnserver", ["turnserver", "-n"]) == "other"
 
 
+@pytest.mark.e2e  # runs tools/suite_cpu.py and its process tree (the fast lane leaves it out)
 def test_a_tree_s_cpu_is_counted_with_its_orphans(tmp_path):
     out = tmp_path / "cpu.json"
     r = subprocess.run(

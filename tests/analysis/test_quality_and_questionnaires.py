@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from humantele.analysis.quality import read_scores, spearman, summarize_quality
+# humantele.analysis.quality is imported by the tests that use it: it imports scipy.stats
+# (1.5 s), which every xdist worker paid again when it collected this module
 from humantele.analysis.questionnaires import (
     read_tlx,
     read_usability,
@@ -26,6 +27,8 @@ def _write(tmp_path, name, text):
 
 
 def test_long_and_wide_layouts_read_the_same(tmp_path):
+    from humantele.analysis.quality import read_scores
+
     wide = _write(tmp_path, "w.csv", "scan,target,R1,R2\n1,aorta,5,4\n1,ivc,0,3\n2,aorta,3,3\n")
     long = _write(
         tmp_path,
@@ -38,6 +41,8 @@ def test_long_and_wide_layouts_read_the_same(tmp_path):
 
 def test_summary_follows_the_papers_definitions(tmp_path):
     # 4 images x 2 raters; image (2, ivc) is missing for one rater -> not captured.
+    from humantele.analysis.quality import read_scores, summarize_quality
+
     p = _write(
         tmp_path,
         "s.csv",
@@ -71,12 +76,16 @@ def test_summary_follows_the_papers_definitions(tmp_path):
     ],
 )
 def test_bad_score_files_name_the_row_and_column(tmp_path, text, message):
+    from humantele.analysis.quality import read_scores, summarize_quality
+
     p = _write(tmp_path, "bad.csv", text)
     with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
         summarize_quality(read_scores(p))
 
 
 def test_spearman_matches_known_values():
+    from humantele.analysis.quality import spearman
+
     assert spearman([1, 2, 3, 4], [10, 20, 30, 40])["rho"] == pytest.approx(1.0)
     assert spearman([1, 2, 3, 4], [4, 3, 2, 1])["rho"] == pytest.approx(-1.0)
     r = spearman([1, 2, 3, 4, 5], [2, 1, 4, 3, 5])  # d^2 sum = 4: rho = 1 - 6*4/120 = 0.8
@@ -136,6 +145,8 @@ def test_usability_items_are_integers_0_to_4(tmp_path):
 
 
 def test_the_example_files_are_valid():
+    from humantele.analysis.quality import read_scores, summarize_quality
+
     q = summarize_quality(read_scores(EXAMPLES / "scores.csv"))
     assert q["images"] == 55 and q["raters"] == ["R1", "R2"]
     assert summarize_tlx(read_tlx(EXAMPLES / "nasa_tlx.csv"))["n"] == 10

@@ -10,7 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from humantele.analysis.rating import ID_ALPHABET, key_path
+# humantele.analysis.rating is imported by the tests that use it: it imports scipy.stats
+# (1.5 s), which every xdist worker paid again when it collected this module
 from humantele.cli import main
 from humantele.recording.synthetic import SyntheticSession, write_synthetic
 
@@ -39,6 +40,8 @@ def rows(path: Path) -> list[dict[str, str]]:
 
 def fill(sheet: Path, score: dict[str, str], out: Path) -> Path:
     """The sheet with ``score[clip]`` in every rater column (the key copied beside it)."""
+    from humantele.analysis.rating import key_path
+
     data = rows(sheet)
     raters = [k for k in data[0] if k != "clip"]
     with open(out, "w", newline="") as f:
@@ -51,6 +54,8 @@ def fill(sheet: Path, score: dict[str, str], out: Path) -> Path:
 
 
 def test_the_sheet_hides_scan_session_and_participants(recording, tmp_path, capsys):
+    from humantele.analysis.rating import ID_ALPHABET, key_path
+
     sheet = draw(recording, tmp_path, "--raters", "R1,R2")
     capsys.readouterr()
     data, key = rows(sheet), rows(key_path(sheet))
@@ -70,6 +75,8 @@ def test_the_sheet_hides_scan_session_and_participants(recording, tmp_path, caps
 
 
 def test_the_order_is_shuffled(recording, tmp_path):
+    from humantele.analysis.rating import key_path
+
     orders = set()
     for seed in range(6):
         d = tmp_path / str(seed)
@@ -81,6 +88,8 @@ def test_the_order_is_shuffled(recording, tmp_path):
 
 
 def test_clips_are_copied_under_their_ids_and_a_missing_one_named(recording, tmp_path, capsys):
+    from humantele.analysis.rating import key_path
+
     exported = tmp_path / "export"
     exported.mkdir()
     for scan in (1, 2, 3, 4):  # scan 5 not exported
@@ -97,6 +106,8 @@ def test_clips_are_copied_under_their_ids_and_a_missing_one_named(recording, tmp
 
 
 def test_a_perfect_rater_of_the_known_quality_gives_the_known_answer(recording, tmp_path, capsys):
+    from humantele.analysis.rating import key_path
+
     sheet = draw(recording, tmp_path, "--raters", "A,B")
     key = rows(key_path(sheet))
     score = {r["clip"]: str(round(5 * QUALITY[int(r["scan"]) - 1])) for r in key}
@@ -121,6 +132,8 @@ def test_a_perfect_rater_of_the_known_quality_gives_the_known_answer(recording, 
 
 
 def bad_sheet(sheet: Path, tmp: Path, edit) -> Path:
+    from humantele.analysis.rating import key_path
+
     data = rows(sheet)
     lines = [["clip", "rater1"]] + [[r["clip"], "3"] for r in data]
     edit(lines)
@@ -155,6 +168,8 @@ def test_a_bad_sheet_is_one_clear_line(recording, tmp_path, capsys, edit, messag
 
 
 def test_a_foreign_file_or_a_sheet_without_key_is_one_line(recording, tmp_path, capsys):
+    from humantele.analysis.rating import key_path
+
     foreign = tmp_path / "photo.csv"
     foreign.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00binary")
     assert main(["analyze", "--ratings", str(foreign)]) == 2

@@ -12,6 +12,7 @@ from humantele.bench import haptics_callback as hc
 
 @pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
                     reason="no C compiler for the fake libHD")  # fmt: skip
+@pytest.mark.e2e  # compiles the fake libHD and runs each row in a spawned process
 def test_callback_bench_rows(monkeypatch, capsys):
     monkeypatch.setattr(hc, "ROWS", [("device / idle", "device", "idle", None),
                                      ("sleep+spin / idle", "spin", "idle", None)])  # fmt: skip
@@ -33,6 +34,7 @@ def test_callback_bench_rows(monkeypatch, capsys):
 
 @pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
                     reason="no C compiler for the fake libHD")  # fmt: skip
+@pytest.mark.e2e  # compiles the fake libHD and runs each row in a spawned process
 def test_callback_bench_fifo_rows_are_before_and_after_the_callback_thread_is_raised(
     monkeypatch, capsys
 ):

@@ -6,10 +6,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from fuzz_examples import examples
 from humantele.bench import loop as bench_loop
 from humantele.cli import main
 
 
+@pytest.mark.e2e  # starts the servo, bare-loop and busy-core processes (not in the fast lane)
 def test_bench_loop_prints_json_last_and_keeps_the_other_row(tmp_path, monkeypatch, capsys):
     md = tmp_path / "benchmarks.md"
     monkeypatch.setattr(bench_loop, "BENCHMARKS_MD", md)
@@ -38,6 +40,7 @@ def test_bench_loop_prints_json_last_and_keeps_the_other_row(tmp_path, monkeypat
     assert "| idle |" in text and "| one core busy |" in text  # each run kept the other's row
 
 
+@pytest.mark.e2e  # starts the servo, bare-loop and busy-core processes (not in the fast lane)
 def test_bench_loop_control_runs_two_bare_loops_and_keeps_the_servo_rows(
     tmp_path, monkeypatch, capsys
 ):
@@ -92,7 +95,7 @@ def test_periods_over_two_ticks_are_counted():
     assert timing.max_us == pytest.approx(5000.0)
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(st.lists(st.floats(1e-6, 0.019), min_size=1, max_size=50), st.floats(0.0, 1.0))
 def test_period_percentiles_stay_within_the_measured_min_and_max(periods, q):
     from humantele.haptics.servo_child import PeriodTiming

@@ -11,6 +11,7 @@ from fake_hidapi import FakeHid, load_recording
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from fuzz_examples import examples
 from humantele.forcesense.hid import (
     ForceSensorUnavailable,
     HidForceConfig,
@@ -76,7 +77,7 @@ def test_spacemouse_unplugged_is_a_clear_error(monkeypatch):
         HidDevice(HidDeviceConfig()).open()
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=examples(150), deadline=None)
 @given(st.lists(st.binary(min_size=1, max_size=70), max_size=40))  # empty = "no data"
 def test_spacemouse_random_bytes_never_crash_or_escape_the_workspace(reports):
     mp = pytest.MonkeyPatch()
@@ -131,7 +132,7 @@ def test_force_board_unplugged_and_absent(monkeypatch):
         HidForceSensor(HidForceConfig(serial="FS-0042")).open()
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(st.binary(min_size=0, max_size=80))
 def test_force_board_random_bytes_are_dropped_with_a_reason(data):
     sensor = HidForceSensor(device=object())
@@ -142,7 +143,7 @@ def test_force_board_random_bytes_are_dropped_with_a_reason(data):
         assert all(math.isfinite(x) for x in (*r.a, *r.b, r.temperature_c))
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(st.integers(0, 61 * 8 - 1), st.integers(0, 65535))
 def test_force_board_any_single_bit_flip_is_caught(bit, seq):
     raw = bytearray(encode_report(seq, 123456, [1.0, -2.0, 0.5], [0.1, 0.2, 0.3]))

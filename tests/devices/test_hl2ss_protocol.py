@@ -69,6 +69,7 @@ def hl2ss():
     return load_vendored()
 
 
+@pytest.mark.e2e  # runs a Python process (the fast lane leaves it out)
 def test_the_vendored_client_loads_without_requests():
     """Only what the tests use is imported: nothing of the Device Portal client, whose
     ``requests`` neither the package nor its [test] extra installs."""

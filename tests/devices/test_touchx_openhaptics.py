@@ -706,6 +706,7 @@ def test_servo_loop_follows_the_device_ticks_and_never_spins(fake_hd, monkeypatc
     assert not errors and not loop.is_alive()
 
 
+@pytest.mark.e2e  # starts the servo process (the fast lane leaves it out)
 def test_servo_process_runs_on_the_touchx_backend(fake_hd_path, tmp_path, monkeypatch):
     """The whole servo process on the fake libHD in its own 1 kHz thread: the loop follows the
     device's ticks, publishes the stylus pose and stops with the device released."""
@@ -734,6 +735,7 @@ def test_servo_process_runs_on_the_touchx_backend(fake_hd_path, tmp_path, monkey
     assert sp.returncode == 0 and sp.stats().ticks > 300  # the final statistics
 
 
+@pytest.mark.e2e  # starts the servo process (the fast lane leaves it out)
 def test_the_servo_says_the_device_is_lost_and_runs_again_after_a_replug(
     fake_hd_path, tmp_path, monkeypatch
 ):

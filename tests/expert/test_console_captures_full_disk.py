@@ -48,6 +48,7 @@ LIMITED = textwrap.dedent(
 )
 
 
+@pytest.mark.e2e  # runs a Python process with a file-size limit (the fast lane leaves it out)
 def test_captures_and_clips_past_the_disk_leave_nothing_and_hold_no_descriptor(tmp_path):
     out = tmp_path / "captures"
     res = subprocess.run([sys.executable, "-c", LIMITED, str(out), "20000"],

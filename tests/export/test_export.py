@@ -131,6 +131,7 @@ def test_foxglove_times_are_unix_times_with_the_recording_s_clock_offset(tmp_pat
         assert [t for _, t, _ in doc["/us/video"]] == [t for _, t, _ in expert["/us/video"]]
 
 
+@pytest.mark.e2e  # transcodes on two worker processes (the fast lane leaves it out)
 def test_scan_and_clip_window_and_two_workers(files, tmp_path, capsys):
     out = tmp_path / "out"
     code = main(["export", *map(str, files), "--out", str(out), "--scan", "2",

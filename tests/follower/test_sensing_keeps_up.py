@@ -9,6 +9,7 @@ import asyncio
 import time
 from types import SimpleNamespace
 
+import pytest
 from sensing_hang_child import hanging_sensing_main
 
 from humantele.demo_report import devices_summary
@@ -130,6 +131,7 @@ def test_the_status_line_and_json_say_stalls_stale_force_and_the_dominant_reason
     assert s["unmeasured"]["no_pose"] == 50 and s["sensing_hangs"] == 1
 
 
+@pytest.mark.e2e  # starts the sensing child process (the fast lane leaves it out)
 async def test_a_hung_sensing_child_is_killed_and_restarted():
     results = []
     proc = SensingProcess(None, None, lambda *r: results.append(r[0]), hung_s=1.0,

@@ -7,6 +7,7 @@ import os
 import signal
 
 import numpy as np
+import pytest
 
 from humantele.follower.daemon import FollowerConfig, FollowerDaemon
 from humantele.follower.sensing_process import RESTART_FIRST_S, SensingProcess
@@ -16,6 +17,8 @@ from humantele.follower.sim_world import SimWorld
 from humantele.geometry import Pose
 from humantele.wire import TrackingStatus
 from waits import until
+
+pytestmark = pytest.mark.e2e  # each test starts the sensing child process (not in the fast lane)
 
 WAIT_S = 120.0  # upper bound for a spawned child to import and calibrate on a loaded machine
 

@@ -9,6 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import minimize
 
+from fuzz_examples import examples
 from humantele.bench.haptics import scene_points
 from humantele.haptics.ellipsoid import (
     DEFAULT_LONGITUDINAL,
@@ -149,7 +150,7 @@ axis_choices = st.sampled_from(
 )
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(
     axis_choices,
     st.tuples(finite_coord, finite_coord, finite_coord),

@@ -14,6 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from servo_helpers import pressing_config
 
+from fuzz_examples import examples
 from humantele.config import ConfigError, validate_config
 from humantele.geometry import Pose, quat_from_axis_angle
 from humantele.haptics.demo_patient import demo_model
@@ -134,7 +135,7 @@ def test_bad_data_and_device_errors_give_zero_force():
 finite = st.floats(allow_nan=True, allow_infinity=True, width=64)
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(p=st.tuples(finite, finite, finite), v=st.tuples(finite, finite, finite), dt=st.floats(0, 1))
 def test_never_nan_never_over_limit(p, v, dt):
     r = ForceRenderer(ServoConfig(force_limit_n=2.0))
@@ -159,6 +160,7 @@ def test_config_errors_name_the_field():
 # ------------------------------------------------------------------ the servo process
 
 
+@pytest.mark.e2e  # starts the servo process (the fast lane leaves it out)
 def test_process_runs_swaps_model_and_stops_cleanly():
     sp = ServoProcess(pressing_config(), MODEL)
     sp.start()
@@ -182,6 +184,7 @@ def test_process_runs_swaps_model_and_stops_cleanly():
     assert sp.stats().ticks > 300
 
 
+@pytest.mark.e2e  # starts the servo process (the fast lane leaves it out)
 def test_process_stale_fault_zeroes_force_then_recovers():
     # 2 s of stale readings: a test process descheduled for a while (a busy machine) still
     # sees them (0.4 s was missed once with the suite's other worker busy)
@@ -195,12 +198,14 @@ def test_process_stale_fault_zeroes_force_then_recovers():
         assert sp.stats().stale_ticks > 0
 
 
+@pytest.mark.e2e  # starts the servo process (the fast lane leaves it out)
 def test_process_reports_device_errors_at_start():
     cfg = ServoConfig(device={"backend": "touchx", "library": "/nonexistent/libHD.so"})
     with pytest.raises(ServoError, match="libHD"):
         ServoProcess(cfg).start()
 
 
+@pytest.mark.e2e  # starts the servo process (the fast lane leaves it out)
 def test_sigterm_stops_the_servo_with_force_zeroed():
     sp = ServoProcess(pressing_config(), MODEL)
     sp.start()
@@ -264,6 +269,7 @@ def _seqlock_writer(name: str, n: int, stop) -> None:
     w.close()
 
 
+@pytest.mark.e2e  # forks a writer process (the fast lane leaves it out)
 def test_seqlock_readers_never_see_a_torn_write():
     """Writer and reader in two processes over shared memory, as the servo and daemon are."""
     import multiprocessing
@@ -315,6 +321,7 @@ def test_seqlock_try_read_never_waits_on_a_write_in_progress():
         w.unlink()
 
 
+@pytest.mark.e2e  # starts the servo process (the fast lane leaves it out)
 def test_servo_survives_a_daemon_preempted_mid_write():
     """A normal-priority daemon can be preempted inside a command write; the SCHED_FIFO servo
     keeps its last command (it used to spin 10 ms, then die with TimeoutError)."""
@@ -335,6 +342,7 @@ def test_servo_survives_a_daemon_preempted_mid_write():
     assert not sp.alive
 
 
+@pytest.mark.e2e  # starts the servo process (the fast lane leaves it out)
 def test_daemon_side_reads_survive_a_servo_killed_mid_write():
     sp = ServoProcess(pressing_config(), MODEL)
     sp.start()

@@ -19,6 +19,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from servo_helpers import pressing_config
 
+from fuzz_examples import examples
 from humantele.demo_status import status_line
 from humantele.expert.config import ExpertConfig
 from humantele.expert.daemon import ExpertDaemon
@@ -61,7 +62,7 @@ def test_the_schema_accepts_the_paper_s_model_and_a_finite_heading_only():
         parse_control(_msg(center=(0.0, 9.0, 0.0)))
 
 
-@settings(max_examples=400, deadline=None)
+@settings(max_examples=examples(400), deadline=None)
 @given(
     c=st.tuples(*[st.floats(-20, 20)] * 3),
     s=st.tuples(*[st.floats(1e-300, 1e4)] * 3),
@@ -137,7 +138,7 @@ def test_a_tick_that_raises_zeroes_the_force_and_falls_back_to_the_last_good_mod
     assert np.linalg.norm(f[-1]) > 0.5 and r.counts["tick_errors"] == 1
 
 
-@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=examples(300), deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     v=st.lists(
         st.one_of(
@@ -189,7 +190,7 @@ def _control_texts():
     return st.one_of(structured, mangled, special)
 
 
-@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=examples(300), deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(texts=st.lists(_control_texts(), min_size=1, max_size=4))
 def test_fuzz_control_message_to_expert_to_servo(texts):
     d = ExpertDaemon(ExpertConfig(), pressing_config())  # its servo process is not started
@@ -229,6 +230,7 @@ def test_expert_refuses_the_issue_s_models_that_bypass_the_schema():
 # --- the servo process -----------------------------------------------------------------------
 
 
+@pytest.mark.e2e  # starts the servo process (the fast lane leaves it out)
 def test_servo_process_survives_the_tiny_model_and_keeps_pressing():
     # Late or stale ticks on a loaded machine are not what this test is about: tolerate them.
     cfg = pressing_config().model_copy(update={"late_after_s": 1.0, "stale_after_s": 1.0})
@@ -264,6 +266,7 @@ def _servo_blocks(monkeypatch) -> list[str]:
     return names
 
 
+@pytest.mark.e2e  # starts the servo process (the fast lane leaves it out)
 def test_no_shared_memory_leaks_when_the_servo_fails_at_start(monkeypatch):
     names = _servo_blocks(monkeypatch)
     cfg = ServoConfig(device={"backend": "touchx", "library": "/nonexistent/libHD"})
@@ -289,6 +292,7 @@ def test_no_shared_memory_leaks_when_the_process_cannot_be_spawned(monkeypatch):
     assert [n for n in names if os.path.exists(f"/dev/shm/{n.lstrip('/')}")] == []
 
 
+@pytest.mark.e2e  # starts the servo process (the fast lane leaves it out)
 async def test_a_servo_that_cannot_run_is_a_fault_in_the_status_not_force_none():
     d = ExpertDaemon(ExpertConfig(), ServoConfig(device={"backend": "touchx", "library": "/x"}))
     d.servo.check(0.0)  # not running: noticed
@@ -305,6 +309,7 @@ async def test_a_servo_that_cannot_run_is_a_fault_in_the_status_not_force_none()
     assert math.isfinite(s["force_n"])
 
 
+@pytest.mark.e2e  # starts the servo process (the fast lane leaves it out)
 async def test_a_dead_servo_is_restarted_off_the_event_loop(monkeypatch):
     """Starting a servo process takes 0.5-2 s (spawn, device): the expert's loop (link
     heartbeats, console, the follower's state) goes on meanwhile; the new servo gets the

@@ -31,6 +31,7 @@ def receiver(tmp_path_factory) -> str:
     return str(out)
 
 
+@pytest.mark.e2e  # compiles and runs the C++ receiver process (not in the fast lane)
 @pytest.mark.asyncio
 async def test_cpp_openigtlink_receiver_reads_transform_image_and_string(receiver):
     srv = IgtlServer(IgtlConfig(enabled=True, port=0))

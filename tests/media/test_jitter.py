@@ -12,6 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from daemon_doubles import Clock
+from fuzz_examples import examples
 from humantele.media.jitter import (
     BEHIND_RELEASES,
     MIN_REPAIRS,
@@ -200,7 +201,7 @@ def test_overflow_gives_up_like_a_timeout():
     assert any(p for p, _ in out) and buf.counters.gaps_given_up == 1 and len(buf) <= 8
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(
     st.lists(
         st.tuples(

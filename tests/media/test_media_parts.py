@@ -107,6 +107,7 @@ def _orphaned_video_child(stop) -> None:
     watch_parent(gone, stop.set, grace_s=0.3).join()
 
 
+@pytest.mark.e2e  # spawns a video child process (the fast lane leaves it out)
 def test_a_video_process_whose_follower_is_gone_ends_itself():
     import multiprocessing as mp
 

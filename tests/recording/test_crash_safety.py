@@ -10,6 +10,7 @@ import textwrap
 import time
 
 import numpy as np
+import pytest
 
 from humantele.recording import Recorder, read_recording
 
@@ -33,6 +34,7 @@ CHILD = textwrap.dedent(
 )
 
 
+@pytest.mark.e2e  # runs a recording Python process (the fast lane leaves it out)
 def test_sigkill_loses_at_most_the_last_half_second(tmp_path):
     path = tmp_path / "killed.mcap"
     child = subprocess.Popen(

@@ -155,6 +155,7 @@ def test_a_ctrl_c_while_the_child_imports_its_target_does_not_kill_it(tmp_path, 
         stop_process(proc, timeout_s=0.5)
 
 
+@pytest.mark.e2e  # spawns a child process (the fast lane leaves it out)
 def test_a_ctrl_c_during_the_interpreters_start_up_does_not_kill_the_child(tmp_path):
     """A terminal's Ctrl-C reaches the whole group, also a child the daemon is (re)starting
     while its interpreter starts, before any of our code could ignore it: the servo restarted
@@ -190,6 +191,7 @@ print(os.sched_getscheduler(0) == os.SCHED_OTHER, os.getpriority(os.PRIO_PROCESS
 """
 
 
+@pytest.mark.e2e  # spawns a child process (the fast lane leaves it out)
 def test_a_refused_real_time_policy_falls_back_to_the_nice_and_says_so():
     """Without the privilege for SCHED_FIFO (no root, no rtprio limit) a child that asked for
     it still runs below the daemon at its nice, and the answer says what was refused."""
@@ -217,6 +219,7 @@ if __name__ == "__main__":
 """
 
 
+@pytest.mark.e2e  # spawns a child process (the fast lane leaves it out)
 def test_a_child_its_owner_did_not_stop_is_killed_at_exit(tmp_path):
     """A daemon that leaves by an error path without stopping its child still exits: the
     child ignores SIGTERM, and multiprocessing's exit handler (terminate, then join) would

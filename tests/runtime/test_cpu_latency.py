@@ -7,6 +7,8 @@ import struct
 import subprocess
 import sys
 
+import pytest
+
 from humantele.runtime import cpu_latency
 
 
@@ -41,6 +43,7 @@ def test_a_refused_request_is_logged_and_the_servo_goes_on(tmp_path, caplog):
     assert cpu_latency._held == []
 
 
+@pytest.mark.e2e  # runs a Python process (the fast lane leaves it out)
 def test_the_servo_asks_for_it_unless_told_not_to(tmp_path):
     code = (
         "import sys\n"

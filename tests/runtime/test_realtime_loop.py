@@ -87,6 +87,7 @@ print(json.dumps({"first": first, "again": again, "state": state, "off": lift_th
 """
 
 
+@pytest.mark.e2e  # runs a Python process (the fast lane leaves it out)
 def test_the_daemon_s_other_threads_are_lifted_just_above_normal_processes():
     """``lift_threads``: the threads at the normal policy go to SCHED_FIFO 1 (once each);
     the calling thread and a thread lowered on purpose stay where they are."""
@@ -130,6 +131,7 @@ print(json.dumps({"lifted": lifter.lifted, "state": state, "alive": lifter._thre
 """
 
 
+@pytest.mark.e2e  # runs a Python process (the fast lane leaves it out)
 def test_the_lifter_lifts_new_threads_off_the_loop():
     """:class:`ThreadLifter` lifts, on its own thread, a thread started before it; the loop's
     thread (here the main one) and the lifter stay normal; ``stop`` ends it."""

@@ -6,10 +6,11 @@ import random
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from fuzz_examples import examples
 from humantele.runtime.stats import SortedWindow, percentile_ms
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=examples(60), deadline=None)
 @given(
     values=st.lists(st.floats(0.0, 1.0, allow_nan=False), max_size=300),
     maxlen=st.integers(1, 50),

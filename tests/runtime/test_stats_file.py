@@ -4,6 +4,8 @@ the last stats on disk when the daemon ends."""
 import json
 import threading
 
+import pytest
+
 from humantele.runtime import stats as stats_module
 from humantele.runtime.stats import StatsFile
 
@@ -64,6 +66,7 @@ def test_no_path_writes_nothing():
     assert out._thread is None
 
 
+@pytest.mark.e2e  # runs a busy Python process (the fast lane leaves it out)
 def test_cpu_percent_is_over_the_process_s_own_life():
     """A process that has burnt CPU before it was noticed is not a 13968 % process."""
     import subprocess

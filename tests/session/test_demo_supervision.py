@@ -35,6 +35,7 @@ async def _run_until_done(d: SupervisedDaemon, timeout_s: float = 120.0) -> str 
     return None
 
 
+@pytest.mark.e2e  # starts the signaling daemon four times (the fast lane leaves it out)
 async def test_restarts_are_bounded_and_fatal_exits_are_not_restarted(tmp_path):
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))

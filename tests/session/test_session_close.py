@@ -7,6 +7,7 @@ import os
 import sys
 from pathlib import Path
 
+import pytest
 from session_helpers import Session, descendants, pid_alive
 
 # A stand-in daemon: shared memory (its resource tracker starts) and a child, as an expert
@@ -26,6 +27,7 @@ class _Server:  # the session's signaling server
         pass
 
 
+@pytest.mark.e2e  # runs a daemon-like process and its child (the fast lane leaves it out)
 async def test_closing_kills_the_daemons_and_their_children_but_unlinks_their_memory(tmp_path):
     shmfile = tmp_path / "shm"
     proc = await asyncio.create_subprocess_exec(

@@ -7,6 +7,8 @@ import sys
 
 import pytest
 
+pytestmark = pytest.mark.e2e  # each test runs `humantele signal` (not in the fast lane)
+
 
 def _signal(*args: str) -> subprocess.CompletedProcess:
     env = {**os.environ, "HUMANTELE_TOKEN": "cli-token"}

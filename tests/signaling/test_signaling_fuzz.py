@@ -21,6 +21,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from signaling_helpers import CLOSED, assert_clean_logs, raw_ws, running_server
 
+from fuzz_examples import examples
 from humantele.signaling.client import SignalingClient
 from humantele.signaling.messages import Offer
 from humantele.signaling.server import SignalingServer
@@ -29,7 +30,7 @@ from waits import until
 TOKEN = "fuzz-token-never-logged"
 WRONG = "wrong-token-never-logged-either"
 MAX_BYTES = 4096
-EXAMPLES = int(os.environ.get("HUMANTELE_FUZZ_EXAMPLES", "300"))
+EXAMPLES = int(os.environ.get("HUMANTELE_FUZZ_EXAMPLES") or examples(300))
 CLOSE_CODES = {1000, 1006, 1007, 1009, 4400, 4401, 4403, 4408, 4409, 4503}
 """What a client may see: normal, invalid UTF-8, too big, the application's refusals, and 1006
 when the server closed while the client was still sending (the kernel then resets the

@@ -179,6 +179,7 @@ def test_bad_turn_fields_are_refused_with_their_name(turn, field):
     assert field in str(info.value)
 
 
+@pytest.mark.e2e  # runs the CLI (the fast lane leaves it out)
 def test_the_cli_refuses_a_short_secret_in_one_line_exit_2(tmp_path):
     conf = tmp_path / "signal.toml"
     conf.write_text(f'port = 0\n[turn]\nurls = ["{URL}"]\n')

@@ -9,7 +9,9 @@ import pytest
 from humantele.recording import Recorder
 from humantele.recording.synthetic import SyntheticSession, write_synthetic
 from humantele.study import table
-from humantele.study.charts import write_charts
+
+# humantele.study.charts is imported by the tests that use it: it imports matplotlib (0.9 s),
+# which every xdist worker paid again when it collected this module
 
 LAG_S, OFFSET_Y_MM = 0.4, 20.0
 CONDITION = {"name": "c1", "delay_ms": 50.0, "jitter_ms": 0.0, "loss_pct": 2.0,
@@ -82,6 +84,8 @@ def test_rows_from_a_recorded_run_give_the_known_answers(tmp_path):
 
 
 def test_the_condition_summary_and_the_markdown(tmp_path):
+    from humantele.study.charts import write_charts
+
     d, summary = _run_dir(tmp_path)
     rows = table.run_scans(d, summary)
     summ = table.summarize(rows, [CONDITION, {**CONDITION, "name": "not-run"}])

@@ -4,6 +4,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
+from fuzz_examples import examples
 from humantele.geometry import Pose
 from humantele.tracking.markers import MatchParams, estimate_pose, match_markers, refine_pose
 from humantele.tracking.tool import kabsch, load_tool
@@ -19,7 +20,7 @@ def _pose(seed: int) -> Pose:
     )
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=examples(60), deadline=None)
 @given(
     seed=st.integers(0, 10_000),
     n_outliers=st.integers(0, 4),

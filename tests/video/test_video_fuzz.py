@@ -10,6 +10,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from video_helpers import P
 
+from fuzz_examples import examples
 from humantele.geometry import Pose
 from humantele.video.counter import patch_size
 from humantele.video.scene import SceneSnapshot, pose_is_finite
@@ -54,7 +55,7 @@ def expected_valid(force, *ps) -> bool:
     return math.isfinite(force) and all(p is None or pose_is_finite(p) for p in ps)
 
 
-@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=examples(150), deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(tip=poses, force=forces)
 def test_sim_us_never_crashes(tip, force):
     before = US.counters.invalid
@@ -70,7 +71,7 @@ def test_sim_us_never_crashes(tip, force):
         assert US.counters.invalid == before
 
 
-@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=examples(100), deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(head=poses, tip=poses, virtual=poses, force=forces)
 def test_sim_pov_never_crashes(head, tip, virtual, force):
     before = POV.counters.invalid
@@ -85,7 +86,7 @@ def test_sim_pov_never_crashes(head, tip, virtual, force):
         assert POV.counters.invalid == before
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(x=st.floats(-0.3, 0.3), z=st.floats(-0.15, 0.15), f=st.floats(0.0, 30.0))
 def test_sim_us_probe_anywhere_on_the_body(x, z, f):
     """Any place on the skin, any force: a frame, the quality in [0, 1], dark without force."""
