@@ -648,3 +648,67 @@ def test_a_device_clock_anchored_on_a_late_first_sample_never_goes_back():
     assert times[:3] == pytest.approx([0.08, 0.08 + dt, 0.08 + 2 * dt])
     assert clock.reanchored >= 1
     assert all(t <= r + 0.05 + 1e-9 for t, r in zip(times, receive, strict=True)), times
+
+
+def test_the_replayed_board_from_an_epoch_runs_on_unread_and_its_buffer_drops_the_newest(
+    tmp_path, monkeypatch
+):
+    """With HUMANTELE_HID_EPOCH the replayed board sends report n at epoch + n / rate whether
+    it is read or not (as the hl2ss replay with the same --epoch): a reader that opens late
+    starts at the report of now; one that reads late gets the 64 reports the kernel's hidraw
+    buffer held, the newer ones dropped as the kernel drops them."""
+    hexfile = tmp_path / "board.hex"
+    hexfile.write_text("".join(f"{n:02x}{n:02x}\n" for n in range(200)))  # report n: [n, n]
+    now = [1000.0]
+    hid = _replay_hid_module()
+    monkeypatch.setattr(hid.time, "monotonic", lambda: now[0])
+    monkeypatch.setattr(hid.time, "sleep", lambda s: now.__setitem__(0, now[0] + s))
+    monkeypatch.setenv("HUMANTELE_HID_REPLAY", str(hexfile))
+    monkeypatch.setenv("HUMANTELE_HID_LOOP", "1")
+    monkeypatch.setenv("HUMANTELE_HID_EPOCH", repr(1000.0 - 0.505))  # opened 50 reports in
+    board = hid.device()
+    board.open_path(hid.PATH)
+    assert board.read(64, 100) == [51, 51]  # the next one the board sends, on its time
+    assert now[0] == pytest.approx(1000.0 - 0.505 + 0.51)
+    now[0] += 1.0  # not read for a second: 100 sent, 64 held
+    got = [board.read(64, 0)[0] for _ in range(64)]
+    assert got == list(range(52, 116)) and board.dropped_full == 36
+    assert board.read(64, 100)[0] == 152  # after the drop: the next one sent
+    now[0] += 0.5  # looped: 200 reports a turn
+    assert [board.read(64, 0)[0] for _ in range(49)][-1] == 201 % 200
+
+
+def test_the_replayed_board_s_clock_runs_on_across_the_turns_end(tmp_path, monkeypatch):
+    """Looped from an epoch, a report of the second round carries the board's time and
+    counter moved on by one round (a valid report, its CRC remade), as the hl2ss replay's
+    timestamps run on: a board's clock never goes back."""
+    from humantele.forcesense.hid import encode_report, parse_report
+
+    hexfile = tmp_path / "board.hex"
+    hexfile.write_text("".join(encode_report(n, 5_000_000 + n * 10_000, [1.0] * 3, [2.0] * 3)
+                               .hex() + "\n" for n in range(50)))  # fmt: skip
+    now = [100.0]
+    hid = _replay_hid_module()
+    monkeypatch.setattr(hid.time, "monotonic", lambda: now[0])
+    monkeypatch.setattr(hid.time, "sleep", lambda s: now.__setitem__(0, now[0] + s))
+    monkeypatch.setenv("HUMANTELE_HID_REPLAY", str(hexfile))
+    monkeypatch.setenv("HUMANTELE_HID_LOOP", "1")
+    monkeypatch.setenv("HUMANTELE_HID_EPOCH", repr(100.0 - 0.455))  # 45 reports in
+    board = hid.device()
+    board.open_path(hid.PATH)
+    got = [parse_report(board.read(64, 100))[0] for _ in range(10)]  # reports 46..55
+    assert [r.seq for r in got] == list(range(46, 56))
+    times = [r.t for r in got]
+    assert times == pytest.approx([5.0 + 0.01 * n for n in range(46, 56)])
+    assert all(b > a for a, b in zip(times, times[1:], strict=False))
+
+
+def test_the_replays_of_one_clinic_start_together_at_the_first_read_of_either(tmp_path):
+    """The first replay read claims the start in the shared file; another, opened later,
+    takes the same start (so its turn is where the first one's is, not at its beginning)."""
+    from humantele.runtime.shared_start import shared_start
+
+    path = tmp_path / "clinic_start"
+    assert shared_start(path, now=12.5) == 12.5
+    assert shared_start(path, now=14.0) == 12.5  # opened 1.5 s later: the same start
+    assert [p.name for p in tmp_path.iterdir()] == ["clinic_start"]  # no claim left behind

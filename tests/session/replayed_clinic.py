@@ -193,26 +193,31 @@ backend = "hid"
 {extra}"""
 
 
-def replay_env(rec: Path, loop: bool = False) -> dict[str, str]:
+def replay_env(rec: Path, loop: bool = False, start_file: Path | None = None) -> dict[str, str]:
     """Environment additions for the follower: the replayed ``hid`` module and its reports
-    (``loop``: again and again, as the frames with the server's ``--loop``)."""
+    (``loop``: again and again, as the frames with the server's ``--loop``; ``start_file``:
+    the board and the frames' server with the same ``--start-file`` start together)."""
     import os
 
     path = os.pathsep.join([str(REPLAY_HID), os.environ.get("PYTHONPATH", "")])
-    return {"PYTHONPATH": path, "HUMANTELE_HID_REPLAY": str(rec / "board.hex"),
-            "HUMANTELE_HID_LOOP": "1" if loop else "0"}  # fmt: skip
+    env = {"PYTHONPATH": path, "HUMANTELE_HID_REPLAY": str(rec / "board.hex"),
+           "HUMANTELE_HID_LOOP": "1" if loop else "0"}  # fmt: skip
+    if start_file is not None:
+        env["HUMANTELE_HID_START_FILE"] = str(start_file)
+    return env
 
 
-def start_hl2ss_server(npz: Path, loop: bool = False):  # -> (subprocess.Popen, port)
+def start_hl2ss_server(npz: Path, loop: bool = False, start_file: Path | None = None):
     """The hl2ss replay server in its own process (paced at 45 Hz, as the headset sends;
-    ``loop``: the recording again at its end)."""
+    ``loop``: the recording again at its end; ``start_file``: it starts with the other
+    replays of the clinic sharing it): (subprocess.Popen, port)."""
     import subprocess
     import sys
 
     # (in the caller's process group: a scenario killed at its timeout takes it along)
     server = subprocess.Popen(
         [sys.executable, "-m", "humantele.tracking.hl2ss_replay", str(npz),
-         *(["--loop"] if loop else [])],
+         *(["--loop"] if loop else []), *(["--start-file", str(start_file)] if start_file else [])],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     line = server.stdout.readline()

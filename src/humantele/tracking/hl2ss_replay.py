@@ -36,6 +36,9 @@ round's are its records' plus the rounds before it, at the recording's own spaci
 headset's clock never goes back. Without it, each connection starts the
 turn from its first record and sends every frame, however late: a replay that falls behind
 the force board's for good, and starts again from the start at each reconnection.
+``start_file``: the epoch is the first connection's time, shared through that file with the
+other replays of the clinic (:func:`~humantele.runtime.shared_start.shared_start`): the
+recorded devices run together from the follower's first read of any of them.
 
 In its own process, serving records saved with :func:`save_records` (``.npz``) or a device
 recording made by ``humantele devices record`` (``.mcap``: the frames and rig poses exactly as
@@ -69,6 +72,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from humantele.geometry import Pose
+from humantele.runtime.shared_start import shared_start
 from humantele.tracking.hl2ss_calibration import Hl2ssAhatCalibration
 from humantele.tracking.hl2ss_codec import AhatEncoder
 from humantele.tracking.hl2ss_protocol import (
@@ -174,6 +178,7 @@ class Hl2ssReplayServer:
         live: bool = False,
         spells: list[tuple[float, float]] = (),
         epoch: float | None = None,
+        start_file: str | Path | None = None,
     ):
         self.turns = list(turns)
         self.repeat = repeat
@@ -183,6 +188,7 @@ class Hl2ssReplayServer:
         self.live = live
         self.spells = list(spells)
         self.epoch = epoch
+        self.start_file = start_file  # the epoch, claimed at the first connection or read there
         self.dropped_late = 0  # frames past their time by over a period (with an epoch)
         self.sent = 0  # frames sent, all connections
         self.calibration = calibration
@@ -240,6 +246,8 @@ class Hl2ssReplayServer:
             return
         self.configs.append(cfg)
         items = self.turns[0] if self.repeat else self.turns.pop(0)
+        if self.epoch is None and self.start_file is not None:
+            self.epoch = shared_start(self.start_file)
         if self.epoch is not None and self.rate_hz and isinstance(items, list) and items:
             self._serve_from_epoch(conn, cfg, items)
             return
@@ -510,6 +518,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--epoch", type=float, default=None,
                     help="a time.monotonic() value: the headset's world runs from it (.npz "
                     "at a rate; see Hl2ssReplayServer)")  # fmt: skip
+    ap.add_argument("--start-file", default=None,
+                    help="the epoch shared with another replay of the same clinic: claimed "
+                    "in this file at the first connection, or read from it if the other "
+                    "replay was read first (humantele.runtime.shared_start)")  # fmt: skip
     ap.add_argument("--rate", type=float, default=None,
                     help="frames per second (0: unpaced; default: 45 for .npz, the recorded "
                     "times for .mcap)")  # fmt: skip
@@ -537,7 +549,7 @@ def main(argv: list[str] | None = None) -> int:
     with Hl2ssReplayServer([records], cal, args.host, args.port, repeat=True, loop=args.loop,
                            rate_hz=(45.0 if args.rate is None and not mcap else args.rate) or None,
                            recorded_times=mcap and args.rate is None,
-                           epoch=args.epoch) as srv:  # fmt: skip
+                           epoch=args.epoch, start_file=args.start_file) as srv:  # fmt: skip
         print(f"hl2ss replay listening on {args.host}:{srv.port}", flush=True)
         stop.wait()
     return 0

@@ -126,11 +126,13 @@ async def run(ctx) -> dict:
     (ctx.out / "truth.json").write_text(json.dumps(truth))
     ctx.mark("recorded")
     # Looped, frames and force board alike: a press the follower was not yet measuring comes
-    # round again, as a technician re-presses. Each from the follower's first read, not from
-    # one epoch (hl2ss_replay --epoch): joined mid-turn, the frames' recorded timestamps jump
-    # back by the turn's length at its wrap, sooner than the presses end, and the presses
-    # were refused on a quiet machine ('only 0 mm from the xiphoid', 2 runs of 2).
-    server, port = start_hl2ss_server(rec.dir / "ahat.npz", loop=True)
+    # round again, as a technician re-presses. Both from the follower's first read of either
+    # (a start shared in a file), as one clinic's devices run together: each from its own first
+    # read, a loaded machine opened the frames 1-2 s after the board, and the xiphoid press was
+    # paired with the hover 16 cm above it; from one fixed epoch, the follower joined mid-turn
+    # and took a later landmark's press as the xiphoid (the recorded technician's order is fixed).
+    start_file = ctx.out / "clinic_start"
+    server, port = start_hl2ss_server(rec.dir / "ahat.npz", loop=True, start_file=start_file)
     s = await ctx.daemons()
     try:
         expert_cfg = expert_on_fake_touchx(ctx.out, s.env)
@@ -139,7 +141,7 @@ async def run(ctx) -> dict:
         registration = "[follower.registration]\nwatch_samples = 5\n"
         follower_cfg = ctx.out / "follower.toml"
         follower_cfg.write_text(follower_config(rec.dir, port, s.state_dir, extra=registration))
-        s.env.update(replay_env(rec.dir, loop=True))
+        s.env.update(replay_env(rec.dir, loop=True, start_file=start_file))
         await s.start("follower", "--config", str(follower_cfg),
                       "--record", str(ctx.out / "f.mcap"))  # fmt: skip
         await s.wait("the follower calibrated from the replayed presses",

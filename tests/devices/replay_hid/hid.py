@@ -3,16 +3,35 @@ recording, ``HUMANTELE_HID_REPLAY``) replayed at the board's rate (``HUMANTELE_H
 default 100; ``HUMANTELE_HID_LOOP=1``: again and again) from the moment it is opened, so the
 follower's real HID reader (open by USB id,
 drain, parse, CRC) reads it as it reads the board. Put this folder first on ``PYTHONPATH``.
+
+``HUMANTELE_HID_EPOCH`` (a ``time.monotonic`` value, which every process of a machine shares):
+the board runs on from it whether or not it is read, as a real one does and as the hl2ss
+replay with the same ``--epoch`` does (report ``n`` is sent at ``epoch + n / rate``), so the
+two replays of one clinic stay together however late each process starts or reads. Unread
+reports wait in the kernel's hidraw buffer (HIDRAW_BUFFER_SIZE, 64 reports); once it is full
+the newer ones are dropped (linux drivers/hid/hidraw.c, ``hidraw_report_event``), counted in
+``dropped_full``. ``HUMANTELE_HID_START_FILE``: the epoch is the board's opening, shared
+through that file with the other replays of the clinic (the hl2ss replay's ``--start-file``):
+the first read of either starts both. Looped from an epoch, the board's clock and counter run
+on across the turn's end (each round's times are its reports' plus the rounds before it, at
+the recording's own spacing, as the hl2ss replay's timestamps): a board's clock never goes
+back.
 """
 
 from __future__ import annotations
 
+import binascii
+import math
 import os
+import struct
 import time
 from pathlib import Path
 
 VENDOR_ID, PRODUCT_ID = 0x1209, 0x4854  # the board's (HidForceConfig's defaults)
 PATH = b"/dev/hidraw-replay"
+HIDRAW_BUFFER_SIZE = 64  # linux include/linux/hidraw.h
+_SEQ_TIME = struct.Struct("<HI")  # the report's counter and board time (us), at byte 2
+_CRC_AT = 62  # CRC-16/CCITT-FALSE of the bytes before it (humantele.forcesense.hid)
 
 
 def _reports() -> list[bytes]:
@@ -34,17 +53,33 @@ class device:  # noqa: N801 (hidapi's name)
         self._next = 0
         self._rate = float(os.environ.get("HUMANTELE_HID_RATE_HZ", "100"))
         self._loop = os.environ.get("HUMANTELE_HID_LOOP") == "1"  # again at the end
+        epoch = os.environ.get("HUMANTELE_HID_EPOCH")
+        self._epoch = float(epoch) if epoch else None
+        self._start_file = os.environ.get("HUMANTELE_HID_START_FILE")  # the epoch, shared
+        self._buffer: list[int] = []  # with an epoch: the reports the kernel holds (indices)
+        self._arrived = -1  # the last report index the board has sent
+        self.dropped_full = 0
 
     def open_path(self, path: bytes) -> None:
         if path != PATH:
             raise OSError("open failed")
         self._reports, self._t0 = _reports(), time.monotonic()
+        if self._epoch is None and self._start_file:
+            from humantele.runtime.shared_start import shared_start
+
+            self._epoch = shared_start(self._start_file, self._t0)
+        if self._epoch is not None:  # what the board sent before it was opened is not kept
+            self._arrived = max(
+                -1, math.floor((time.monotonic() - self._epoch) * self._rate + 1e-6)
+            )
 
     def set_nonblocking(self, flag: bool) -> None:
         pass
 
     def read(self, size: int, timeout_ms: int = 0) -> list[int]:
         """The next report once the board has sent it (waiting up to ``timeout_ms``)."""
+        if self._epoch is not None:
+            return self._read_from_epoch(size, timeout_ms)
         if not self._reports or (self._next >= len(self._reports) and not self._loop):
             return []
         due = self._t0 + self._next / self._rate
@@ -56,6 +91,53 @@ class device:  # noqa: N801 (hidapi's name)
             time.sleep(wait)
         self._next += 1
         return list(self._reports[(self._next - 1) % len(self._reports)][:size])
+
+    def _arrive(self, now: float) -> None:
+        """The reports the board has sent by ``now`` into the kernel's buffer (full: dropped)."""
+        n_now = math.floor((now - self._epoch) * self._rate + 1e-6)  # (on its time: sent)
+        if not self._loop:
+            n_now = min(n_now, len(self._reports) - 1)
+        for n in range(self._arrived + 1, n_now + 1):
+            if len(self._buffer) < HIDRAW_BUFFER_SIZE:
+                self._buffer.append(n)
+            else:
+                self.dropped_full += 1
+        self._arrived = max(self._arrived, n_now)
+
+    def _read_from_epoch(self, size: int, timeout_ms: int) -> list[int]:
+        if not self._reports:
+            return []
+        self._arrive(time.monotonic())
+        if not self._buffer:
+            due = self._epoch + (self._arrived + 1) / self._rate
+            wait = due - time.monotonic()
+            if (not self._loop and self._arrived >= len(self._reports) - 1) or (
+                wait > timeout_ms / 1000.0
+            ):
+                time.sleep(timeout_ms / 1000.0)
+                return []
+            time.sleep(max(0.0, wait))
+            self._arrive(time.monotonic())
+            if not self._buffer:
+                return []
+        n = self._buffer.pop(0)
+        return list(self._running_on(n)[:size])
+
+    def _running_on(self, n: int) -> bytes:
+        """Report ``n`` of the looped turn, its counter and time moved on by its round."""
+        count = len(self._reports)
+        report, rounds = self._reports[n % count], n // count
+        if rounds == 0 or count < 2 or len(report) < _CRC_AT + 2:
+            return report
+        t_first = _SEQ_TIME.unpack_from(self._reports[0], 2)[1]
+        t_last = _SEQ_TIME.unpack_from(self._reports[-1], 2)[1]
+        lap_us = round((t_last - t_first) * count / (count - 1))
+        seq, t_us = _SEQ_TIME.unpack_from(report, 2)
+        out = bytearray(report)
+        _SEQ_TIME.pack_into(out, 2, (seq + rounds * count) & 0xFFFF,
+                            (t_us + rounds * lap_us) & 0xFFFFFFFF)  # fmt: skip
+        struct.pack_into("<H", out, _CRC_AT, binascii.crc_hqx(bytes(out[:_CRC_AT]), 0xFFFF))
+        return bytes(out)
 
     def close(self) -> None:
         self._reports = []
