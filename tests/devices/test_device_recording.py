@@ -650,6 +650,22 @@ def test_a_device_clock_anchored_on_a_late_first_sample_never_goes_back():
     assert all(t <= r + 0.05 + 1e-9 for t, r in zip(times, receive, strict=True)), times
 
 
+def _board_from_epoch(tmp_path, monkeypatch, lines: list[str], now_s: float, since_s: float):
+    """The replayed board (looped) opened at ``now_s`` on a hand clock, its epoch ``since_s``
+    before: (the opened device, the clock as a one-item list that sleeping moves on)."""
+    (tmp_path / "board.hex").write_text("\n".join(lines) + "\n")
+    now = [now_s]
+    hid = _replay_hid_module()
+    monkeypatch.setattr(hid.time, "monotonic", lambda: now[0])
+    monkeypatch.setattr(hid.time, "sleep", lambda s: now.__setitem__(0, now[0] + s))
+    monkeypatch.setenv("HUMANTELE_HID_REPLAY", str(tmp_path / "board.hex"))
+    monkeypatch.setenv("HUMANTELE_HID_LOOP", "1")
+    monkeypatch.setenv("HUMANTELE_HID_EPOCH", repr(now_s - since_s))
+    board = hid.device()
+    board.open_path(hid.PATH)
+    return board, now
+
+
 def test_the_replayed_board_from_an_epoch_runs_on_unread_and_its_buffer_drops_the_newest(
     tmp_path, monkeypatch
 ):
@@ -657,17 +673,8 @@ def test_the_replayed_board_from_an_epoch_runs_on_unread_and_its_buffer_drops_th
     it is read or not (as the hl2ss replay with the same --epoch): a reader that opens late
     starts at the report of now; one that reads late gets the 64 reports the kernel's hidraw
     buffer held, the newer ones dropped as the kernel drops them."""
-    hexfile = tmp_path / "board.hex"
-    hexfile.write_text("".join(f"{n:02x}{n:02x}\n" for n in range(200)))  # report n: [n, n]
-    now = [1000.0]
-    hid = _replay_hid_module()
-    monkeypatch.setattr(hid.time, "monotonic", lambda: now[0])
-    monkeypatch.setattr(hid.time, "sleep", lambda s: now.__setitem__(0, now[0] + s))
-    monkeypatch.setenv("HUMANTELE_HID_REPLAY", str(hexfile))
-    monkeypatch.setenv("HUMANTELE_HID_LOOP", "1")
-    monkeypatch.setenv("HUMANTELE_HID_EPOCH", repr(1000.0 - 0.505))  # opened 50 reports in
-    board = hid.device()
-    board.open_path(hid.PATH)
+    lines = [f"{n:02x}{n:02x}" for n in range(200)]  # report n: [n, n]
+    board, now = _board_from_epoch(tmp_path, monkeypatch, lines, 1000.0, 0.505)  # 50 reports in
     assert board.read(64, 100) == [51, 51]  # the next one the board sends, on its time
     assert now[0] == pytest.approx(1000.0 - 0.505 + 0.51)
     now[0] += 1.0  # not read for a second: 100 sent, 64 held
@@ -684,18 +691,9 @@ def test_the_replayed_board_s_clock_runs_on_across_the_turns_end(tmp_path, monke
     timestamps run on: a board's clock never goes back."""
     from humantele.forcesense.hid import encode_report, parse_report
 
-    hexfile = tmp_path / "board.hex"
-    hexfile.write_text("".join(encode_report(n, 5_000_000 + n * 10_000, [1.0] * 3, [2.0] * 3)
-                               .hex() + "\n" for n in range(50)))  # fmt: skip
-    now = [100.0]
-    hid = _replay_hid_module()
-    monkeypatch.setattr(hid.time, "monotonic", lambda: now[0])
-    monkeypatch.setattr(hid.time, "sleep", lambda s: now.__setitem__(0, now[0] + s))
-    monkeypatch.setenv("HUMANTELE_HID_REPLAY", str(hexfile))
-    monkeypatch.setenv("HUMANTELE_HID_LOOP", "1")
-    monkeypatch.setenv("HUMANTELE_HID_EPOCH", repr(100.0 - 0.455))  # 45 reports in
-    board = hid.device()
-    board.open_path(hid.PATH)
+    lines = [encode_report(n, 5_000_000 + n * 10_000, [1.0] * 3, [2.0] * 3).hex()
+             for n in range(50)]  # fmt: skip
+    board, _ = _board_from_epoch(tmp_path, monkeypatch, lines, 100.0, 0.455)  # 45 reports in
     got = [parse_report(board.read(64, 100))[0] for _ in range(10)]  # reports 46..55
     assert [r.seq for r in got] == list(range(46, 56))
     times = [r.t for r in got]

@@ -100,18 +100,15 @@ def test_speckle_envelope_is_rayleigh():
     """The envelope |I + jQ| of the two Gaussian fields on a plane: Rayleigh, so std / mean
     = sqrt(4 / pi - 1) = 0.523; mean 1 (scaled on another plane)."""
     field = SpeckleField(0.00035, 0.3, seed=3)
-    env = field.envelope(
-        np.array([0.01, 0.02, -0.03]), np.array([3e-4, 1e-4, 0.0]), np.array([0.0, 1e-4, 3e-4]),
-        400, 300,
-    )  # fmt: skip
+    # (the origin, the steps per column and row, 400 x 300 pixels, no lateral blur)
+    plane = (np.array([0.01, 0.02, -0.03]), np.array([3e-4, 1e-4, 0.0]),
+             np.array([0.0, 1e-4, 3e-4]), 400, 300, 0.0)  # fmt: skip
+    env = field.contrast(*plane, 1.0)  # gamma 1: the envelope itself
     assert env.shape == (300, 400) and env.dtype == np.float32
     assert env.mean() == pytest.approx(1.0, abs=0.06)
     assert env.std() / env.mean() == pytest.approx(math.sqrt(4.0 / math.pi - 1.0), abs=0.04)
     # Contrast below 1 for gamma < 1 (a scanner's speckle reduction), mean 1 again.
-    soft = field.contrast(
-        np.array([0.01, 0.02, -0.03]), np.array([3e-4, 1e-4, 0.0]), np.array([0.0, 1e-4, 3e-4]),
-        400, 300, 0.0, 0.6,
-    )  # fmt: skip
+    soft = field.contrast(*plane, 0.6)
     assert soft.mean() == pytest.approx(1.0, abs=0.06)
     assert soft.std() < 0.75 * env.std()
 

@@ -170,16 +170,3 @@ class SpeckleField:
         iq = self._iq(origin, ex, ey, width, height, lateral_blur_px, regions)
         index = iq.view(np.uint16)[..., 0]  # I + 256 Q (or Q + 256 I: the table is symmetric)
         return np.take(lut, index)
-
-    def envelope(
-        self,
-        origin: NDArray[np.float64],
-        ex: NDArray[np.float64],
-        ey: NDArray[np.float64],
-        width: int,
-        height: int,
-        lateral_blur_px: float = 0.0,
-    ) -> NDArray[np.float32]:
-        """The envelope ``|I + jQ|`` (mean 1 on the reference plane): :meth:`contrast` with
-        ``gamma`` 1."""
-        return self.contrast(origin, ex, ey, width, height, lateral_blur_px, 1.0)

@@ -20,18 +20,14 @@ back.
 
 from __future__ import annotations
 
-import binascii
 import math
 import os
-import struct
 import time
 from pathlib import Path
 
 VENDOR_ID, PRODUCT_ID = 0x1209, 0x4854  # the board's (HidForceConfig's defaults)
 PATH = b"/dev/hidraw-replay"
 HIDRAW_BUFFER_SIZE = 64  # linux include/linux/hidraw.h
-_SEQ_TIME = struct.Struct("<HI")  # the report's counter and board time (us), at byte 2
-_CRC_AT = 62  # CRC-16/CCITT-FALSE of the bytes before it (humantele.forcesense.hid)
 
 
 def _reports() -> list[bytes]:
@@ -69,9 +65,7 @@ class device:  # noqa: N801 (hidapi's name)
 
             self._epoch = shared_start(self._start_file, self._t0)
         if self._epoch is not None:  # what the board sent before it was opened is not kept
-            self._arrived = max(
-                -1, math.floor((time.monotonic() - self._epoch) * self._rate + 1e-6)
-            )
+            self._arrived = max(-1, self._sent_by(time.monotonic()))
 
     def set_nonblocking(self, flag: bool) -> None:
         pass
@@ -92,9 +86,13 @@ class device:  # noqa: N801 (hidapi's name)
         self._next += 1
         return list(self._reports[(self._next - 1) % len(self._reports)][:size])
 
+    def _sent_by(self, now: float) -> int:
+        """The index of the last report the board has sent by ``now`` (on its time: sent)."""
+        return math.floor((now - self._epoch) * self._rate + 1e-6)
+
     def _arrive(self, now: float) -> None:
         """The reports the board has sent by ``now`` into the kernel's buffer (full: dropped)."""
-        n_now = math.floor((now - self._epoch) * self._rate + 1e-6)  # (on its time: sent)
+        n_now = self._sent_by(now)
         if not self._loop:
             n_now = min(n_now, len(self._reports) - 1)
         for n in range(self._arrived + 1, n_now + 1):
@@ -124,20 +122,23 @@ class device:  # noqa: N801 (hidapi's name)
         return list(self._running_on(n)[:size])
 
     def _running_on(self, n: int) -> bytes:
-        """Report ``n`` of the looped turn, its counter and time moved on by its round."""
+        """Report ``n`` of the looped turn, its counter and time moved on by its round (made
+        again by the board's own codec, CRC and all); one the codec refuses goes as recorded."""
+        from humantele.forcesense.hid import ReportError, encode_report, parse_report
+
         count = len(self._reports)
         report, rounds = self._reports[n % count], n // count
-        if rounds == 0 or count < 2 or len(report) < _CRC_AT + 2:
+        if rounds == 0 or count < 2:
             return report
-        t_first = _SEQ_TIME.unpack_from(self._reports[0], 2)[1]
-        t_last = _SEQ_TIME.unpack_from(self._reports[-1], 2)[1]
-        lap_us = round((t_last - t_first) * count / (count - 1))
-        seq, t_us = _SEQ_TIME.unpack_from(report, 2)
-        out = bytearray(report)
-        _SEQ_TIME.pack_into(out, 2, (seq + rounds * count) & 0xFFFF,
-                            (t_us + rounds * lap_us) & 0xFFFFFFFF)  # fmt: skip
-        struct.pack_into("<H", out, _CRC_AT, binascii.crc_hqx(bytes(out[:_CRC_AT]), 0xFFFF))
-        return bytes(out)
+        try:
+            reading, flags = parse_report(report)
+            first, last = (parse_report(self._reports[i])[0].t for i in (0, -1))
+        except ReportError:
+            return report
+        lap_s = (last - first) * count / (count - 1)  # a turn at the recording's spacing
+        t_us = round((reading.t + rounds * lap_s) * 1e6)
+        seq = reading.seq + rounds * count
+        return encode_report(seq, t_us, reading.a, reading.b, reading.temperature_c, flags)
 
     def close(self) -> None:
         self._reports = []
