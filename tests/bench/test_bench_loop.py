@@ -1,6 +1,7 @@
 """`humantele bench loop`: runs the servo, prints one JSON line last, writes its section."""
 
 import json
+import os
 
 import pytest
 from hypothesis import given, settings
@@ -35,7 +36,10 @@ def test_bench_loop_prints_json_last_and_keeps_the_other_row(tmp_path, monkeypat
     assert r["ratio"] == pytest.approx((r["overruns"] + 1) / (floor["overruns"] + 1), abs=0.01)
     assert main(["bench", "loop", "--seconds", "0.3", "--json", "--together"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
-    assert len(lines) == 1 and json.loads(lines[0])["load"] is False
+    together = json.loads(lines[0])
+    assert len(lines) == 1 and together["load"] is False
+    # side by side, both on the last CPU: the same CPU's steal for both
+    assert together["pinned_cpu"] == max(os.sched_getaffinity(0)) == together["floor"]["cpu"]
     text = md.read_text()
     assert "| idle |" in text and "| one core busy |" in text  # each run kept the other's row
 
@@ -110,3 +114,13 @@ def test_period_percentiles_stay_within_the_measured_min_and_max(periods, q):
     # Bins are 1 us wide; the middle of a bin may not pass the exact extremes.
     assert min(exact) - 1e-3 <= timing.percentile(q) <= timing.max_us
     assert timing.percentile(0.5) <= timing.max_us
+
+
+def test_the_shared_cpu_is_the_last_one_by_default_and_a_foreign_one_refused():
+    mine = os.sched_getaffinity(0)
+    assert bench_loop.shared_cpu(None, default=True) == max(mine)
+    assert bench_loop.shared_cpu(None, default=False) is None  # one loop alone: the kernel's
+    assert bench_loop.shared_cpu(-1, default=True) is None
+    assert bench_loop.shared_cpu(min(mine), default=True) == min(mine)
+    with pytest.raises(ValueError, match="not one this process may use"):
+        bench_loop.shared_cpu(max(mine) + 64, default=True)

@@ -14,6 +14,14 @@ same counts (:mod:`humantele.haptics.loop_counts`): why each long period was lon
 involuntary context switches and garbage collections while the loop ran. Long periods that the
 bare loop shows too come from the machine (hypervisor steal, kernel), not from the servo.
 
+``--together`` pins both loops to one CPU (``--cpu``; by default the last CPU): a VM's host
+steals each virtual CPU's time in its own bursts, so two identical loops on two CPUs differ by
+whatever their CPUs' steal did (unpinned, 0-4 against 37 in one run here), and "servo <= bare
++ 1" compared the CPUs, not the loops. On one CPU both lose the same stolen time, and what the
+servo has over the bare loop is its own. (Their wake-ups can meet: the later one waits for the
+other's spin and work, up to ~0.3 ms, which moves the p99, never an overrun's 1.5 ms; judge
+the p99 from a run without ``--together``.)
+
 ``--control``: two bare loops side by side (each in its own process, over the same seconds)
 instead of the servo and the bare loop, counted the same way (rows "bare A" / "bare B"): the
 spread between two identical loops on this machine, against which "servo <= bare + 1" is to be
@@ -61,6 +69,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--together", action="store_true",
                    help="run the bare loop beside the servo, over the same seconds (the same "
                    "noise of a shared machine), not after it")  # fmt: skip
+    p.add_argument("--cpu", type=int, default=None,
+                   help="the CPU both loops are pinned to with --together or --control "
+                   "(default with --together: the last CPU this process may use, so that the "
+                   "two share one CPU's steal; -1: let the kernel place them)")  # fmt: skip
     p.add_argument("--control", action="store_true",
                    help="two bare loops side by side instead of the servo and the bare loop: "
                    "the machine's own spread between identical loops")  # fmt: skip
@@ -179,12 +191,29 @@ def measure_floor(cfg: ServoConfig, seconds: float) -> dict[str, Any]:
             proc.kill()
 
 
-def measure(seconds: float, load: bool, seed: int = 0, together: bool = False) -> dict[str, Any]:
+def shared_cpu(cpu: int | None, default: bool) -> int | None:
+    """The CPU two loops side by side are pinned to: ``cpu`` (-1: none), or with ``cpu``
+    None and ``default``, the last CPU this process may use."""
+    if cpu is None:
+        return max(os.sched_getaffinity(0)) if default else None
+    if cpu < 0:
+        return None
+    if cpu not in os.sched_getaffinity(0):
+        raise ValueError(f"CPU {cpu} is not one this process may use")
+    return cpu
+
+
+def measure(
+    seconds: float, load: bool, seed: int = 0, together: bool = False, cpu: int | None = None
+) -> dict[str, Any]:
     """Run the servo for ``seconds``, then the bare loop for as long under the same load
     (``together``: both at once, each in its own process); their figures (see module
-    docstring). ``ratio``: the servo's periods over 1.5 ms against the bare loop's (+1 each, so
-    that a clean run is 1)."""
-    cfg = ServoConfig(device=SimDeviceConfig(seed=seed))
+    docstring). ``cpu``: the CPU both loops are pinned to (None: the kernel's choice).
+    ``ratio``: the servo's periods over 1.5 ms against the bare loop's (+1 each, so that a
+    clean run is 1)."""
+    cfg = ServoConfig(
+        device=SimDeviceConfig(seed=seed), cpu_affinity=None if cpu is None else [cpu]
+    )
     sp = ServoProcess(cfg, demo_model())
     beside: dict[str, Any] = {}
     with cpu_load(1 if load else 0, time.monotonic() + 2 * seconds + 60):
@@ -234,6 +263,7 @@ def measure(seconds: float, load: bool, seed: int = 0, together: bool = False) -
         "spin_us": round(st.spin_us, 1),
     }
     res["floor"] = floor
+    res["pinned_cpu"] = cpu
     res["ratio"] = round((st.overruns + 1) / (floor["overruns"] + 1), 2)
     res["target_rate"] = abs(st.rate_hz - cfg.rate_hz) <= 1.0
     res["target_p99"] = abs(st.period_p99_us - period_us) <= 50.0
@@ -242,10 +272,15 @@ def measure(seconds: float, load: bool, seed: int = 0, together: bool = False) -
     return res
 
 
-def measure_control(seconds: float, load: bool, seed: int = 0) -> dict[str, Any]:
+def measure_control(
+    seconds: float, load: bool, seed: int = 0, cpu: int | None = None
+) -> dict[str, Any]:
     """Two bare loops side by side for ``seconds`` (``a``, ``b``: each one's figures), under
-    the same load: the spread between identical loops on this machine."""
-    cfg = ServoConfig(device=SimDeviceConfig(seed=seed))
+    the same load, pinned to ``cpu`` (None: the kernel's choice): the spread between identical
+    loops on this machine."""
+    cfg = ServoConfig(
+        device=SimDeviceConfig(seed=seed), cpu_affinity=None if cpu is None else [cpu]
+    )
     got: dict[str, dict[str, Any]] = {}
     with cpu_load(1 if load else 0, time.monotonic() + seconds + 60):
         t0, steal0 = time.monotonic(), steal_s()
@@ -264,7 +299,7 @@ def measure_control(seconds: float, load: bool, seed: int = 0) -> dict[str, Any]
         raise RuntimeError("a bare timing loop did not report")
     for r in got.values():
         r.update(seconds=round(seconds, 3), steal_ms_per_s=steal)
-    return {"control": True, "seconds": round(seconds, 3), "load": load, **got,
+    return {"control": True, "seconds": round(seconds, 3), "load": load, "pinned_cpu": cpu, **got,
             "a_minus_b_overruns": got["a"]["overruns"] - got["b"]["overruns"]}  # fmt: skip
 
 
@@ -327,7 +362,8 @@ def section(r: dict[str, Any], kept: list[list[str]]) -> str:
             "The 1 kHz servo process on the sim Touch X with the scripted sonographer and the "
             'demo patient; periods between tick starts. "one core busy": another process spins a '
             "core during the run. 'bare': right after (with `--together`: beside it, over the "
-            "same seconds), under the same load, a process with the servo's timing (SCHED_FIFO, "
+            "same seconds, both pinned to one CPU so that both lose that CPU's stolen time), "
+            "under the same load, a process with the servo's timing (SCHED_FIFO, "
             "deadline sleep + the same adaptive spin, GC off) and no work: what the machine gives"
             " (hypervisor, kernel). Both loops are counted the same way: periods over 1.5 ms "
             "(overruns) and over 2 ms; each overrun put down to the tick before it working over "
@@ -365,11 +401,17 @@ def run(args: argparse.Namespace) -> int:
         what = "with one core busy" if args.load else "idle"
         loops = "two bare loops side by side" if control else "servo loop on the sim device"
         print(f"{loops} for {args.seconds:g} s ({what}) ...", flush=True)
+    together = getattr(args, "together", False)
+    try:
+        cpu = shared_cpu(getattr(args, "cpu", None), default=together)
+    except ValueError as exc:
+        print(f"humantele bench loop: --cpu: {exc}")
+        return 2
     if control:
-        r = measure_control(args.seconds, args.load, args.seed)
+        r = measure_control(args.seconds, args.load, args.seed, cpu)
     else:
-        r = measure(args.seconds, args.load, args.seed, getattr(args, "together", False))
-        r["together"] = getattr(args, "together", False)
+        r = measure(args.seconds, args.load, args.seed, together, cpu)
+        r["together"] = together
     if not args.json:
         print(markdown_table(HEADER, _rows(r)))
         if control:
