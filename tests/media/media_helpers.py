@@ -47,3 +47,23 @@ async def close_video_link(follower, expert, tx, rx, tasks) -> None:
     for t in tasks:
         with contextlib.suppress(BaseException):
             await asyncio.wait_for(t, 5)
+
+
+class SyncErrorBound:
+    """The largest error the link's clock sync could have had while a test ran (s): half the
+    round trip of the exchange its offset came from, the most that ever was (each sample's
+    offset is within half its round trip of the truth). One process on loopback has one clock,
+    so a capture time mapped to the expert's clock is off by at most this: milliseconds on a
+    quiet machine, tens on a loaded one."""
+
+    def __init__(self, clock) -> None:
+        self.clock, self.worst_s = clock, 0.0
+        on_pong = clock.on_pong
+
+        def watched(*args, **kw):
+            sample = on_pong(*args, **kw)
+            if clock.best is not None:
+                self.worst_s = max(self.worst_s, clock.best.rtt / 2.0)
+            return sample
+
+        clock.on_pong = watched

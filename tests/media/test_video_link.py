@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from media_helpers import close_video_link, small_video_config, video_follower
+from media_helpers import SyncErrorBound, close_video_link, small_video_config, video_follower
 
 from humantele.media.config import ExpertVideoConfig
 from humantele.media.receiver import VideoReceiver
@@ -44,6 +44,7 @@ def expert_with_video(server, codec="vp8", record=None):
 async def test_both_tracks_arrive_with_counter_and_capture_time(server, codec):
     expert, rx = expert_with_video(server, codec)
     follower, tx = video_follower(server.url, "v", TOKEN)
+    sync = SyncErrorBound(rx.clock)
     loop = asyncio.get_running_loop()
     tx.open()
     tx.start(loop)
@@ -61,10 +62,12 @@ async def test_both_tracks_arrive_with_counter_and_capture_time(server, codec):
             assert st.out_of_order == 0
             assert st.unreadable == 0
             assert len(st.ages) >= st.frames - 3
-            # one process, one clock: an age below 0 is the clock sync's error (within the
-            # round trip of its best exchange, ms on loopback); a wrong capture time is seconds
-            assert all(-0.05 <= a < 5.0 for a in st.ages), (min(st.ages), max(st.ages))
-            assert f.t_capture is not None and f.t_capture <= f.t_received
+            # one process, one clock: an age below 0 is the clock sync's error (within half
+            # the round trip of its best exchange: ms on loopback, tens of ms loaded); a wrong
+            # capture time is seconds
+            floor = -(sync.worst_s + 0.005)
+            assert all(floor <= a < 5.0 for a in st.ages), (min(st.ages), max(st.ages), floor)
+            assert f.t_capture is not None and f.t_capture <= f.t_received - floor
         assert (rx.latest("us").width, rx.latest("us").height) == (320, 240)
         assert (rx.latest("pov").width, rx.latest("pov").height) == (320, 180)
         # the decoded picture is the source's: the US image is not the POV
