@@ -710,3 +710,16 @@ def test_the_replays_of_one_clinic_start_together_at_the_first_read_of_either(tm
     assert shared_start(path, now=12.5) == 12.5
     assert shared_start(path, now=14.0) == 12.5  # opened 1.5 s later: the same start
     assert [p.name for p in tmp_path.iterdir()] == ["clinic_start"]  # no claim left behind
+
+
+@pytest.mark.parametrize("text", ["", "garbage", "nan", "1e300", "\x00\xff"])
+def test_a_start_file_with_no_start_of_this_clock_is_refused_naming_it(tmp_path, text):
+    """Garbled, or another boot's (a monotonic time ahead of now): a clear error naming the
+    file, never a start taken from it; the file is left as it was."""
+    from humantele.runtime.shared_start import BadStartFile, shared_start
+
+    path = tmp_path / "clinic_start"
+    path.write_text(text)
+    with pytest.raises(BadStartFile, match="clinic_start.*not a start time"):
+        shared_start(path, now=100.0)
+    assert path.read_text() == text and len(list(tmp_path.iterdir())) == 1

@@ -72,7 +72,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from humantele.geometry import Pose
-from humantele.runtime.shared_start import shared_start
+from humantele.runtime.shared_start import BadStartFile, shared_start
 from humantele.tracking.hl2ss_calibration import Hl2ssAhatCalibration
 from humantele.tracking.hl2ss_codec import AhatEncoder
 from humantele.tracking.hl2ss_protocol import (
@@ -247,7 +247,11 @@ class Hl2ssReplayServer:
         self.configs.append(cfg)
         items = self.turns[0] if self.repeat else self.turns.pop(0)
         if self.epoch is None and self.start_file is not None:
-            self.epoch = shared_start(self.start_file)
+            try:
+                self.epoch = shared_start(self.start_file)
+            except BadStartFile as exc:
+                self.refusals.append(str(exc))
+                return
         if self.epoch is not None and self.rate_hz and isinstance(items, list) and items:
             self._serve_from_epoch(conn, cfg, items)
             return
