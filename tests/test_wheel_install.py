@@ -262,7 +262,7 @@ def _run_installed_demo(wheel: Path, tmp_path: Path) -> InstalledDemo:
         while not flowed and demo.poll() is None and time.monotonic() < t_end:
             seen |= descendants(demo.pid)
             flowed = any(poses_flowing(ln) for ln in list(err))
-            time.sleep(0.2)
+            time.sleep(0.5)  # (a status line every 2 s)
         if flowed:
             killed = _daemon(demo.pid, "follower")
         if killed is not None:
@@ -271,11 +271,12 @@ def _run_installed_demo(wheel: Path, tmp_path: Path) -> InstalledDemo:
             n = len(err)
             while demo.poll() is None and time.monotonic() < t_end:
                 seen |= descendants(demo.pid)
-                lines, n = err[n:], len(err)
+                lines = err[n:]
+                n += len(lines)
                 if any(poses_flowing(ln) and "follower rejoined (restart 1)" in ln
                        for ln in lines):  # fmt: skip
                     break
-                time.sleep(0.2)
+                time.sleep(0.5)
             new = _daemon(demo.pid, "follower")
         seen |= descendants(demo.pid)
         demo.send_signal(signal.SIGTERM)  # to the demo alone
