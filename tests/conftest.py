@@ -28,6 +28,8 @@ Ctrl-C, SIGTERM or SIGHUP (``procgroups``): stopping pytest leaves no daemon or 
 In the xdist controller (whose children are the workers) each worker does it for itself.
 """
 
+import contextlib
+import json
 import os
 import signal
 import sys
@@ -63,8 +65,11 @@ from cpu_durations import (  # noqa: F401 - the hooks of --cpu-durations=N
 from fuzz_examples import set_fast_lane
 from procgroups import pytest_configure as procgroups_configure
 from procgroups import pytest_unconfigure  # noqa: F401 - the hook
-from session_slot import whole_session_slot
+from session_slot import scaled, whole_session_slot
 from system_packages import system_packages_line
+
+sys.path.append(str(Path(__file__).resolve().parent / "browser"))  # netns, for browser_scenario
+from netns import SCENARIOS, ScenarioError, run_scenario, skip_reason  # noqa: E402
 
 FAST_LANE_WORKERS = 3  # -m "not e2e": its tests wait on timers and sockets a third of the time
 SUITE_WORKERS = 2  # with the e2e tests: their real-time loops need the two cores
@@ -145,6 +150,44 @@ def _whole_session_slot(request: pytest.FixtureRequest):
         return
     with whole_session_slot():
         yield
+
+
+def starts_a_session(name: str) -> bool:
+    """Whether ``browser/scenarios/<name>.py`` starts the daemons or a demo (its
+    ``ctx.daemons()`` or ``ctx.demo(...)``): a whole session beside its Chromium, one at a time
+    across the lanes."""
+    text = (SCENARIOS / f"{name}.py").read_text()
+    return "ctx.daemons(" in text or "ctx.demo(" in text
+
+
+@pytest.fixture(scope="session")
+def browser_scenario(tmp_path_factory):
+    """``browser_scenario(name, **args) -> ScenarioResult``: run ``browser/scenarios/<name>.py``
+    (tests/browser/netns.py), once per session and arguments: the tests of every module that
+    checks the same scenario share its run (a whole session shared, issue 33), and its failure
+    (each test that asks for it fails with it). Its tests are in one xdist group
+    (``processes-netns``, :func:`pytest_collection_modifyitems`), so one worker runs it."""
+    reason = skip_reason()
+    if reason:
+        pytest.skip(f"browser tests: {reason}")
+    runs: dict[str, object] = {}
+
+    def run(name: str, timeout_s: float = 300.0, **args):
+        key = json.dumps([name, args], sort_keys=True)
+        if key not in runs:
+            slot = whole_session_slot() if starts_a_session(name) else contextlib.nullcontext()
+            with slot:  # its deadline from when it starts, scaled to the machine's load then
+                try:
+                    out = tmp_path_factory.mktemp(name)
+                    runs[key] = run_scenario(name, out, args, scaled(timeout_s))
+                except ScenarioError as exc:
+                    runs[key] = exc
+        got = runs[key]
+        if isinstance(got, ScenarioError):
+            raise ScenarioError(str(got))
+        return got
+
+    return run
 
 
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:

@@ -8,6 +8,8 @@ environment the tests run in (the dependencies are installed there already, be i
 system's or the user's), and runs ``humantele demo --json`` until poses flow
 from a directory far from the checkout, without PYTHONPATH: the named definitions (the
 probe's tool, ...) must come from the installed package's data, not from the repository.
+That demo's session also checks the demo's supervision: its follower SIGKILLed comes back
+(one whole session for both, issue 33).
 """
 
 from __future__ import annotations
@@ -24,11 +26,14 @@ import threading
 import time
 import venv
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 
 from humantele.demo_status import poses_flowing
+from procgroups import descendants
+from session_slot import whole_session_slot
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = REPO / "src" / "humantele"
@@ -143,9 +148,60 @@ def test_wheel_holds_every_data_file_of_the_package_and_nothing_from_configs(whe
     assert not _foreign(sorted(names)), _foreign(sorted(names))  # built from the whole checkout
 
 
-@pytest.mark.e2e
-@pytest.mark.whole_session  # one at a time across the lanes (tests/session_slot.py)
-def test_installed_wheel_runs_the_demo_outside_the_checkout(wheel: Path, tmp_path: Path):
+def pid_alive(pid: int) -> bool:
+    """Running (not a zombie) process ``pid``."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return False
+    return state not in ("Z", "X")
+
+
+def _daemon(demo: int, role: str) -> int | None:
+    """The running ``humantele <role>`` daemon the demo ``demo`` started (None: none now)."""
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            cmd = (d / "cmdline").read_text().replace("\0", " ")
+        except (OSError, IndexError, ValueError):
+            continue
+        if ppid == demo and f" {role} " in cmd and pid_alive(int(d.name)):
+            return int(d.name)
+    return None
+
+
+@dataclass
+class InstalledDemo:
+    """What the installed demo did (:func:`installed_demo`)."""
+
+    where: list[str]  # the imported module's file, and the probe tool's markers' shape
+    work: Path  # the directory it ran in
+    returncode: int | None
+    out: list[str]  # its stdout's lines (``--json``'s summary last)
+    err: list[str]  # its stderr's lines (the status lines every 2 s)
+    flowed: bool  # poses flowed (before the follower was killed)
+    killed: int | None  # the follower SIGKILLed once poses flowed
+    new: int | None  # the follower running once it had rejoined
+    seen: set[int]  # the demo's descendants while it ran
+    left: list[int]  # of those, still running 5 s after it ended
+    report: str  # for a failure's message
+
+
+@pytest.fixture(scope="module")
+def installed_demo(wheel: Path, tmp_path_factory: pytest.TempPathFactory) -> InstalledDemo:
+    """The wheel installed in a fresh venv and its ``humantele demo --json`` run from a
+    directory far from the checkout, without PYTHONPATH; once poses flow its follower is
+    SIGKILLed, and once the demo has restarted it and poses flow again the demo is stopped
+    (SIGTERM to it alone; Ctrl-C: tests/session/test_demo_command.py). One whole session for
+    the two tests that check it (the installed package's demo; the demo's supervision), held
+    as one at a time across the lanes (tests/session_slot.py)."""
+    with whole_session_slot():
+        return _run_installed_demo(wheel, tmp_path_factory.mktemp("installed"))
+
+
+def _run_installed_demo(wheel: Path, tmp_path: Path) -> InstalledDemo:
     env_dir = tmp_path / "venv"
     venv.EnvBuilder(with_pip=False).create(env_dir)
     py = env_dir / "bin" / "python"
@@ -167,16 +223,13 @@ def test_installed_wheel_runs_the_demo_outside_the_checkout(wheel: Path, tmp_pat
         env,
         timeout=60,
     ).stdout.split()  # fmt: skip
-    assert Path(where[0]).is_relative_to(env_dir), where  # the wheel's copy, not the checkout
-    assert where[1:] == ["(4,", "3)"]
-    # The installed demo, stopped (SIGTERM) once the status line shows poses flowing. Its
-    # output is read by threads into lists (all of it is kept for the failure message), its
-    # run directory (the daemons' logs, kept when it fails) is made under tmp_path, and its
-    # process group is killed whatever happens.
+    # The installed demo. Its output is read by threads into lists (all of it is kept for the
+    # failure message), its run directory (the daemons' logs, kept when it fails) is made
+    # under tmp_path, and its process group is killed whatever happens.
     env["TMPDIR"] = str(tmp_path / "tmp")
     (tmp_path / "tmp").mkdir()
     demo = subprocess.Popen(
-        [str(env_dir / "bin" / "humantele"), "demo", "--duration", "120", "--json"],
+        [str(env_dir / "bin" / "humantele"), "demo", "--duration", "400", "--json"],
         cwd=work, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         start_new_session=True,
     )  # fmt: skip
@@ -199,17 +252,34 @@ def test_installed_wheel_runs_the_demo_outside_the_checkout(wheel: Path, tmp_pat
             f"{''.join(err)[-6000:]}{logs}"
         )
 
-    def flowing() -> bool:
-        return any(poses_flowing(ln) for ln in list(err))
-
+    seen: set[int] = set()
+    killed = new = None
+    flowed = False
     try:
         # Bounded by the demo's progress: it prints a status line every 2 s and gives up on
         # a daemon that does not start within 120 s (exit 1, said on stderr).
         t_end = time.monotonic() + 300.0
-        while not flowing() and demo.poll() is None and time.monotonic() < t_end:
-            time.sleep(0.2)
-        assert flowing(), f"poses never flowed\n{report()}"
-        demo.send_signal(signal.SIGTERM)
+        while not flowed and demo.poll() is None and time.monotonic() < t_end:
+            seen |= descendants(demo.pid)
+            flowed = any(poses_flowing(ln) for ln in list(err))
+            time.sleep(0.5)  # (a status line every 2 s)
+        if flowed:
+            killed = _daemon(demo.pid, "follower")
+        if killed is not None:
+            os.kill(killed, signal.SIGKILL)
+            # its status lines from the kill on: the follower back and poses flowing again
+            n = len(err)
+            while demo.poll() is None and time.monotonic() < t_end:
+                seen |= descendants(demo.pid)
+                lines = err[n:]
+                n += len(lines)
+                if any(poses_flowing(ln) and "follower rejoined (restart 1)" in ln
+                       for ln in lines):  # fmt: skip
+                    break
+                time.sleep(0.5)
+            new = _daemon(demo.pid, "follower")
+        seen |= descendants(demo.pid)
+        demo.send_signal(signal.SIGTERM)  # to the demo alone
         demo.wait(120)  # the demo's daemons get 20 s each to stop
         for r in readers:
             r.join(10)
@@ -218,10 +288,50 @@ def test_installed_wheel_runs_the_demo_outside_the_checkout(wheel: Path, tmp_pat
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(demo.pid, signal.SIGKILL)
             demo.wait()
-        with contextlib.suppress(ProcessLookupError):  # what it left behind, if anything
-            os.killpg(demo.pid, signal.SIGKILL)
-    assert demo.returncode == 0, report()
-    summary = json.loads("".join(out).strip().splitlines()[-1])
-    assert summary["exit_codes"] == {"expert": 0, "follower": 0}, report()
+    end = time.monotonic() + 5.0  # SIGTERM left no process: what is left after 5 s
+    while any(pid_alive(p) for p in seen) and time.monotonic() < end:
+        time.sleep(0.1)
+    left = [p for p in seen if pid_alive(p)]
+    with contextlib.suppress(ProcessLookupError):  # what it left behind, if anything
+        os.killpg(demo.pid, signal.SIGKILL)
+    return InstalledDemo(where, work, demo.returncode, out, err, flowed, killed, new, seen, left,
+                         report())  # fmt: skip
+
+
+@pytest.mark.e2e
+def test_installed_wheel_runs_the_demo_outside_the_checkout(installed_demo: InstalledDemo):
+    d = installed_demo
+    env_dir = d.work.parent / "venv"
+    assert Path(d.where[0]).is_relative_to(env_dir), d.where  # the wheel's copy, not the checkout
+    assert d.where[1:] == ["(4,", "3)"]
+    assert d.flowed, f"poses never flowed\n{d.report}"
+    assert d.returncode == 0, d.report
+    summary = json.loads("".join(d.out).strip().splitlines()[-1])
+    assert summary["exit_codes"] == {"expert": 0, "follower": 0}, d.report
     assert summary["poses_sent"] > 0 and summary["poses_received"] > 0
-    assert not (work / "configs").exists()
+    assert not (d.work / "configs").exists()
+
+
+@pytest.mark.e2e
+def test_sigkill_of_the_follower_during_a_demo_it_comes_back_and_poses_flow_again(
+    installed_demo: InstalledDemo,
+):
+    """The demo supervises its daemons (issue 9 §5): the follower SIGKILLed once poses flow
+    comes back, and poses flow again (moved from tests/session/test_demo_supervision.py, so
+    that the installed demo's session serves both)."""
+    d = installed_demo
+    assert d.killed is not None, d.report
+    assert d.new is not None and d.new != d.killed, d.report
+    assert any("follower restarted (1), starting" in ln for ln in d.err)
+    assert d.returncode == 0, d.report
+    s = json.loads("".join(d.out).strip().splitlines()[-1])
+    assert s["restarts"] == {"expert": 0, "follower": 1}
+    assert s["restart_exit_codes"]["follower"] == [-9]
+    assert s["exit_codes"] == {"expert": 0, "follower": 0}
+    assert s["counts_since_s"] is not None
+    # One window at both ends: nothing received that was not sent.
+    assert 0 < s["poses_received"] <= s["poses_sent"]
+    assert s["states_received"] <= s["states_sent"]
+    # SIGTERM left no process: the daemons (both followers), the servo, their children.
+    assert len(d.seen) >= 4, d.seen
+    assert not d.left

@@ -260,10 +260,13 @@ class Ctx:
         self._services.push_async_callback(session.close)
         return session
 
-    async def demo(self, *args: str) -> DemoRun:
-        """``humantele demo --keep ARGS`` running (its run directory is found under ours)."""
+    async def demo(self, *args: str, own_group: bool = False) -> DemoRun:
+        """``humantele demo --keep ARGS`` running (its run directory is found under ours);
+        ``own_group``: in a process group of its own, as a terminal starts it (its Ctrl-C:
+        :meth:`DemoRun.ctrl_c`), its status lines (stderr) kept in ``lines`` and its
+        stdout in ``demo.out``."""
         run = DemoRun(self.out / "demo")
-        await run.start(*args)
+        await run.start(*args, own_group=own_group)
         self._services.push_async_callback(run.stop)
         return run
 
@@ -325,23 +328,58 @@ def console_url(expert_stats: dict) -> str | None:
 
 
 class DemoRun:
-    """``humantele demo`` as a process; ``follower()`` reads its follower's stats."""
+    """``humantele demo`` as a process; ``stats(role)`` reads a daemon's stats."""
 
     def __init__(self, tmp: Path) -> None:
         self.tmp = tmp
         self.proc: asyncio.subprocess.Process | None = None
+        self.own_group = False
+        self.lines: list[str] = []  # its stderr's lines, with ``own_group``
+        self._reader: asyncio.Task | None = None
 
-    async def start(self, *args: str) -> None:
+    async def start(self, *args: str, own_group: bool = False) -> None:
         self.tmp.mkdir(parents=True, exist_ok=True)
         env = dict(os.environ, TMPDIR=str(self.tmp))
         env.pop("HUMANTELE_TOKEN", None)
         env.update(HUMANTELE_CONSOLE_KEY=CONSOLE_KEY, HUMANTELE_PAIRING_CODE=PAIRING_CODE)
+        self.own_group = own_group
         log = open(self.tmp / "demo.log", "wb")  # noqa: SIM115 - the child has it
+        out = open(self.tmp / "demo.out", "wb") if own_group else log  # noqa: SIM115
         self.proc = await asyncio.create_subprocess_exec(
             sys.executable, "-m", "humantele", "demo", "--keep", "--log-level", "INFO", *args,
-            stdin=asyncio.subprocess.DEVNULL, stdout=log, stderr=log, env=env,
+            stdin=asyncio.subprocess.DEVNULL, stdout=out,
+            stderr=asyncio.subprocess.PIPE if own_group else log, env=env,
+            start_new_session=own_group,
         )  # fmt: skip
-        log.close()
+        out.close()
+        if own_group:
+            self._reader = asyncio.create_task(self._read_lines(log))
+        else:
+            log.close()
+
+    async def _read_lines(self, log) -> None:
+        """Its stderr, line by line, into ``lines`` and ``demo.log``."""
+        assert self.proc is not None and self.proc.stderr is not None
+        with log:
+            while line := await self.proc.stderr.readline():
+                self.lines.append(line.decode(errors="replace"))
+                log.write(line)
+                log.flush()
+
+    async def ctrl_c(self, timeout: float = 60.0) -> int:
+        """A terminal's Ctrl-C (``own_group``): SIGINT to its process group, the demo, both
+        daemons and their children at once; its exit code, once its stderr is read."""
+        assert self.proc is not None and self.own_group
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(self.proc.pid, signal.SIGINT)
+        await asyncio.wait_for(self.proc.wait(), timeout)
+        if self._reader is not None:
+            await asyncio.wait_for(self._reader, 10)
+        return self.proc.returncode
+
+    def stdout(self) -> str:
+        """What it printed (``own_group``: ``--json``'s summary is the last line)."""
+        return (self.tmp / "demo.out").read_text(errors="replace")
 
     def run_dir(self) -> Path | None:
         dirs = sorted(self.tmp.glob("humantele-demo-*"))
@@ -367,11 +405,18 @@ class DemoRun:
         )
 
     async def stop(self) -> None:
-        if self.proc is None or self.proc.returncode is not None:
+        if self.proc is None:
             return
-        self.proc.send_signal(signal.SIGTERM)
-        try:
-            await asyncio.wait_for(self.proc.wait(), 30)
-        except TimeoutError:
-            self.proc.kill()
-            await self.proc.wait()
+        if self.proc.returncode is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                await asyncio.wait_for(self.proc.wait(), 30)
+            except TimeoutError:
+                self.proc.kill()
+                await self.proc.wait()
+        if self.own_group:  # whatever of its group is left (the runner's group is not it)
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.proc.pid, signal.SIGKILL)
+        if self._reader is not None:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(self._reader, 10)

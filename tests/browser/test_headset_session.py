@@ -1,5 +1,7 @@
 """The headset page against the real daemons on sim devices: calibration prompt, following,
-the expert killed and rejoining, WebXR entry under IWER, bad page input counted."""
+the expert killed and rejoining, WebXR entry under IWER, bad page input counted. The same
+session checks the daemons themselves (calibration, a daemon killed and restarted mid-session,
+clean shutdown: once tests/session/test_session_daemons.py)."""
 
 import numpy as np
 import pytest
@@ -101,3 +103,38 @@ def test_bad_page_input_counted_by_the_follower_which_goes_on(run):
     errors = [e for e in run.data["console_errors"]
               if "WebSocket connection" not in e and "404" not in e]  # fmt: skip
     assert errors == []
+
+
+@pytest.mark.slow
+def test_session_calibrates_survives_kills_and_rejoins(run):
+    """The expert and follower daemons as real OS processes over loopback WebRTC (moved from
+    tests/session/test_session_daemons.py: this scenario's session serves both)."""
+    d = run.data["daemons"]
+    # 1. Both daemons, a fresh follower: the sim person calibrates, the expert gets the model.
+    f, e = d["calibrated"], d["expert"]
+    assert not f["calibration_reused"] and f["calibration_refusals"] == 0
+    assert d["saved_calibration"]
+    assert e["models_installed"] == 1 and e["servo_rate_hz"] > 500
+    assert d["servo_alive"]
+    assert d["probe"]["stale"] is False and len(d["probe"]["position"]) == 3
+    # 2. Kill the follower: the expert keeps running and rendering, the link goes down.
+    k = d["follower_killed"]
+    assert k["expert_running"] and k["expert"]["uptime_s"] > k["ticks_before"]
+    assert k["servo_alive"] and k["expert"]["has_model"] and k["expert"]["servo_fault"] == ""
+    # 3. Restart it: it reuses the saved calibration (no new presses) and rejoins by itself.
+    r = d["rejoined"]
+    assert r["follower"]["calibrated"] and r["follower"]["calibration_reused"]
+    assert r["expert"]["models_installed"] == 1  # the same model again: no change
+    # 4. Kill the expert: the follower keeps running and marks the virtual probe stale; the
+    # killed expert's servo process notices its parent is gone and ends (no orphan).
+    x = d["expert_killed"]
+    assert x["probe"]["stale"] is True
+    assert x["follower_running"]
+    assert x["servo_gone"]
+    # 5. Restart the expert: it rejoins and gets the saved model from the follower.
+    assert d["expert_rejoined_probe"]["stale"] is False
+    # 6. SIGTERM both: peers say bye, every process ends with code 0, the servo too.
+    assert d["expert_exit"] == 0
+    assert d["follower_exit"] == 0
+    assert d["servo_ended"]
+    assert d["follower_end"]["dropped"].get("pose:stale", 0) >= 0

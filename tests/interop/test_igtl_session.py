@@ -44,7 +44,7 @@ async def test_slicer_client_gets_the_session_in_mm_matching_the_recording(sessi
     cfg.write_text('[follower]\nprobe_source = "truth"\n[follower.video]\nenabled = false\n')
     e_cfg = tmp_path / "expert.toml"
     e_cfg.write_text("[expert.video]\nenabled = false\n")
-    session.save_calibration()  # calibrating is tested in test_session_daemons.py
+    session.save_calibration()  # calibrating: tests/browser/test_headset_session.py
     await session.start("follower", "--config", str(cfg), "--igtl-port", "0", *rec)
     await session.start("expert", "--config", str(e_cfg), "--igtl-port", "0")
     await session.wait(

@@ -26,7 +26,6 @@ from procgroups import descendants, resource_tracker
 from session_slot import scaled, whole_session_slot
 
 ROOT = Path(__file__).resolve().parents[2]
-DEMO_CONFIG = ROOT / "configs" / "demo.toml"  # with video
 # The daemons' page credentials in these tests (the daemons take them from the environment).
 PAIRING_CODE = "24681357"
 CONSOLE_KEY = "test-console-key-" + secrets.token_urlsafe(8)
@@ -258,8 +257,9 @@ class DemoRun:
     (with the video tracks, recorded, OpenIGTLink served for 3D Slicer), ended by a terminal's
     Ctrl-C (SIGINT to its process group: the demo, both daemons and the servo at once) once it
     has recorded a scan long enough to analyse and an OpenIGTLink client has had the probe:
-    what the tests of that run check. (The supervision test ends its demo with SIGTERM to the
-    demo alone.)"""
+    what the tests of that run check (run by tests/browser/scenarios/console_video.py, its
+    console checked meanwhile). (The supervision test ends its demo with SIGTERM to the demo
+    alone.)"""
 
     tmp: Path
     returncode: int | None
@@ -276,6 +276,7 @@ class DemoRun:
         return self.tmp / "demo.expert.mcap", self.tmp / "demo.follower.mcap"
 
 
+VIDEO_DEMO_TIMEOUT_S = 900.0  # the console_video scenario's bound (s, scaled to the load)
 SCAN_S = 10.0  # scan 1 runs this long before the demo is stopped: long enough that the
 # mean alignment error of the recorded scan settles on the sim offset (4 s gave 1.9-2.3 mm for
 # a 5 mm offset: the lag of a short stretch of motion dominated it)
@@ -297,11 +298,6 @@ def scan_recorded(path: Path) -> bool:
     tracked = [s["t"] for s in rec.samples("/follower/probe_pose") if s["tracked"]]
     tracked = [t for t in tracked if t >= starts[0]]
     return len(tracked) >= SCAN_POSES and tracked[-1] - starts[0] >= SCAN_S
-
-
-def _read_lines(stream, lines: list[str]) -> None:
-    for raw in stream:
-        lines.append(raw.decode())
 
 
 IGTL_LINE = re.compile(r"OpenIGTLink \(follower, 3D Slicer\): 127\.0\.0\.1:(\d+)")
@@ -343,58 +339,17 @@ class IgtlClient(threading.Thread):
 
 
 @pytest.fixture(scope="session")
-def demo_run(tmp_path_factory) -> DemoRun:
+def demo_run(browser_scenario) -> DemoRun:
     """The demo run shared by the tests that check one run (the command, its recording and
-    the analysis, the video's export, OpenIGTLink for 3D Slicer): it ends on its condition
-    (scan 1 recorded, after the calibration, for ``SCAN_S`` with ``SCAN_POSES`` tracked probe
-    poses; the OpenIGTLink client done), not after a fixed duration. One whole session at a
-    time across the lanes (tests/session_slot.py)."""
-    with whole_session_slot():
-        return _run_demo(tmp_path_factory.mktemp("demo"))
-
-
-def _run_demo(tmp: Path) -> DemoRun:
-    env = dict(os.environ)
-    env.pop("HUMANTELE_TOKEN", None)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "humantele", "demo", "--config", str(DEMO_CONFIG),
-         "--duration", "120", "--json", "--record", str(tmp / "demo.mcap"), "--igtl-port", "0"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, start_new_session=True,
-    )  # fmt: skip
-    watchdog = threading.Timer(180.0, os.killpg, (proc.pid, signal.SIGKILL))  # never hang
-    watchdog.start()
-    status: list[str] = []  # the status lines (stderr with --json, every 2 s)
-    reader = threading.Thread(target=_read_lines, args=(proc.stderr, status), daemon=True)
-    reader.start()
-    stop = threading.Event()
-    igtl = IgtlClient(status, stop)
-    igtl.start()
-    seen: set[int] = set()
-    try:
-        recorded = False  # then the client's end (not waited for if no address was printed)
-        while proc.poll() is None and not (recorded and not igtl.waiting):
-            seen |= descendants(proc.pid)  # expert, follower, the servo process
-            time.sleep(0.5)
-            recorded = recorded or scan_recorded(tmp / "demo.follower.mcap")
-        t_stop = time.monotonic()
-        with contextlib.suppress(ProcessLookupError):  # the demo ended early: the tests say how
-            os.killpg(proc.pid, signal.SIGINT)
-        out = proc.stdout.read()
-        proc.wait(60)
-        stop_s = time.monotonic() - t_stop
-        reader.join(10)
-    finally:
-        watchdog.cancel()
-        stop.set()
-        igtl.join(70)
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-    out_text = out.decode()
-    lines = out_text.strip().splitlines()
-    try:
-        summary = json.loads(lines[-1]) if lines else {}
-    except ValueError:
-        summary = {}
-    return DemoRun(tmp, proc.returncode, summary, out_text, "".join(status), status, seen, stop_s,
-                   igtl.result)  # fmt: skip
+    the analysis, the video's export, OpenIGTLink for 3D Slicer): the demo of the browser
+    scenario console_video (tests/browser/scenarios/console_video.py), whose console checks
+    run meanwhile, so one whole video session serves both (issue 33). It ends on its condition
+    (the console's visits done; scan 1 recorded, after the calibration, for ``SCAN_S`` with
+    ``SCAN_POSES`` tracked probe poses; the OpenIGTLink client done), not after a fixed
+    duration. One whole session at a time across the lanes (tests/session_slot.py)."""
+    run = browser_scenario("console_video", timeout_s=VIDEO_DEMO_TIMEOUT_S)
+    d = dict(run.data["demo_run"])
+    igtl = dict(d["igtl"])
+    igtl["shape"] = None if igtl["shape"] is None else tuple(igtl["shape"])  # (JSON: a list)
+    return DemoRun(run.out_dir / "rec", d["returncode"], d["summary"], d["out"], d["err"],
+                   d["status"], set(d["seen"]), d["stop_s"], igtl)  # fmt: skip

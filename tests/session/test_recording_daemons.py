@@ -48,7 +48,7 @@ async def test_sigkill_of_the_expert_keeps_its_recording_to_half_a_second(sessio
         return ["--record", str(paths[role]), "--session-id", "k01",
                 "--follower-id", "F1", "--sonographer-id", "S1"]  # fmt: skip
 
-    session.save_calibration()  # calibrating is tested in test_session_daemons.py
+    session.save_calibration()  # calibrating: tests/browser/test_headset_session.py
     await session.start("follower", *rec_args("follower"))
     await session.start("expert", *rec_args("expert"))
     await session.wait(

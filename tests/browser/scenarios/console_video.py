@@ -2,16 +2,29 @@
 configs/demo.toml``: sim ultrasound and POV over WebRTC), with the default transport
 (WebCodecs) and then JPEG (issue 19 §1): no console work per frame while no page is open; both
 pictures drawn; freeze keeps the frame on screen and a capture saves that very frame (its
-counter, its pixels); once the page has closed the console takes no frame again."""
+counter, its pixels); once the page has closed the console takes no frame again.
+
+The same demo is the shared demo run of tests/session (``session_helpers.demo_run``: the
+command's ``--json`` summary and a terminal's Ctrl-C, its recording and the analysis, the
+video's export, OpenIGTLink for 3D Slicer): started as a terminal starts it (``--json
+--record --igtl-port 0``, in its own process group), it is ended by Ctrl-C once the console's
+visits are done, scan 1 has been recorded long enough to analyse and an OpenIGTLink client has
+had the probe. One whole video session for both (issue 33: the suite's CPU budget)."""
 
 from __future__ import annotations
 
 import asyncio
 import base64
+import json
+import threading
+import time
 from pathlib import Path
 
 from console_views import pixels, result
+from session_helpers import IgtlClient, scan_recorded
 from stage import console_url, scaled
+
+from procgroups import descendants
 
 REPO = Path(__file__).resolve().parents[3]
 CANVAS_PNG = "document.getElementById('us').toDataURL('image/png')"
@@ -101,8 +114,62 @@ async def visit(ctx, demo, transport: str | None) -> dict:
     return out
 
 
+async def watch(demo, rec_dir: Path, seen: set[int], recorded: list[bool]) -> None:
+    """While the demo runs: its processes (``seen``), and whether scan 1 has been recorded
+    long enough to analyse (``recorded[0]``; the follower's recording is read until then)."""
+    while demo.proc.returncode is None:
+        seen |= descendants(demo.proc.pid)  # the daemons, the servo, their children
+        if not recorded[0]:
+            recorded[0] = await asyncio.to_thread(scan_recorded, rec_dir / "demo.follower.mcap")
+        await asyncio.sleep(0.5)
+
+
 async def run(ctx) -> dict:
-    demo = await ctx.demo("--config", str(REPO / "configs" / "demo.toml"), "--duration", "900")
+    rec_dir = ctx.out / "rec"
+    rec_dir.mkdir()
+    demo = await ctx.demo(
+        "--config", str(REPO / "configs" / "demo.toml"), "--duration", "900", "--json",
+        "--record", str(rec_dir / "demo.mcap"), "--igtl-port", "0", own_group=True,
+    )  # fmt: skip
+    stop = threading.Event()
+    igtl = IgtlClient(demo.lines, stop)  # 3D Slicer's side, on the address the demo prints
+    igtl.start()
+    seen: set[int] = set()
+    recorded = [False]
+    watcher = asyncio.create_task(watch(demo, rec_dir, seen, recorded))
+    try:
+        data = await console_visits(ctx, demo)
+        # The shared demo run's end: once scan 1 is recorded and the client is done (not
+        # waited for if no address was printed), a terminal's Ctrl-C.
+        deadline = time.monotonic() + scaled(180.0)
+        while demo.proc.returncode is None and time.monotonic() < deadline:
+            if recorded[0] and not igtl.waiting:
+                break
+            await asyncio.sleep(0.5)
+        seen |= descendants(demo.proc.pid)
+        t_stop = time.monotonic()
+        returncode = await demo.ctrl_c()
+        stop_s = time.monotonic() - t_stop
+    finally:
+        stop.set()
+        watcher.cancel()
+        await asyncio.to_thread(igtl.join, 70)
+    out = demo.stdout()
+    lines = out.strip().splitlines()
+    try:
+        summary = json.loads(lines[-1]) if lines else {}
+    except ValueError:
+        summary = {}
+    data["demo_run"] = {
+        "returncode": returncode, "summary": summary, "out": out, "err": "".join(demo.lines),
+        "status": demo.lines, "seen": sorted(seen), "stop_s": stop_s, "igtl": igtl.result,
+        "recorded": recorded[0],
+    }  # fmt: skip
+    return data
+
+
+async def console_visits(ctx, demo) -> dict:
+    """The console's checks: idle, the two visits, idle again."""
 
     def ready(e, f):
         us = (e.get("video") or {}).get("us") or {}
