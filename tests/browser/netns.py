@@ -89,6 +89,22 @@ def _logs(out_dir: Path, tail: int = 4000) -> dict[str, str]:
     return logs
 
 
+def own_groups(out_dir: Path) -> list[int]:
+    """The process groups a scenario's demos started on their own (``stage.GROUPS_FILE``)."""
+    try:
+        text = (out_dir / "own_groups").read_text()
+    except OSError:
+        return []
+    return [int(x) for x in text.split() if x.isdigit()]
+
+
+def kill_groups(pgids: list[int]) -> None:
+    """SIGKILL each process group; one already gone is fine."""
+    for pgid in pgids:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(pgid, signal.SIGKILL)
+
+
 def run_scenario(
     name: str, out_dir: Path, args: dict | None = None, timeout_s: float = 240.0
 ) -> ScenarioResult:
@@ -110,9 +126,9 @@ def run_scenario(
             raise ScenarioError(
                 f"scenario {name} did not finish in {timeout_s} s\n" + _format(_logs(out_dir))
             ) from None
-        finally:  # also on Ctrl-C: Chromium and the daemons go with the runner's group
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(proc.pid, signal.SIGKILL)
+        finally:  # also on Ctrl-C: Chromium and the daemons go with the runner's group,
+            # and a demo started in a group of its own (stage.DemoRun, own_group) with it
+            kill_groups([proc.pid, *own_groups(out_dir)])
             proc.wait()
     try:
         result = json.loads((out_dir / "result.json").read_text())

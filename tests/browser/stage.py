@@ -327,6 +327,9 @@ def console_url(expert_stats: dict) -> str | None:
     return f"{url}#key={CONSOLE_KEY}" if url else None
 
 
+GROUPS_FILE = "own_groups"  # in a scenario's output: the process groups of its own-group demos
+
+
 class DemoRun:
     """``humantele demo`` as a process; ``stats(role)`` reads a daemon's stats."""
 
@@ -352,7 +355,9 @@ class DemoRun:
             start_new_session=own_group,
         )  # fmt: skip
         out.close()
-        if own_group:
+        if own_group:  # noted, so that a runner killed on its deadline takes it along
+            with open(self.tmp.parent / GROUPS_FILE, "a") as f:
+                f.write(f"{self.proc.pid}\n")
             self._reader = asyncio.create_task(self._read_lines(log))
         else:
             log.close()
