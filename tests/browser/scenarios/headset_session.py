@@ -86,6 +86,7 @@ async def run(ctx) -> dict:
 
     # 2. The follower again (same port), pressing: calibration, then following.
     await s.terminate("follower")
+    await page.evaluate("headset.calibrationSteps(true)")  # the old follower's: forgotten
     await s.start("follower", "--feed-port", str(PORT))
     data["steps_seen"] = []
     for _ in range(900):  # the page reconnects by itself; watch the prompts go by
@@ -102,6 +103,7 @@ async def run(ctx) -> dict:
         return f.get("calibrated") and f.get("link_state") == "connected"
 
     await s.wait("calibrated and following", following)
+    data["steps_heard"] = await page.evaluate("headset.calibrationSteps()")
     ctx.mark("calibrated")
     # The daemons' test, 1: the fresh follower calibrated, the expert has the model.
     await s.wait(

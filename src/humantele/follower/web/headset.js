@@ -146,6 +146,8 @@ function connect(delayMs = 500) {
   };
 }
 
+const calibrationSteps = []; // the landmarks the feed asked for, in the order heard
+
 function onMessage(msg) {
   switch (msg.type) {
     case 'virtual_probe':
@@ -162,6 +164,10 @@ function onMessage(msg) {
       break;
     case 'calibration':
       state.calibration = msg;
+      if (msg.calibrating && msg.step !== calibrationSteps[calibrationSteps.length - 1]) {
+        calibrationSteps.push(msg.step); // heard, in order (a starved page may draw fewer)
+        if (calibrationSteps.length > 32) calibrationSteps.shift();
+      }
       break;
     case 'link':
       state.link = msg.state;
@@ -583,6 +589,12 @@ window.headset = {
   },
   colour() {
     return virtual.materials[0].color.getHex();
+  },
+  // The landmarks the feed asked for since the last clear, in order (each step once).
+  calibrationSteps(clear = false) {
+    const steps = [...calibrationSteps];
+    if (clear) calibrationSteps.length = 0;
+    return steps;
   },
   hud() {
     return {
