@@ -4,13 +4,14 @@ and its hook on a real aiortc sender's transport."""
 
 from __future__ import annotations
 
+import asyncio
 import struct
 
 import pytest
 from aiortc import RTCPeerConnection
 
 from humantele.media.aiortc_hooks import pace_sender
-from humantele.media.pacer import BURST_S, MIN_RATE_BPS, Pacer
+from humantele.media.pacer import BURST_S, DUP_AFTER_S, DUP_HOLD_S, MIN_RATE_BPS, Pacer
 
 
 class Clock:
@@ -87,6 +88,77 @@ async def test_a_retransmission_is_not_repeated_within_a_round_trip():
     assert await pacer.before_send(rtcp_rr()) is True  # RTCP is never held back
 
 
+class Wire:
+    """The transport's own send: what left, and when (on the hand clock)."""
+
+    def __init__(self, clock: Clock) -> None:
+        self.clock = clock
+        self.sent: list[tuple[float, bytes]] = []
+
+    async def __call__(self, data: bytes) -> None:
+        self.sent.append((self.clock.now, data))
+
+
+async def _through(pacer: Pacer, wire: Wire, data: bytes) -> None:
+    """As the hook does: ask the pacer, send, let it repeat; then run its copies."""
+    if await pacer.before_send(data):
+        await wire(data)
+        pacer.after_send(data, wire)
+    if pacer._dup_tasks:
+        await asyncio.gather(*list(pacer._dup_tasks))
+
+
+async def test_on_a_lossy_link_each_retransmission_leaves_twice_spaced_and_counted():
+    clock = Clock()
+    wire = Wire(clock)
+    loss: list[float | None] = [None]
+    pacer = Pacer(lambda: 10_000_000.0, clock=clock, sleep=clock.sleep, rtt_s=lambda: 0.12,
+                  loss=lambda: loss[0])  # fmt: skip
+    for i in range(10):
+        await _through(pacer, wire, rtp(i))
+    await _through(pacer, wire, rtp(3))  # no report yet: one copy
+    assert [d for _, d in wire.sent].count(rtp(3)) == 2 and pacer.dups == 0
+    loss[0] = 0.01  # below the threshold: one copy
+    await _through(pacer, wire, rtp(4))
+    assert [d for _, d in wire.sent].count(rtp(4)) == 2 and pacer.dups == 0
+    loss[0] = 0.03  # a lossy link: a retransmission leaves twice, DUP_AFTER_S apart
+    wire.sent.clear()
+    await _through(pacer, wire, rtp(5))
+    assert [d for _, d in wire.sent] == [rtp(5), rtp(5)]
+    assert wire.sent[1][0] - wire.sent[0][0] == pytest.approx(DUP_AFTER_S)
+    assert pacer.dups == 1 and pacer.dup_bytes == 1200
+    assert pacer.resent_bytes == 3 * 1200  # the first copies: the repair's cost is counted
+    # new media packets and RTCP are never repeated, however lossy the link
+    wire.sent.clear()
+    for data in (rtp(10), rtp(11), rtcp_rr()):
+        await _through(pacer, wire, data)
+    assert [d for _, d in wire.sent] == [rtp(10), rtp(11), rtcp_rr()] and pacer.dups == 1
+    # the copy counts against the rate: the next new packet waits for it too
+    assert pacer.free_at >= wire.sent[-1][0]
+    # a retransmission the pacer holds back (asked again within the round trip): no copy
+    wire.sent.clear()
+    await _through(pacer, wire, rtp(5))
+    assert wire.sent == [] and pacer.dups == 1
+    # a report without loss: still lossy for DUP_HOLD_S, then one copy again
+    loss[0] = 0.0
+    await _through(pacer, wire, rtp(6))
+    assert pacer.dups == 2
+    clock.now += DUP_HOLD_S
+    wire.sent.clear()
+    await _through(pacer, wire, rtp(7))
+    assert [d for _, d in wire.sent] == [rtp(7)] and pacer.dups == 2
+
+
+async def test_duplicates_can_be_turned_off():
+    clock = Clock()
+    wire = Wire(clock)
+    pacer = Pacer(lambda: 10_000_000.0, clock=clock, sleep=clock.sleep, loss=lambda: 0.2,
+                  duplicate=False)  # fmt: skip
+    for seq in (0, 1, 2, 0):
+        await _through(pacer, wire, rtp(seq))
+    assert len(wire.sent) == 4 and pacer.dups == 0 and pacer.figures()["dups"] == 0
+
+
 async def test_streams_are_told_apart_and_sequence_numbers_wrap():
     clock = Clock()
     pacer = Pacer(lambda: 10_000_000.0, clock=clock, sleep=clock.sleep)
@@ -145,5 +217,13 @@ async def test_the_hook_paces_what_a_real_sender_transport_sends():
         await b.transport._send_rtp(rtp(1))
         await b.transport._send_rtp(rtp(2))
         assert seen == [rtp(1), rtp(2)] and sent == [rtp(1)]
+        clock = Clock()
+        pacer = Pacer(lambda: 1e7, clock=clock, sleep=clock.sleep, loss=lambda: 0.05)
+        pace_sender(a, pacer)
+        sent.clear()
+        for seq in (5, 6, 5):  # 5 again: a retransmission, on a lossy link
+            await b.transport._send_rtp(rtp(seq))
+        await asyncio.gather(*list(pacer._dup_tasks))
+        assert sent == [rtp(5), rtp(6), rtp(5), rtp(5)] and pacer.dups == 1
     finally:
         await pc.close()

@@ -206,8 +206,10 @@ def forget_missing(receiver: RTCRtpReceiver, seqs: list[int]) -> int:
 def pace_sender(sender: RTCRtpSender, pacer: Any) -> None:
     """Make every RTP and RTCP packet ``sender``'s transport sends (its own and any other
     sender's on the same transport, as with BUNDLE) wait ``await pacer.before_send(data)``
-    first (the plain packet, before SRTP), and not be sent if that returns False. Once per
-    transport; a later call gives it this ``pacer`` instead."""
+    first (the plain packet, before SRTP), and not be sent if that returns False; after it
+    is sent, ``pacer.after_send(data, send)`` (if the pacer has it) may send it again with
+    ``send``, the transport's own. Once per transport; a later call gives it this ``pacer``
+    instead."""
     transport = sender.transport
     _check(transport, _TRANSPORT_SEND_RTP, None)
     if getattr(transport, _PACER, None) is None:
@@ -218,6 +220,9 @@ def pace_sender(sender: RTCRtpSender, pacer: Any) -> None:
             if current is not None and await current.before_send(data) is False:
                 return
             await send(data)
+            after = getattr(current, "after_send", None)
+            if after is not None:
+                after(data, send)
 
         setattr(transport, _TRANSPORT_SEND_RTP, paced)
     setattr(transport, _PACER, pacer)

@@ -137,6 +137,11 @@ class FollowerVideoConfig(ConfigModel):
         return getattr(getattr(self, track), "backend", "") == "sim"
 
     degrade: DegradeConfig = DegradeConfig()
+    duplicate_repairs: bool = Field(
+        True,
+        description="on a link the expert reports losing 2 % or more, send each "
+        "retransmission twice, 5 ms apart (humantele.media.pacer): a lost repair is a freeze",
+    )  # fmt: skip
     us_bitrate: UsBitrateConfig = UsBitrateConfig()
     pov_bitrate: PovBitrateConfig = PovBitrateConfig()
     process: bool = Field(
