@@ -11,7 +11,14 @@ import pytest
 from aiortc import RTCPeerConnection
 
 from humantele.media.aiortc_hooks import pace_sender
-from humantele.media.pacer import BURST_S, DUP_AFTER_S, DUP_HOLD_S, MIN_RATE_BPS, Pacer
+from humantele.media.pacer import (
+    BURST_S,
+    DUP_AFTER_S,
+    DUP_HOLD_S,
+    DUP_LOSS,
+    MIN_RATE_BPS,
+    Pacer,
+)
 
 
 class Clock:
@@ -108,19 +115,27 @@ async def _through(pacer: Pacer, wire: Wire, data: bytes) -> None:
         await asyncio.gather(*list(pacer._dup_tasks))
 
 
-async def test_on_a_lossy_link_each_retransmission_leaves_twice_spaced_and_counted():
+async def _new(pacer: Pacer, wire: Wire, first: int, n: int) -> int:
+    for seq in range(first, first + n):
+        await _through(pacer, wire, rtp(seq))
+    return first + n
+
+
+async def test_on_a_reported_lossy_link_each_retransmission_leaves_twice_spaced_and_counted():
     clock = Clock()
     wire = Wire(clock)
     loss: list[float | None] = [None]
-    pacer = Pacer(lambda: 10_000_000.0, clock=clock, sleep=clock.sleep, rtt_s=lambda: 0.12,
+    pacer = Pacer(lambda: 1e9, clock=clock, sleep=clock.sleep, rtt_s=lambda: 0.12,
                   loss=lambda: loss[0])  # fmt: skip
-    for i in range(10):
-        await _through(pacer, wire, rtp(i))
+    nxt = await _new(pacer, wire, 0, 300)  # few repairs asked for: the share stays low
     await _through(pacer, wire, rtp(3))  # no report yet: one copy
     assert [d for _, d in wire.sent].count(rtp(3)) == 2 and pacer.dups == 0
+    nxt = await _new(pacer, wire, nxt, 300)
     loss[0] = 0.01  # below the threshold: one copy
     await _through(pacer, wire, rtp(4))
     assert [d for _, d in wire.sent].count(rtp(4)) == 2 and pacer.dups == 0
+    nxt = await _new(pacer, wire, nxt, 300)
+    assert pacer.asked_share < DUP_LOSS
     loss[0] = 0.03  # a lossy link: a retransmission leaves twice, DUP_AFTER_S apart
     wire.sent.clear()
     await _through(pacer, wire, rtp(5))
@@ -130,9 +145,10 @@ async def test_on_a_lossy_link_each_retransmission_leaves_twice_spaced_and_count
     assert pacer.resent_bytes == 3 * 1200  # the first copies: the repair's cost is counted
     # new media packets and RTCP are never repeated, however lossy the link
     wire.sent.clear()
-    for data in (rtp(10), rtp(11), rtcp_rr()):
-        await _through(pacer, wire, data)
-    assert [d for _, d in wire.sent] == [rtp(10), rtp(11), rtcp_rr()] and pacer.dups == 1
+    await _through(pacer, wire, rtp(nxt))
+    await _through(pacer, wire, rtcp_rr())
+    assert [d for _, d in wire.sent] == [rtp(nxt), rtcp_rr()] and pacer.dups == 1
+    nxt += 1
     # the copy counts against the rate: the next new packet waits for it too
     assert pacer.free_at >= wire.sent[-1][0]
     # a retransmission the pacer holds back (asked again within the round trip): no copy
@@ -147,6 +163,28 @@ async def test_on_a_lossy_link_each_retransmission_leaves_twice_spaced_and_count
     wire.sent.clear()
     await _through(pacer, wire, rtp(7))
     assert [d for _, d in wire.sent] == [rtp(7)] and pacer.dups == 2
+
+
+async def test_a_link_whose_repairs_are_asked_for_often_is_lossy_without_a_report():
+    # the expert's RTCP reports count a repaired packet as received: on a link whose repairs
+    # arrive they report little loss; the share of packets asked for again is the measure
+    clock = Clock()
+    wire = Wire(clock)
+    pacer = Pacer(lambda: 1e9, clock=clock, sleep=clock.sleep, rtt_s=lambda: 0.12)
+    nxt = await _new(pacer, wire, 0, 200)
+    asks = 0
+    while pacer.dups == 0:  # a repair every few packets: 4 % of them
+        asks += 1
+        await _through(pacer, wire, rtp(nxt - 10))
+        nxt = await _new(pacer, wire, nxt, 24)
+    assert 3 <= asks <= 10  # lossy within a few repairs of 4 % loss, not at the first
+    assert pacer.asked_share >= DUP_LOSS
+    # the loss ends: the share decays, and after DUP_HOLD_S a repair leaves once
+    nxt = await _new(pacer, wire, nxt, 600)
+    clock.now += DUP_HOLD_S
+    dups = pacer.dups
+    await _through(pacer, wire, rtp(nxt - 10))
+    assert pacer.dups == dups and pacer.asked_share < DUP_LOSS
 
 
 async def test_duplicates_can_be_turned_off():

@@ -139,8 +139,9 @@ class FollowerVideoConfig(ConfigModel):
     degrade: DegradeConfig = DegradeConfig()
     duplicate_repairs: bool = Field(
         True,
-        description="on a link the expert reports losing 2 % or more, send each "
-        "retransmission twice, 5 ms apart (humantele.media.pacer): a lost repair is a freeze",
+        description="on a lossy link (2 % or more of the packets asked for again, or reported "
+        "lost), send each retransmission twice, 5 ms apart (humantele.media.pacer): a lost "
+        "repair is a freeze",
     )  # fmt: skip
     us_bitrate: UsBitrateConfig = UsBitrateConfig()
     pov_bitrate: PovBitrateConfig = PovBitrateConfig()

@@ -27,9 +27,11 @@ a lossy link of 120 ms or more each lost packet was asked for, and sent, several
 one round trip, all at once and unpaced (a 12 s run at 60 ms, 3 % loss, 1500 kbit/s: 773
 packets sent at once against 253 paced, and 915 tail drops).
 
-On a link the expert reports as lossy (``loss()``, the worst fraction lost of the last RTCP
-receiver reports, at least :data:`DUP_LOSS` within the last :data:`DUP_HOLD_S`), each
-retransmission is sent twice, the copy :data:`DUP_AFTER_S` after the first (through the send
+On a lossy link (within the last :data:`DUP_HOLD_S`, the expert asked for :data:`DUP_LOSS` or
+more of the packets sent again, averaged over about :data:`DUP_WINDOW` packets, or its RTCP
+receiver reports, ``loss()``, said it lost that much: they count a repaired packet as
+received, so on a link whose repairs arrive they say little), each retransmission is sent
+twice, the copy :data:`DUP_AFTER_S` after the first (through the send
 :func:`~humantele.media.aiortc_hooks.pace_sender` gives :meth:`Pacer.after_send`), so that a
 repair is lost only if both copies are (3 % of 3 % of a packet's: a lost repair is a gap given
 up, a keyframe asked for and a freeze, where a second round trip of asking does not fit the
@@ -52,7 +54,8 @@ RESEND_RTT_SHARE = 0.75  # nor within this share of the round trip
 RESENT_KEPT = 1024  # retransmissions remembered (per pacer)
 DUP_LOSS = 0.02  # a link reported losing this share or more gets every retransmission twice
 DUP_AFTER_S = 0.005  # the second copy leaves this long after the first (s)
-DUP_HOLD_S = 5.0  # a link stays lossy this long after a report said so (s)
+DUP_HOLD_S = 5.0  # a link stays lossy this long after it last looked so (s)
+DUP_WINDOW = 200  # the share of packets asked for again: averaged over about this many
 
 
 def _rtp_stream(data: bytes) -> tuple[int, int] | None:
@@ -97,6 +100,7 @@ class Pacer:
         self.dups = 0  # second copies of retransmissions sent (a lossy link)
         self.dup_bytes = 0
         self._lossy_until = -float("inf")  # (clock, s)
+        self.asked_share = 0.0  # retransmissions asked for per new packet (moving average)
         self._dup_next: tuple[int, int] | None = None  # the resend after_send is to repeat
         self._dup_tasks: set[asyncio.Task] = set()
 
@@ -140,13 +144,14 @@ class Pacer:
         return True
 
     def lossy(self, now: float) -> bool:
-        """Whether the link loses :data:`DUP_LOSS` or more (a report within
-        :data:`DUP_HOLD_S` said so)."""
+        """Whether the link loses :data:`DUP_LOSS` or more: the share of packets asked for
+        again or the expert's report said so within :data:`DUP_HOLD_S`."""
         try:
             loss = self.loss()
         except Exception:  # noqa: BLE001 - no report read: as none
             loss = None
-        if isinstance(loss, float | int) and loss == loss and loss >= DUP_LOSS:
+        reported = isinstance(loss, float | int) and loss == loss and loss >= DUP_LOSS
+        if reported or self.asked_share >= DUP_LOSS:
             self._lossy_until = now + DUP_HOLD_S
         return now < self._lossy_until
 
@@ -159,9 +164,12 @@ class Pacer:
         if kind == "resend" and stream is not None:
             if not self._resend_wanted(stream, now):
                 return False
+            self.asked_share += 1.0 / DUP_WINDOW
             self.resent_bytes += len(data)
             if self.duplicate and self.lossy(now):
                 self._dup_next = stream
+        elif kind == "new":
+            self.asked_share *= 1.0 - 1.0 / DUP_WINDOW
         start = max(now, self.free_at)
         self.free_at = start + len(data) * 8.0 / self._rate()
         if kind != "new":
