@@ -179,6 +179,11 @@ class ExpertVideoConfig(ConfigModel):
         description="a lost packet is waited for this long (its retransmission) before the "
         "frames up to the next keyframe are dropped and a keyframe asked for",
     )  # fmt: skip
+    repeat_nacks: bool = Field(
+        True,
+        description="send each NACK (a request for lost packets) twice, 5 ms apart: a lost "
+        "NACK is a repair asked for a round trip late (humantele.media.aiortc_hooks)",
+    )
     record_frames: bool = Field(True, description="record every received frame's timestamps")
     record_encoded: bool = Field(
         True,
