@@ -187,6 +187,24 @@ async def test_a_link_whose_repairs_are_asked_for_often_is_lossy_without_a_repor
     assert pacer.dups == dups and pacer.asked_share < DUP_LOSS
 
 
+async def test_interleaved_sends_repeat_only_the_retransmissions():
+    # the hook awaits the send between before_send and after_send: another packet may pass
+    clock = Clock()
+    wire = Wire(clock)
+    pacer = Pacer(lambda: 1e9, clock=clock, sleep=clock.sleep, loss=lambda: 0.05)
+    await _new(pacer, wire, 0, 20)
+    wire.sent.clear()
+    for data in (rtp(3), rtp(20), rtp(4)):  # a resend, a new packet, a resend: all asked
+        assert await pacer.before_send(data)
+    for data in (rtp(20), rtp(4), rtp(3)):  # sent in another order
+        await wire(data)
+        pacer.after_send(data, wire)
+    await asyncio.gather(*list(pacer._dup_tasks))
+    sent = [d for _, d in wire.sent]
+    assert sent.count(rtp(3)) == 2 and sent.count(rtp(4)) == 2 and sent.count(rtp(20)) == 1
+    assert pacer.dups == 2 and not pacer._dup_due
+
+
 async def test_duplicates_can_be_turned_off():
     clock = Clock()
     wire = Wire(clock)

@@ -101,7 +101,7 @@ class Pacer:
         self.dup_bytes = 0
         self._lossy_until = -float("inf")  # (clock, s)
         self.asked_share = 0.0  # retransmissions asked for per new packet (moving average)
-        self._dup_next: tuple[int, int] | None = None  # the resend after_send is to repeat
+        self._dup_due: set[tuple[int, int]] = set()  # resends after_send is to repeat
         self._dup_tasks: set[asyncio.Task] = set()
 
     def _rate(self) -> float:
@@ -160,14 +160,15 @@ class Pacer:
         do not send it (a retransmission repeated within a round trip)."""
         now = self.clock()
         kind, stream = self._kind(data)
-        self._dup_next = None
         if kind == "resend" and stream is not None:
             if not self._resend_wanted(stream, now):
                 return False
             self.asked_share += 1.0 / DUP_WINDOW
             self.resent_bytes += len(data)
             if self.duplicate and self.lossy(now):
-                self._dup_next = stream
+                if len(self._dup_due) > RESENT_KEPT:  # sends that failed: never after_send
+                    self._dup_due.clear()
+                self._dup_due.add(stream)
         elif kind == "new":
             self.asked_share *= 1.0 - 1.0 / DUP_WINDOW
         start = max(now, self.free_at)
@@ -190,9 +191,10 @@ class Pacer:
         """After ``data`` was sent: if :meth:`before_send` found it a retransmission on a
         lossy link, send it again with ``send`` :data:`DUP_AFTER_S` later (in a task: the
         receive path that sent it does not wait)."""
-        stream, self._dup_next = self._dup_next, None
-        if stream is None or _rtp_stream(data) != stream:
+        stream = _rtp_stream(data)
+        if stream is None or stream not in self._dup_due:
             return
+        self._dup_due.discard(stream)
         task = asyncio.ensure_future(self._send_copy(data, send))
         self._dup_tasks.add(task)
         task.add_done_callback(self._dup_tasks.discard)
