@@ -138,10 +138,11 @@ class FollowerVideoConfig(ConfigModel):
 
     degrade: DegradeConfig = DegradeConfig()
     duplicate_repairs: bool = Field(
-        True,
+        False,
         description="on a lossy link (2 % or more of the packets asked for again, or reported "
         "lost), send each retransmission twice, 5 ms apart (humantele.media.pacer): a lost "
-        "repair is a freeze",
+        "repair is a freeze; off until a quiet machine shows it pays (docs/video.md, "
+        "issue 31's fifth pass)",
     )  # fmt: skip
     us_bitrate: UsBitrateConfig = UsBitrateConfig()
     pov_bitrate: PovBitrateConfig = PovBitrateConfig()
@@ -180,9 +181,10 @@ class ExpertVideoConfig(ConfigModel):
         "frames up to the next keyframe are dropped and a keyframe asked for",
     )  # fmt: skip
     repeat_nacks: bool = Field(
-        True,
+        False,
         description="send each NACK (a request for lost packets) twice, 5 ms apart: a lost "
-        "NACK is a repair asked for a round trip late (humantele.media.aiortc_hooks)",
+        "NACK is a repair asked for a round trip late (humantele.media.aiortc_hooks); off "
+        "until a quiet machine shows it pays (docs/video.md, issue 31's fifth pass)",
     )
     record_frames: bool = Field(True, description="record every received frame's timestamps")
     record_encoded: bool = Field(
