@@ -216,3 +216,53 @@ def test_the_tap_sends_the_nacks_its_buffer_asks_for_between_packets():
     tap.add(RtpPacket(sequence_number=5, ssrc=1234))
     tap.poll()
     assert sent == [(1234, [7])] and tap.buffer.polled == 2
+
+
+async def test_each_nack_a_receiver_sends_leaves_twice():
+    """aiortc's own NACK at a new gap and request_retransmission's both go through the
+    receiver's ``_send_rtcp_nack``: each leaves again ``after_s`` later, counted; a PLI not."""
+    from aiortc.rtp import RtcpPacket, RtcpPsfbPacket, RtcpRtpfbPacket
+
+    from humantele.media.aiortc_hooks import repeat_nacks, request_keyframe
+
+    pc = RTCPeerConnection()
+    try:
+        receiver = pc.addTransceiver("video").receiver
+        receiver._RTCRtpReceiver__rtcp_ssrc = 99  # as after negotiation
+        sent: list[tuple[float, bytes]] = []
+        now = [0.0]
+
+        async def fake_send_rtcp(packet) -> None:  # in place of the transport
+            sent.append((now[0], bytes(packet)))
+
+        async def sleep(s: float) -> None:
+            now[0] += s
+
+        receiver._send_rtcp = fake_send_rtcp
+        repeats = []
+        repeat_nacks(receiver, 0.005, lambda: repeats.append(now[0]), sleep=sleep)
+        await receiver._send_rtcp_nack(1234, [5, 7])  # as aiortc's receive path calls it
+        await aiortc_hooks.request_retransmission(receiver, 1234, [9])
+        await asyncio.gather(*receiver._send_rtcp_nack.tasks)
+        nacks = [(t, RtcpPacket.parse(d)[0]) for t, d in sent]
+        assert all(isinstance(p, RtcpRtpfbPacket) for _, p in nacks)
+        assert sorted(p.lost for _, p in nacks) == [[5, 7], [5, 7], [9], [9]]
+        assert [t for t, _ in nacks] == [0.0, 0.0, 0.005, 0.01] and len(repeats) == 2
+        sent.clear()
+        await request_keyframe(receiver, 1234)  # other RTCP: once
+        assert len(sent) == 1 and isinstance(RtcpPacket.parse(sent[0][1])[0], RtcpPsfbPacket)
+        assert not receiver._send_rtcp_nack.tasks
+    finally:
+        await pc.close()
+
+
+async def test_the_expert_repeats_its_nacks_unless_told_not_to():
+    for on in (True, False):
+        rx = VideoReceiver(ExpertVideoConfig(enabled=True, repeat_nacks=on), ClockSync())
+        pc = RTCPeerConnection()
+        try:
+            rx.prepare(pc)
+            for receiver in rx._receivers.values():
+                assert hasattr(receiver._send_rtcp_nack, "tasks") is on
+        finally:
+            await pc.close()

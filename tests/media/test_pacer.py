@@ -4,13 +4,21 @@ and its hook on a real aiortc sender's transport."""
 
 from __future__ import annotations
 
+import asyncio
 import struct
 
 import pytest
 from aiortc import RTCPeerConnection
 
 from humantele.media.aiortc_hooks import pace_sender
-from humantele.media.pacer import BURST_S, MIN_RATE_BPS, Pacer
+from humantele.media.pacer import (
+    BURST_S,
+    DUP_AFTER_S,
+    DUP_HOLD_S,
+    DUP_LOSS,
+    MIN_RATE_BPS,
+    Pacer,
+)
 
 
 class Clock:
@@ -87,6 +95,126 @@ async def test_a_retransmission_is_not_repeated_within_a_round_trip():
     assert await pacer.before_send(rtcp_rr()) is True  # RTCP is never held back
 
 
+class Wire:
+    """The transport's own send: what left, and when (on the hand clock)."""
+
+    def __init__(self, clock: Clock) -> None:
+        self.clock = clock
+        self.sent: list[tuple[float, bytes]] = []
+
+    async def __call__(self, data: bytes) -> None:
+        self.sent.append((self.clock.now, data))
+
+
+async def _through(pacer: Pacer, wire: Wire, data: bytes) -> None:
+    """As the hook does: ask the pacer, send, let it repeat; then run its copies."""
+    if await pacer.before_send(data):
+        await wire(data)
+        pacer.after_send(data, wire)
+    if pacer._dup_tasks:
+        await asyncio.gather(*list(pacer._dup_tasks))
+
+
+async def _new(pacer: Pacer, wire: Wire, first: int, n: int) -> int:
+    for seq in range(first, first + n):
+        await _through(pacer, wire, rtp(seq))
+    return first + n
+
+
+async def test_on_a_reported_lossy_link_each_retransmission_leaves_twice_spaced_and_counted():
+    clock = Clock()
+    wire = Wire(clock)
+    loss: list[float | None] = [None]
+    pacer = Pacer(lambda: 1e9, clock=clock, sleep=clock.sleep, rtt_s=lambda: 0.12,
+                  loss=lambda: loss[0])  # fmt: skip
+    nxt = await _new(pacer, wire, 0, 300)  # few repairs asked for: the share stays low
+    await _through(pacer, wire, rtp(3))  # no report yet: one copy
+    assert [d for _, d in wire.sent].count(rtp(3)) == 2 and pacer.dups == 0
+    nxt = await _new(pacer, wire, nxt, 300)
+    loss[0] = 0.01  # below the threshold: one copy
+    await _through(pacer, wire, rtp(4))
+    assert [d for _, d in wire.sent].count(rtp(4)) == 2 and pacer.dups == 0
+    nxt = await _new(pacer, wire, nxt, 300)
+    assert pacer.asked_share < DUP_LOSS
+    loss[0] = 0.03  # a lossy link: a retransmission leaves twice, DUP_AFTER_S apart
+    wire.sent.clear()
+    await _through(pacer, wire, rtp(5))
+    assert [d for _, d in wire.sent] == [rtp(5), rtp(5)]
+    assert wire.sent[1][0] - wire.sent[0][0] == pytest.approx(DUP_AFTER_S)
+    assert pacer.dups == 1 and pacer.dup_bytes == 1200
+    assert pacer.resent_bytes == 3 * 1200  # the first copies: the repair's cost is counted
+    # new media packets and RTCP are never repeated, however lossy the link
+    wire.sent.clear()
+    await _through(pacer, wire, rtp(nxt))
+    await _through(pacer, wire, rtcp_rr())
+    assert [d for _, d in wire.sent] == [rtp(nxt), rtcp_rr()] and pacer.dups == 1
+    nxt += 1
+    # the copy counts against the rate: the next new packet waits for it too
+    assert pacer.free_at >= wire.sent[-1][0]
+    # a retransmission the pacer holds back (asked again within the round trip): no copy
+    wire.sent.clear()
+    await _through(pacer, wire, rtp(5))
+    assert wire.sent == [] and pacer.dups == 1
+    # a report without loss: still lossy for DUP_HOLD_S, then one copy again
+    loss[0] = 0.0
+    await _through(pacer, wire, rtp(6))
+    assert pacer.dups == 2
+    clock.now += DUP_HOLD_S
+    wire.sent.clear()
+    await _through(pacer, wire, rtp(7))
+    assert [d for _, d in wire.sent] == [rtp(7)] and pacer.dups == 2
+
+
+async def test_a_link_whose_repairs_are_asked_for_often_is_lossy_without_a_report():
+    # the expert's RTCP reports count a repaired packet as received: on a link whose repairs
+    # arrive they report little loss; the share of packets asked for again is the measure
+    clock = Clock()
+    wire = Wire(clock)
+    pacer = Pacer(lambda: 1e9, clock=clock, sleep=clock.sleep, rtt_s=lambda: 0.12)
+    nxt = await _new(pacer, wire, 0, 200)
+    asks = 0
+    while pacer.dups == 0:  # a repair every few packets: 4 % of them
+        asks += 1
+        await _through(pacer, wire, rtp(nxt - 10))
+        nxt = await _new(pacer, wire, nxt, 24)
+    assert 3 <= asks <= 10  # lossy within a few repairs of 4 % loss, not at the first
+    assert pacer.asked_share >= DUP_LOSS
+    # the loss ends: the share decays, and after DUP_HOLD_S a repair leaves once
+    nxt = await _new(pacer, wire, nxt, 600)
+    clock.now += DUP_HOLD_S
+    dups = pacer.dups
+    await _through(pacer, wire, rtp(nxt - 10))
+    assert pacer.dups == dups and pacer.asked_share < DUP_LOSS
+
+
+async def test_interleaved_sends_repeat_only_the_retransmissions():
+    # the hook awaits the send between before_send and after_send: another packet may pass
+    clock = Clock()
+    wire = Wire(clock)
+    pacer = Pacer(lambda: 1e9, clock=clock, sleep=clock.sleep, loss=lambda: 0.05)
+    await _new(pacer, wire, 0, 20)
+    wire.sent.clear()
+    for data in (rtp(3), rtp(20), rtp(4)):  # a resend, a new packet, a resend: all asked
+        assert await pacer.before_send(data)
+    for data in (rtp(20), rtp(4), rtp(3)):  # sent in another order
+        await wire(data)
+        pacer.after_send(data, wire)
+    await asyncio.gather(*list(pacer._dup_tasks))
+    sent = [d for _, d in wire.sent]
+    assert sent.count(rtp(3)) == 2 and sent.count(rtp(4)) == 2 and sent.count(rtp(20)) == 1
+    assert pacer.dups == 2 and not pacer._dup_due
+
+
+async def test_duplicates_can_be_turned_off():
+    clock = Clock()
+    wire = Wire(clock)
+    pacer = Pacer(lambda: 10_000_000.0, clock=clock, sleep=clock.sleep, loss=lambda: 0.2,
+                  duplicate=False)  # fmt: skip
+    for seq in (0, 1, 2, 0):
+        await _through(pacer, wire, rtp(seq))
+    assert len(wire.sent) == 4 and pacer.dups == 0 and pacer.figures()["dups"] == 0
+
+
 async def test_streams_are_told_apart_and_sequence_numbers_wrap():
     clock = Clock()
     pacer = Pacer(lambda: 10_000_000.0, clock=clock, sleep=clock.sleep)
@@ -145,5 +273,13 @@ async def test_the_hook_paces_what_a_real_sender_transport_sends():
         await b.transport._send_rtp(rtp(1))
         await b.transport._send_rtp(rtp(2))
         assert seen == [rtp(1), rtp(2)] and sent == [rtp(1)]
+        clock = Clock()
+        pacer = Pacer(lambda: 1e7, clock=clock, sleep=clock.sleep, loss=lambda: 0.05)
+        pace_sender(a, pacer)
+        sent.clear()
+        for seq in (5, 6, 5):  # 5 again: a retransmission, on a lossy link
+            await b.transport._send_rtp(rtp(seq))
+        await asyncio.gather(*list(pacer._dup_tasks))
+        assert sent == [rtp(5), rtp(6), rtp(5), rtp(5)] and pacer.dups == 1
     finally:
         await pc.close()

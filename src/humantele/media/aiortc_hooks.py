@@ -31,14 +31,17 @@ aiortc (1.16) has no supported way to do these three things, each needed for the
    packets have come: retransmissions of frames already dropped, on a thin link).
 8. :func:`pace_sender`: pace what a sender's transport sends (``humantele.media.pacer``):
    aiortc sends each frame's packets at once, and a thin link's queue drops the burst.
+9. :func:`repeat_nacks`: send each NACK a receiver sends twice, a few ms apart: a lost NACK
+   is a repair asked for a round trip late, past the playout delay on a thin link.
 
 ``tests/media/test_aiortc_hooks.py`` fails if aiortc renames or retypes what these touch.
 """
 
 from __future__ import annotations
 
+import asyncio
 import logging
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from typing import Any
 
 from aiortc import RTCRtpReceiver, RTCRtpSender
@@ -206,8 +209,10 @@ def forget_missing(receiver: RTCRtpReceiver, seqs: list[int]) -> int:
 def pace_sender(sender: RTCRtpSender, pacer: Any) -> None:
     """Make every RTP and RTCP packet ``sender``'s transport sends (its own and any other
     sender's on the same transport, as with BUNDLE) wait ``await pacer.before_send(data)``
-    first (the plain packet, before SRTP), and not be sent if that returns False. Once per
-    transport; a later call gives it this ``pacer`` instead."""
+    first (the plain packet, before SRTP), and not be sent if that returns False; after it
+    is sent, ``pacer.after_send(data, send)`` (if the pacer has it) may send it again with
+    ``send``, the transport's own. Once per transport; a later call gives it this ``pacer``
+    instead."""
     transport = sender.transport
     _check(transport, _TRANSPORT_SEND_RTP, None)
     if getattr(transport, _PACER, None) is None:
@@ -218,6 +223,43 @@ def pace_sender(sender: RTCRtpSender, pacer: Any) -> None:
             if current is not None and await current.before_send(data) is False:
                 return
             await send(data)
+            after = getattr(current, "after_send", None)
+            if after is not None:
+                after(data, send)
 
         setattr(transport, _TRANSPORT_SEND_RTP, paced)
     setattr(transport, _PACER, pacer)
+
+
+def repeat_nacks(
+    receiver: RTCRtpReceiver,
+    after_s: float,
+    on_repeat: Callable[[], Any] | None = None,
+    sleep: Callable[[float], Awaitable[object]] = asyncio.sleep,
+) -> None:
+    """Make every NACK ``receiver`` sends (aiortc's own at a new gap, and
+    :func:`request_retransmission`'s) leave a second time ``after_s`` (s) after the first, in
+    a task (the receive path does not wait); ``on_repeat()`` after each copy sent. The sender
+    answers the copy only if the first was lost (``humantele.media.pacer`` does not repeat a
+    retransmission within a round trip)."""
+    _check(receiver, _RECEIVER_NACK, None)
+    send = getattr(receiver, _RECEIVER_NACK)
+    tasks: set[asyncio.Task] = set()
+
+    async def copy(media_ssrc: int, lost: list[int]) -> None:
+        await sleep(after_s)
+        try:
+            await send(media_ssrc, lost)
+        except Exception:  # noqa: BLE001 - a closed connection: the copy is only a copy
+            return
+        if on_repeat is not None:
+            on_repeat()
+
+    async def twice(media_ssrc: int, lost: list[int]) -> None:
+        await send(media_ssrc, lost)
+        task = asyncio.ensure_future(copy(media_ssrc, list(lost)))
+        tasks.add(task)
+        task.add_done_callback(tasks.discard)
+
+    twice.tasks = tasks  # type: ignore[attr-defined] - for tests, to wait for the copies
+    setattr(receiver, _RECEIVER_NACK, twice)

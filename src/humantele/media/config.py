@@ -137,6 +137,13 @@ class FollowerVideoConfig(ConfigModel):
         return getattr(getattr(self, track), "backend", "") == "sim"
 
     degrade: DegradeConfig = DegradeConfig()
+    duplicate_repairs: bool = Field(
+        False,
+        description="on a lossy link (2 % or more of the packets asked for again, or reported "
+        "lost), send each retransmission twice, 5 ms apart (humantele.media.pacer): a lost "
+        "repair is a freeze; off until a quiet machine shows it pays (docs/video.md, "
+        "issue 31's fifth pass)",
+    )  # fmt: skip
     us_bitrate: UsBitrateConfig = UsBitrateConfig()
     pov_bitrate: PovBitrateConfig = PovBitrateConfig()
     process: bool = Field(
@@ -173,6 +180,12 @@ class ExpertVideoConfig(ConfigModel):
         description="a lost packet is waited for this long (its retransmission) before the "
         "frames up to the next keyframe are dropped and a keyframe asked for",
     )  # fmt: skip
+    repeat_nacks: bool = Field(
+        False,
+        description="send each NACK (a request for lost packets) twice, 5 ms apart: a lost "
+        "NACK is a repair asked for a round trip late (humantele.media.aiortc_hooks); off "
+        "until a quiet machine shows it pays (docs/video.md, issue 31's fifth pass)",
+    )
     record_frames: bool = Field(True, description="record every received frame's timestamps")
     record_encoded: bool = Field(
         True,

@@ -102,6 +102,7 @@ class JitterCounters:
     late_packets: int = 0  # packets older than the last released frame (ignored)
     duplicates: int = 0
     renacks: int = 0  # missing packets asked for again (their NACK or retransmission lost)
+    nacks_repeated: int = 0  # NACKs sent a second time (the receiver's, a few ms later)
     repairs: int = 0  # missing packets that came (a retransmission) within the wait
     late_repairs: int = 0  # missing packets that came after their frame was given up
     plis_held: int = 0  # give-ups while the keyframe asked for was still on its way

@@ -26,6 +26,17 @@ receiver lists every packet still missing in each NACK it sends, one at each new
 a lossy link of 120 ms or more each lost packet was asked for, and sent, several times in
 one round trip, all at once and unpaced (a 12 s run at 60 ms, 3 % loss, 1500 kbit/s: 773
 packets sent at once against 253 paced, and 915 tail drops).
+
+On a lossy link (within the last :data:`DUP_HOLD_S`, the expert asked for :data:`DUP_LOSS` or
+more of the packets sent again, averaged over about :data:`DUP_WINDOW` packets, or its RTCP
+receiver reports, ``loss()``, said it lost that much: they count a repaired packet as
+received, so on a link whose repairs arrive they say little), each retransmission is sent
+twice, the copy :data:`DUP_AFTER_S` after the first (through the send
+:func:`~humantele.media.aiortc_hooks.pace_sender` gives :meth:`Pacer.after_send`), so that a
+repair is lost only if both copies are (3 % of 3 % of a packet's: a lost repair is a gap given
+up, a keyframe asked for and a freeze, where a second round trip of asking does not fit the
+playout delay). New media packets and RTCP are never repeated; the copies' bytes count against
+the rate and in ``dup_bytes``.
 """
 
 from __future__ import annotations
@@ -41,6 +52,10 @@ MAX_DELAY_S = 0.5
 MIN_RESEND_S = 0.02  # a retransmission is not repeated within this, whatever the round trip
 RESEND_RTT_SHARE = 0.75  # nor within this share of the round trip
 RESENT_KEPT = 1024  # retransmissions remembered (per pacer)
+DUP_LOSS = 0.02  # a link reported losing this share or more gets every retransmission twice
+DUP_AFTER_S = 0.005  # the second copy leaves this long after the first (s)
+DUP_HOLD_S = 5.0  # a link stays lossy this long after it last looked so (s)
+DUP_WINDOW = 200  # the share of packets asked for again: averaged over about this many
 
 
 def _rtp_stream(data: bytes) -> tuple[int, int] | None:
@@ -63,9 +78,13 @@ class Pacer:
         sleep: Callable[[float], Awaitable[object]] = asyncio.sleep,
         max_delay_s: float = MAX_DELAY_S,
         rtt_s: Callable[[], float | None] = lambda: None,
+        loss: Callable[[], float | None] = lambda: None,
+        duplicate: bool = True,
     ) -> None:
         self.rate_bps = rate_bps
         self.rtt_s = rtt_s
+        self.loss = loss
+        self.duplicate = duplicate  # repeat retransmissions on a lossy link
         self.clock = clock
         self.sleep = sleep
         self.max_delay_s = max_delay_s
@@ -77,6 +96,13 @@ class Pacer:
         self.waited_s = 0.0  # their total wait (s)
         self.immediate = 0  # retransmissions and RTCP, sent at once
         self.overdue = 0  # packets sent at once because they would have waited too long
+        self.resent_bytes = 0  # retransmissions sent (first copies), bytes
+        self.dups = 0  # second copies of retransmissions sent (a lossy link)
+        self.dup_bytes = 0
+        self._lossy_until = -float("inf")  # (clock, s)
+        self.asked_share = 0.0  # retransmissions asked for per new packet (moving average)
+        self._dup_due: set[tuple[int, int]] = set()  # resends after_send is to repeat
+        self._dup_tasks: set[asyncio.Task] = set()
 
     def _rate(self) -> float:
         try:
@@ -117,13 +143,34 @@ class Pacer:
             del self._resent[next(iter(self._resent))]
         return True
 
+    def lossy(self, now: float) -> bool:
+        """Whether the link loses :data:`DUP_LOSS` or more: the share of packets asked for
+        again or the expert's report said so within :data:`DUP_HOLD_S`."""
+        try:
+            loss = self.loss()
+        except Exception:  # noqa: BLE001 - no report read: as none
+            loss = None
+        reported = isinstance(loss, float | int) and loss == loss and loss >= DUP_LOSS
+        if reported or self.asked_share >= DUP_LOSS:
+            self._lossy_until = now + DUP_HOLD_S
+        return now < self._lossy_until
+
     async def before_send(self, data: bytes) -> bool:
         """Wait, if ``data`` is a new media packet, until its turn; count its size. False:
         do not send it (a retransmission repeated within a round trip)."""
         now = self.clock()
         kind, stream = self._kind(data)
-        if kind == "resend" and stream is not None and not self._resend_wanted(stream, now):
-            return False
+        if kind == "resend" and stream is not None:
+            if not self._resend_wanted(stream, now):
+                return False
+            self.asked_share += 1.0 / DUP_WINDOW
+            self.resent_bytes += len(data)
+            if self.duplicate and self.lossy(now):
+                if len(self._dup_due) > RESENT_KEPT:  # sends that failed: never after_send
+                    self._dup_due.clear()
+                self._dup_due.add(stream)
+        elif kind == "new":
+            self.asked_share *= 1.0 - 1.0 / DUP_WINDOW
         start = max(now, self.free_at)
         self.free_at = start + len(data) * 8.0 / self._rate()
         if kind != "new":
@@ -140,7 +187,31 @@ class Pacer:
             await self.sleep(wait)
         return True
 
+    def after_send(self, data: bytes, send: Callable[[bytes], Awaitable[object]]) -> None:
+        """After ``data`` was sent: if :meth:`before_send` found it a retransmission on a
+        lossy link, send it again with ``send`` :data:`DUP_AFTER_S` later (in a task: the
+        receive path that sent it does not wait)."""
+        stream = _rtp_stream(data)
+        if stream is None or stream not in self._dup_due:
+            return
+        self._dup_due.discard(stream)
+        task = asyncio.ensure_future(self._send_copy(data, send))
+        self._dup_tasks.add(task)
+        task.add_done_callback(self._dup_tasks.discard)
+
+    async def _send_copy(self, data: bytes, send: Callable[[bytes], Awaitable[object]]) -> None:
+        await self.sleep(DUP_AFTER_S)
+        now = self.clock()
+        self.free_at = max(now, self.free_at) + len(data) * 8.0 / self._rate()
+        try:
+            await send(data)
+        except Exception:  # noqa: BLE001 - a closed transport: the copy is only a copy
+            return
+        self.dups += 1
+        self.dup_bytes += len(data)
+
     def figures(self) -> dict[str, float | int]:
         return {"paced": self.paced, "waited_ms": round(1e3 * self.waited_s, 1),
                 "immediate": self.immediate, "overdue": self.overdue,
-                "resends_skipped": self.resends_skipped}  # fmt: skip
+                "resends_skipped": self.resends_skipped, "resent_bytes": self.resent_bytes,
+                "dups": self.dups, "dup_bytes": self.dup_bytes}  # fmt: skip

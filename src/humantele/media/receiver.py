@@ -63,6 +63,7 @@ from humantele.media.aiortc_hooks import (
     EncodedFrameTap,
     forget_missing,
     newest_frame,
+    repeat_nacks,
     request_keyframe,
     request_retransmission,
     use_jitter_buffer,
@@ -82,6 +83,7 @@ log = logging.getLogger(__name__)
 Record = Callable[[str, float, dict], Any]
 INFO_KEEP = 256  # frame records kept per track for matching
 POLL_S = 0.01  # the jitter buffers' re-asks are looked at this often between packets (s)
+NACK_REPEAT_S = 0.005  # each NACK leaves again this long after the first (repeat_nacks, s)
 
 
 KEYFRAME_EVERY_S = 0.5  # keyframe requests of a track (PLI) at most this often
@@ -149,6 +151,15 @@ class ReceivedFrame:
             if self._bgr is None:
                 self._bgr = self.frame.to_ndarray(format="bgr24")
             return self._bgr
+
+
+def _counter(buffer: BoundedJitterBuffer) -> Callable[[], None]:
+    """Counts a NACK sent again in ``buffer``'s counters (``nacks_repeated``)."""
+
+    def count() -> None:
+        buffer.counters.nacks_repeated += 1
+
+    return count
 
 
 def luma_plane(frame: av.VideoFrame) -> np.ndarray:
@@ -337,6 +348,8 @@ class VideoReceiver:
             )
             tap.on_nack = self._renacker(transceiver.receiver)
             tap.on_give_up = functools.partial(forget_missing, transceiver.receiver)
+            if self.config.repeat_nacks:
+                repeat_nacks(transceiver.receiver, NACK_REPEAT_S, _counter(buffer))
             use_jitter_buffer(transceiver.receiver, tap)
             self._taps[name] = tap
             self._receivers[name] = transceiver.receiver

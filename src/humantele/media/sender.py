@@ -256,7 +256,10 @@ class VideoSender:
             "video", negotiated=True, id=VIDEO_CHANNEL_ID, ordered=False, maxRetransmits=0
         )
         self._senders, self._encoders = {}, {}
-        self.pacer = Pacer(self._pace_rate, rtt_s=self._rtt_s)
+        self.pacer = Pacer(
+            self._pace_rate, rtt_s=self._rtt_s, loss=lambda: self.link.get("loss"),
+            duplicate=self.config.duplicate_repairs,
+        )  # fmt: skip
         self._sent_at = None
         self._remb_kbps, self.remb_stale, self._asked_kbps = None, False, 0.0
         videos = [t for t in pc.getTransceivers() if t.kind == "video"]
