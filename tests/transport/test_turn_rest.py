@@ -99,8 +99,15 @@ async def test_an_allocation_outlives_its_credential_but_a_new_one_is_refused(tu
         assert response.attributes["LIFETIME"] == 600
     finally:
         transport.close()
-    with pytest.raises(TransactionFailed, match="401"):
-        await _allocate(turn, entry.username, entry.credential)
+    try:
+        granted = await _allocate(turn, entry.username, entry.credential)
+    except TransactionFailed as exc:
+        assert "401" in str(exc), exc
+    else:  # seen once in a whole suite (16:36 UTC 2026-11-28), not reproduced: say what it was
+        pytest.fail(
+            f"a new allocation with a credential expired {time.time() - entry.expires:.1f} s "
+            f"ago was granted ({granted}); coturn's log:\n{turn.log_tail(6000)}"
+        )
     log = turn.log_tail(200_000)
     assert f"user <{entry.username}>: incoming packet REFRESH processed, success" in log
 
