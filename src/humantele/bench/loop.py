@@ -203,6 +203,13 @@ def shared_cpu(cpu: int | None, default: bool) -> int | None:
     return cpu
 
 
+def _servo_config(seed: int, cpu: int | None) -> ServoConfig:
+    """The loops' configuration: the sim device of ``seed``, pinned to ``cpu`` (None: not)."""
+    return ServoConfig(
+        device=SimDeviceConfig(seed=seed), cpu_affinity=None if cpu is None else [cpu]
+    )
+
+
 def measure(
     seconds: float, load: bool, seed: int = 0, together: bool = False, cpu: int | None = None
 ) -> dict[str, Any]:
@@ -211,9 +218,7 @@ def measure(
     docstring). ``cpu``: the CPU both loops are pinned to (None: the kernel's choice).
     ``ratio``: the servo's periods over 1.5 ms against the bare loop's (+1 each, so that a
     clean run is 1)."""
-    cfg = ServoConfig(
-        device=SimDeviceConfig(seed=seed), cpu_affinity=None if cpu is None else [cpu]
-    )
+    cfg = _servo_config(seed, cpu)
     sp = ServoProcess(cfg, demo_model())
     beside: dict[str, Any] = {}
     with cpu_load(1 if load else 0, time.monotonic() + 2 * seconds + 60):
@@ -278,9 +283,7 @@ def measure_control(
     """Two bare loops side by side for ``seconds`` (``a``, ``b``: each one's figures), under
     the same load, pinned to ``cpu`` (None: the kernel's choice): the spread between identical
     loops on this machine."""
-    cfg = ServoConfig(
-        device=SimDeviceConfig(seed=seed), cpu_affinity=None if cpu is None else [cpu]
-    )
+    cfg = _servo_config(seed, cpu)
     got: dict[str, dict[str, Any]] = {}
     with cpu_load(1 if load else 0, time.monotonic() + seconds + 60):
         t0, steal0 = time.monotonic(), steal_s()

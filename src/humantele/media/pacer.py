@@ -191,6 +191,8 @@ class Pacer:
         """After ``data`` was sent: if :meth:`before_send` found it a retransmission on a
         lossy link, send it again with ``send`` :data:`DUP_AFTER_S` later (in a task: the
         receive path that sent it does not wait)."""
+        if not self._dup_due:  # (every packet passes here: nothing to parse when none is due)
+            return
         stream = _rtp_stream(data)
         if stream is None or stream not in self._dup_due:
             return
