@@ -37,6 +37,40 @@ def descendants(pid: int) -> set[int]:
     return out
 
 
+def pid_alive(pid: int | None) -> bool:
+    """Running (not a zombie) process ``pid``."""
+    if not pid:
+        return False
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return False
+    return state not in ("Z", "X")
+
+
+def children(parent: int) -> dict[int, tuple[str, str]]:
+    """Live (not zombie) children of ``parent``: pid -> (comm, command line)."""
+    out = {}
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            stat = Path(f"/proc/{d}/stat").read_text()
+            comm = Path(f"/proc/{d}/comm").read_text().strip()
+            cmd = Path(f"/proc/{d}/cmdline").read_text().replace("\0", " ")
+        except OSError:
+            continue
+        if int(stat.rsplit(")", 1)[1].split()[1]) == parent and pid_alive(int(d)):
+            out[int(d)] = (comm, cmd)
+    return out
+
+
+def daemon_of(parent: int, role: str) -> int | None:
+    """The running ``humantele <role>`` daemon that ``parent`` (a demo) started (None: none
+    now)."""
+    return next((p for p, (_, cmd) in children(parent).items() if f" {role} " in cmd), None)
+
+
 def resource_tracker(pid: int) -> bool:
     """Whether ``pid`` is a multiprocessing resource tracker: it ends by itself once the
     process it serves is gone, after unlinking the shared memory that process left."""

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from procgroups import descendants
+from procgroups import descendants, pid_alive
 
 HERE = Path(__file__).resolve().parent
 
@@ -45,14 +45,6 @@ def as_a_shell_starts_it() -> None:
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, signal.SIG_DFL)
     signal.pthread_sigmask(signal.SIG_SETMASK, [])
-
-
-def alive(pid: int) -> bool:
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat.rsplit(")", 1)[1].split()[0] != "Z"
 
 
 @pytest.mark.slow
@@ -89,9 +81,9 @@ def test_stopping_pytest_kills_what_its_tests_started(tmp_path, sig):
                 + "; ".join(x for x in status if x.startswith(("State", "Sig", "ShdPnd")))
             ) from None
         t_end = time.monotonic() + 30
-        while any(alive(p) for p in started) and time.monotonic() < t_end:
+        while any(pid_alive(p) for p in started) and time.monotonic() < t_end:
             time.sleep(0.1)
-        assert not [p for p in started if alive(p)], "left running after pytest stopped"
+        assert not [p for p in started if pid_alive(p)], "left running after pytest stopped"
         # the leader's resource tracker was left to unlink what the killed leader made
         assert not Path("/dev/shm", shmfile.read_text()).exists()
     finally:

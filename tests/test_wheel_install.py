@@ -32,7 +32,7 @@ from pathlib import Path
 import pytest
 
 from humantele.demo_status import poses_flowing
-from procgroups import descendants
+from procgroups import daemon_of, descendants, pid_alive
 from session_slot import whole_session_slot
 
 REPO = Path(__file__).resolve().parents[1]
@@ -148,30 +148,6 @@ def test_wheel_holds_every_data_file_of_the_package_and_nothing_from_configs(whe
     assert not _foreign(sorted(names)), _foreign(sorted(names))  # built from the whole checkout
 
 
-def pid_alive(pid: int) -> bool:
-    """Running (not a zombie) process ``pid``."""
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except (OSError, IndexError):
-        return False
-    return state not in ("Z", "X")
-
-
-def _daemon(demo: int, role: str) -> int | None:
-    """The running ``humantele <role>`` daemon the demo ``demo`` started (None: none now)."""
-    for d in Path("/proc").iterdir():
-        if not d.name.isdigit():
-            continue
-        try:
-            ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            cmd = (d / "cmdline").read_text().replace("\0", " ")
-        except (OSError, IndexError, ValueError):
-            continue
-        if ppid == demo and f" {role} " in cmd and pid_alive(int(d.name)):
-            return int(d.name)
-    return None
-
-
 @dataclass
 class InstalledDemo:
     """What the installed demo did (:func:`installed_demo`)."""
@@ -264,7 +240,7 @@ def _run_installed_demo(wheel: Path, tmp_path: Path) -> InstalledDemo:
             flowed = any(poses_flowing(ln) for ln in list(err))
             time.sleep(0.5)  # (a status line every 2 s)
         if flowed:
-            killed = _daemon(demo.pid, "follower")
+            killed = daemon_of(demo.pid, "follower")
         if killed is not None:
             os.kill(killed, signal.SIGKILL)
             # its status lines from the kill on: the follower back and poses flowing again
@@ -277,7 +253,7 @@ def _run_installed_demo(wheel: Path, tmp_path: Path) -> InstalledDemo:
                        for ln in lines):  # fmt: skip
                     break
                 time.sleep(0.5)
-            new = _daemon(demo.pid, "follower")
+            new = daemon_of(demo.pid, "follower")
         seen |= descendants(demo.pid)
         demo.send_signal(signal.SIGTERM)  # to the demo alone
         demo.wait(120)  # the demo's daemons get 20 s each to stop

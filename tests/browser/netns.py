@@ -89,10 +89,14 @@ def _logs(out_dir: Path, tail: int = 4000) -> dict[str, str]:
     return logs
 
 
+GROUPS_FILE = "own_groups"  # in a scenario's output: the process groups of its own-group demos
+
+
 def own_groups(out_dir: Path) -> list[int]:
-    """The process groups a scenario's demos started on their own (``stage.GROUPS_FILE``)."""
+    """The process groups a scenario's demos started on their own (``stage.DemoRun``, noted
+    in :data:`GROUPS_FILE`)."""
     try:
-        text = (out_dir / "own_groups").read_text()
+        text = (out_dir / GROUPS_FILE).read_text()
     except OSError:
         return []
     return [int(x) for x in text.split() if x.isdigit()]

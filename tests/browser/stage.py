@@ -29,7 +29,7 @@ from playwright.async_api import Browser, BrowserContext, Page, async_playwright
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE.parent / "session"), str(HERE.parent)]  # its helpers, and tests/'s
 
-from netns import chromium_path  # noqa: E402
+from netns import GROUPS_FILE, chromium_path  # noqa: E402
 from session_helpers import CONSOLE_KEY, PAIRING_CODE, Session, read_json  # noqa: E402
 
 from session_slot import scaled  # noqa: E402
@@ -325,9 +325,6 @@ def console_url(expert_stats: dict) -> str | None:
     stats never carry it)."""
     url = (expert_stats.get("console") or {}).get("url")
     return f"{url}#key={CONSOLE_KEY}" if url else None
-
-
-GROUPS_FILE = "own_groups"  # in a scenario's output: the process groups of its own-group demos
 
 
 class DemoRun:

@@ -11,6 +11,7 @@ from humantele.video.counter import read_counter
 
 @pytest.fixture(scope="module")
 def run(browser_scenario):
+    # (session_helpers.VIDEO_DEMO_TIMEOUT_S: the same run, whichever module asks first)
     return browser_scenario("console_video", timeout_s=900.0)
 
 

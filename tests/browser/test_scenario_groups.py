@@ -6,8 +6,7 @@ import os
 import subprocess
 import sys
 
-from netns import kill_groups, own_groups
-from stage import GROUPS_FILE
+from netns import GROUPS_FILE, kill_groups, own_groups
 
 
 def test_a_noted_own_group_is_killed_with_the_runner(tmp_path):

@@ -22,7 +22,7 @@ from humantele.follower.calibration import CALIBRATION_FILE, build_calibration
 from humantele.follower.sim_human import SimPatient
 from humantele.recording import read_recording
 from humantele.signaling.server import SignalConfig, SignalingServer
-from procgroups import descendants, resource_tracker
+from procgroups import daemon_of, descendants, pid_alive, resource_tracker
 from session_slot import scaled, whole_session_slot
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -36,17 +36,6 @@ def read_json(path: Path) -> dict:
         return json.loads(path.read_text())
     except (OSError, ValueError):
         return {}
-
-
-def pid_alive(pid: int | None) -> bool:
-    """Running (not a zombie) process ``pid``."""
-    if not pid:
-        return False
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except (OSError, IndexError):
-        return False
-    return state not in ("Z", "X")
 
 
 class Session:
@@ -189,23 +178,6 @@ async def session(tmp_path):
             await s.close()
 
 
-def children(parent: int) -> dict[int, tuple[str, str]]:
-    """Live (not zombie) children of ``parent``: pid -> (comm, command line)."""
-    out = {}
-    for d in os.listdir("/proc"):
-        if not d.isdigit():
-            continue
-        try:
-            stat = Path(f"/proc/{d}/stat").read_text()
-            comm = Path(f"/proc/{d}/comm").read_text().strip()
-            cmd = Path(f"/proc/{d}/cmdline").read_text().replace("\0", " ")
-        except OSError:
-            continue
-        if int(stat.rsplit(")", 1)[1].split()[1]) == parent and pid_alive(int(d)):
-            out[int(d)] = (comm, cmd)
-    return out
-
-
 class DemoLines:
     """``humantele demo ARGS`` in its own session (process group), read status line by status
     line (stderr, every 2 s with ``--json``); every process of the demo's is kept in
@@ -234,8 +206,7 @@ class DemoLines:
 
     def daemon(self, role: str) -> int | None:
         """The running ``humantele <role>`` daemon of the demo's (None: none now)."""
-        found = children(self.proc.pid).items()
-        return next((p for p, (_, cmd) in found if f" {role} " in cmd), None)
+        return daemon_of(self.proc.pid, role)
 
     def left_running(self, wait_s: float = 10.0) -> list[int]:
         """The demo's processes still running after up to ``wait_s``."""

@@ -12,9 +12,10 @@ import signal
 from pathlib import Path
 
 import pytest
-from session_helpers import DemoLines, children, descendants
+from session_helpers import DemoLines
 
 from humantele.demo_status import poses_flowing
+from procgroups import children, descendants
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow, pytest.mark.whole_session]
 
