@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from exam_helpers import PATIENT, frame, jpeg
 from pydicom import dcmread
+from pydicom.uid import generate_uid
 
 from humantele.archive import objects as obj
 from humantele.archive.config import ArchiveConfig
@@ -140,7 +141,7 @@ def test_the_session_s_captures_arrive_under_the_patient_study_and_series(tmp_pa
     conn = a.forwarder.sender.connect()
     try:
         assert conn.has(items[0]) is True
-        items[0].sop = items[0].sop + ".9"
+        items[0].sop = generate_uid()  # a valid UID (<= 64 characters) it never got
         assert conn.has(items[0]) is False
     finally:
         conn.close()
