@@ -80,8 +80,11 @@ def test_stale_when_the_expert_is_killed_and_live_again_on_rejoin(run):
     assert k["cue"] == "stale" and k["headline"] == "Guide paused: not live"
     assert "Hold the probe still" in k["detail"] and not k["guide"]["live"]
     assert k["colour"] == GREY
+    # the sonographer row agrees: not "connected" while the guide is not live
+    assert k["link"] != "connected" and k["link"] != "", k["link"]
     r = run.data["rejoined"]
     assert r["guide"]["live"] and r["cue"] in ("green", "amber", "red")
+    assert r["link"] == "connected"
 
 
 @pytest.mark.slow

@@ -102,6 +102,17 @@ export function guideState(state, nowMs) {
   return { live: true, ageMs, reason: '' };
 }
 
+// The HUD's "sonographer" row: the link's state, or how long the sonographer has been silent
+// when the guide went stale on a link still called connected (a killed expert's link stays
+// "connected" until the transport notices it, a second or more after the poses stop).
+export function linkText(state, guide) {
+  const link = state.link || 'connecting';
+  if (link === 'connected' && guide.ageMs > STALE_AFTER_MS) {
+    return `silent for ${(guide.ageMs / 1000).toFixed(1)} s`;
+  }
+  return link;
+}
+
 // The move from the real tip to the virtual one in the patient's words, from the model:
 // e.g. "9 mm toward the feet, press it 3 mm deeper".
 export function describeMove(probe, virtual, model, minMm = 3) {

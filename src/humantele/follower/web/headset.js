@@ -20,6 +20,7 @@ import {
   errors,
   grade,
   guideState,
+  linkText,
 } from './cue.js';
 import { makeRegistration } from './registration.js';
 import {
@@ -311,7 +312,7 @@ function update(nowMs) {
     mm: '–',
     deg: '–',
     age: guide.ageMs === undefined ? '–' : `${Math.round(guide.ageMs)} ms`,
-    link: state.socket ? state.link || 'connecting' : 'no feed',
+    link: state.socket ? linkText(state, guide) : 'no feed',
     force: p && Array.isArray(p.force) ? `${Math.hypot(...p.force).toFixed(1)} N` : '–',
     calibrating,
     stepIndex: -1,
@@ -602,6 +603,7 @@ window.headset = {
       headline: $('headline').textContent,
       detail: $('detail').textContent,
       refusal: $('refusal').hidden ? '' : $('refusal').textContent,
+      link: $('link').textContent,
       mm: $('err-mm').textContent,
       deg: $('err-deg').textContent,
       steps: [...$('steps').children].map((li) => li.className),
