@@ -258,7 +258,7 @@ SCAN_POSES = 150  # and the follower has recorded this many tracked probe poses 
 
 def scan_recorded(path: Path) -> bool:
     """Scan 1 is in the follower's recording (being written) for ``SCAN_S``, with
-    ``SCAN_POSES`` tracked probe poses."""
+    ``SCAN_POSES`` tracked probe poses within it."""
     try:
         rec = read_recording(path, ["/follower/scan", "/follower/probe_pose"])
     except OSError:  # not there yet
@@ -266,8 +266,10 @@ def scan_recorded(path: Path) -> bool:
     starts = [s["t"] for s in rec.samples("/follower/scan") if s["event"] == "start"]
     if not starts:
         return False
+    stops = [s["t"] for s in rec.samples("/follower/scan") if s["event"] == "stop"]
+    end = stops[0] if stops else float("inf")  # (a scan of a fixed length ends by itself)
     tracked = [s["t"] for s in rec.samples("/follower/probe_pose") if s["tracked"]]
-    tracked = [t for t in tracked if t >= starts[0]]
+    tracked = [t for t in tracked if starts[0] <= t <= end]
     return len(tracked) >= SCAN_POSES and tracked[-1] - starts[0] >= SCAN_S
 
 
