@@ -11,7 +11,7 @@ NACK twice), and the follower's ``Pacer`` (no resend within 3/4 of a round trip;
 retransmission twice on a lossy link); with parity (``humantele.media.fec``, issue 31's
 sixth pass) the follower's ``ParityEncoder`` after each frame (a parity per ``--fec-group``
 packets) and the expert's ``ParityDecoder`` with ``aiortc_hooks.hold_nacks`` (a NACK for a
-packet whose parity may still come waits for it, at most 50 ms). Modelled: the sender (20
+packet whose parity may still come waits for it, at most 30 ms). Modelled: the sender (20
 fps, ``--packets`` a delta frame, three times that a keyframe, answered to a PLI after the
 previous keyframe is a round trip old) and the link (each packet and each RTCP packet lost
 with ``--loss`` each way, independently; one-way delay ``--delay-ms`` plus a jitter of
@@ -45,12 +45,12 @@ from humantele.media.aiortc_hooks import hold_nacks, repeat_nacks
 from humantele.media.fec import ParityDecoder, ParityEncoder, is_parity
 from humantele.media.jitter import BoundedJitterBuffer, vp8_is_keyframe
 from humantele.media.pacer import Pacer
+from humantele.media.receiver import parity_hold
 
 FPS = 20.0
 SSRC = 0x1234
 KEY = b"\x00\x00\x00\x9d\x01\x2a" + bytes(4)  # a VP8 keyframe's first bytes (RFC 6386 9.1)
 DELTA = b"\x01" + bytes(9)
-PARITY_HOLD_S = 0.05  # as the expert's receiver (humantele.media.receiver)
 
 
 class Sim:
@@ -82,7 +82,8 @@ class Sim:
             group = getattr(args, "fec_group", 8)
             self.parity = ParityEncoder(lambda ssrc: ssrc == SSRC, group=group)
             self.decoder = ParityDecoder(lambda: self.now, self.on_parity_event)
-            hold_nacks(self, self.decoder, PARITY_HOLD_S, self.spared, sleep=self.sleep)
+            hold = parity_hold(self.buffer)  # as the expert's receiver
+            hold_nacks(self, self.decoder, hold, self.spared, sleep=self.sleep)
         self.released: list[tuple[float, float]] = []  # (release time, capture time)
         self.plis = 0
 

@@ -322,12 +322,13 @@ HOLD_STEP_S = 0.005  # a held NACK looks again this often whether its parity cam
 def hold_nacks(
     receiver: RTCRtpReceiver,
     decoder: Any,
-    hold_s: float,
+    hold_s: float | Callable[[], float],
     on_held: Callable[[int], Any] | None = None,
     sleep: Callable[[float], Awaitable[object]] = asyncio.sleep,
 ) -> None:
     """Make every NACK ``receiver`` sends leave out the packets ``decoder.recovered(ssrc,
-    seq)`` (rebuilt from a parity) and hold back, up to ``hold_s`` (s, in a task), those for
+    seq)`` (rebuilt from a parity) and hold back, up to ``hold_s`` (s, or a function giving
+    it at each NACK; in a task), those for
     which ``decoder.awaits_parity(ssrc, seq)`` (a protected stream whose parity covering
     them has not come yet: aiortc NACKs a gap at once, a few ms before the frame's parity
     arrives); then ask for those still not rebuilt. ``on_held(n)``: after each hold, the
@@ -340,10 +341,10 @@ def hold_nacks(
     def wanted(ssrc: int, lost: list[int]) -> list[int]:
         return [s for s in lost if not decoder.recovered(ssrc, s)]
 
-    async def later(ssrc: int, held: list[int]) -> None:
+    async def later(ssrc: int, held: list[int], hold: float) -> None:
         waited = 0.0
-        while waited < hold_s and any(decoder.awaits_parity(ssrc, s) for s in held):
-            step = min(HOLD_STEP_S, hold_s - waited)
+        while waited < hold and any(decoder.awaits_parity(ssrc, s) for s in held):
+            step = min(HOLD_STEP_S, hold - waited)
             await sleep(step)
             waited += step
         still = wanted(ssrc, held)
@@ -358,15 +359,16 @@ def hold_nacks(
     async def held_back(ssrc: int, lost: list[int]) -> None:
         try:
             lost = wanted(ssrc, lost)
-            held = [s for s in lost if decoder.awaits_parity(ssrc, s)]
+            hold = float(hold_s() if callable(hold_s) else hold_s)
+            held = [s for s in lost if decoder.awaits_parity(ssrc, s)] if hold > 0 else []
         except Exception:  # noqa: BLE001 - a decoder fault: ask as aiortc would
             log.exception("NACK hold failed; asking at once")
-            held = []
+            held, hold = [], 0.0
         now = [s for s in lost if s not in held]
         if now:
             await send(ssrc, now)
         if held:
-            task = asyncio.ensure_future(later(ssrc, held))
+            task = asyncio.ensure_future(later(ssrc, held, hold))
             tasks.add(task)
             task.add_done_callback(tasks.discard)
 
