@@ -325,3 +325,46 @@ async def test_an_expert_without_fec_drops_parity_as_aiortc_does():
     finally:
         await pc.close()
         await rx.close()
+
+
+async def test_a_failing_parity_coder_never_stops_the_media():
+    """An encoder or decoder that raises is logged once and counted; the media packets still
+    go out and come in."""
+    from humantele.media.aiortc_hooks import receive_parity
+
+    class Broken:
+        def protect(self, data: bytes) -> list[bytes]:
+            raise RuntimeError("boom")
+
+        def parity(self, data: bytes) -> list[bytes]:
+            raise RuntimeError("boom")
+
+        packet = parity
+
+    pc = RTCPeerConnection()
+    try:
+        transceiver = pc.addTransceiver("video")
+        sent: list[bytes] = []
+        handled: list[bytes] = []
+
+        async def fake_send(data: bytes) -> None:
+            sent.append(data)
+
+        async def fake_handle(data: bytes, arrival_time_ms: int) -> None:
+            handled.append(data)
+
+        transport = transceiver.sender.transport
+        transport._send_rtp = fake_send
+        transport._handle_rtp_data = fake_handle
+        broken = Broken()
+        protect_sender(transceiver.sender, broken)
+        receive_parity(transceiver.receiver, broken)
+        media = rtp(1, b"m", marker=True)
+        await transport._send_rtp(media)
+        await transport._send_rtp(media[:2] + b"\x00\x02" + media[4:])
+        await transport._handle_rtp_data(media, 0)
+        await transport._handle_rtp_data(make_parity([media]), 0)
+        assert sent == [media, media[:2] + b"\x00\x02" + media[4:]] and handled == [media]
+        assert broken.errors == 4  # two sends, one packet, one parity
+    finally:
+        await pc.close()
