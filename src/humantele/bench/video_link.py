@@ -14,9 +14,12 @@ generated configuration for ``--seconds`` and reads the daemons' figures:
 Links: loopback; ``--turn`` (relay through coturn) with ``--delay-ms``/``--jitter-ms``/
 ``--loss``/``--kbps`` (the user-space WAN emulator on the expert's side, as ``bench session``;
 ``--kbps`` caps its rate each way, a 0.2 s tail-drop queue: a thin link);
-``--busy-core`` adds a process spinning on one core. ``--codec``, ``--us-size``, ``--pov-size``
-pick the encoder and sizes. ``--matrix`` runs the standard set of rows. Each row is merged
-into the "video-link" section of docs/benchmarks.md (rows of other settings are kept).
+``--busy-core`` adds a process spinning on one core; ``--fec`` has the follower send a parity
+packet after each US frame (``[follower.video] fec``; docs/video.md, "Sixth pass"; its
+figures in the JSON's ``video.fec`` and ``video.fec_sent``). ``--codec``, ``--us-size``,
+``--pov-size`` pick the encoder and sizes. ``--matrix`` runs the standard set of rows. Each
+row is merged into the "video-link" section of docs/benchmarks.md (rows of other settings are
+kept).
 Prints each row and, last, one JSON object.
 
 Recovery: with ``--loss-window A,B`` the loss applies only from A to B s after the video
