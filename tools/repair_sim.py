@@ -8,19 +8,24 @@ a keyframe request and a freeze. On the shared machine a study's figures are mos
 hand-driven clock: the expert's ``BoundedJitterBuffer`` and aiortc's ``NackGenerator`` (the
 NACK at each new gap, packets given up taken out of it), ``aiortc_hooks.repeat_nacks`` (each
 NACK twice), and the follower's ``Pacer`` (no resend within 3/4 of a round trip; each
-retransmission twice on a lossy link). Modelled: the sender (20 fps, ``--packets`` a delta
-frame, three times that a keyframe, answered to a PLI after the previous keyframe is a round
-trip old) and the link (each packet and each RTCP packet lost with ``--loss`` each way,
-independently; one-way delay ``--delay-ms`` plus a jitter of ``--jitter-ms`` s.d. drawn
-every 50 ms, first in first out). A frame shows ``--playout-ms`` after its capture, or when the
-buffer releases it if later (in order). Not modelled: the link's rate and queue, the playout
-delay's own adaptation, the POV.
+retransmission twice on a lossy link); with parity (``humantele.media.fec``, issue 31's
+sixth pass) the follower's ``ParityEncoder`` after each frame (a parity per ``--fec-group``
+packets) and the expert's ``ParityDecoder`` with ``aiortc_hooks.hold_nacks`` (a NACK for a
+packet whose parity may still come waits for it, at most 30 ms). Modelled: the sender (20
+fps, ``--packets`` a delta frame, three times that a keyframe, answered to a PLI after the
+previous keyframe is a round trip old) and the link (each packet and each RTCP packet lost
+with ``--loss`` each way, independently; one-way delay ``--delay-ms`` plus a jitter of
+``--jitter-ms`` s.d. drawn every 50 ms, first in first out). A frame shows ``--playout-ms``
+after its capture, or when the buffer releases it if later (in order). Not modelled: the
+link's rate and queue, the playout delay's own adaptation, the POV.
 
     python tools/repair_sim.py --seconds 600 --seeds 1,2,3
 
-prints, per variant, the gaps given up, keyframe requests, frozen share (a gap between
-released frames over max(3 frame intervals, 1 interval + 150 ms), as the study counts) and
-the frame age p95 (capture to release), summed or pooled over the seeds.
+prints, per variant (``--variants base,fec``: some only), the gaps given up, keyframe
+requests, frozen share (a gap between released frames over max(3 frame intervals, 1
+interval + 150 ms), as the study counts), the frame age p95 (capture to release), the
+packets rebuilt from a parity and the parity's share of the bytes, summed or pooled over
+the seeds.
 """
 
 from __future__ import annotations
@@ -36,9 +41,11 @@ import numpy as np
 from aiortc.rtcrtpreceiver import NackGenerator
 from aiortc.rtp import RtpPacket
 
-from humantele.media.aiortc_hooks import repeat_nacks
+from humantele.media.aiortc_hooks import hold_nacks, repeat_nacks
+from humantele.media.fec import ParityDecoder, ParityEncoder, is_parity
 from humantele.media.jitter import BoundedJitterBuffer, vp8_is_keyframe
 from humantele.media.pacer import Pacer
+from humantele.media.receiver import parity_hold
 
 FPS = 20.0
 SSRC = 0x1234
@@ -47,7 +54,9 @@ DELTA = b"\x01" + bytes(9)
 
 
 class Sim:
-    def __init__(self, args: argparse.Namespace, seed: int, dup: bool, renack: bool) -> None:
+    def __init__(
+        self, args: argparse.Namespace, seed: int, dup: bool, renack: bool, fec: bool = False
+    ) -> None:
         self.rng = random.Random(seed)
         self.a = args
         self.now = 0.0
@@ -68,6 +77,13 @@ class Sim:
         self.rtcp = self  # the receiver whose _send_rtcp_nack repeat_nacks wraps
         if renack:
             repeat_nacks(self, 0.005, sleep=self.sleep)
+        self.parity = self.decoder = None
+        if fec:
+            group = getattr(args, "fec_group", 8)
+            self.parity = ParityEncoder(lambda ssrc: ssrc == SSRC, group=group)
+            self.decoder = ParityDecoder(lambda: self.now, self.on_parity_event)
+            hold = parity_hold(self.buffer)  # as the expert's receiver
+            hold_nacks(self, self.decoder, hold, self.spared, sleep=self.sleep)
         self.released: list[tuple[float, float]] = []  # (release time, capture time)
         self.plis = 0
 
@@ -101,6 +117,9 @@ class Sim:
             return
         await self.send_rtp(data)
         self.pacer.after_send(data, self.send_rtp)
+        if self.parity is not None:
+            for p in self.parity.protect(data):
+                await self.paced(p)
 
     def rtp(self, seq: int) -> bytes:
         ts, marker, payload = self.history[seq]
@@ -129,7 +148,23 @@ class Sim:
     async def _send_rtcp_nack(self, media_ssrc: int, lost: list[int]) -> None:
         self.cross("rev", "nack", list(lost))
 
-    async def on_rtp(self, data: bytes) -> None:
+    def spared(self, n: int) -> None:
+        self.buffer.counters.fec_nacks_spared += n
+
+    def on_parity_event(self, ssrc: int, what: str, seq: int) -> None:
+        if what == "recovered":
+            self.buffer.note_rebuilt(seq)
+
+    async def on_rtp(self, data: bytes) -> None:  # as aiortc_hooks.receive_parity's wrapper
+        if self.decoder is not None and is_parity(data):
+            rebuilt = self.decoder.parity(data)
+        else:
+            await self.on_media(data)
+            rebuilt = [] if self.decoder is None else self.decoder.packet(data)
+        for p in rebuilt:
+            await self.on_media(p)
+
+    async def on_media(self, data: bytes) -> None:
         seq, ts = struct.unpack("!HI", data[2:8])
         p = RtpPacket(payload_type=96, marker=data[1] >> 7, sequence_number=seq,
                       timestamp=ts, ssrc=SSRC)  # fmt: skip
@@ -189,14 +224,19 @@ class Sim:
         frozen = float(gaps[gaps > thr].sum()) / seconds
         ages = np.array([s - c for s, c in shown])
         c = self.buffer.counters
+        parity = self.parity.counters if self.parity is not None else None
         return {"given_up": c.gaps_given_up, "plis": self.plis, "repairs": c.repairs,
                 "renacks": c.renacks, "frozen": frozen, "ages": ages,
                 "dups": self.pacer.dups, "dup_bytes": self.pacer.dup_bytes,
+                "recovered": c.fec_recovered, "nacks_spared": c.fec_nacks_spared,
+                "parity_bytes": parity.parity_bytes if parity else 0,
                 "bytes": sum(len(self.rtp(s)) for s in self.history)}  # fmt: skip
 
 
-VARIANTS = {"base": (False, False), "rtx twice": (True, False), "nack twice": (False, True),
-            "both": (True, True)}  # fmt: skip
+# name: (retransmissions twice, NACKs twice, parity per frame)
+VARIANTS = {"base": (False, False, False), "rtx twice": (True, False, False),
+            "nack twice": (False, True, False), "both": (True, True, False),
+            "fec": (False, False, True), "fec+both": (True, True, True)}  # fmt: skip
 
 
 def main() -> None:
@@ -209,12 +249,15 @@ def main() -> None:
     p.add_argument("--packets", type=int, default=6, help="packets of a delta frame")
     p.add_argument("--playout-ms", type=float, default=250.0,
                    help="frames show this long after capture unless released later")  # fmt: skip
+    p.add_argument("--fec-group", type=int, default=8, help="packets per parity (fec)")
+    p.add_argument("--variants", default=",".join(VARIANTS), help="which to run (names)")
     a = p.parse_args()
     seeds = [int(s) for s in a.seeds.split(",")]
     print(f"{a.seconds:.0f} s x {len(seeds)} seeds, {a.delay_ms:.0f} +- {a.jitter_ms:.0f} ms, "
           f"{a.loss:g} % loss each way, {a.packets} packets a frame")  # fmt: skip
-    for name, (dup, renack) in VARIANTS.items():
-        runs = [asyncio.run(Sim(a, s, dup, renack).run(a.seconds)) for s in seeds]
+    for name in a.variants.split(","):
+        dup, renack, fec = VARIANTS[name]
+        runs = [asyncio.run(Sim(a, s, dup, renack, fec).run(a.seconds)) for s in seeds]
         ages = np.concatenate([r["ages"] for r in runs])
         per_min = 60.0 / (a.seconds * len(seeds))
         each = ", ".join(f"{100 * r['frozen']:.2f}" for r in runs)
@@ -225,7 +268,9 @@ def main() -> None:
               f"{1e3 * np.percentile(ages, 95):.0f} ms, repairs "
               f"{sum(r['repairs'] for r in runs)}, copies "
               f"{100 * sum(r['dup_bytes'] for r in runs) / sum(r['bytes'] for r in runs):.2f} "
-              "% of the bytes")  # fmt: skip
+              f"% of the bytes, rebuilt {sum(r['recovered'] for r in runs)}, parity "
+              f"{100 * sum(r['parity_bytes'] for r in runs) / sum(r['bytes'] for r in runs):.1f}"
+              " % of the bytes")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -83,7 +83,9 @@ def devices_summary(f: dict[str, Any]) -> dict[str, Any]:
 
 def video_summary(e: dict[str, Any] | None, f: dict[str, Any] | None) -> dict[str, Any] | None:
     """Per track at the expert: frames, rate, age (capture to shown) p50/p95/max, the playout
-    delay (media.playout); the follower's POV degradation level. None when video is off."""
+    delay (media.playout); the follower's POV degradation level; the parity per frame
+    (media.fec: ``fec`` the expert's decoder, ``fec_sent`` the follower's encoder, None when
+    off). None when video is off."""
     if not e:
         return None
     out: dict[str, Any] = {}
@@ -93,7 +95,9 @@ def video_summary(e: dict[str, Any] | None, f: dict[str, Any] | None) -> dict[st
     for name in ("us", "pov"):
         t = e.get(name) or {}
         out[name] = {k: t.get(k) for k in (*keys, "size")}
+    out["fec"] = e.get("fec")
     if f:
+        out["fec_sent"] = f.get("fec")
         out["pov_level"] = f.get("pov_level")
         out["us_level"] = f.get("us_level")
         out["pov_level_changes"] = f.get("pov_level_changes")

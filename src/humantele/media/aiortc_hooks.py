@@ -33,6 +33,13 @@ aiortc (1.16) has no supported way to do these three things, each needed for the
    aiortc sends each frame's packets at once, and a thin link's queue drops the burst.
 9. :func:`repeat_nacks`: send each NACK a receiver sends twice, a few ms apart: a lost NACK
    is a repair asked for a round trip late, past the playout delay on a thin link.
+10. :func:`protect_sender`: after each frame of a protected stream, send a parity packet
+    (``humantele.media.fec``) through the same paced send; :func:`sender_ssrc` says which
+    stream a sender's is.
+11. :func:`receive_parity`: take the parity packets out of a receiver's transport before
+    aiortc's RTP router drops them (unknown SSRC and payload type), and feed the packets
+    they rebuild to the receive path as if they had arrived; :func:`hold_nacks` holds a
+    NACK for a packet whose parity may still come (a rebuilt packet is not asked for).
 
 ``tests/media/test_aiortc_hooks.py`` fails if aiortc renames or retypes what these touch.
 """
@@ -56,6 +63,11 @@ _RECEIVER_NACK = "_send_rtcp_nack"
 _TRANSPORT_SEND_RTP = "_send_rtp"
 _RECEIVER_NACK_GENERATOR = "_RTCRtpReceiver__nack_generator"
 _PACER = "_humantele_pacer"
+_PARITY = "_humantele_parity"  # the ParityEncoder a transport's sends pass
+_SEND_WRAPPED = "_humantele_send_wrapped"
+_TRANSPORT_HANDLE_RTP = "_handle_rtp_data"
+_PARITY_DECODER = "_humantele_parity_decoder"
+_SENDER_SSRC = "_ssrc"
 log = logging.getLogger(__name__)
 
 
@@ -206,6 +218,38 @@ def forget_missing(receiver: RTCRtpReceiver, seqs: list[int]) -> int:
     return before - len(missing)
 
 
+def _wrap_send(transport: Any) -> None:
+    """Make ``transport``'s ``_send_rtp`` pass the pacer and the parity encoder set on it
+    (:func:`pace_sender`, :func:`protect_sender`); once per transport."""
+    _check(transport, _TRANSPORT_SEND_RTP, None)
+    if getattr(transport, _SEND_WRAPPED, False):
+        return
+    send = getattr(transport, _TRANSPORT_SEND_RTP)
+
+    async def paced(data: bytes) -> None:
+        current = getattr(transport, _PACER, None)
+        if current is not None and await current.before_send(data) is False:
+            return
+        await send(data)
+        after = getattr(current, "after_send", None)
+        if after is not None:
+            after(data, send)
+        parity = getattr(transport, _PARITY, None)
+        if parity is not None:
+            try:
+                extra = parity.protect(data)
+            except Exception:  # noqa: BLE001 - the parity must never stop the media
+                if not getattr(parity, "errors", 0):
+                    log.exception("parity encoder failed (counting the rest)")
+                parity.errors = getattr(parity, "errors", 0) + 1
+                extra = []
+            for p in extra:
+                await paced(p)  # paced and counted as media (its own SSRC, never parity'd)
+
+    setattr(transport, _TRANSPORT_SEND_RTP, paced)
+    setattr(transport, _SEND_WRAPPED, True)
+
+
 def pace_sender(sender: RTCRtpSender, pacer: Any) -> None:
     """Make every RTP and RTCP packet ``sender``'s transport sends (its own and any other
     sender's on the same transport, as with BUNDLE) wait ``await pacer.before_send(data)``
@@ -214,21 +258,124 @@ def pace_sender(sender: RTCRtpSender, pacer: Any) -> None:
     ``send``, the transport's own. Once per transport; a later call gives it this ``pacer``
     instead."""
     transport = sender.transport
-    _check(transport, _TRANSPORT_SEND_RTP, None)
-    if getattr(transport, _PACER, None) is None:
-        send = getattr(transport, _TRANSPORT_SEND_RTP)
-
-        async def paced(data: bytes) -> None:
-            current = getattr(transport, _PACER, None)
-            if current is not None and await current.before_send(data) is False:
-                return
-            await send(data)
-            after = getattr(current, "after_send", None)
-            if after is not None:
-                after(data, send)
-
-        setattr(transport, _TRANSPORT_SEND_RTP, paced)
+    _wrap_send(transport)
     setattr(transport, _PACER, pacer)
+
+
+def protect_sender(sender: RTCRtpSender, encoder: Any) -> None:
+    """After each RTP packet ``sender``'s transport sends (any sender's on it), send the
+    packets ``encoder.protect(data)`` returns (``humantele.media.fec.ParityEncoder``: a
+    parity at a protected frame's end) through the same paced send (the pacer, if any, counts
+    them against its rate). None: no parity. Once per transport; a later call replaces it."""
+    transport = sender.transport
+    _wrap_send(transport)
+    setattr(transport, _PARITY, encoder)
+
+
+def sender_ssrc(sender: RTCRtpSender) -> int:
+    """The SSRC of the media stream ``sender`` sends."""
+    _check(sender, _SENDER_SSRC, int)
+    return int(getattr(sender, _SENDER_SSRC))
+
+
+def receive_parity(receiver: RTCRtpReceiver, decoder: Any) -> None:
+    """Make ``receiver``'s transport (and so every receiver's on it, as with BUNDLE) hand each
+    plain RTP packet it receives to ``decoder`` (``humantele.media.fec.ParityDecoder``):
+    parity packets (``fec.is_parity``) to ``decoder.parity(data)`` instead of aiortc's router
+    (which drops them), the others to aiortc first and then to ``decoder.packet(data)``; the
+    packets either returns (rebuilt) go to aiortc's receive path as if they had arrived, with
+    the arrival time of the packet that let them be rebuilt. Call before packets arrive, on
+    each transport the receiver may use (the expert offers: with BUNDLE the first
+    transceiver's carries all). The decoder's failures are logged once and counted in
+    ``decoder.errors``, never raised into aiortc."""
+    from humantele.media.fec import is_parity
+
+    transport = receiver.transport
+    _check(transport, _TRANSPORT_HANDLE_RTP, None)
+    if getattr(transport, _PARITY_DECODER, None) is None:
+        handle = getattr(transport, _TRANSPORT_HANDLE_RTP)
+
+        async def handled(data: bytes, arrival_time_ms: int) -> None:
+            current = getattr(transport, _PARITY_DECODER, None)
+            parity = is_parity(data)
+            if not parity:
+                await handle(data, arrival_time_ms)
+            if current is None:
+                return
+            try:
+                rebuilt = current.parity(data) if parity else current.packet(data)
+            except Exception:  # noqa: BLE001 - the parity must never stop the media
+                if not getattr(current, "errors", 0):
+                    log.exception("parity decoder failed (counting the rest)")
+                current.errors = getattr(current, "errors", 0) + 1
+                return
+            for p in rebuilt:
+                await handle(p, arrival_time_ms)
+
+        setattr(transport, _TRANSPORT_HANDLE_RTP, handled)
+    setattr(transport, _PARITY_DECODER, decoder)
+
+
+HOLD_STEP_S = 0.005  # a held NACK looks again this often whether its parity came (s)
+
+
+def hold_nacks(
+    receiver: RTCRtpReceiver,
+    decoder: Any,
+    hold_s: float | Callable[[], float],
+    on_held: Callable[[int], Any] | None = None,
+    sleep: Callable[[float], Awaitable[object]] = asyncio.sleep,
+) -> None:
+    """Make every NACK ``receiver`` sends leave out the packets ``decoder.recovered(ssrc,
+    seq)`` (rebuilt from a parity) and hold back, up to ``hold_s`` (s, or a function giving
+    it at each NACK; in a task), those for
+    which ``decoder.awaits_parity(ssrc, seq)`` (a protected stream whose parity covering
+    them has not come yet: aiortc NACKs a gap at once, a few ms before the frame's parity
+    arrives); then ask for those still not rebuilt. ``on_held(n)``: after each hold, the
+    packets it spared asking for. Wrap after :func:`repeat_nacks` (its copies then carry
+    only what is still missing)."""
+    _check(receiver, _RECEIVER_NACK, None)
+    send = getattr(receiver, _RECEIVER_NACK)
+    tasks: set[asyncio.Task] = set()
+
+    def wanted(ssrc: int, lost: list[int]) -> list[int]:
+        return [s for s in lost if not decoder.recovered(ssrc, s)]
+
+    async def later(ssrc: int, held: list[int], hold: float) -> None:
+        waited = 0.0
+        while waited < hold and any(decoder.awaits_parity(ssrc, s) for s in held):
+            step = min(HOLD_STEP_S, hold - waited)
+            await sleep(step)
+            waited += step
+        still = wanted(ssrc, held)
+        if on_held is not None:
+            on_held(len(held) - len(still))
+        if still:
+            try:
+                await send(ssrc, still)
+            except Exception:  # noqa: BLE001 - a closed connection: nothing to ask
+                return
+
+    async def held_back(ssrc: int, lost: list[int]) -> None:
+        try:
+            lost = wanted(ssrc, lost)
+            hold = float(hold_s() if callable(hold_s) else hold_s)
+            held = [s for s in lost if decoder.awaits_parity(ssrc, s)] if hold > 0 else []
+        except Exception:  # noqa: BLE001 - a decoder fault: ask as aiortc would
+            log.exception("NACK hold failed; asking at once")
+            held, hold = [], 0.0
+        now = [s for s in lost if s not in held]
+        if now:
+            await send(ssrc, now)
+        if held:
+            task = asyncio.ensure_future(later(ssrc, held, hold))
+            tasks.add(task)
+            task.add_done_callback(tasks.discard)
+
+    held_back.held_tasks = tasks  # type: ignore[attr-defined] - for tests, to wait for holds
+    if hasattr(send, "tasks"):  # repeat_nacks's copies, still there to wait for
+        held_back.tasks = send.tasks  # type: ignore[attr-defined]
+    setattr(receiver, _RECEIVER_NACK, held_back)
 
 
 def repeat_nacks(

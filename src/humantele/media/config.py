@@ -144,6 +144,17 @@ class FollowerVideoConfig(ConfigModel):
         "repair is a freeze; off until a quiet machine shows it pays (docs/video.md, "
         "issue 31's fifth pass)",
     )  # fmt: skip
+    fec: bool = Field(
+        False,
+        description="after each US frame send one parity packet (an XOR of its packets, on "
+        "its own SSRC and an unnegotiated payload type: humantele.media.fec) from which the "
+        "expert rebuilds one lost packet with no round trip; an expert without it drops "
+        "them (docs/video.md, issue 31's sixth pass)",
+    )
+    fec_pov: bool = Field(False, description="with fec: the POV's frames get a parity too")
+    fec_group: int = Field(
+        8, ge=1, le=48, description="with fec: a parity per this many packets of a frame"
+    )
     us_bitrate: UsBitrateConfig = UsBitrateConfig()
     pov_bitrate: PovBitrateConfig = PovBitrateConfig()
     process: bool = Field(
@@ -185,6 +196,12 @@ class ExpertVideoConfig(ConfigModel):
         description="send each NACK (a request for lost packets) twice, 5 ms apart: a lost "
         "NACK is a repair asked for a round trip late (humantele.media.aiortc_hooks); off "
         "until a quiet machine shows it pays (docs/video.md, issue 31's fifth pass)",
+    )
+    fec: bool = Field(
+        True,
+        description="rebuild a lost packet from the follower's parity packets, if it sends "
+        "any (humantele.media.fec), and hold a NACK briefly for a packet whose parity may "
+        "still come; costs nothing when none come",
     )
     record_frames: bool = Field(True, description="record every received frame's timestamps")
     record_encoded: bool = Field(

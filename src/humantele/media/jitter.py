@@ -110,6 +110,10 @@ class JitterCounters:
     repair_ms: float = 0.0  # the round trip of a repair in force (ms; 0: none known)
     wait_ms: float = 0.0  # the wait for a lost packet in force at the last look (ms)
     wait_ms_max: float = 0.0  # the longest wait in force (ms)
+    fec_parity: int = 0  # parity packets received for this stream (humantele.media.fec)
+    fec_recovered: int = 0  # lost packets rebuilt from a parity (no round trip; no repair)
+    fec_unrecoverable: int = 0  # parities whose frame missed 2+ packets when they came
+    fec_nacks_spared: int = 0  # lost packets not asked for: rebuilt while their NACK waited
 
     def as_dict(self) -> dict[str, float]:
         return asdict(self)
@@ -151,6 +155,7 @@ class BoundedJitterBuffer:
         self._repairs: deque[float] = deque(maxlen=REPAIRS_KEPT)  # repair times (s)
         self._gone: OrderedDict[int, float] = OrderedDict()  # given up: seq -> first missing
         self._key_starts: set[int] = set()  # packets that start a keyframe (while wanted)
+        self._rebuilt: set[int] = set()  # 16-bit seqs about to come rebuilt from a parity
 
     def _given_rtt(self) -> float | None:
         rtt = self.rtt() if self.rtt is not None else None
@@ -209,6 +214,13 @@ class BoundedJitterBuffer:
         rtt = self.round_trip_s()
         self.counters.repair_ms = 0.0 if rtt is None else round(rtt * 1e3, 1)
 
+    def note_rebuilt(self, seq16: int) -> None:
+        """Packet ``seq16`` is about to be added rebuilt from a parity (``humantele.media.fec``):
+        counted in ``fec_recovered``, not as a repair (its time is no retransmission's)."""
+        if len(self._rebuilt) > GONE_KEPT:
+            self._rebuilt.clear()
+        self._rebuilt.add(seq16 % _SEQ_MOD)
+
     def take_nacks(self) -> list[int]:
         """The 16-bit sequence numbers to ask the sender for again (a NACK), once each."""
         out, self._nack_out = self._nack_out, []
@@ -261,12 +273,16 @@ class BoundedJitterBuffer:
         """Take one RTP packet; (ask for a keyframe?, the next frame to decode or None)."""
         now = self.clock()
         seq = self._extend(packet.sequence_number)
+        rebuilt = bool(self._rebuilt) and seq % _SEQ_MOD in self._rebuilt
+        if rebuilt:
+            self._rebuilt.discard(seq % _SEQ_MOD)
+            self.counters.fec_recovered += 1
         if self._next is None:
             self._next, self._started = seq, now
         if seq < self._next:
             self.counters.late_packets += 1
             first = self._gone.pop(seq, None)
-            if first is not None:  # came after its frame was given up: timed too
+            if first is not None and not rebuilt:  # after its frame was given up: timed too
                 self.counters.late_repairs += 1
                 if now - first <= LATE_REPAIR_MAX_S:
                     self._repairs.append(now - first)
@@ -277,7 +293,7 @@ class BoundedJitterBuffer:
             self._arrived[seq] = now
             first = self._missing_since.pop(seq, None)
             self._nacked.pop(seq, None)
-            if first is not None:  # a missing packet came: its retransmission
+            if first is not None and not rebuilt:  # a missing packet came: its retransmission
                 self._repaired(now - first)
             if self._want_key and self.is_keyframe(getattr(packet, "_data", b"")):
                 self._key_starts.add(seq)

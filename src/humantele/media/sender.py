@@ -27,7 +27,7 @@ import av
 from aiortc import MediaStreamTrack, RTCPeerConnection
 from aiortc.sdp import SessionDescription
 
-from humantele.media.aiortc_hooks import pace_sender, use_encoder
+from humantele.media.aiortc_hooks import pace_sender, protect_sender, sender_ssrc, use_encoder
 from humantele.media.capture import (
     CapturedFrame,
     Record,
@@ -35,6 +35,7 @@ from humantele.media.capture import (
 )
 from humantele.media.config import TRACKS, FollowerVideoConfig
 from humantele.media.encoders import ENCODERS, make_encoder
+from humantele.media.fec import ParityEncoder
 from humantele.media.frameinfo import FrameInfo
 from humantele.media.pacer import PACE_FACTOR, Pacer
 from humantele.media.policy import POV_OFF_PERIOD_S, DegradationPolicy, Health, split_budget
@@ -184,6 +185,7 @@ class VideoSender:
         self._asked_kbps = 0.0  # the encoders' targets summed at the last check
         self._channel: Any = None
         self.pacer: Pacer | None = None  # the current peer connection's
+        self.parity: ParityEncoder | None = None  # the current peer connection's (config fec)
         self._senders: dict[str, Any] = {}
         self._encoders: dict[str, Any] = {}  # the current peer connection's, per track
         self._last_counts: dict[str, int] = {"captured": 0, "sent": 0}
@@ -260,6 +262,10 @@ class VideoSender:
             self._pace_rate, rtt_s=self._rtt_s, loss=lambda: self.link.get("loss"),
             duplicate=self.config.duplicate_repairs,
         )  # fmt: skip
+        protected: set[int] = set()  # the SSRCs whose frames get a parity
+        self.parity = None
+        if self.config.fec:
+            self.parity = ParityEncoder(protected.__contains__, group=self.config.fec_group)
         self._sent_at = None
         self._remb_kbps, self.remb_stale, self._asked_kbps = None, False, 0.0
         videos = [t for t in pc.getTransceivers() if t.kind == "video"]
@@ -274,6 +280,9 @@ class VideoSender:
                 self._encoders[name] = make_encoder(mime, limits[name], max_size=size)
                 use_encoder(transceiver.sender, self._encoders[name])
             pace_sender(transceiver.sender, self.pacer)
+            if self.parity is not None and (name == "us" or self.config.fec_pov):
+                protected.add(sender_ssrc(transceiver.sender))
+                protect_sender(transceiver.sender, self.parity)
         self.attached += 1
 
     def _rtt_s(self) -> float | None:
@@ -479,6 +488,7 @@ class VideoSender:
             "infos_sent": self.infos_sent,
             "infos_dropped": self.infos_dropped,
             "pacer": None if self.pacer is None else self.pacer.figures(),
+            "fec": None if self.parity is None else self.parity.counters.as_dict(),
         }
         for name, cap in self.captures.items():
             prep = sorted(cap.prepare_times)
