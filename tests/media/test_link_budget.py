@@ -263,3 +263,43 @@ async def test_an_overuse_while_the_tracks_send_little_lowers_nothing():
         us.target_bitrate, pov.target_bitrate = 300_000, 80_000  # and the link is short
         await sender.check(t, 0.0, None)
     assert sender.link_trusted and p.pov_off and p.us_rate_level == 1
+
+
+async def _us_share(parity, link_kbps: int) -> int:
+    """The US encoder's target (bit/s) once the follower has spent a measured ``link_kbps``
+    link (both tracks sending what they are allowed) with ``parity`` (a ParityEncoder or
+    None) on its US."""
+    from media_helpers import small_video_config
+
+    sender = _video_sender(small_video_config(process=False), (0, 0.1, 90), (0, 0.1, 90))
+    sender.parity = parity
+    sender._encoders["us"].target_bitrate = link_kbps * 500  # each track's REMB: half
+    sender._encoders["pov"].target_bitrate = link_kbps * 500
+    for t in (9.0, 10.0):
+        sender._senders["us"].send(link_kbps // 2, 1.0)  # the tracks send it all
+        sender._senders["pov"].send(link_kbps // 2, 1.0)
+        await sender.check(t, 0.0, None)
+    assert sender.link_trusted
+    sender._encoders["us"].target_bitrate = 10_000_000  # a REMB above its share: the share
+    return sender._encoders["us"].target_bitrate
+
+
+async def test_with_parity_the_us_share_leaves_room_for_it():
+    """The parity (config fec) is not in the expert's estimate (of the media streams): the
+    US's share pays for it, at the start share until enough is protected, then at the
+    measured one; never below the US's floor."""
+    from media_helpers import small_video_config
+
+    from humantele.media.fec import ParityEncoder
+    from humantele.media.sender import PARITY_SHARE_MIN_BYTES, PARITY_SHARE_START
+
+    bare = await _us_share(None, 3000)
+    parity = ParityEncoder(lambda ssrc: True)
+    assert await _us_share(parity, 3000) == pytest.approx(bare / (1 + PARITY_SHARE_START), abs=2)
+    parity.counters.protected_bytes = PARITY_SHARE_MIN_BYTES
+    parity.counters.parity_bytes = PARITY_SHARE_MIN_BYTES // 10  # measured: a tenth
+    assert await _us_share(parity, 3000) == pytest.approx(bare / 1.1, abs=2)
+    # 400 kbit/s: the POV off, the US at x0.75 with all of it; with the parity, its floor
+    assert await _us_share(None, 400) == 400_000
+    floor = 0.75 * small_video_config(process=False).us_bitrate.min_kbps  # 375 > 400 / 1.1
+    assert await _us_share(parity, 400) == 1000 * floor

@@ -49,6 +49,11 @@ log = logging.getLogger(__name__)
 
 VIDEO_CHANNEL_ID = 3  # the link's channels are 0-2
 MAX_INFO_BUFFERED = 4096  # bytes of frame records allowed to wait in the channel
+# The parity's share of the US's budget before it is measured: a US frame at the 500 kbit/s
+# floor is 3-4 packets and gets one parity (docs/video.md, issue 31's sixth pass)
+PARITY_SHARE_START = 0.3
+PARITY_SHARE_MIN_BYTES = 100_000  # protected bytes before the measured share is used
+
 # The link is short when the expert's estimate (REMB sum) is below this share of what the
 # tracks actually sent over the last check: its estimator then says the link is overused (it
 # bids 0.85 of the rate received); above it, the estimate may just not have grown yet (a
@@ -285,6 +290,18 @@ class VideoSender:
                 protect_sender(transceiver.sender, self.parity)
         self.attached += 1
 
+    def parity_share(self) -> float:
+        """The parity's bytes over the media bytes they protect (0 without parity; before
+        :data:`PARITY_SHARE_MIN_BYTES` are protected, :data:`PARITY_SHARE_START`): the share
+        of the US's budget left for the parity, which the expert's estimate (REMB, of the
+        media streams) does not count."""
+        if self.parity is None:
+            return 0.0
+        c = self.parity.counters
+        if c.protected_bytes < PARITY_SHARE_MIN_BYTES:
+            return PARITY_SHARE_START
+        return min(1.0, c.parity_bytes / c.protected_bytes)
+
     def _rtt_s(self) -> float | None:
         """The link's round trip (s) as the encoders were last told it, or None."""
         rtts = [e.rtt_s for e in list(self._encoders.values()) if getattr(e, "rtt_s", None)]
@@ -396,8 +413,9 @@ class VideoSender:
                 if enc is not None:
                     enc.set_budget(lim.start_kbps * 1000)
             return
-        if us is not None:
-            us.set_budget(int(budget.us_kbps * 1000), int(budget.us_floor_kbps * 1000))
+        if us is not None:  # the parity rides on the same link: the US's share pays for it
+            us_kbps = max(budget.us_floor_kbps, budget.us_kbps / (1.0 + self.parity_share()))
+            us.set_budget(int(us_kbps * 1000), int(budget.us_floor_kbps * 1000))
         if pov is not None:
             pov.set_budget(int(max(budget.pov_kbps, 50.0) * 1000), int(min(
                 budget.pov_kbps, pov_l.min_kbps) * 1000))  # fmt: skip
