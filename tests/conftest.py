@@ -55,8 +55,12 @@ if sys.dont_write_bytecode:
 # xdist workers that was a third to a half of a numerical test's CPU (the PSF calibration test
 # 7.5 -> 4.7 CPU-s) and it took the other worker's core. The tests' matrices are small: one
 # thread, read by each copy when it loads (so before numpy is imported; the processes the tests
-# start inherit it). An explicit setting wins.
+# start inherit it). OpenCV's own pool likewise (its default a thread per core): 10-20 % more
+# CPU for the same wall time on the tracker's frames, which the sensing and video processes
+# already run on one thread (cv2.setNumThreads(1)); the tests that run the tracker in the
+# worker now do too. An explicit setting wins.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OPENCV_FOR_THREADS_NUM", "1")
 
 import pytest  # noqa: E402 - after the bytecode cache is set
 from hypothesis import settings  # noqa: E402
