@@ -50,6 +50,18 @@ if sys.dont_write_bytecode:
     os.environ["PYTHONPYCACHEPREFIX"] = sys.pycache_prefix
     os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 
+# OpenBLAS (numpy's and scipy's, each its own copy) starts a thread per core and, after each
+# call it splits over them, keeps those threads spinning for a while: on 2 cores with two
+# xdist workers that was a third to a half of a numerical test's CPU (the PSF calibration test
+# 7.5 -> 4.7 CPU-s) and it took the other worker's core. The tests' matrices are small: one
+# thread, read by each copy when it loads (so before numpy is imported; the processes the tests
+# start inherit it). OpenCV's own pool likewise (its default a thread per core): 10-20 % more
+# CPU for the same wall time on the tracker's frames, which the sensing and video processes
+# already run on one thread (cv2.setNumThreads(1)); the tests that run the tracker in the
+# worker now do too. An explicit setting wins.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OPENCV_FOR_THREADS_NUM", "1")
+
 import pytest  # noqa: E402 - after the bytecode cache is set
 from hypothesis import settings  # noqa: E402
 

@@ -126,6 +126,7 @@ def test_sim_image_quality_is_the_per_scan_quality_when_recorded(tmp_path, capsy
             offset_mm=(5.0, 0.0, 0.0),
             tremor_mm=1.0,
             us_quality=qualities,
+            expert_rate_hz=200.0,  # the virtual probe's rate: nothing here depends on it
         ),  # fmt: skip
     )
     assert main(["analyze", str(path), "--json"]) == 0

@@ -9,6 +9,10 @@ from humantele.analysis.sessions import analyze_scans, load_sessions
 from humantele.recording.synthetic import SyntheticSession, write_synthetic
 
 A_MM, THETA_DEG, F_HZ = 30.0, 15.0, 0.25
+# The virtual probe at 200 Hz, not the servo's 1 kHz (a fifth of the samples to write): the
+# analysis interpolates it at the tracker's 45 Hz frames, off a 0.25 Hz sine by at most
+# A w^2 h^2 / 8 = 2e-4 mm and 1e-4 deg (h = 5 ms), a hundredth of the tightest tolerance here.
+EXPERT_RATE_HZ = 200.0
 
 
 def _analyze(tmp_path, name, **kw):
@@ -19,6 +23,7 @@ def _analyze(tmp_path, name, **kw):
             "amplitude_mm": A_MM,
             "rotation_amplitude_deg": THETA_DEG,
             "frequency_hz": F_HZ,
+            "expert_rate_hz": EXPERT_RATE_HZ,
             **kw,
         }
     )
@@ -117,7 +122,13 @@ def test_centering_on_so3_removes_a_rotation_offset_under_oscillation(tmp_path):
 
 
 def test_expert_and_follower_files_make_one_session(tmp_path):
-    cfg = SyntheticSession(duration_s=20.0, n_scans=2, offset_mm=(6.0, 0, 0), clock_offset_s=1.5)
+    cfg = SyntheticSession(
+        duration_s=20.0,
+        n_scans=2,
+        offset_mm=(6.0, 0, 0),
+        clock_offset_s=1.5,
+        expert_rate_hz=EXPERT_RATE_HZ,
+    )
     write_synthetic(tmp_path / "e.mcap", cfg, follower_path=tmp_path / "f.mcap")
     write_synthetic(tmp_path / "one.mcap", cfg)
     (two,) = load_sessions([tmp_path / "e.mcap", tmp_path / "f.mcap"])

@@ -25,7 +25,7 @@ def test_analyze_says_the_gap_of_the_scan_it_is_in(tmp_path):
     e, f = tmp_path / "e.mcap", tmp_path / "f.mcap"
     # three scans of ~9.7 s (1 s between); the gap: 14.0 to 24.1 s, inside scans 2 and 3
     cfg = SyntheticSession(duration_s=33.0, n_scans=3, offset_mm=(10.0, 0.0, 0.0),
-                           sensing_gaps=[(14.0, 10.1)])  # fmt: skip
+                           sensing_gaps=[(14.0, 10.1)], expert_rate_hz=200.0)  # fmt: skip
     write_synthetic(e, cfg, follower_path=f)
     report, _ = analyze([e, f])
     by_scan = {s["scan"]: s for s in report["scans"]}

@@ -50,9 +50,16 @@ def _run_dir(tmp_path, name="c1-s1"):
     return d, summary
 
 
-def test_rows_from_a_recorded_run_give_the_known_answers(tmp_path):
-    d, summary = _run_dir(tmp_path)
-    rows = table.run_scans(d, summary)
+@pytest.fixture(scope="module")
+def recorded_rows(tmp_path_factory):
+    """The rows of one recorded run (:func:`_run_dir`), read once for the two tests that
+    check them (neither changes them)."""
+    d, summary = _run_dir(tmp_path_factory.mktemp("run"))
+    return table.run_scans(d, summary)
+
+
+def test_rows_from_a_recorded_run_give_the_known_answers(recorded_rows):
+    rows = recorded_rows
     assert [r["scan"] for r in rows] == [1, 2]
     r1, r2 = rows
     assert r1["condition"] == "c1" and r1["delay_ms"] == 50.0 and r1["loss_pct"] == 2.0
@@ -83,11 +90,10 @@ def test_rows_from_a_recorded_run_give_the_known_answers(tmp_path):
     assert r1["link_drops"] == 1 and r1["load_1min"] == 3.5  # two connections: one drop
 
 
-def test_the_condition_summary_and_the_markdown(tmp_path):
+def test_the_condition_summary_and_the_markdown(recorded_rows, tmp_path):
     from humantele.study.charts import write_charts
 
-    d, summary = _run_dir(tmp_path)
-    rows = table.run_scans(d, summary)
+    rows = recorded_rows
     summ = table.summarize(rows, [CONDITION, {**CONDITION, "name": "not-run"}])
     s, missing = summ
     assert s["scans"] == 2 and s["runs"] == 1
