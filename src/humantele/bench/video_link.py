@@ -14,12 +14,12 @@ generated configuration for ``--seconds`` and reads the daemons' figures:
 Links: loopback; ``--turn`` (relay through coturn) with ``--delay-ms``/``--jitter-ms``/
 ``--loss``/``--kbps`` (the user-space WAN emulator on the expert's side, as ``bench session``;
 ``--kbps`` caps its rate each way, a 0.2 s tail-drop queue: a thin link);
-``--busy-core`` adds a process spinning on one core; ``--fec`` has the follower send a parity
-packet after each US frame (``[follower.video] fec``; docs/video.md, "Sixth pass"; its
-figures in the JSON's ``video.fec`` and ``video.fec_sent``). ``--codec``, ``--us-size``,
-``--pov-size`` pick the encoder and sizes. ``--matrix`` runs the standard set of rows. Each
-row is merged into the "video-link" section of docs/benchmarks.md (rows of other settings are
-kept).
+``--busy-core`` adds a process spinning on one core; ``--no-fec`` has the follower send no
+parity packet after each US frame (``[follower.video] fec``, on by default; docs/video.md,
+"Sixth pass"; its figures in the JSON's ``video.fec`` and ``video.fec_sent``). ``--codec``,
+``--us-size``, ``--pov-size`` pick the encoder and sizes. ``--matrix`` runs the standard set of
+rows. Each row is merged into the "video-link" section of docs/benchmarks.md (rows of other
+settings are kept).
 Prints each row and, last, one JSON object.
 
 Recovery: with ``--loss-window A,B`` the loss applies only from A to B s after the video
@@ -88,8 +88,8 @@ def add_link_arguments(p: argparse.ArgumentParser) -> None:
         "--kbps", type=float, default=0.0, help="the link's rate each way (kbit/s; --turn)"
     )
     p.add_argument(
-        "--fec", action="store_true",
-        help="the follower sends a parity packet after each US frame ([follower.video] fec)",
+        "--no-fec", action="store_true",
+        help="the follower sends no parity packet after each US frame ([follower.video] fec)",
     )  # fmt: skip
     p.add_argument("--busy-core", action="store_true", help="a process spins on one core")
     p.add_argument("--no-process", action="store_true", help="video sources in threads")
@@ -133,8 +133,8 @@ def label(args: argparse.Namespace) -> str:
         parts.append(link)
     else:
         parts.append("loopback")
-    if getattr(args, "fec", False):
-        parts.append("US parity")
+    if getattr(args, "no_fec", False):
+        parts.append("no US parity")
     if args.busy_core:
         parts.append("1 core busy")
     if args.no_process:
@@ -165,7 +165,7 @@ def write_configs(d: Path, args: argparse.Namespace, ice: object | None) -> Path
         f"[follower.link]\n{link['follower']}\n"
         f"[follower.video]\nenabled = true\nprocess = {str(not args.no_process).lower()}\n"
         f"record_us_hz = 0.0\nrecord_pov_hz = 0.0\n"
-        + ("fec = true\n" if getattr(args, "fec", False) else "")
+        + ("fec = false\n" if getattr(args, "no_fec", False) else "")
         + f'[follower.video.us]\nbackend = "sim"\nwidth = {uw}\nheight = {uh}\nfps = 20.0\n'
         f'[follower.video.pov]\nbackend = "sim"\nwidth = {pw}\nheight = {ph}\nfps = 25.0\n'
         + "".join(

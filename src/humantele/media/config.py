@@ -145,11 +145,11 @@ class FollowerVideoConfig(ConfigModel):
         "issue 31's fifth pass)",
     )  # fmt: skip
     fec: bool = Field(
-        False,
+        True,
         description="after each US frame send one parity packet (an XOR of its packets, on "
         "its own SSRC and an unnegotiated payload type: humantele.media.fec) from which the "
-        "expert rebuilds one lost packet with no round trip; an expert without it drops "
-        "them (docs/video.md, issue 31's sixth pass)",
+        "expert rebuilds one lost packet with no round trip, paid from the US's share of the "
+        "link; an expert without it drops them (docs/video.md, issue 31's sixth pass)",
     )
     fec_pov: bool = Field(False, description="with fec: the POV's frames get a parity too")
     fec_group: int = Field(
