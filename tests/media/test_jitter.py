@@ -254,6 +254,24 @@ def test_on_a_long_round_trip_a_retransmission_is_waited_for_a_round_trip():
     assert buf.wait_s() == WAIT
 
 
+def test_a_nack_held_for_the_parity_lengthens_the_round_trips_wait():
+    """With the parity on, the receiver holds a NACK up to 30 ms for the frame's parity: a
+    repair then takes the round trip and the hold, which the wait the round trip sets must
+    cover (before repairs are measured: with the parity few are); a repair that takes them
+    both is not given up."""
+    clock, s = Clock(), Stream()
+    buf = make(clock, rtt=lambda: 0.13)
+    bare = buf.wait_s()
+    buf.nack_hold = lambda: 0.03
+    assert buf.wait_s() == pytest.approx(bare + 0.03)
+    feed(buf, s.frame([b"K0"]))
+    f1, f2 = s.frame([b"d1", b"x"]), s.frame([b"d2", b"y"])
+    feed(buf, [f1[1], *f2])
+    clock.t += bare + 0.01  # the hold and the round trip: past the bare wait, within this
+    assert feed(buf, [f1[0]]) == [(False, b"d1x")]
+    assert buf.counters.gaps_given_up == 0
+
+
 def test_a_packet_still_missing_is_asked_for_again_each_round_trip_until_it_comes():
     """aiortc NACKs a gap once (and again only when a later gap shows): on a lossy link the
     NACK or its retransmission is lost about one time in four at 15 %; the buffer asks again

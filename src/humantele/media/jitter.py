@@ -135,6 +135,9 @@ class BoundedJitterBuffer:
         self.is_keyframe = is_keyframe
         self.max_wait_s = max_wait_s
         self.rtt = rtt  # the link's round trip (s; its shortest recent sample) or None
+        # how long a NACK is held before it leaves (s; the receiver's hold for a frame's
+        # parity): part of a repair's time, so of the wait the round trip sets
+        self.nack_hold: Callable[[], float] | None = None
         self._capacity = capacity
         self.pli_interval_s = pli_interval_s
         self.clock = clock
@@ -180,12 +183,15 @@ class BoundedJitterBuffer:
     def wait_s(self) -> float:
         """How long a missing packet is waited for (s): ``max_wait_s``, or longer on a link
         whose repairs take longer: :data:`REPAIR_WAIT_QUANTILE` of the repairs measured
-        here (re-asks and late repairs included) or the given round trip, plus
+        here (re-asks and late repairs included) or the given round trip (and ``nack_hold``,
+        a NACK's hold for a frame's parity), plus
         :data:`RTX_MARGIN_S`; at most :data:`MAX_WAIT_S`. A clock-sync exchange over the
         reliable control channel is no measure of it: one lost ping waits for SCTP's
         retransmission (at least 1 s)."""
         wait = self.max_wait_s
         rtt, high = self._given_rtt(), self._repair_quantile(REPAIR_WAIT_QUANTILE)
+        if rtt is not None and self.nack_hold is not None:  # (measured repairs include it)
+            rtt += self.nack_hold()
         for r in (rtt, high):
             if r is not None:
                 wait = max(wait, min(MAX_WAIT_S, r + RTX_MARGIN_S))
