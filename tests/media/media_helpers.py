@@ -3,6 +3,8 @@
 import asyncio
 import contextlib
 
+from aiortc import RTCPeerConnection
+
 from humantele.media.config import FollowerVideoConfig
 from humantele.media.sender import VideoSender
 from humantele.transport import LinkConfig, PeerLink
@@ -67,3 +69,24 @@ class SyncErrorBound:
             return sample
 
         clock.on_pong = watched
+
+
+@contextlib.asynccontextmanager
+async def two_senders_sending():
+    """Two video senders of one RTCPeerConnection (one transport, as with BUNDLE) whose
+    transport's sends are recorded instead of going through SRTP to a socket: yields (first
+    sender, second sender, the list of the plain RTP packets sent); the connection closed
+    after."""
+    pc = RTCPeerConnection()
+    try:
+        a = pc.addTransceiver("video").sender
+        b = pc.addTransceiver("video").sender
+        sent: list[bytes] = []
+
+        async def fake_send(data: bytes) -> None:  # in place of SRTP and the socket
+            sent.append(data)
+
+        a.transport._send_rtp = fake_send
+        yield a, b, sent
+    finally:
+        await pc.close()

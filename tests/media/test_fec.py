@@ -20,6 +20,7 @@ from aiortc.rtcrtpparameters import (
 )
 from aiortc.rtcrtpreceiver import RemoteStreamTrack
 from aiortc.rtp import RtcpPacket, RtcpRtpfbPacket
+from media_helpers import two_senders_sending
 
 from humantele.media import fec
 from humantele.media.aiortc_hooks import (
@@ -182,16 +183,7 @@ def test_random_bytes_of_our_payload_type_never_raise():
 
 
 async def test_the_follower_hook_sends_a_parity_after_each_frame_through_the_pacer():
-    pc = RTCPeerConnection()
-    try:
-        us = pc.addTransceiver("video").sender
-        pov = pc.addTransceiver("video").sender
-        sent: list[bytes] = []
-
-        async def fake_send(data: bytes) -> None:  # in place of SRTP and the socket
-            sent.append(data)
-
-        us.transport._send_rtp = fake_send
+    async with two_senders_sending() as (us, pov, sent):
         pacer = Pacer(lambda: 1e9)
         pace_sender(us, pacer)
         enc = ParityEncoder({sender_ssrc(us)}.__contains__)
@@ -207,8 +199,6 @@ async def test_the_follower_hook_sends_a_parity_after_each_frame_through_the_pac
         assert sent[:3] == packets and is_parity(sent[3]) and sent[4] == other
         assert len(sent) == 5 and parse_parity(sent[3]).ssrc == sender_ssrc(us)
         assert enc.ssrc in pacer._last_seq  # the pacer saw the parity: its size counted
-    finally:
-        await pc.close()
 
 
 class FakeNackReceiver:

@@ -8,7 +8,7 @@ import asyncio
 import struct
 
 import pytest
-from aiortc import RTCPeerConnection
+from media_helpers import two_senders_sending
 
 from humantele.media.aiortc_hooks import pace_sender
 from humantele.media.pacer import (
@@ -251,16 +251,7 @@ async def test_a_rate_that_fails_to_read_paces_at_the_floor():
 
 
 async def test_the_hook_paces_what_a_real_sender_transport_sends():
-    pc = RTCPeerConnection()
-    try:
-        a = pc.addTransceiver("video").sender
-        b = pc.addTransceiver("video").sender
-        sent: list[bytes] = []
-
-        async def fake_send(data: bytes) -> None:  # in place of SRTP and the socket
-            sent.append(data)
-
-        a.transport._send_rtp = fake_send
+    async with two_senders_sending() as (a, b, sent):
         seen: list[bytes] = []
 
         class Recorder:
@@ -281,5 +272,3 @@ async def test_the_hook_paces_what_a_real_sender_transport_sends():
             await b.transport._send_rtp(rtp(seq))
         await asyncio.gather(*list(pacer._dup_tasks))
         assert sent == [rtp(5), rtp(6), rtp(5), rtp(5)] and pacer.dups == 1
-    finally:
-        await pc.close()

@@ -218,6 +218,14 @@ def forget_missing(receiver: RTCRtpReceiver, seqs: list[int]) -> int:
     return before - len(missing)
 
 
+def _count_failure(obj: Any, what: str) -> None:
+    """In an ``except`` block: ``obj`` failed; logged the first time (with the traceback),
+    counted in ``obj.errors`` every time."""
+    if not getattr(obj, "errors", 0):
+        log.exception("%s failed (counting the rest)", what)
+    obj.errors = getattr(obj, "errors", 0) + 1
+
+
 def _wrap_send(transport: Any) -> None:
     """Make ``transport``'s ``_send_rtp`` pass the pacer and the parity encoder set on it
     (:func:`pace_sender`, :func:`protect_sender`); once per transport."""
@@ -239,9 +247,7 @@ def _wrap_send(transport: Any) -> None:
             try:
                 extra = parity.protect(data)
             except Exception:  # noqa: BLE001 - the parity must never stop the media
-                if not getattr(parity, "errors", 0):
-                    log.exception("parity encoder failed (counting the rest)")
-                parity.errors = getattr(parity, "errors", 0) + 1
+                _count_failure(parity, "parity encoder")
                 extra = []
             for p in extra:
                 await paced(p)  # paced and counted as media (its own SSRC, never parity'd)
@@ -305,9 +311,7 @@ def receive_parity(receiver: RTCRtpReceiver, decoder: Any) -> None:
             try:
                 rebuilt = current.parity(data) if parity else current.packet(data)
             except Exception:  # noqa: BLE001 - the parity must never stop the media
-                if not getattr(current, "errors", 0):
-                    log.exception("parity decoder failed (counting the rest)")
-                current.errors = getattr(current, "errors", 0) + 1
+                _count_failure(current, "parity decoder")
                 return
             for p in rebuilt:
                 await handle(p, arrival_time_ms)

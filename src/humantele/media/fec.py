@@ -40,10 +40,11 @@ from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
+from humantele.media.rtp import RTP_HEADER, SEQ_MOD, rtp_fields, seq_newer
+
 PARITY_PT = 127  # not negotiated by either side (aiortc's video codecs take 96 up to ~102)
 VERSION = 1
 HEADER = 16  # parity header bytes before the XOR of the bodies
-RTP_HEADER = 12
 MAX_GROUP = 48  # a parity says it covers at most this many packets (more: malformed)
 DEFAULT_GROUP = 8  # packets per parity within a frame (see docs/video.md, "Sixth pass")
 PACKETS_KEPT = 512  # media packets kept per stream to rebuild from (the last ~15 s of the US)
@@ -51,22 +52,6 @@ PARITIES_KEPT = 16  # parities kept per stream while their group still misses 2+
 STREAMS_KEPT = 8  # streams (SSRCs) whose packets are kept
 RECOVERED_KEPT = 256  # rebuilt sequence numbers remembered per stream (a NACK leaves them out)
 PROTECTED_HOLD_S = 2.0  # a stream is protected this long after its last parity (s)
-
-_SEQ = 1 << 16
-
-
-def _newer(a: int, b: int) -> bool:
-    """16-bit sequence number ``a`` is after ``b``."""
-    return 0 < (a - b) % _SEQ < _SEQ // 2
-
-
-def rtp_fields(data: bytes) -> tuple[int, int, int, bool] | None:
-    """(ssrc, sequence number, timestamp, marker) of a plain RTP packet, None for RTCP or
-    anything not RTP version 2 (as :mod:`humantele.media.pacer` tells them)."""
-    if len(data) < RTP_HEADER or data[0] >> 6 != 2 or 192 <= data[1] <= 208:
-        return None
-    seq, ts, ssrc = struct.unpack_from("!HII", data, 2)
-    return ssrc, seq, ts, bool(data[1] & 0x80)
 
 
 def is_parity(data: bytes) -> bool:
@@ -147,13 +132,13 @@ class ParityEncoder:
         except Exception:  # noqa: BLE001 - a stream that cannot be judged is not protected
             return []
         last = self._last.get(ssrc)
-        if last is not None and not _newer(seq, last):
+        if last is not None and not seq_newer(seq, last):
             return []  # a retransmission: its group's parity is out already
         self._last[ssrc] = seq
         out: list[bytes] = []
         g = self._groups.get(ssrc)
-        if g is not None and (seq != (g.first + g.count) % _SEQ or ts != g.ts):
-            if seq == (g.first + g.count) % _SEQ:  # a new frame without a marker before it
+        if g is not None and (seq != (g.first + g.count) % SEQ_MOD or ts != g.ts):
+            if seq == (g.first + g.count) % SEQ_MOD:  # a new frame without a marker before it
                 out.append(self._parity(ssrc, g))
             else:
                 self.counters.broken_groups += 1
@@ -170,7 +155,7 @@ class ParityEncoder:
 
     def _parity(self, ssrc: int, g: _Group) -> bytes:
         header = struct.pack("!BBHII", 0x80, PARITY_PT, self._seq, g.ts, self.ssrc)
-        self._seq = (self._seq + 1) % _SEQ
+        self._seq = (self._seq + 1) % SEQ_MOD
         payload = struct.pack(
             "!BBHIBBHI", VERSION, g.count, g.first, ssrc, g.b0, g.b1, g.length, g.tsx
         )
@@ -208,7 +193,7 @@ class Parity:
     body: bytes
 
     def seqs(self) -> list[int]:
-        return [(self.first + i) % _SEQ for i in range(self.count)]
+        return [(self.first + i) % SEQ_MOD for i in range(self.count)]
 
 
 class ParityError(ValueError):
@@ -309,7 +294,7 @@ class ParityDecoder:
             st.packets.popitem(last=False)
         out: list[bytes] = []
         for first, par in list(st.pending.items()):
-            if (seq - first) % _SEQ < par.count:
+            if (seq - first) % SEQ_MOD < par.count:
                 out += self._try(ssrc, st, par, again=True)
         return out
 
@@ -328,8 +313,8 @@ class ParityDecoder:
         self.counters.parities += 1
         self._event(par.ssrc, "parity", par.first)
         st.parity_at = self.clock()
-        last = (par.first + par.count - 1) % _SEQ
-        if st.covered is None or _newer(last, st.covered):
+        last = (par.first + par.count - 1) % SEQ_MOD
+        if st.covered is None or seq_newer(last, st.covered):
             st.covered = last
         return self._try(par.ssrc, st, par, again=False)
 
@@ -339,7 +324,7 @@ class ParityDecoder:
         seqs = par.seqs()
         if not again and len(st.packets) >= PACKETS_KEPT:
             oldest = next(iter(st.packets))
-            if _newer(oldest, seqs[-1]):
+            if seq_newer(oldest, seqs[-1]):
                 self.counters.late += 1  # its group's packets are no longer kept
                 return []
         missing = [s for s in seqs if s not in st.packets]
@@ -398,7 +383,7 @@ class ParityDecoder:
         st = self._streams.get(ssrc)
         if st is None or self.clock() - st.parity_at > PROTECTED_HOLD_S:
             return False
-        return st.covered is None or _newer(seq, st.covered)
+        return st.covered is None or seq_newer(seq, st.covered)
 
     def figures(self) -> dict[str, int]:
         return self.counters.as_dict()

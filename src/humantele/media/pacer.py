@@ -45,6 +45,8 @@ import asyncio
 import time
 from collections.abc import Awaitable, Callable
 
+from humantele.media.rtp import rtp_fields, seq_newer
+
 PACE_FACTOR = 2.5  # the pacing rate over the tracks' summed target bit rate (WebRTC's)
 MIN_RATE_BPS = 300_000.0  # never pace slower than this (a dark track's low target)
 BURST_S = 0.005  # packets due within this leave together (a sleep is ~1 ms at best)
@@ -61,9 +63,8 @@ DUP_WINDOW = 200  # the share of packets asked for again: averaged over about th
 def _rtp_stream(data: bytes) -> tuple[int, int] | None:
     """(ssrc, sequence number) of an RTP packet (before SRTP protection), None for RTCP or
     anything not RTP version 2."""
-    if len(data) < 12 or data[0] >> 6 != 2 or 192 <= data[1] <= 208:
-        return None
-    return int.from_bytes(data[8:12], "big"), int.from_bytes(data[2:4], "big")
+    fields = rtp_fields(data)
+    return None if fields is None else (fields[0], fields[1])
 
 
 class Pacer:
@@ -118,7 +119,7 @@ class Pacer:
             return "other", None
         ssrc, seq = stream
         last = self._last_seq.get(ssrc)
-        if last is not None and not 0 < (seq - last) & 0xFFFF < 0x8000:
+        if last is not None and not seq_newer(seq, last):
             return "resend", stream  # not newer than the last: a retransmission
         self._last_seq[ssrc] = seq
         return "new", stream

@@ -384,8 +384,9 @@ class VideoReceiver:
                 repeat_nacks(transceiver.receiver, NACK_REPEAT_S, _counter(buffer))
             if parity is not None:  # (each transport: BUNDLE later keeps the first one's)
                 receive_parity(transceiver.receiver, parity)
-                hold_nacks(transceiver.receiver, parity, parity_hold(buffer), _spared(buffer))
-                buffer.nack_hold = parity_hold(buffer)  # a repair's time includes the hold
+                hold = parity_hold(buffer)
+                hold_nacks(transceiver.receiver, parity, hold, _spared(buffer))
+                buffer.nack_hold = hold  # a repair's time includes the hold
             use_jitter_buffer(transceiver.receiver, tap)
             self._taps[name] = tap
             self._receivers[name] = transceiver.receiver
