@@ -33,7 +33,7 @@ async def capture(
     )
     await ctx.until(page, freeze, 60)
     await next_frames(ctx, page)
-    seen = await ctx.shot(page, prefix)
+    seen = await ctx.still_shot(page, prefix)
     await page.evaluate("headset.showHud(false)")
     await next_frames(ctx, page)
     out: dict[str, Any] = {
@@ -45,21 +45,21 @@ async def capture(
         "colour": await page.evaluate("headset.colour()"),
         "matrix": {n: await page.evaluate(f"headset.matrixWorld('{n}')") for n in OBJECTS},
         "visible": {n: await page.evaluate(f"headset.visible('{n}')") for n in OBJECTS},
-        "shots": {"seen": seen, "all": await ctx.shot(page, f"{prefix}_all")},
+        "shots": {"seen": seen, "all": await ctx.still_shot(page, f"{prefix}_all")},
     }
     for name in OBJECTS:
         await page.evaluate(f"headset.show('{name}', false)")
         await next_frames(ctx, page)
-        out["shots"][name] = await ctx.shot(page, f"{prefix}_no_{name}")
+        out["shots"][name] = await ctx.still_shot(page, f"{prefix}_no_{name}")
         await page.evaluate(f"headset.show('{name}', true)")
     if alone:
         await _show(page, ALL_DRAWN, False)
         await next_frames(ctx, page)
-        out["shots"]["none"] = await ctx.shot(page, f"{prefix}_none")
+        out["shots"]["none"] = await ctx.still_shot(page, f"{prefix}_none")
         for name in alone:
             await _show(page, [name], True)
             await next_frames(ctx, page)
-            out["shots"][f"only_{name}"] = await ctx.shot(page, f"{prefix}_only_{name}")
+            out["shots"][f"only_{name}"] = await ctx.still_shot(page, f"{prefix}_only_{name}")
             await _show(page, [name], False)
         await _show(page, ALL_DRAWN, True)
     await page.evaluate("headset.showHud(true)")

@@ -240,6 +240,23 @@ class Ctx:
         await page.screenshot(path=str(self.out / f"{name}.png"))
         return f"{name}.png"
 
+    async def still_shot(self, page: Page, name: str, tries: int = 20) -> str:
+        """:meth:`shot` of a page that holds still (a frozen 3D view): screenshots a frame
+        apart until two in a row are the same picture. A loaded headless Chromium can hand
+        back a WebGL canvas older than the page's last draw (puppeteer#5352); CI once read a
+        3D view with an object the page had hidden three frames before."""
+        previous = None
+        for _ in range(tries):
+            png = await page.screenshot()
+            if png == previous:
+                (self.out / f"{name}.png").write_bytes(png)
+                return f"{name}.png"
+            previous = png
+            await page.evaluate(
+                "new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))"
+            )
+        raise AssertionError(f"{name}: the page's picture still changing after {tries} shots")
+
     async def other_site(self) -> Page:
         """A page from another origin (a blank page served here on another port)."""
         url, stop = await _serve_blank()
