@@ -38,18 +38,16 @@ from pathlib import Path
 # Where PYTHONDONTWRITEBYTECODE is set (this machine's images set it), pytest rewrote every
 # test module's asserts again on each run, in each worker (2.1 of the 3.6 s a worker spends
 # collecting), and each daemon and child the tests start compiled every module it imported
-# again (0.1-0.2 CPU-s a process, some 300 processes in a whole run). The tests write
-# bytecode where Python keeps it (``__pycache__`` beside each module, ignored by git), in
-# the processes the tests start too (xdist's workers included, through the environment they
-# inherit). Not in a prefix of their own (PYTHONPYCACHEPREFIX): there Python reads no
-# bytecode but the prefix's, not the installed packages' own, so a fresh clone's run compiled
-# aiortc, numpy, scipy and the rest into it first: the whole suite took 873-897 s and
-# 1476-1564 CPU-s with the prefix, 801 s and 1339 CPU-s with the variable unset (2026-11-28,
-# fresh clones, quiet). Set before anything
-# else is imported: pytest rewrites the asserts of every module of a plugin's distribution
-# (hypothesis's ~90), which were rewritten again in each process when imported before this.
+# again (0.1-0.2 CPU-s a process, some 300 processes in a whole run). Their bytecode is cached
+# in pytest's cache folder instead, never beside the sources (the variable's intent): here
+# through sys.pycache_prefix, in the processes the tests start (xdist's workers included)
+# through the environment they inherit. Set before anything else is imported: pytest rewrites
+# the asserts of every module of a plugin's distribution (hypothesis's ~90), which were
+# rewritten again in each process when imported before this (1-1.5 CPU-s a worker).
 if sys.dont_write_bytecode:
+    sys.pycache_prefix = str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "pycache")
     sys.dont_write_bytecode = False
+    os.environ["PYTHONPYCACHEPREFIX"] = sys.pycache_prefix
     os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 
 # OpenBLAS (numpy's and scipy's, each its own copy) starts a thread per core and, after each
