@@ -243,8 +243,9 @@ class Ctx:
     async def still_shot(self, page: Page, name: str, tries: int = 20) -> str:
         """:meth:`shot` of a page that holds still (a frozen 3D view): screenshots a frame
         apart until two in a row are the same picture. A loaded headless Chromium can hand
-        back a WebGL canvas older than the page's last draw (puppeteer#5352); CI once read a
-        3D view with an object the page had hidden three frames before."""
+        back a WebGL canvas older than the page's last draw (puppeteer#5352), which is what
+        CI's one failure of the headset's probe test looked like (the probe, hidden three
+        frames before, still in the picture)."""
         previous = None
         for _ in range(tries):
             png = await page.screenshot()

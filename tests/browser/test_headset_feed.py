@@ -35,8 +35,9 @@ def test_virtual_probe_drawn_where_the_pose_says(run):
     # In the picture: up the handle, at the projected points, the probe is drawn.
     mask = changed(shot(run, red, "all"), shot(run, red, "virtual"))
     cam = red["camera"]
-    handle = {up: project(cam, handle_point(v, up)) for up in (0.05, 0.08, 0.11)}  # the
-    near = {up: changed_near(mask, xy, 4) for up, xy in handle.items()}  # arrow may cover the face
+    # up the handle (the arrow may cover the face); all three reported when one fails
+    handle = {up: project(cam, handle_point(v, up)) for up in (0.05, 0.08, 0.11)}
+    near = {up: changed_near(mask, xy, 4) for up, xy in handle.items()}
     assert min(near.values()) > 0.5, (near, handle, int(mask.sum()))
     # Read as (w, x, y, z), the same numbers would put the handle elsewhere: nothing there.
     q = v["quaternion"]
