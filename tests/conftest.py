@@ -29,6 +29,7 @@ In the xdist controller (whose children are the workers) each worker does it for
 """
 
 import contextlib
+import functools
 import json
 import os
 import signal
@@ -77,7 +78,7 @@ from cpu_durations import (  # noqa: F401 - the hooks of --cpu-durations=N
 from fuzz_examples import set_fast_lane
 from procgroups import pytest_configure as procgroups_configure
 from procgroups import pytest_unconfigure  # noqa: F401 - the hook
-from session_slot import scaled, whole_session_slot
+from session_slot import order_the_lanes, scaled, whole_session_slot
 from system_packages import system_packages_line
 
 sys.path.append(str(Path(__file__).resolve().parent / "browser"))  # netns, for browser_scenario
@@ -120,48 +121,25 @@ def pytest_collection_modifyitems(items):
             item.add_marker(pytest.mark.e2e)  # the fast lane, -m "not e2e", leaves them out
         elif not item.get_closest_marker("e2e") and _uses_a_module_fixture(item):
             item.add_marker(pytest.mark.xdist_group(f"module {item.nodeid.split('::')[0]}"))
-    _order_the_lanes(items)
-
-
-# Where each lane runs its whole sessions: the browser lane first, the host's lane last. A
-# whole session waits for the slot while the other lane's runs (tests/session_slot.py), and its
-# worker does nothing meanwhile: in the order of collection the host's lane waited about 110 s
-# of a 483 s run. Run so, each lane's lighter tests run beside the other lane's sessions.
-SESSIONS_FIRST = {"processes-netns": True, "processes": False}
-
-
-def _order_the_lanes(items: list[pytest.Item]) -> None:
-    """Reorder each lane's modules (in place, a module's tests kept together and in their
-    order, every other test where it was): those that run a whole session first in the browser
-    lane and last in the host's (SESSIONS_FIRST)."""
-    for lane, first in SESSIONS_FIRST.items():
-        at = [i for i, item in enumerate(items) if _lane(item) == lane]
-        modules = {_module(items[i]) for i in at if _holds_the_slot(items[i])}
-        late = [(_module(items[i]) in modules) != first for i in at]
-        order = sorted(range(len(at)), key=late.__getitem__)  # stable: the order otherwise kept
-        ordered = [items[at[k]] for k in order]
-        for i, item in zip(at, ordered, strict=True):
-            items[i] = item
-
-
-def _module(item: pytest.Item) -> str:
-    return item.nodeid.split("::")[0]
-
-
-def _lane(item: pytest.Item) -> str | None:
-    marker = item.get_closest_marker("xdist_group")
-    return marker.args[0] if marker and marker.args else None
+    order_the_lanes(items, _holds_the_slot)
 
 
 def _holds_the_slot(item: pytest.Item) -> bool:
-    """Whether ``item`` runs a whole session: marked ``whole_session``, using the ``session``
-    or ``demo_run`` fixture, or a browser scenario that starts the daemons or a demo (its
-    module names the scenario: ``browser_scenario("<name>"``)."""
-    if item.get_closest_marker("whole_session") or {"session", "demo_run"} & set(item.fixturenames):
+    """Whether ``item`` runs a whole session (it takes the slot, tests/session_slot.py): marked
+    ``whole_session``, using the ``session`` or ``demo_run`` fixture, or a browser scenario that
+    starts the daemons or a demo (:func:`starts_a_session`; its module names the scenario)."""
+    if item.get_closest_marker("whole_session"):
         return True
-    if "browser_scenario" not in item.fixturenames:
-        return False
-    text = Path(str(item.fspath)).read_text()
+    fixtures = set(item.fixturenames)
+    if (PROCESS_FIXTURES - {"browser_scenario"}) & fixtures:
+        return True
+    return "browser_scenario" in fixtures and _scenarios_start_a_session(str(item.fspath))
+
+
+@functools.cache
+def _scenarios_start_a_session(module: str) -> bool:
+    """Whether a scenario the test module names (``browser_scenario("<name>"``) starts one."""
+    text = Path(module).read_text()
     names = {part.split('"')[0] for part in text.split('browser_scenario("')[1:]}
     return any((SCENARIOS / f"{n}.py").exists() and starts_a_session(n) for n in names)
 

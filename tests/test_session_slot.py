@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 import session_slot
-from session_slot import scaled, time_scale, whole_session_slot
+from session_slot import order_the_lanes, scaled, time_scale, whole_session_slot
 
 HOLDER = (
     "import sys; sys.path.insert(0, sys.argv[1]); from pathlib import Path;"
@@ -75,7 +75,6 @@ def test_deadlines_scale_with_the_environment_or_the_load(monkeypatch):
 def test_the_slot_is_taken_whatever_the_load_unless_turned_off(tmp_path: Path, monkeypatch):
     lock = tmp_path / "slot.lock"
     monkeypatch.delenv("HUMANTELE_TEST_ONE_SESSION", raising=False)
-    monkeypatch.setattr(session_slot.os, "cpu_count", lambda: 2)
     for load in (0.1, 2.0, 6.0):  # quiet or crowded: one session at a time
         monkeypatch.setattr(session_slot.os, "getloadavg", lambda load=load: (load, 1.0, 1.0))
         with whole_session_slot(lock):
@@ -84,3 +83,36 @@ def test_the_slot_is_taken_whatever_the_load_unless_turned_off(tmp_path: Path, m
     monkeypatch.setenv("HUMANTELE_TEST_ONE_SESSION", "0")  # side by side, asked for
     with whole_session_slot(lock):
         assert session_slot._held["fd"] == -1
+
+
+class _Item:
+    """What order_the_lanes reads of a pytest item: its node id and its xdist group."""
+
+    def __init__(self, nodeid: str, lane: str | None = None, session: bool = False) -> None:
+        self.nodeid, self.lane, self.session = nodeid, lane, session
+
+    def get_closest_marker(self, name: str):
+        return (
+            pytest.mark.xdist_group(self.lane).mark if self.lane and name == "xdist_group" else None
+        )
+
+
+def test_each_lane_meets_the_other_s_sessions_with_its_lighter_tests():
+    """The browser lane's session modules first, the host's last; a module's tests together
+    and in order (a module counts as a session one if any of its tests is); every test of no
+    lane stays where it was."""
+    net, host = "processes-netns", "processes"
+    items = [
+        _Item("a.py::x"), _Item("b.py::1", host, True), _Item("b.py::2", host),
+        _Item("c.py::1", net), _Item("d.py::1", host), _Item("e.py::x"),
+        _Item("f.py::1", net, True), _Item("f.py::2", net), _Item("g.py::1", host),
+        _Item("h.py::x"),
+    ]  # fmt: skip
+    order_the_lanes(items, lambda item: item.session)
+    assert [i.nodeid for i in items] == [
+        "a.py::x", "d.py::1", "g.py::1", "f.py::1", "b.py::1", "e.py::x",
+        "f.py::2", "c.py::1", "b.py::2", "h.py::x",
+    ]  # fmt: skip
+    lane = lambda name: [i.nodeid for i in items if i.lane == name]  # noqa: E731
+    assert lane(net) == ["f.py::1", "f.py::2", "c.py::1"]
+    assert lane(host) == ["d.py::1", "g.py::1", "b.py::1", "b.py::2"]
