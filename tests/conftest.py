@@ -78,7 +78,7 @@ from cpu_durations import (  # noqa: F401 - the hooks of --cpu-durations=N
 from fuzz_examples import set_fast_lane
 from procgroups import pytest_configure as procgroups_configure
 from procgroups import pytest_unconfigure  # noqa: F401 - the hook
-from session_slot import order_the_lanes, scaled, whole_session_slot
+from session_slot import order_the_lanes, scaled, whole_session_slot, why_xdist_cannot_group
 from system_packages import system_packages_line
 
 sys.path.append(str(Path(__file__).resolve().parent / "browser"))  # netns, for browser_scenario
@@ -100,7 +100,15 @@ settings.load_profile("suite")
 
 def pytest_configure(config: pytest.Config) -> None:
     """The fast lane (``-m "not e2e"``) draws fewer examples (tests/fuzz_examples.py; an
-    explicit ``--hypothesis-profile`` wins), then procgroups' hook."""
+    explicit ``--hypothesis-profile`` wins), then procgroups' hook. xdist's workers with
+    ``--dist loadgroup`` (the lanes) and a pytest it cannot group: a clear stop."""
+    grouped = getattr(config.option, "dist", None) == "loadgroup"
+    if (
+        grouped
+        and getattr(config.option, "numprocesses", None)
+        and (why := why_xdist_cannot_group())
+    ):
+        raise pytest.UsageError(why)
     fast = _fast_lane(config)
     share = set_fast_lane(fast)
     if not config.getoption("hypothesis_profile", None):

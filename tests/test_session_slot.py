@@ -1,6 +1,8 @@
 """The suite's one slot for a whole session (tests/session_slot.py): held across processes,
-reentrant in one, and the deadlines' scale."""
+reentrant in one, the deadlines' scale, the lanes' order, and xdist taking the lanes' groups."""
 
+import os
+import re
 import subprocess
 import sys
 import threading
@@ -9,7 +11,13 @@ from pathlib import Path
 import pytest
 
 import session_slot
-from session_slot import order_the_lanes, scaled, time_scale, whole_session_slot
+from session_slot import (
+    order_the_lanes,
+    scaled,
+    time_scale,
+    whole_session_slot,
+    why_xdist_cannot_group,
+)
 
 HOLDER = (
     "import sys; sys.path.insert(0, sys.argv[1]); from pathlib import Path;"
@@ -116,3 +124,43 @@ def test_each_lane_meets_the_other_s_sessions_with_its_lighter_tests():
     lane = lambda name: [i.nodeid for i in items if i.lane == name]  # noqa: E731
     assert lane(net) == ["f.py::1", "f.py::2", "c.py::1"]
     assert lane(host) == ["d.py::1", "g.py::1", "b.py::1", "b.py::2"]
+
+
+GROUPED = """import os, pytest
+@pytest.mark.xdist_group("lane")
+@pytest.mark.parametrize("i", range(4))
+def test_where(i):
+    print("worker", os.environ["PYTEST_XDIST_WORKER"])
+"""
+
+
+def test_xdist_runs_a_group_on_one_worker_with_the_installed_pytest(tmp_path: Path):
+    """The lanes are xdist groups: with the pytest and pytest-xdist installed, two modules'
+    tests of one group run on one worker (with pytest 9.2 and xdist 3.8 they do not)."""
+    for name in ("test_a.py", "test_b.py"):
+        (tmp_path / name).write_text(GROUPED)
+    (tmp_path / "pytest.ini").write_text("[pytest]\n")
+    run = subprocess.run(
+        [sys.executable, "-m", "pytest", "-n", "2", "--dist", "loadgroup", "-v", "-p",
+         "no:cacheprovider"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=120,
+        env={k: v for k, v in os.environ.items() if k != "PYTEST_ADDOPTS"},
+    )  # fmt: skip
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
+    workers = re.findall(
+        r"^\[(gw\d)\] .* PASSED test_[ab]\.py::test_where\[\d\]@lane", run.stdout, re.M
+    )
+    assert len(workers) == 8 and len(set(workers)) == 1, run.stdout[-2000:]
+
+
+def test_a_pytest_xdist_cannot_group_is_named_before_the_suite_runs(monkeypatch):
+    import xdist
+
+    monkeypatch.setattr(pytest, "__version__", "9.2.0")
+    monkeypatch.setattr(xdist, "__version__", "3.8.0")
+    assert "pytest-dev/pytest-xdist#1386" in why_xdist_cannot_group()
+    monkeypatch.setattr(xdist, "__version__", "3.9.0")  # a fixed xdist
+    assert why_xdist_cannot_group() is None
+    monkeypatch.setattr(pytest, "__version__", "9.1.1")
+    monkeypatch.setattr(xdist, "__version__", "3.8.0")
+    assert why_xdist_cannot_group() is None
