@@ -5,13 +5,15 @@ puts a conftest's folder there), so tests import the daemons' doubles from
 The suite runs on two pytest-xdist workers (``-n auto --dist loadgroup``, pyproject.toml, and
 :func:`pytest_xdist_auto_num_workers`; the fast lane on three). Tests
 that run real processes for seconds (the daemons, the servo, the demo, coturn, a browser) must
-not all run at once on a 2-core machine, or they starve each other's real-time loops: the
-ones on the host's network go to one worker, one after the other (the xdist group
-``processes``); the browser scenarios, each in a network namespace of its own (so no port of
-theirs meets the host's), to another (``processes-netns``); the other tests run beside them.
-The two lanes never run a whole session each at once (a Chromium beside a demo in one, another
-demo in the other put the load at 19 on 2 cores): such tests hold one slot between them
-(``tests/session_slot.py``), the lighter ones of each lane run beside.
+not all run at once on a 2-core machine, or they starve each other's real-time loops. They run
+in three xdist groups (lanes), each on one worker, one test after the other: ``sessions``,
+every module with a test that runs a whole session (both daemons or a demo, on the host or
+beside a Chromium in a browser scenario); ``processes``, the host's other process tests;
+``processes-netns``, the other browser scenarios, each in a network namespace of its own (so no
+port of theirs meets the host's). Two whole sessions never run at once (a Chromium beside a
+demo and another demo put the load at 19 on 2 cores): in one lane they cannot, and the lighter
+lanes and the other tests run beside them. (``tests/session_slot.py``'s slot still holds them
+one at a time whatever the scheduling: ``-n 3`` or ``--dist load``.)
 Such a test is marked ``slow`` or uses a fixture that starts those processes; it is also
 marked ``e2e``, so ``python -m pytest -q -m "not e2e"`` is the fast lane for everyday work
 (the README's command runs everything). A shorter test that starts any process (a child, the
@@ -78,7 +80,7 @@ from cpu_durations import (  # noqa: F401 - the hooks of --cpu-durations=N
 from fuzz_examples import set_fast_lane
 from procgroups import pytest_configure as procgroups_configure
 from procgroups import pytest_unconfigure  # noqa: F401 - the hook
-from session_slot import order_the_lanes, scaled, whole_session_slot, why_xdist_cannot_group
+from session_slot import scaled, whole_session_slot, why_xdist_cannot_group
 from system_packages import system_packages_line
 
 sys.path.append(str(Path(__file__).resolve().parent / "browser"))  # netns, for browser_scenario
@@ -88,6 +90,7 @@ FAST_LANE_WORKERS = 3  # -m "not e2e": its tests wait on timers and sockets a th
 SUITE_WORKERS = 2  # with the e2e tests: their real-time loops need the two cores
 
 PROCESS_FIXTURES = {"session", "demo_run", "browser_scenario"}
+SESSION_FIXTURES = {"session", "demo_run", "installed_demo"}  # each runs a whole session
 
 # Property tests check behaviour, not speed: no per-example deadline (hypothesis's 200 ms
 # default failed a wire round trip once on a busy machine). The whole suite draws each test's
@@ -122,24 +125,38 @@ def _fast_lane(config: pytest.Config) -> bool:
 
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
 def pytest_collection_modifyitems(items):
+    sessions = {_module(item) for item in items if _holds_the_slot(item)}
     for item in items:
+        if _module(item) in sessions:
+            item.add_marker(pytest.mark.xdist_group("sessions"))  # the module whole: its fixtures
         if item.get_closest_marker("slow") or PROCESS_FIXTURES & set(item.fixturenames):
-            netns = "browser_scenario" in item.fixturenames
-            item.add_marker(pytest.mark.xdist_group("processes-netns" if netns else "processes"))
+            if _module(item) not in sessions:
+                netns = "browser_scenario" in item.fixturenames
+                item.add_marker(
+                    pytest.mark.xdist_group("processes-netns" if netns else "processes")
+                )
             item.add_marker(pytest.mark.e2e)  # the fast lane, -m "not e2e", leaves them out
-        elif not item.get_closest_marker("e2e") and _uses_a_module_fixture(item):
-            item.add_marker(pytest.mark.xdist_group(f"module {item.nodeid.split('::')[0]}"))
-    order_the_lanes(items, _holds_the_slot)
+        elif (
+            _module(item) not in sessions
+            and not item.get_closest_marker("e2e")
+            and (_uses_a_module_fixture(item))
+        ):
+            item.add_marker(pytest.mark.xdist_group(f"module {_module(item)}"))
+
+
+def _module(item: pytest.Item) -> str:
+    return item.nodeid.split("::")[0]
 
 
 def _holds_the_slot(item: pytest.Item) -> bool:
     """Whether ``item`` runs a whole session (it takes the slot, tests/session_slot.py): marked
-    ``whole_session``, using the ``session`` or ``demo_run`` fixture, or a browser scenario that
-    starts the daemons or a demo (:func:`starts_a_session`; its module names the scenario)."""
+    ``whole_session``, using a fixture that runs one (SESSION_FIXTURES), or a browser scenario
+    that starts the daemons or a demo (:func:`starts_a_session`; its module names the
+    scenario)."""
     if item.get_closest_marker("whole_session"):
         return True
     fixtures = set(item.fixturenames)
-    if (PROCESS_FIXTURES - {"browser_scenario"}) & fixtures:
+    if SESSION_FIXTURES & fixtures:
         return True
     return "browser_scenario" in fixtures and _scenarios_start_a_session(str(item.fspath))
 
@@ -208,7 +225,8 @@ def browser_scenario(tmp_path_factory):
     (tests/browser/netns.py), once per session and arguments: the tests of every module that
     checks the same scenario share its run (a whole session shared, issue 33), and its failure
     (each test that asks for it fails with it). Its tests are in one xdist group
-    (``processes-netns``, :func:`pytest_collection_modifyitems`), so one worker runs it."""
+    (``sessions`` or ``processes-netns``, :func:`pytest_collection_modifyitems`), so one worker
+    runs it."""
     reason = skip_reason()
     if reason:
         pytest.skip(f"browser tests: {reason}")
@@ -234,8 +252,8 @@ def browser_scenario(tmp_path_factory):
 
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     """``-n auto`` (pyproject.toml's addopts): three workers for the fast lane, two for a run
-    with the e2e tests (their slow ones run one at a time in two xdist groups, beside the
-    rest). An explicit ``-n N`` wins."""
+    with the e2e tests (their slow ones run one at a time in three xdist groups, beside
+    the rest). An explicit ``-n N`` wins."""
     return FAST_LANE_WORKERS if _fast_lane(config) else SUITE_WORKERS
 
 

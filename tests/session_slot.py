@@ -1,14 +1,14 @@
 """One whole session at a time across the suite's xdist workers, and deadlines that scale with
 the machine.
 
-The suite's two lanes run beside each other (tests/conftest.py): the host's process tests on
-one worker, the browser scenarios on the other. A browser scenario that starts both daemons
-(or a demo) runs a Chromium beside a whole session; a host test with a demo runs another
-whole session: both at once on 2 cores put the load at 19 and the pages' first loads past 30 s
-(issue 34). :func:`whole_session_slot` is a lock on a file (``flock``, so it holds across the
-workers' processes and is freed when a process dies) taken by every test that runs a whole
-session: the other lane's lighter tests still run beside it. It is reentrant in a process
-(a test using two such fixtures takes it once).
+The suite runs every test that runs a whole session in one lane, one after the other
+(tests/conftest.py, the xdist group ``sessions``). Two whole sessions at once (a browser
+scenario's Chromium beside a demo, and another demo) put the load at 19 on 2 cores and the
+pages' first loads past 30 s (issue 34). :func:`whole_session_slot` holds them one at a time
+however the tests are scheduled (``-n 3``, ``--dist load``): a lock on a file (``flock``, so it
+holds across the workers' processes and is freed when a process dies) taken by every test
+that runs a whole session. It is reentrant in a process (a test using two such fixtures takes
+it once).
 
 :func:`time_scale` is the factor a scenario's deadlines are multiplied by: the environment's
 ``HUMANTELE_TEST_TIME_SCALE`` if set, else the machine's load per core (the 1-minute load
@@ -22,9 +22,8 @@ import contextlib
 import fcntl
 import os
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import pytest
 
@@ -36,12 +35,6 @@ MAX_SCALE = 4.0
 # until the load reached 2.5 a core, 465-494 s and 646-686 CPU-s one at a time (the spinning
 # servos, the sensing and Chromium of two sessions took each other's cores), and side by side
 # failed two timing-bound scenarios on a host that steals CPU.
-
-# Where each lane runs its whole sessions: the browser lane first, the host's lane last. A
-# whole session waits for the slot while the other lane's runs, and its worker does nothing
-# meanwhile: in the order of collection the host's lane waited about 110 s of a 483 s run
-# (2026-11-29). So ordered, each lane's lighter tests run beside the other lane's sessions.
-SESSIONS_FIRST = {"processes-netns": True, "processes": False}
 
 _guard = threading.Lock()
 _held = {"depth": 0, "fd": -1}
@@ -95,19 +88,6 @@ def scaled(seconds: float) -> float:
     return seconds * time_scale()
 
 
-def order_the_lanes(items: list, holds_the_slot: Callable[[Any], bool]) -> None:
-    """Reorder each lane's modules in ``items`` (pytest items, in place): in the browser lane
-    those with a test that ``holds_the_slot`` first, in the host's last (SESSIONS_FIRST). A
-    module's tests stay together and in their order, every test of no lane where it was."""
-    for lane, first in SESSIONS_FIRST.items():
-        at = [i for i, item in enumerate(items) if _lane(item) == lane]
-        sessions = {_module(items[i]) for i in at if holds_the_slot(items[i])}
-        late = [(_module(items[i]) in sessions) != first for i in at]
-        order = sorted(range(len(at)), key=late.__getitem__)  # stable: the rest kept in order
-        for i, item in zip(at, [items[at[k]] for k in order], strict=True):
-            items[i] = item
-
-
 def why_xdist_cannot_group() -> str | None:
     """Why pytest-xdist's ``--dist loadgroup`` would run the lanes' tests on any worker with
     the installed pytest, or None. pytest-xdist 3.8 and before mark a grouped test by
@@ -126,13 +106,3 @@ def why_xdist_cannot_group() -> str | None:
             " installs a pytest it can group"
         )
     return None
-
-
-def _module(item: Any) -> str:
-    return item.nodeid.split("::")[0]
-
-
-def _lane(item: Any) -> str | None:
-    """The item's xdist group (tests/conftest.py: ``processes``, ``processes-netns``)."""
-    marker = item.get_closest_marker("xdist_group")
-    return marker.args[0] if marker is not None and marker.args else None

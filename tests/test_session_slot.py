@@ -1,5 +1,5 @@
 """The suite's one slot for a whole session (tests/session_slot.py): held across processes,
-reentrant in one, the deadlines' scale, the lanes' order, and xdist taking the lanes' groups."""
+reentrant in one, the deadlines' scale, and xdist taking the lanes' groups."""
 
 import os
 import re
@@ -12,7 +12,6 @@ import pytest
 
 import session_slot
 from session_slot import (
-    order_the_lanes,
     scaled,
     time_scale,
     whole_session_slot,
@@ -93,39 +92,6 @@ def test_the_slot_is_taken_whatever_the_load_unless_turned_off(tmp_path: Path, m
         assert session_slot._held["fd"] == -1
 
 
-class _Item:
-    """What order_the_lanes reads of a pytest item: its node id and its xdist group."""
-
-    def __init__(self, nodeid: str, lane: str | None = None, session: bool = False) -> None:
-        self.nodeid, self.lane, self.session = nodeid, lane, session
-
-    def get_closest_marker(self, name: str):
-        return (
-            pytest.mark.xdist_group(self.lane).mark if self.lane and name == "xdist_group" else None
-        )
-
-
-def test_each_lane_meets_the_other_s_sessions_with_its_lighter_tests():
-    """The browser lane's session modules first, the host's last; a module's tests together
-    and in order (a module counts as a session one if any of its tests is); every test of no
-    lane stays where it was."""
-    net, host = "processes-netns", "processes"
-    items = [
-        _Item("a.py::x"), _Item("b.py::1", host, True), _Item("b.py::2", host),
-        _Item("c.py::1", net), _Item("d.py::1", host), _Item("e.py::x"),
-        _Item("f.py::1", net, True), _Item("f.py::2", net), _Item("g.py::1", host),
-        _Item("h.py::x"),
-    ]  # fmt: skip
-    order_the_lanes(items, lambda item: item.session)
-    assert [i.nodeid for i in items] == [
-        "a.py::x", "d.py::1", "g.py::1", "f.py::1", "b.py::1", "e.py::x",
-        "f.py::2", "c.py::1", "b.py::2", "h.py::x",
-    ]  # fmt: skip
-    lane = lambda name: [i.nodeid for i in items if i.lane == name]  # noqa: E731
-    assert lane(net) == ["f.py::1", "f.py::2", "c.py::1"]
-    assert lane(host) == ["d.py::1", "g.py::1", "b.py::1", "b.py::2"]
-
-
 GROUPED = """import os, pytest
 @pytest.mark.xdist_group("lane")
 @pytest.mark.parametrize("i", range(4))
@@ -164,3 +130,31 @@ def test_a_pytest_xdist_cannot_group_is_named_before_the_suite_runs(monkeypatch)
     monkeypatch.setattr(pytest, "__version__", "9.1.1")
     monkeypatch.setattr(xdist, "__version__", "3.8.0")
     assert why_xdist_cannot_group() is None
+
+
+def test_every_module_with_a_whole_session_runs_in_the_sessions_lane(request):
+    """The lanes of this run's tests (tests/conftest.py): a module with a test that runs a
+    whole session is in ``sessions`` whole (its fixtures are built once, by one worker); no
+    test is in two lanes; a browser scenario with no session in ``processes-netns``."""
+    conftest = request.config.pluginmanager.get_plugin(str(Path(__file__).with_name("conftest.py")))
+    items = request.session.items
+    lanes = {}
+    for item in items:
+        groups = [m.args[0] for m in item.iter_markers("xdist_group")]
+        assert len(groups) <= 1, (item.nodeid, groups)
+        lanes[item.nodeid] = groups[0] if groups else None
+    module = lambda item: item.nodeid.split("::")[0]  # noqa: E731
+    with_sessions = {module(i) for i in items if conftest._holds_the_slot(i)}
+    for item in items:
+        assert (lanes[item.nodeid] == "sessions") == (module(item) in with_sessions), item.nodeid
+    expected = {  # (those in this run)
+        "tests/test_wheel_install.py::test_installed_wheel_runs_the_demo_outside_the_checkout":
+            "sessions",  # its installed demo holds the slot
+        "tests/session/test_demo_command.py::test_demo_json_and_ctrl_c_leave_no_process":
+            "sessions",  # demo_run: console_video's demo
+        "tests/browser/test_console_load.py::test_console_tells_the_truth_when_the_daemon_is_slow":
+            "processes-netns",  # no daemons: a console alone
+    }  # fmt: skip
+    for nodeid, lane in expected.items():
+        got = [lanes[n] for n in lanes if n.split("@")[0] == nodeid]
+        assert got in ([], [lane]), nodeid
