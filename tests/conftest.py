@@ -6,14 +6,15 @@ The suite runs on two pytest-xdist workers (``-n auto --dist loadgroup``, pyproj
 :func:`pytest_xdist_auto_num_workers`; the fast lane on three). Tests
 that run real processes for seconds (the daemons, the servo, the demo, coturn, a browser) must
 not all run at once on a 2-core machine, or they starve each other's real-time loops. They run
-in three xdist groups (lanes), each on one worker, one test after the other: ``sessions``,
-every module with a test that runs a whole session (both daemons or a demo, on the host or
-beside a Chromium in a browser scenario); ``processes``, the host's other process tests;
-``processes-netns``, the other browser scenarios, each in a network namespace of its own (so no
-port of theirs meets the host's). Two whole sessions never run at once (a Chromium beside a
-demo and another demo put the load at 19 on 2 cores): in one lane they cannot, and the lighter
-lanes and the other tests run beside them. (``tests/session_slot.py``'s slot still holds them
-one at a time whatever the scheduling: ``-n 3`` or ``--dist load``.)
+in two xdist groups (lanes), each on one worker, one test after the other: ``sessions``, every
+module with a test that runs a whole session (both daemons or a demo, on the host or beside a
+Chromium in a browser scenario), and ``processes``, the other tests that run processes for
+seconds; the rest of the tests run beside them, and after. Two whole sessions never run at once
+(a Chromium beside a demo and another demo put the load at 19 on 2 cores), nor two Chromiums:
+the processes lane runs its browser scenarios first, while the sessions lane runs the host's
+sessions, whose browser scenarios come last (``tests/session_slot.py``, whose slot also holds
+sessions one at a time under other scheduling: ``-n 3``, ``--dist load``). A browser scenario
+runs in a network namespace of its own, so no port of its meets the host's.
 Such a test is marked ``slow`` or uses a fixture that starts those processes; it is also
 marked ``e2e``, so ``python -m pytest -q -m "not e2e"`` is the fast lane for everyday work
 (the README's command runs everything). A shorter test that starts any process (a child, the
@@ -80,7 +81,7 @@ from cpu_durations import (  # noqa: F401 - the hooks of --cpu-durations=N
 from fuzz_examples import set_fast_lane
 from procgroups import pytest_configure as procgroups_configure
 from procgroups import pytest_unconfigure  # noqa: F401 - the hook
-from session_slot import scaled, whole_session_slot, why_xdist_cannot_group
+from session_slot import order_the_lanes, scaled, whole_session_slot, why_xdist_cannot_group
 from system_packages import system_packages_line
 
 sys.path.append(str(Path(__file__).resolve().parent / "browser"))  # netns, for browser_scenario
@@ -126,15 +127,13 @@ def _fast_lane(config: pytest.Config) -> bool:
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
 def pytest_collection_modifyitems(items):
     sessions = {_module(item) for item in items if _holds_the_slot(item)}
+    browser = {_module(item) for item in items if "browser_scenario" in item.fixturenames}
     for item in items:
         if _module(item) in sessions:
             item.add_marker(pytest.mark.xdist_group("sessions"))  # the module whole: its fixtures
         if item.get_closest_marker("slow") or PROCESS_FIXTURES & set(item.fixturenames):
             if _module(item) not in sessions:
-                netns = "browser_scenario" in item.fixturenames
-                item.add_marker(
-                    pytest.mark.xdist_group("processes-netns" if netns else "processes")
-                )
+                item.add_marker(pytest.mark.xdist_group("processes"))
             item.add_marker(pytest.mark.e2e)  # the fast lane, -m "not e2e", leaves them out
         elif (
             _module(item) not in sessions
@@ -142,6 +141,9 @@ def pytest_collection_modifyitems(items):
             and (_uses_a_module_fixture(item))
         ):
             item.add_marker(pytest.mark.xdist_group(f"module {_module(item)}"))
+    # One Chromium at a time: the processes lane runs its browser scenarios first, while the
+    # sessions lane runs the host's sessions; the sessions lane its browser sessions last.
+    order_the_lanes(items, lambda item: _module(item) in browser)
 
 
 def _module(item: pytest.Item) -> str:
@@ -225,8 +227,8 @@ def browser_scenario(tmp_path_factory):
     (tests/browser/netns.py), once per session and arguments: the tests of every module that
     checks the same scenario share its run (a whole session shared, issue 33), and its failure
     (each test that asks for it fails with it). Its tests are in one xdist group
-    (``sessions`` or ``processes-netns``, :func:`pytest_collection_modifyitems`), so one worker
-    runs it."""
+    (``sessions`` or ``processes``, :func:`pytest_collection_modifyitems`), so one worker runs
+    it."""
     reason = skip_reason()
     if reason:
         pytest.skip(f"browser tests: {reason}")
@@ -252,7 +254,7 @@ def browser_scenario(tmp_path_factory):
 
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     """``-n auto`` (pyproject.toml's addopts): three workers for the fast lane, two for a run
-    with the e2e tests (their slow ones run one at a time in three xdist groups, beside
+    with the e2e tests (their slow ones run one at a time in two xdist groups, beside
     the rest). An explicit ``-n N`` wins."""
     return FAST_LANE_WORKERS if _fast_lane(config) else SUITE_WORKERS
 

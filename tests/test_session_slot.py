@@ -12,6 +12,7 @@ import pytest
 
 import session_slot
 from session_slot import (
+    order_the_lanes,
     scaled,
     time_scale,
     whole_session_slot,
@@ -135,7 +136,8 @@ def test_a_pytest_xdist_cannot_group_is_named_before_the_suite_runs(monkeypatch)
 def test_every_module_with_a_whole_session_runs_in_the_sessions_lane(request):
     """The lanes of this run's tests (tests/conftest.py): a module with a test that runs a
     whole session is in ``sessions`` whole (its fixtures are built once, by one worker); no
-    test is in two lanes; a browser scenario with no session in ``processes-netns``."""
+    test is in two lanes; a browser scenario with no session in ``processes``; each lane's
+    browser scenarios first (processes) or last (sessions)."""
     conftest = request.config.pluginmanager.get_plugin(str(Path(__file__).with_name("conftest.py")))
     items = request.session.items
     lanes = {}
@@ -153,8 +155,36 @@ def test_every_module_with_a_whole_session_runs_in_the_sessions_lane(request):
         "tests/session/test_demo_command.py::test_demo_json_and_ctrl_c_leave_no_process":
             "sessions",  # demo_run: console_video's demo
         "tests/browser/test_console_load.py::test_console_tells_the_truth_when_the_daemon_is_slow":
-            "processes-netns",  # no daemons: a console alone
+            "processes",  # no daemons: a console alone
     }  # fmt: skip
     for nodeid, lane in expected.items():
         got = [lanes[n] for n in lanes if n.split("@")[0] == nodeid]
         assert got in ([], [lane]), nodeid
+    for lane, first in session_slot.BROWSER_FIRST.items():
+        kinds = ["browser_scenario" in i.fixturenames for i in items if lanes[i.nodeid] == lane]
+        assert kinds == sorted(kinds, reverse=first), lane  # the browser's in one run, at its end
+
+
+def test_a_lane_s_browser_scenarios_first_or_last_each_kind_in_order():
+    net = lambda name: name.startswith("b")  # noqa: E731 - "b...": a browser scenario's
+    items = [
+        _Item("x1"), _Item("b1", "processes"), _Item("p1", "processes"), _Item("s1", "sessions"),
+        _Item("bs1", "sessions"), _Item("x2"), _Item("p2", "processes"), _Item("b2", "processes"),
+        _Item("s2", "sessions"), _Item("bs2", "sessions"),
+    ]  # fmt: skip
+    order_the_lanes(items, lambda item: net(item.nodeid))
+    assert [i.nodeid for i in items] == [
+        "x1", "b1", "b2", "s1", "s2", "x2", "p1", "p2", "bs1", "bs2",
+    ]  # fmt: skip
+
+
+class _Item:
+    """What order_the_lanes reads of a pytest item: its node id and its xdist group."""
+
+    def __init__(self, nodeid: str, lane: str | None = None) -> None:
+        self.nodeid, self.lane = nodeid, lane
+
+    def get_closest_marker(self, name: str):
+        return (
+            pytest.mark.xdist_group(self.lane).mark if self.lane and name == "xdist_group" else None
+        )
