@@ -160,8 +160,9 @@ def test_every_module_with_a_whole_session_runs_in_the_sessions_lane(request):
     for nodeid, lane in expected.items():
         got = [lanes[n] for n in lanes if n.split("@")[0] == nodeid]
         assert got in ([], [lane]), nodeid
+    browser = {module(i) for i in items if "browser_scenario" in i.fixturenames}
     for lane, first in session_slot.BROWSER_FIRST.items():
-        kinds = ["browser_scenario" in i.fixturenames for i in items if lanes[i.nodeid] == lane]
+        kinds = [module(i) in browser for i in items if lanes[i.nodeid] == lane]
         assert kinds == sorted(kinds, reverse=first), lane  # the browser's in one run, at its end
 
 
