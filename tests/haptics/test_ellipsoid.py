@@ -189,6 +189,21 @@ def test_never_nan_or_inf(s, p, kind):
     assert abs(dn) >= abs(dx) - tol
 
 
+@pytest.mark.parametrize("z", [1.2e-38, 1.2e-32, 1e-30, 1e-20])
+def test_a_hair_off_the_smallest_axis_plane_is_as_deep_as_on_it(z):
+    """A point inside a needle (1000 km by 5 cm), on its long axis but a hair off it: its
+    closest surface point is beside it, as for the point on the axis (0.0174 m), found by
+    every exact path. (z = 1.2e-32 gave 0.0298 m and z = 1.2e-38 3e-8 m: the solver halved its
+    bracket towards a root at w ~ 1e-33 and ran out of steps.)"""
+    e = Ellipsoid((0.0, 0.0, 0.0), (1e6, 0.05, 0.05))
+    on_axis = e.penetration((0.9375e6, 0.0, 0.0), "exact")[0]
+    assert on_axis == pytest.approx(0.05 * math.sqrt(1.0 - 0.9375**2), rel=1e-9)
+    p = (0.9375e6, 0.0, z)
+    for m in ("exact", "newton"):
+        assert e.penetration(p, m)[0] == pytest.approx(on_axis, rel=1e-9), m
+        assert e.penetration_batch(np.array([p]), m)[0][0] == pytest.approx(on_axis, rel=1e-9)
+
+
 def test_sphere_and_surface_points_all_methods_agree():
     e = Ellipsoid((0.0, 0.0, 0.0), (0.15, 0.15, 0.15))
     for m in METHODS:

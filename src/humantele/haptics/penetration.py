@@ -174,6 +174,15 @@ def _degenerate(x: float, y: float, z: float, k: tuple) -> tuple[float, float, f
     return math.sqrt(dx * dx + dy * dy + dz * dz), gx / rg, gy / rg, gz / rg
 
 
+def _bisect(lo: float, hi: float) -> float:
+    """The safeguard's split of the bracket: its geometric mean while it spans more than a
+    factor 4 above 0, else its middle. A root crowded against a pole at w = 0 (a point a hair
+    off the smallest-axis plane: w ~ 1e-33 in a bracket up to min s^2) is then reached in a
+    few halvings of its logarithm; halving the bracket itself took over 100 steps there, and
+    EXACT_MAX_ITER ended the search far from the root (a depth 70 % too deep)."""
+    return math.sqrt(lo) * math.sqrt(hi) if 0.0 < 4.0 * lo < hi else 0.5 * (lo + hi)
+
+
 def _solve(
     x: float, y: float, z: float, k: tuple, q: float, tol: float, max_iter: int
 ) -> tuple[float, float, float, float, float]:
@@ -200,7 +209,7 @@ def _solve(
     fp = kx / (sx**6) + ky / (sy**6) + kz / (sz**6)
     w = sm2 + q * (math.sqrt(q) - 1.0) / fp
     if not lo <= w <= hi:
-        w = 0.5 * (lo + hi)
+        w = _bisect(lo, hi)
     for _ in range(max_iter):
         ax, ay, az = w + ex, w + ey, w + ez
         tx = kx / (ax * ax) if kx > 0.0 else 0.0
@@ -217,7 +226,7 @@ def _solve(
         fp += tz / az if kz > 0.0 else 0.0
         wn = w + s * (math.sqrt(s) - 1.0) / fp
         if not lo <= wn <= hi:
-            wn = 0.5 * (lo + hi)
+            wn = _bisect(lo, hi)
         dw = wn - w
         w = wn
         if -tol * w <= dw <= tol * w:
@@ -313,6 +322,12 @@ def _fix_special(p: NDArray, s: NDArray, q: NDArray, depth: NDArray, n: NDArray)
             depth[i], n[i] = math.nan, 0.0
 
 
+def _bisect_batch(lo: NDArray, hi: NDArray) -> NDArray:
+    """Vectorised :func:`_bisect`."""
+    geometric = (lo > 0.0) & (4.0 * lo < hi)
+    return np.where(geometric, np.sqrt(lo) * np.sqrt(hi), 0.5 * (lo + hi))
+
+
 def _solve_batch(
     p: NDArray[np.float64], s: NDArray[np.float64], tol: float, final: str
 ) -> tuple[NDArray, NDArray]:
@@ -342,7 +357,7 @@ def _solve_batch(
         hi = np.where(inside, sm2, np.sqrt(kk.sum(axis=1)))
         fp0 = np.sum(kk / s2**3, axis=1)
         w = sm2 + q * (np.sqrt(q) - 1.0) / fp0  # first step from t = 0, as the scalar path
-        w = np.where((lo <= w) & (w <= hi), w, 0.5 * (lo + hi))
+        w = np.where((lo <= w) & (w <= hi), w, _bisect_batch(lo, hi))
         idx = np.flatnonzero(ok & ~degenerate)
         for _ in range(EXACT_MAX_ITER):
             if idx.size == 0:
@@ -357,7 +372,7 @@ def _solve_batch(
             fp = np.where(ki > 0.0, t / a, 0.0).sum(axis=1)
             wn = wi + ssum * (np.sqrt(ssum) - 1.0) / fp
             out = ~((lo[idx] <= wn) & (wn <= hi[idx]))
-            wn = np.where(out, 0.5 * (lo[idx] + hi[idx]), wn)
+            wn = np.where(out, _bisect_batch(lo[idx], hi[idx]), wn)
             w[idx] = wn
             done = (np.abs(wn - wi) <= tol * wn) | (ssum == 1.0)
             idx = idx[~done]
