@@ -92,6 +92,7 @@ SUITE_WORKERS = 2  # with the e2e tests: their real-time loops need the two core
 
 PROCESS_FIXTURES = {"session", "demo_run", "browser_scenario"}
 SESSION_FIXTURES = {"session", "demo_run", "installed_demo"}  # each runs a whole session
+SESSION_MODULES: set[str] = set()  # this run's, before -m or -k leave tests out: the lane's
 
 # Property tests check behaviour, not speed: no per-example deadline (hypothesis's 200 ms
 # default failed a wire round trip once on a busy machine). The whole suite draws each test's
@@ -127,6 +128,8 @@ def _fast_lane(config: pytest.Config) -> bool:
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
 def pytest_collection_modifyitems(items):
     sessions = {_module(item) for item in items if _holds_the_slot(item)}
+    SESSION_MODULES.clear()
+    SESSION_MODULES.update(sessions)
     browser = {_module(item) for item in items if "browser_scenario" in item.fixturenames}
     for item in items:
         if _module(item) in sessions:
