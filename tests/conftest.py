@@ -127,21 +127,19 @@ def _fast_lane(config: pytest.Config) -> bool:
 
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
 def pytest_collection_modifyitems(items):
-    sessions = {_module(item) for item in items if _holds_the_slot(item)}
     SESSION_MODULES.clear()
-    SESSION_MODULES.update(sessions)
+    SESSION_MODULES.update(_module(item) for item in items if _holds_the_slot(item))
     browser = {_module(item) for item in items if "browser_scenario" in item.fixturenames}
     for item in items:
-        if _module(item) in sessions:
+        in_sessions = _module(item) in SESSION_MODULES
+        if in_sessions:
             item.add_marker(pytest.mark.xdist_group("sessions"))  # the module whole: its fixtures
         if item.get_closest_marker("slow") or PROCESS_FIXTURES & set(item.fixturenames):
-            if _module(item) not in sessions:
+            if not in_sessions:
                 item.add_marker(pytest.mark.xdist_group("processes"))
             item.add_marker(pytest.mark.e2e)  # the fast lane, -m "not e2e", leaves them out
         elif (
-            _module(item) not in sessions
-            and not item.get_closest_marker("e2e")
-            and (_uses_a_module_fixture(item))
+            not in_sessions and not item.get_closest_marker("e2e") and _uses_a_module_fixture(item)
         ):
             item.add_marker(pytest.mark.xdist_group(f"module {_module(item)}"))
     # One Chromium at a time: the processes lane runs its browser scenarios first, while the

@@ -145,7 +145,7 @@ def test_every_module_with_a_whole_session_runs_in_the_sessions_lane(request):
         groups = [m.args[0] for m in item.iter_markers("xdist_group")]
         assert len(groups) <= 1, (item.nodeid, groups)
         lanes[item.nodeid] = groups[0] if groups else None
-    module = lambda item: item.nodeid.split("::")[0]  # noqa: E731
+    module = conftest._module
     with_sessions = conftest.SESSION_MODULES  # from every test collected, before -m or -k
     assert {module(i) for i in items if conftest._holds_the_slot(i)} <= with_sessions
     for item in items:
