@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 from fake_hidapi import FakeHid
 
-from humantele.follower.sensing import ProbeSensing, Sensing, SensingConfig
+from humantele.follower.clinic import DeviceClinicConfig
+from humantele.follower.sensing import ProbeSensing, Sensing, SensingConfig, SensingSetup
 from humantele.follower.sensing_devices import SensingDevices
 from humantele.forcesense.calibration import calibrate_sim
 from humantele.forcesense.contact import ContactConfig
@@ -177,7 +178,9 @@ def test_the_follower_reads_the_board_at_its_own_rate_and_sends_no_stale_force(
     devices = SensingDevices(NoFrames(), sensor, cal)  # real devices: no observe()
     config = SensingConfig()
     ps = ProbeSensing(config, devices=devices)
-    view = Sensing(SimpleFollower(), config, build=False)
+    # what the sensing reads of the follower's config, for a clinic on its devices
+    setup = SensingSetup("probe_default", DeviceClinicConfig(), "pipeline", 1.0)
+    view = Sensing(setup, config, build=False)
     view.pipeline, view.unbuilt = ps, False
     try:
         m = view.measure(time.monotonic())
@@ -203,10 +206,3 @@ def test_the_follower_reads_the_board_at_its_own_rate_and_sends_no_stale_force(
     finally:
         ps.close()
     assert not ps.force.running
-
-
-class SimpleFollower:
-    """What :class:`Sensing` reads of the follower's config."""
-
-    tool = "probe_default"
-    probe_source = "pipeline"

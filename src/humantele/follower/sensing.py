@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from humantele.follower.clinic import DeviceClinicConfig, SimClinicConfig
+from humantele.follower.clinic import ClinicConfig, DeviceClinicConfig, SimClinicConfig
 from humantele.follower.clinics import make_sensing_devices
 from humantele.follower.sensing_devices import (
     ProbeMeasurement,
@@ -206,17 +206,38 @@ class TrackerImage:
     target: Pose | None
 
 
+@dataclass(frozen=True)
+class SensingSetup:
+    """What the sensing needs of the follower's config: the probe's ``tool``, the ``clinic``,
+    the ``probe_source`` and the contact force that ends a press (N). The sensing child is
+    sent this, not the whole config: unpickling the follower's config imports its pages, its
+    WebRTC link and its video (0.75 CPU-s a start, more than the sensing's own imports)."""
+
+    tool: str
+    clinic: ClinicConfig
+    probe_source: str
+    force_off_n: float
+
+    @classmethod
+    def of(cls, config: Any) -> SensingSetup:
+        """From the follower's config (a :class:`SensingSetup` stays as it is)."""
+        if isinstance(config, SensingSetup):
+            return config
+        return cls(config.tool, config.clinic, config.probe_source,
+                   config.calibration.force_off_n)  # fmt: skip
+
+
 class Sensing:
     """The follower's probe sensing: ``measure(t, world)`` gives a :class:`Measurement`; a
     pipeline error gives a LOST measurement (counted), never a crash. ``config``: the
-    follower's (its ``tool``, ``clinic``, ``probe_source``, calibration contact force)."""
+    follower's, or its :class:`SensingSetup`."""
 
     def __init__(
         self, config: Any, sensing_config: SensingConfig | None = None, build: bool = True
     ) -> None:
         """``build=False``: build the pipeline at the first :meth:`measure` (the daemon's own
         copy when a :class:`~humantele.follower.sensing_process.SensingProcess` measures)."""
-        self.config = config
+        self.config = config = SensingSetup.of(config)
         self.T_probe_tip = tip_transform(config.tool)
         self.T_tip_probe = self.T_probe_tip.inverse()
         self.pipeline: Any = None
@@ -238,7 +259,7 @@ class Sensing:
         if c.probe_source == "truth":
             from humantele.follower.sim_clinic import IdealSensing
 
-            self.pipeline = IdealSensing(self.T_probe_tip, c.calibration.force_off_n)
+            self.pipeline = IdealSensing(self.T_probe_tip, c.force_off_n)
             return
         tool = load_tool(c.tool)
         devices = make_sensing_devices(c.clinic, self.sensing_config, tool)

@@ -192,7 +192,11 @@ class SensingProcess:
 
     def _spawn(self) -> None:
         parent, child = mp.get_context("spawn").Pipe(duplex=True)
-        self._proc = spawn(self.target, (self.config, self.sensing_config, child, self.priority),
+        from humantele.follower.sensing import SensingSetup  # (the daemon has it loaded)
+
+        # not the whole config: see SensingSetup (None: a test's own target)
+        setup = None if self.config is None else SensingSetup.of(self.config)
+        self._proc = spawn(self.target, (setup, self.sensing_config, child, self.priority),
                            name="humantele-sensing")  # fmt: skip
         child.close()
         self._errors_before = self.child_errors

@@ -10,10 +10,17 @@ from __future__ import annotations
 
 import numpy as np
 from pydantic import Field
-from scipy.spatial.transform import Rotation
 
 from humantele.config import ConfigModel
 from humantele.geometry import Pose
+
+
+def _rotation():  # noqa: ANN202 - scipy's Rotation class
+    """scipy's ``Rotation``, imported at the first filter built: the filter is off by default,
+    and ``scipy.spatial`` took 0.2 s of every sensing process's start to import."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation
 
 
 class FilterConfig(ConfigModel):
@@ -36,12 +43,12 @@ class PoseFilter:
         self._t: float | None = None
         self._x = np.zeros(3)
         self._v = np.zeros(3)
-        self._r = Rotation.identity()
+        self._r = _rotation().identity()
         self._w = np.zeros(3)
 
     def update(self, t: float, pose: Pose) -> Pose:
         """Filter the measurement ``pose`` taken at time ``t`` (s)."""
-        c = self.config
+        c, Rotation = self.config, _rotation()
         dt = None if self._t is None else t - self._t
         if dt is None or dt <= 0 or dt > c.reset_after_s:
             self._t = t
