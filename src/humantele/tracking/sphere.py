@@ -32,7 +32,6 @@ from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import i0e
 
 
 @dataclass(frozen=True)
@@ -72,6 +71,8 @@ def sphere_tables(psf_sigma_px: float, r_max: float = 16.0) -> SphereTables:
     ``C = int (a / s^2) exp(-(a - rho)^2 / 2 s^2) i0e(a rho / s^2) da`` and the same with the
     surface depth ``sqrt(1 - a^2 / r^2)`` inside for ``C G`` (Gauss-Legendre, 64 nodes).
     """
+    from scipy.special import i0e  # here: the follower daemon imports this module, not scipy
+
     s = math.hypot(psf_sigma_px, math.sqrt(1.0 / 12.0))
     r_grid = np.arange(0.75, r_max + 1e-9, 0.1)  # fine enough to take the nearest
     rho_step = 0.08
