@@ -203,28 +203,30 @@ def test_probe_sensing_counts_frames_without_camera_pose_by_reason():
     assert stats["camera"]["dropped"] == {} and unmeasured_frames(stats, 0)["no_pose"] == 3
 
 
-def test_the_daemon_tells_the_headset_page_and_the_log_as_devices_stall_and_return(caplog):
+def test_the_daemon_tells_the_headset_page_and_the_log_as_devices_stall_and_return(
+    caplog, tmp_path
+):
     import numpy as np
 
-    from humantele.follower.daemon import FollowerDaemon
-    from humantele.follower.sensing import Measurement
+    from humantele.follower.daemon import FollowerConfig, FollowerDaemon
+    from humantele.follower.sensing import Measurement, TrackerImage
     from humantele.tracking.status import TrackingStatus
 
+    def measured(t: float, stalled: bool, stale: bool) -> None:
+        """The daemon takes a measurement of a stalled stream and/or a stale force."""
+        m = Measurement(TrackingStatus.LOST, None, np.zeros(3), False, None, None, None,
+                        stale, stalled)  # fmt: skip
+        d.take_measurement(TrackerImage(t, None, None, None), m)
+
+    d = FollowerDaemon(FollowerConfig(state_dir=str(tmp_path), probe_source="truth"))
     published = []
-    feed = SimpleNamespace(publish=lambda k, f: published.append((k, f)))
-    d = SimpleNamespace(device_state={"headset_stream_stalled": False, "force_stale": False},
-                        feed=feed)  # fmt: skip
-
-    def m(stalled: bool, stale: bool) -> Measurement:
-        return Measurement(TrackingStatus.LOST, None, np.zeros(3), False, None, None, None,
-                           stale, stalled)  # fmt: skip
-
-    caplog.set_level("INFO", logger="humantele.follower.daemon")
-    FollowerDaemon.device_changes(d, m(False, False))
+    d.feed.publish = lambda kind, fields: published.append((kind, fields))
+    caplog.set_level("INFO", logger="humantele.follower.device_watch")
+    measured(0.0, False, False)
     assert published == []  # nothing changed
-    FollowerDaemon.device_changes(d, m(True, False))
-    FollowerDaemon.device_changes(d, m(True, False))  # once per change
-    FollowerDaemon.device_changes(d, m(False, True))
+    measured(0.1, True, False)
+    measured(0.2, True, False)  # once per change
+    measured(0.3, False, True)
     assert published == [
         ("devices", {"headset_stream_stalled": True, "force_stale": False}),
         ("devices", {"headset_stream_stalled": False, "force_stale": True}),

@@ -41,6 +41,7 @@ from humantele.follower.calibration_session import CalibrationSession
 from humantele.follower.clinic import Guide, simulator_modules
 from humantele.follower.clinics import make_clinic
 from humantele.follower.config import FollowerConfig
+from humantele.follower.device_watch import DeviceWatch
 from humantele.follower.feed import RendererFeed, model_fields
 from humantele.follower.figures import AlignmentFigures, TickFigures
 from humantele.follower.records import measurement_samples
@@ -118,7 +119,8 @@ class FollowerDaemon(Daemon):
         self.ticks = TickFigures(config.rate_hz)  # the main loop's ticks, how late
         self.tick_errors = 0
         self.tracking_lost = 0
-        self.device_state = {"headset_stream_stalled": False, "force_stale": False}
+        # the headset's stream and the force board, told to the headset page as they change
+        self.devices = DeviceWatch(lambda state: self.feed.publish("devices", state))
         # Scans (from the expert).
         self.scan: int | None = None
         self.scans_seen = 0
@@ -242,7 +244,7 @@ class FollowerDaemon(Daemon):
         """One tracker frame measured: calibration, alignment, the state stream, recording."""
         self.measurement = m
         self.measurements += 1
-        self.device_changes(m)
+        self.devices.update(m)
         self.tracking_lost += m.T_world_tip is None
         self.last_force_n = float(np.linalg.norm(m.force_world))
         if self.calibrating and not m.force_stale:  # a stale force is never taken as fresh
@@ -256,21 +258,6 @@ class FollowerDaemon(Daemon):
         self.record_measurement(frame.t, m)
         self.igtl.on_measurement(frame.t, self.calibration, m)
         self.registration.on_measurement(frame.t, m.T_world_tip, m.T_world_rig)
-
-    def device_changes(self, m: Measurement) -> None:
-        """The headset's stream stalled or back, the force board stale or back: logged, and
-        told to the headset page (``devices``) as it changes."""
-        now = {"headset_stream_stalled": bool(m.camera_stalled), "force_stale": bool(m.force_stale)}
-        if now == self.device_state:
-            return
-        words = {"headset_stream_stalled": ("headset stream stalled", "headset stream back"),
-                 "force_stale": ("force board stale (unplugged or silent): no force sent",
-                                 "force board back")}  # fmt: skip
-        for key, (bad, good) in words.items():
-            if now[key] != self.device_state[key]:
-                (log.warning if now[key] else log.info)("follower: %s", bad if now[key] else good)
-        self.device_state = now
-        self.feed.publish("devices", now)
 
     # --- recording ------------------------------------------------------------------------
 
