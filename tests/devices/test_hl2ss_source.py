@@ -37,6 +37,7 @@ from humantele.tracking.pipeline import Tracker
 from humantele.tracking.sim import SimFrameConfig, SimFrameSource, default_sim_pose
 from humantele.tracking.sources import make_frame_source
 from humantele.tracking.tool import load_tool
+from waits import wait_for
 
 T_RIG_CAMERA = Pose([0.004, -0.09, -0.012],
                     quat_multiply(quat_from_axis_angle([1, 0, 0], math.pi),  # fmt: skip
@@ -366,20 +367,18 @@ def test_a_reader_that_fell_behind_skips_to_the_newest_frame():
                                    bitrate=12_000_000))  # fmt: skip
         src.open()
         first = src.read()
+        k0 = src.last_sensor_ticks  # the frame's index (record()'s sensor ticks)
         first_read.set()
-        waited = 0.0
-        while srv.sent < len(records) and waited < 30:  # busy elsewhere while they arrive
-            threading.Event().wait(0.05)
-            waited += 0.05
+        # busy elsewhere while they arrive: all sent, then the last bytes in from loopback
+        wait_for(lambda: srv.sent == len(records), what="the other eleven frames sent")
         arrived = -1
-        while arrived != (arrived := _pending_bytes(src)):  # the last bytes in from loopback
+        while arrived != (arrived := _pending_bytes(src)):
             threading.Event().wait(0.05)
         newest = src.read()
+        k = src.last_sensor_ticks
         src.close()
     assert srv.sent == len(records)
     assert first is not None and newest is not None
-    k0 = round((first.device_time_s * 1e7 - 10_000_000) / 222_222)
-    k = round((newest.device_time_s * 1e7 - 10_000_000) / 222_222)
     assert (k0, k) == (0, 11)  # the newest of the eleven that had arrived
     assert src.dropped.get("stale", 0) == 10  # every frame before it but the first
     assert src.received == 2
