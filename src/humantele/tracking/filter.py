@@ -15,14 +15,6 @@ from humantele.config import ConfigModel
 from humantele.geometry import Pose
 
 
-def _rotation():  # noqa: ANN202 - scipy's Rotation class
-    """scipy's ``Rotation``, imported at the first filter built: the filter is off by default,
-    and ``scipy.spatial`` took 0.2 s of every sensing process's start to import."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation
-
-
 class FilterConfig(ConfigModel):
     """Alpha-beta gains (per frame, 0 < beta <= alpha <= 1) and the restart gap (s)."""
 
@@ -36,6 +28,11 @@ class PoseFilter:
     """Alpha-beta filter of a pose stream; ``update`` returns the filtered pose."""
 
     def __init__(self, config: FilterConfig | None = None):
+        # scipy.spatial imported here, not with the module: the filter is off by default, and
+        # the import took 0.2 s of every sensing process's start
+        from scipy.spatial.transform import Rotation
+
+        self._Rotation = Rotation
         self.config = config or FilterConfig()
         self.reset()
 
@@ -43,12 +40,12 @@ class PoseFilter:
         self._t: float | None = None
         self._x = np.zeros(3)
         self._v = np.zeros(3)
-        self._r = _rotation().identity()
+        self._r = self._Rotation.identity()
         self._w = np.zeros(3)
 
     def update(self, t: float, pose: Pose) -> Pose:
         """Filter the measurement ``pose`` taken at time ``t`` (s)."""
-        c, Rotation = self.config, _rotation()
+        c, Rotation = self.config, self._Rotation
         dt = None if self._t is None else t - self._t
         if dt is None or dt <= 0 or dt > c.reset_after_s:
             self._t = t
