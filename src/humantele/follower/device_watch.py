@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from humantele.follower.sensing import Measurement
 
 log = logging.getLogger(__name__)
 
@@ -24,7 +27,7 @@ class DeviceWatch:
         self.publish = publish
         self.state = {"headset_stream_stalled": False, "force_stale": False}
 
-    def update(self, m: Any) -> None:
+    def update(self, m: Measurement) -> None:
         """A measurement: a changed state is logged (a warning when a device goes bad, info
         when it is back) and published; the same state, nothing."""
         now = {"headset_stream_stalled": bool(m.camera_stalled), "force_stale": bool(m.force_stale)}
