@@ -48,8 +48,8 @@ def test_kinds_from_names_and_command_lines():
 def test_a_tree_s_cpu_is_counted_with_its_orphans(tmp_path):
     out = tmp_path / "cpu.json"
     r = subprocess.run(
-        [sys.executable, str(TOOL), "--interval", "0.05", "--json", str(out), "--",
-         sys.executable, "-c", TREE],
+        [sys.executable, str(TOOL), "--interval", "0.05", "--json", str(out), "--reference",
+         "1", "--", sys.executable, "-c", TREE],
         capture_output=True, text=True, timeout=120,
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
@@ -58,8 +58,14 @@ def test_a_tree_s_cpu_is_counted_with_its_orphans(tmp_path):
     assert 1.2 <= data["cpu_s"] < 10.0, data
     assert data["still_running"] == 0 and data["samples"] >= 1
     assert "total" in r.stderr and "CPU-s" in r.stderr
+    # the host's speed, timed before and after in the tool's own process: not in the
+    # command's CPU-s (counted, the two timings would add twice ``before`` to the burners')
+    before, after = data["reference_cpu_s"]
+    assert before > 0.05 and after > 0.05 and data["cpu_s"] < 1.2 + before
+    assert "host speed: the reference workload took" in r.stderr
     fail = subprocess.run(
-        [sys.executable, str(TOOL), "--", sys.executable, "-c", "raise SystemExit(3)"],
+        [sys.executable, str(TOOL), "--reference", "0", "--", sys.executable, "-c",
+         "raise SystemExit(3)"],
         capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert fail.returncode == 3  # the command's exit code is the tool's

@@ -18,6 +18,13 @@ and daemons they run in process), Chromium's ``chromium gpu``, ``chromium render
 ``servo``, ``video``: the follower's video process and the console's sim video), and
 ``other`` (the demo, the signaling server, coturn, Playwright's driver, a compiler ...).
 The command's exit code is this tool's.
+
+The host's own speed moves the figures: on a shared host the same tests took a third more
+CPU-s one hour than the hour before (nothing else running in the machine, no steal
+reported). So the tool times a fixed single-threaded workload (:func:`reference_cpu_s`: JSON
+as the wire's, small numpy products as the poses', OpenCV blur and JPEG as the video's, a
+sort of 32 MB, past the caches, as the tracker's tables) before and after the command, and
+prints it beside the figures (``--reference 0``: not).
 """
 
 from __future__ import annotations
@@ -166,6 +173,39 @@ def _is_child(pid: int) -> bool:
     return st is not None and st[0] == os.getpid()
 
 
+REFERENCE_QUIET_S = 0.60  # reference_cpu_s() on this project's 2-core machine, a quiet hour
+
+
+def reference_cpu_s(repeats: int = 3) -> float:
+    """The CPU-s of a fixed workload on one thread, in this process: the median of
+    ``repeats`` (on the host the budget was measured on, quiet: ``REFERENCE_QUIET_S``)."""
+    import cv2  # only here: the tool itself needs neither
+    import numpy as np
+
+    cv2.setNumThreads(1)
+    rows = [{"t": i * 1e-3, "pose": [float(j) for j in range(7)], "kind": "pose"}
+            for i in range(2000)]  # fmt: skip
+    rng = np.random.default_rng(7)
+    R = rng.standard_normal((4, 4))
+    img = rng.integers(0, 255, (480, 640, 3), dtype=np.uint8)
+    big = rng.standard_normal(4_000_000)
+    times = []
+    for _ in range(repeats):
+        t0 = time.process_time()
+        for _ in range(25):
+            json.loads(json.dumps(rows))
+        v = np.ones(4)
+        for _ in range(100_000):
+            v = R @ v
+            v /= np.linalg.norm(v)
+        for _ in range(150):
+            cv2.imencode(".jpg", cv2.GaussianBlur(img, (9, 9), 2.0))
+        for _ in range(5):
+            np.sort(big * 1.0001)
+        times.append(time.process_time() - t0)
+    return sorted(times)[len(times) // 2]
+
+
 def table(wall_s: float, total_s: float, tree: Tree, code: int, left: int) -> str:
     rows = tree.by_kind()
     sampled = sum(s for _, s in rows.values())
@@ -192,6 +232,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--interval", type=float, default=0.5, help="s between samples")
     parser.add_argument("--json", help="also write the figures to this file")
+    parser.add_argument(
+        "--reference", type=int, default=3, metavar="N",
+        help="time the reference workload N times before and after (0: not)",
+    )  # fmt: skip
     parser.add_argument("command", nargs=argparse.REMAINDER, help="-- the command to run")
     args = parser.parse_args(argv)
     command = args.command[1:] if args.command[:1] == ["--"] else args.command
@@ -200,6 +244,7 @@ def main(argv: list[str] | None = None) -> int:
     libc = ctypes.CDLL(None, use_errno=True)
     if libc.prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) != 0:
         print("suite_cpu: not a subreaper: orphans' CPU is not counted", file=sys.stderr)
+    reference = [reference_cpu_s(args.reference)] if args.reference > 0 else []
     t0 = time.monotonic()
     proc = subprocess.Popen(command)
     tree = Tree(proc.pid)
@@ -215,12 +260,23 @@ def main(argv: list[str] | None = None) -> int:
     left = reap_all(10.0)
     usage = resource.getrusage(resource.RUSAGE_CHILDREN)
     total = usage.ru_utime + usage.ru_stime
-    print(table(wall, total, tree, proc.returncode, left), file=sys.stderr, flush=True)
+    if reference:
+        reference.append(reference_cpu_s(args.reference))
+    print(table(wall, total, tree, proc.returncode, left), file=sys.stderr)
+    if reference:
+        print(
+            f"host speed: the reference workload took {reference[0]:.2f} CPU-s before, "
+            f"{reference[1]:.2f} after ({REFERENCE_QUIET_S:.2f} on a quiet host: "
+            f"{max(reference) / REFERENCE_QUIET_S:.2f}x)",
+            file=sys.stderr,
+        )
+    sys.stderr.flush()
     if args.json:
         rows = tree.by_kind()
         data = {
             "command": command, "wall_s": round(wall, 2), "cpu_s": round(total, 2),
             "exit_code": proc.returncode, "samples": tree.samples, "still_running": left,
+            "reference_cpu_s": [round(r, 3) for r in reference],
             "kinds": {k: {"processes": n, "cpu_s": round(s, 2)} for k, (n, s) in rows.items()},
         }  # fmt: skip
         Path(args.json).write_text(json.dumps(data, indent=1) + "\n")
