@@ -87,7 +87,10 @@ from system_packages import system_packages_line
 sys.path.append(str(Path(__file__).resolve().parent / "browser"))  # netns, for browser_scenario
 from netns import SCENARIOS, ScenarioError, run_scenario, skip_reason  # noqa: E402
 
-FAST_LANE_WORKERS = 3  # -m "not e2e": its tests wait on timers and sockets a third of the time
+# -m "not e2e": its tests wait on timers and sockets half of the time (one after the other: 141
+# s, 64 CPU-s). Three workers, four and five, alternated on one host (2026-11-29, c14e073):
+# 60.7, 61.5, 62.0 s; 57.9, 56.8, 56.8, 56.8 s; 57.6, 57.6 s.
+FAST_LANE_WORKERS = 4
 SUITE_WORKERS = 2  # with the e2e tests: their real-time loops need the two cores
 
 PROCESS_FIXTURES = {"session", "demo_run", "browser_scenario"}
@@ -254,7 +257,7 @@ def browser_scenario(tmp_path_factory):
 
 
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
-    """``-n auto`` (pyproject.toml's addopts): three workers for the fast lane, two for a run
+    """``-n auto`` (pyproject.toml's addopts): four workers for the fast lane, two for a run
     with the e2e tests (their slow ones run one at a time in two xdist groups, beside
     the rest). An explicit ``-n N`` wins."""
     return FAST_LANE_WORKERS if _fast_lane(config) else SUITE_WORKERS
