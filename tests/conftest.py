@@ -65,6 +65,11 @@ if sys.dont_write_bytecode:
 # worker now do too. An explicit setting wins.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OPENCV_FOR_THREADS_NUM", "1")
+# Tables the processes compute once and keep (the tracker's sphere tables: half a sensing
+# process's start) in pytest's cache folder, not the user's (an explicit setting wins).
+os.environ.setdefault(
+    "HUMANTELE_CACHE_DIR", str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "humantele")
+)
 
 import pytest  # noqa: E402 - after the bytecode cache is set
 from hypothesis import settings  # noqa: E402

@@ -13,6 +13,7 @@ import pytest
 from humantele.cli import build_parser
 from humantele.cliargs import FATAL_EXIT_CODES
 from humantele.haptics.servo_config import ServoConfig
+from humantele.tracking.sphere import CACHE_DIR_ENV
 from humantele.transport.config import LinkConfig
 
 UNITS = Path(__file__).resolve().parents[1] / "examples" / "systemd"
@@ -36,6 +37,13 @@ def test_unit_restarts_on_failure_but_not_on_fatal_codes(name):
     assert argv[0] == name.removeprefix("humantele-")
     args = build_parser(argv).parse_args(argv)  # the options exist and their values parse
     assert args.config.startswith("/etc/humantele/")
+
+
+def test_follower_unit_keeps_the_tracker_s_tables_where_it_may_write():
+    svc = _unit("humantele-follower")["Service"]
+    assert svc["ProtectSystem"] == "strict"  # so nothing outside the unit's own directories
+    cache = dict(shlex.split(e)[0].split("=", 1) for e in [svc["Environment"]])
+    assert cache[CACHE_DIR_ENV] == f"/var/cache/{svc['CacheDirectory']}"
 
 
 def test_expert_unit_allows_the_servo_s_realtime_priority():

@@ -26,12 +26,19 @@ Everything runs batched over all blobs of a frame. Units: m, px, IR counts.
 
 from __future__ import annotations
 
+import hashlib
+import logging
 import math
+import os
+import tempfile
 from dataclasses import dataclass
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -63,8 +70,77 @@ class SphereTables:
         return c.reshape(rho.shape), g.reshape(rho.shape)
 
 
+CACHE_DIR_ENV = "HUMANTELE_CACHE_DIR"
+
+
+def cache_dir() -> Path | None:
+    """Where computed tables are kept between processes: ``$HUMANTELE_CACHE_DIR``, else
+    ``$XDG_CACHE_HOME/humantele`` (``~/.cache/humantele``); None (not kept) without a home."""
+    if os.environ.get(CACHE_DIR_ENV):
+        return Path(os.environ[CACHE_DIR_ENV])
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path("~/.cache").expanduser())
+    return base / "humantele" if base.is_absolute() else None
+
+
 @lru_cache(maxsize=8)
 def sphere_tables(psf_sigma_px: float, r_max: float = 16.0) -> SphereTables:
+    """:func:`compute_sphere_tables`, kept in :func:`cache_dir` (0.65 MB a PSF): computing
+    them (and importing scipy.special) took 0.4-0.6 CPU-s, half of a sensing process's start,
+    paid again at each restart. The file is named by the arguments and the computing code (its bytecode and constants),
+    so a changed formula is computed afresh; one that cannot be read or does not hold what
+    the arguments give is computed again and replaced; a cache that cannot be written is
+    only not kept (logged at debug)."""
+    folder = cache_dir()
+    if folder is None:
+        return compute_sphere_tables(psf_sigma_px, r_max)
+    code = compute_sphere_tables.__code__
+    key = repr((float(psf_sigma_px), float(r_max), code.co_code, code.co_consts))
+    path = folder / f"sphere-{hashlib.sha256(key.encode()).hexdigest()[:20]}.npz"
+    tables = _load_tables(path, r_max)
+    if tables is None:
+        tables = compute_sphere_tables(psf_sigma_px, r_max)
+        _save_tables(path, tables)
+    return tables
+
+
+def _load_tables(path: Path, r_max: float) -> SphereTables | None:
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            sigma, r_grid, rho_step, cg = (f["sigma_px"], f["r_grid"], f["rho_step"], f["cg"])
+    except FileNotFoundError:
+        return None
+    except Exception as exc:  # truncated, not an npz, a field missing: computed again
+        log.debug("sphere tables: %s unreadable (%s): computing them", path, exc)
+        return None
+    ok = (
+        sigma.shape == () and rho_step.shape == () and r_grid.ndim == 1 and len(r_grid) > 1
+        and cg.ndim == 3 and cg.shape[:2] == (len(r_grid), 2) and cg.shape[2] > 1
+        and abs(r_grid[-1] - r_max) < 0.1 and np.isfinite(cg).all()
+    )  # fmt: skip
+    if not ok:
+        log.debug("sphere tables: %s does not hold tables for r_max %s: computed", path, r_max)
+        return None
+    return SphereTables(float(sigma), r_grid.astype(np.float64), float(rho_step), cg)
+
+
+def _save_tables(path: Path, t: SphereTables) -> None:
+    """Write ``t`` to ``path`` whole or not at all (a temporary file renamed over it)."""
+    tmp = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".tmp", delete=False) as f:
+            tmp = f.name
+            np.savez(f, sigma_px=t.sigma_px, r_grid=t.r_grid, rho_step=t.rho_step, cg=t.cg)
+        os.replace(tmp, path)
+        tmp = None
+    except OSError as exc:
+        log.debug("sphere tables: not kept in %s (%s)", path.parent, exc)
+    finally:
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
+
+
+def compute_sphere_tables(psf_sigma_px: float, r_max: float = 16.0) -> SphereTables:
     """Tables of ``C`` and ``G`` for a Gaussian PSF of ``psf_sigma_px`` (plus the pixel box).
 
     Exact radial integrals of the blurred disc: with ``a = r sin t`` over the disc,
