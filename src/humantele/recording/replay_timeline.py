@@ -21,9 +21,9 @@ hl2ss's 100 ns ticks), anchored to the first receive time, and anchored again wh
 would come more than ``tolerance_s`` after its own receive time (a first sample received late,
 a clock that restarts): the receive times alone carry the recorder's scheduling (a recorder
 starved 0.5 s received half a second of reports in one burst). Anchored again, a sample is
-never before the one before it (a first sample received 80 ms late, and the next ones, sent
-from the device's queue, quicker than its clock: time does not go back, nothing is skipped
-as stale); ``reanchored`` counts these.
+never before the one before it, nor with it (a first sample received 80 ms late, and the next
+ones, sent from the device's queue, quicker than its clock: time does not go back, nothing is
+skipped as stale); ``reanchored`` counts these.
 """
 
 from __future__ import annotations
@@ -34,6 +34,10 @@ from collections.abc import Callable
 from pathlib import Path
 
 LOOP_GAP_S = 0.01  # between a loop's last sample and the next loop's first (s)
+# A sample anchored again before the one before it comes this long after it (s): three or more
+# at one time, a paced reader that skips to the newest due sample (the hl2ss client's way)
+# skipped the middle ones as stale, on a clock that only its own waits move.
+REANCHOR_STEP_S = 1e-6
 
 _SHARED: weakref.WeakValueDictionary[tuple[str, int], ReplayTimeline] = (
     weakref.WeakValueDictionary()
@@ -95,8 +99,8 @@ class DeviceClock:
             ahead = self._t + ((ticks - self._ticks) % self.wrap) / self.ticks_per_s
             if ahead <= t_receive + self.tolerance_s:
                 t = ahead
-            else:
-                t = max(t_receive, self._t)
+            else:  # after the sample before it, if only just: due at once after it, not with it
+                t = max(t_receive, self._t + REANCHOR_STEP_S)
                 self.reanchored += 1
         self._ticks, self._t = ticks, t
         return t
