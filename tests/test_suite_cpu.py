@@ -44,12 +44,21 @@ def test_kinds_from_names_and_command_lines():
     assert k("turnserver", ["turnserver", "-n"]) == "other"
 
 
+def test_a_slice_of_the_reference_reads_as_the_whole():
+    ref = suite_cpu.Reference()
+    whole_from_one, whole_from_four = ref.cpu_s(1), ref.cpu_s(4)
+    assert 0.5 < whole_from_one / whole_from_four < 2.0  # (not 1/20: read as the whole)
+    line = suite_cpu.host_speed_line(0.6, 0.7, [0.65, 0.9, 0.62])
+    assert "0.60 CPU-s before" in line and "0.70 after" in line
+    assert "during it 0.65 (median of 3, slowest 0.90)" in line
+
+
 @pytest.mark.e2e  # runs tools/suite_cpu.py and its process tree (the fast lane leaves it out)
 def test_a_tree_s_cpu_is_counted_with_its_orphans(tmp_path):
     out = tmp_path / "cpu.json"
     r = subprocess.run(
         [sys.executable, str(TOOL), "--interval", "0.05", "--json", str(out), "--reference",
-         "1", "--", sys.executable, "-c", TREE],
+         "1", "--probe-every", "0.2", "--", sys.executable, "-c", TREE],
         capture_output=True, text=True, timeout=120,
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
@@ -58,11 +67,13 @@ def test_a_tree_s_cpu_is_counted_with_its_orphans(tmp_path):
     assert 1.2 <= data["cpu_s"] < 10.0, data
     assert data["still_running"] == 0 and data["samples"] >= 1
     assert "total" in r.stderr and "CPU-s" in r.stderr
-    # the host's speed, timed before and after in the tool's own process: not in the
-    # command's CPU-s (counted, the two timings would add twice ``before`` to the burners')
-    before, after = data["reference_cpu_s"]
-    assert before > 0.05 and after > 0.05 and data["cpu_s"] < 1.2 + before
-    assert "host speed: the reference workload took" in r.stderr
+    # the host's speed, timed before, during (a slice every 0.2 s, each read as the whole)
+    # and after in the tool's own process: not in the command's CPU-s (counted, the timings
+    # would add twice ``before`` and more to the burners')
+    ref = data["reference_cpu_s"]
+    assert ref["before"] > 0.05 and ref["after"] > 0.05 and data["cpu_s"] < 1.2 + ref["before"]
+    assert len(ref["during"]) >= 2 and min(ref["during"]) > 0.05
+    assert "host speed: the reference workload took" in r.stderr and "during it" in r.stderr
     fail = subprocess.run(
         [sys.executable, str(TOOL), "--reference", "0", "--", sys.executable, "-c",
          "raise SystemExit(3)"],

@@ -86,10 +86,10 @@ def cache_dir() -> Path | None:
 def sphere_tables(psf_sigma_px: float, r_max: float = 16.0) -> SphereTables:
     """:func:`compute_sphere_tables`, kept in :func:`cache_dir` (0.65 MB a PSF): computing
     them (and importing scipy.special) took 0.4-0.6 CPU-s, half of a sensing process's start,
-    paid again at each restart. The file is named by the arguments and the computing code (its bytecode and constants),
-    so a changed formula is computed afresh; one that cannot be read or does not hold what
-    the arguments give is computed again and replaced; a cache that cannot be written is
-    only not kept (logged at debug)."""
+    paid again at each restart. The file is named by the arguments and the computing code
+    (its bytecode and constants), so a changed formula is computed afresh; one that cannot be
+    read or does not hold what the arguments give is computed again and replaced; a cache
+    that cannot be written is only not kept (logged at debug)."""
     folder = cache_dir()
     if folder is None:
         return compute_sphere_tables(psf_sigma_px, r_max)
