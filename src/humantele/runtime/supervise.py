@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from humantele.cliargs import FATAL_EXIT_CODES
+from humantele.runtime.signal_child import signal_child
 
 
 @dataclass
@@ -108,12 +109,10 @@ class SupervisedDaemon:
         if proc is None:
             return None
         if proc.returncode is None:
-            with contextlib.suppress(ProcessLookupError):
-                proc.send_signal(signal.SIGTERM)
+            signal_child(proc, signal.SIGTERM)  # (not send_signal: it may take the exit code)
             try:
                 await asyncio.wait_for(proc.wait(), timeout_s)
             except TimeoutError:
-                with contextlib.suppress(ProcessLookupError):
-                    proc.kill()
+                signal_child(proc, signal.SIGKILL)
                 await proc.wait()
         return proc.returncode

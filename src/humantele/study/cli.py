@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from humantele.config import ConfigError
+from humantele.runtime.signal_child import signal_child
 from humantele.study.conditions import Run, StudyFile, load_conditions
 
 SESSION_CORES = 1.0  # cores one run is given (see the module docstring)
@@ -185,16 +186,15 @@ async def _run_child(run: Run, study: StudyFile, out: Path) -> tuple[bool, str, 
         try:
             await asyncio.wait_for(proc.wait(), limit)
         except TimeoutError:
-            proc.kill()
+            signal_child(proc, signal.SIGKILL)
             await proc.wait()
             return False, f"killed after {limit:.0f} s", None
         except asyncio.CancelledError:  # the study was stopped: let the child stop cleanly
-            with contextlib.suppress(ProcessLookupError):
-                proc.send_signal(signal.SIGTERM)
+            signal_child(proc, signal.SIGTERM)
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(proc.wait(), 30)
             if proc.returncode is None:
-                proc.kill()
+                signal_child(proc, signal.SIGKILL)
                 await proc.wait()
             raise
     summary_path = d / "summary.json"

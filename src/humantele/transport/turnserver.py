@@ -34,6 +34,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from humantele.runtime.signal_child import signal_child
 from humantele.transport.config import IceServer
 
 log = logging.getLogger(__name__)
@@ -222,11 +223,11 @@ class TurnServer:
         """Terminate the process (kill after 5 s) and remove its directory."""
         proc, self._proc = self._proc, None
         if proc is not None and proc.returncode is None:
-            proc.terminate()
+            signal_child(proc, signal.SIGTERM)
             try:
                 await asyncio.wait_for(proc.wait(), 5.0)
             except TimeoutError:
-                proc.kill()
+                signal_child(proc, signal.SIGKILL)
                 await proc.wait()
         if self._dir is not None:
             self._dir.cleanup()
