@@ -44,7 +44,7 @@ def main(argv: list[str]) -> int:
     scenarios = [s for g in (argv or GROUPS) for s in GROUPS[g]]
     for name in scenarios:
         out = Path(tempfile.mkdtemp(prefix=f"humantele-{name}-"))
-        cmd = [sys.executable, str(NETNS), name, "--out", str(out)]
+        cmd = [sys.executable, str(NETNS), name, "--out", str(out), "--arg", "pictures=true"]
         print(f"{name} ...", flush=True)
         if subprocess.run(cmd, stdout=subprocess.DEVNULL).returncode != 0:
             print(f"{name} failed: its files are in {out}", file=sys.stderr)
