@@ -177,6 +177,7 @@ def _is_child(pid: int) -> bool:
 
 SLICES = 20  # the reference workload is this many equal slices; one is timed during the run
 PROBE_EVERY_S = 15.0  # between two timed slices during the run (s; --probe-every)
+REFERENCE_LEAST_S = 0.57  # Reference().cpu_s(), the least seen on the 2-core machine (11-29)
 
 
 class Reference:
@@ -241,9 +242,6 @@ def host_speed_line(before: float, after: float, during: list[float]) -> str:
         f"{after:.2f} after (the least seen on the 2-core machine the budget is measured on: "
         f"{REFERENCE_LEAST_S:.2f})"
     )
-
-
-REFERENCE_LEAST_S = 0.57  # Reference().cpu_s(), the least seen on the 2-core machine (11-29)
 
 
 def table(wall_s: float, total_s: float, tree: Tree, code: int, left: int) -> str:
