@@ -17,6 +17,8 @@ import pytest
 
 from humantele.runtime.signal_child import signal_child
 
+pytestmark = pytest.mark.e2e  # each runs a Python process (the fast lane leaves them out)
+
 EXIT = [sys.executable, "-c", "raise SystemExit(7)"]
 # Python 3.11's watcher is a thread per child (ThreadedChildWatcher); from 3.12 it may wait
 # on a pidfd in the event loop, which this fixture does not hold.
