@@ -207,6 +207,7 @@ async def run(ctx) -> dict:
         await ctx.until(page, "document.getElementById('us-empty').hidden", 30)
         await ctx.until(page, "document.getElementById('us-box').dataset.stale === 'false'", 30)
         data["live"] = await snap()
+        ctx.mark("first screens, live")
 
         # 2. Frames that keep coming but were captured 1.6 s before: not live, and the page
         #    says how old the picture is.
@@ -229,11 +230,13 @@ async def run(ctx) -> dict:
         frames.capture_delay_s = 0.0
         await ctx.until(page, "document.getElementById('us-box').dataset.stale === 'false'", 30)
 
+        ctx.mark("late frames")
         # 3. A loaded daemon: its loop held 0.7 s of every 1 s, for 8 s. Slow, never lost.
         await daemon.periodic(0.7, 1.0, 8.0)
         data["periodic"] = await sample(ctx, page, 8.0)
         await asyncio.sleep(1.0)
 
+        ctx.mark("loaded daemon")
         # 4. A stalled daemon (its socket open): slow, its chips grey, the picture not live; a
         #    click not acknowledged says so, and its answer comes when the daemon does.
         daemon.hold()
@@ -262,13 +265,18 @@ async def run(ctx) -> dict:
             30,
         )  # fmt: skip
         data["commands"] = list(session.commands)
+        ctx.mark("stalled daemon")
 
         # 5. A page that cannot keep up (Chromium's CPU throttled 100 times or more): it reads the
         #    daemon's messages late, says so ("page behind", not "slow", never "lost"), and the
         #    daemon holds its states and frames until it catches up (then it does).
         #    How far to throttle depends on the machine (a page that composites in software
         #    on a quiet machine kept up at 40 times, waited out for 40 s): harder until it
-        #    falls behind.
+        #    falls behind. This phase costs about a core: Chromium throttles by spinning the
+        #    page's thread (its renderer took 0.78 of a core throttled 100 times, 0.30 not, the
+        #    demo's console, 2026-11-29), and starting harder is slower, not faster: at 300
+        #    times the page took 12-37 s to fall behind and 21-27 s to catch up, against 7 and
+        #    8 s at 100 (the scenario's marks; its polls are throttled too).
         cdp = await page.context.new_cdp_session(page)
         behind = ("(() => { const s = (" + SNAPSHOT_JS + ")();"
                   " return s.expert.startsWith('page behind') && s.slow && s; })()")  # fmt: skip
@@ -279,6 +287,7 @@ async def run(ctx) -> dict:
                 data["behind"] = await ctx.until(page, behind, 40)
                 data["throttled"] = rate
                 break
+        ctx.mark("page behind")
         assert data["behind"], "the page never fell behind, even throttled 600 times"
         # The page judges itself behind before its next ping tells the daemon so: the daemon
         # holds from that ping on (a page that caught up fast was let go before it had).
@@ -290,6 +299,7 @@ async def run(ctx) -> dict:
         await ctx.until(page, "document.getElementById('chip-expert').dataset.level === 'ok'"
                         " && document.getElementById('slow').hidden", 120)  # fmt: skip
         data["caught_up"] = await snap()
+        ctx.mark("caught up")
 
         # 6. The daemon gone (its socket closed): lost contact; a click cannot be sent.
         await daemon.run(server.stop())
