@@ -55,7 +55,7 @@ def test_console_tells_the_truth_when_the_daemon_is_slow(browser_scenario):
     assert d["commands"] == ["scan"]
     r = d["recovered"]
     assert r["slow"] is None and r["chips_stale"] == [] and r["expert_level"] == "ok"
-    # A page that cannot keep up (CPU throttled): "page behind", not the daemon's fault nor
+    # A page that cannot keep up (its renderer starved): "page behind", not the daemon's fault nor
     # lost; the daemon held its states and frames meanwhile; it caught up.
     b = d["behind"]
     assert b["lost"] is None and b["slow"].startswith("This page is behind: it reads"), b
