@@ -26,6 +26,8 @@ from typing import Any
 
 from playwright.async_api import Browser, BrowserContext, Page, async_playwright
 
+from humantele.runtime.signal_child import signal_child
+
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE.parent / "session"), str(HERE.parent)]  # its helpers, and tests/'s
 
@@ -446,11 +448,11 @@ class DemoRun:
         if self.proc is None:
             return
         if self.proc.returncode is None:
-            self.proc.send_signal(signal.SIGTERM)
+            signal_child(self.proc, signal.SIGTERM)
             try:
                 await asyncio.wait_for(self.proc.wait(), 30)
             except TimeoutError:
-                self.proc.kill()
+                signal_child(self.proc, signal.SIGKILL)
                 await self.proc.wait()
         if self.own_group:  # whatever of its group is left (the runner's group is not it)
             with contextlib.suppress(ProcessLookupError):

@@ -21,6 +21,7 @@ import pytest
 from humantele.follower.calibration import CALIBRATION_FILE, build_calibration
 from humantele.follower.sim_human import SimPatient
 from humantele.recording import read_recording
+from humantele.runtime.signal_child import signal_child
 from humantele.signaling.server import SignalConfig, SignalingServer
 from procgroups import daemon_of, descendants, pid_alive, resource_tracker
 from session_slot import scaled, whole_session_slot
@@ -122,14 +123,13 @@ class Session:
     async def kill(self, role: str) -> None:
         proc = self.procs[role]
         self.stopped.add(role)
-        proc.send_signal(signal.SIGKILL)
+        signal_child(proc, signal.SIGKILL)
         await proc.wait()
 
     async def terminate(self, role: str, timeout: float = 15.0) -> int:
         proc = self.procs[role]
         self.stopped.add(role)
-        if proc.returncode is None:
-            proc.send_signal(signal.SIGTERM)
+        signal_child(proc, signal.SIGTERM)  # (not send_signal: it may take the exit code)
         try:
             return await asyncio.wait_for(proc.wait(), timeout)
         except TimeoutError:
@@ -156,7 +156,7 @@ class Session:
                         continue
                     with contextlib.suppress(OSError):
                         os.kill(child, signal.SIGKILL)
-                proc.kill()
+                signal_child(proc, signal.SIGKILL)
                 await proc.wait()
         for _ in range(50):
             if not any(pid_alive(p) for p in trackers):

@@ -17,6 +17,7 @@ import asyncio
 import json
 import os
 import secrets
+import signal
 import sys
 import tempfile
 import time
@@ -26,6 +27,7 @@ import numpy as np
 
 from humantele.bench import publish
 from humantele.report import machine_line, markdown_table
+from humantele.runtime.signal_child import signal_child
 
 SECTION = "igtl"
 
@@ -132,13 +134,12 @@ async def _run(
         meas_rate = (f_stats.get("measurements", 0) - m0) / (time.monotonic() - t0)
     finally:
         for p in procs.values():
-            if p.returncode is None:
-                p.terminate()
+            signal_child(p, signal.SIGTERM)
         for p in procs.values():
             try:
                 await asyncio.wait_for(p.wait(), 20)
             except TimeoutError:
-                p.kill()
+                signal_child(p, signal.SIGKILL)
                 await p.wait()
     cpu = None if c0 is None or c1 is None else 100.0 * (c1 - c0) / (t1 - t0)
     return {"cpu_percent": cpu, "children_cpu_percent": 100.0 * (k1 - k0) / (t1 - t0),

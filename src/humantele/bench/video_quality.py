@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import json
 import os
 import signal
@@ -36,6 +35,7 @@ import numpy as np
 
 from humantele.bench import publish, pyplot, save_chart
 from humantele.report import BENCHMARKS_MD, machine_line, markdown_table
+from humantele.runtime.signal_child import signal_child
 from humantele.runtime.stats import percentile_ms
 
 SECTION = "video-quality"
@@ -161,10 +161,8 @@ async def point(width: int, height: int, kbps: int, seconds: float) -> dict[str,
                     decoded[f.seq] = luma_plane(f.frame)[: f.height, : f.width].copy()
             await child.wait()
         finally:
-            if child.returncode is None:
-                with contextlib.suppress(ProcessLookupError):
-                    child.send_signal(signal.SIGTERM)
-                await child.wait()
+            signal_child(child, signal.SIGTERM)
+            await child.wait()
             await expert.close()
             await rx.close()
             run.cancel()
